@@ -5,15 +5,41 @@
 //! or one piece of mathematics the stages share. The engine reaches this
 //! crate only through [`registry`] and the contract in `fure_stage_api`.
 
+// Data types.
 pub mod camera;
 pub mod image;
 pub mod mesh;
 pub mod scene;
 pub mod strands;
 
+// Reading and writing them.
+pub mod formats;
+
+// Shared mathematics.
+pub mod geom;
+pub mod render;
+
+// Stages.
+pub mod basis;
+pub mod charts;
+pub mod defur;
+pub mod demo;
+pub mod evaluate;
+pub mod frosting;
+pub mod learn;
+pub mod lengths;
+pub mod orientation;
+pub mod outer_surface;
+pub mod parts;
+pub mod roots;
+pub mod synthetic;
+
 use fure_stage_api::Stage;
 
 /// Every stage kind this crate provides.
 pub fn registry() -> Vec<Box<dyn Stage>> {
-    vec![]
+    #[allow(unused_mut)]
+    let mut stages: Vec<Box<dyn Stage>> = Vec::new();
+    // Each stage module adds its stages here, one line each.
+    stages
 }
