@@ -9,7 +9,9 @@
 pub mod camera;
 pub mod image;
 pub mod mesh;
+pub mod rootset;
 pub mod scene;
+pub mod shell;
 pub mod strands;
 
 // Reading and writing them.
