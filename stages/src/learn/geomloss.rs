@@ -1,0 +1,258 @@
+//! Geometric losses: L_chm (tips toward the outer envelope M_outer) and
+//! L_sdf (no penetration of the root mesh M_root), both read from distance
+//! grids precomputed once per run.
+//!
+//! Distance grids: a cubic-cell grid over a box (the union of both meshes'
+//! boxes padded by 10% of the scene diagonal), values at the nodes, trilinear
+//! interpolation inside, and outside the box the value at the clamped point
+//! plus the distance to it (both fields grow away from the body there). The
+//! gradient is the analytic gradient of the trilinear interpolant, so the
+//! loss gradients are exact for the interpolated field (checked against finite
+//! differences). NeuralFur uses a 32^3 SDF grid; our default is 48^3.
+//!
+//! Choices where the paper is vague (documented here, fixed in code):
+//! - L_chm: the paper says only "attracts fur to the outer envelope". We read
+//!   it as a one-sided chamfer from each strand's tip to the envelope surface:
+//!   `mean_i (u(tip_i) / lbar)^2` with `u` the unsigned distance to M_outer and
+//!   `lbar` the mean target strand length. With every strand's length imposed
+//!   by placement, tips on the envelope fix how far each strand leans. Pulling
+//!   every point to the envelope would fight the roots, which lie inside it.
+//! - L_sdf: `mean over non-root points of relu(-phi(p) / lbar)` with `phi` the
+//!   signed distance to M_root (negative inside). A hinge (L1), so the push
+//!   out of the body does not fade as a point approaches the surface.
+//!
+//! Normalising by `lbar` makes both losses dimensionless (independent of the
+//! scene's units), so the loss weights carry over between scenes.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+/// A scalar field sampled on a regular grid with cubic cells.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DistanceGrid {
+    pub lo: Vec3,
+    pub cell: f32,
+    pub dims: [usize; 3],
+    /// Node values, x fastest.
+    pub values: Vec<f32>,
+}
+
+impl DistanceGrid {
+    /// Samples `f` at the nodes of a grid over `[lo, hi]` with `res` nodes
+    /// along the largest side (at least 2). Evaluation runs in parallel over z
+    /// slices; the result does not depend on the thread count.
+    pub fn from_fn<F: Fn(Vec3) -> f32 + Sync>(lo: Vec3, hi: Vec3, res: usize, f: F) -> Self {
+        let res = res.max(2);
+        let ext = (hi - lo).max(Vec3::splat(1e-9));
+        let cell = ext.max_element() / (res - 1) as f32;
+        let dims = [0, 1, 2].map(|i| ((ext[i] / cell).ceil() as usize + 1).max(2));
+        let slice = dims[0] * dims[1];
+        let mut values = vec![0.0f32; slice * dims[2]];
+        values
+            .par_chunks_mut(slice)
+            .enumerate()
+            .for_each(|(z, out)| {
+                for y in 0..dims[1] {
+                    for x in 0..dims[0] {
+                        let p = lo + cell * Vec3::new(x as f32, y as f32, z as f32);
+                        out[y * dims[0] + x] = f(p);
+                    }
+                }
+            });
+        DistanceGrid {
+            lo,
+            cell,
+            dims,
+            values,
+        }
+    }
+
+    fn hi(&self) -> Vec3 {
+        self.lo
+            + self.cell
+                * Vec3::new(
+                    (self.dims[0] - 1) as f32,
+                    (self.dims[1] - 1) as f32,
+                    (self.dims[2] - 1) as f32,
+                )
+    }
+
+    #[inline]
+    fn node(&self, x: usize, y: usize, z: usize) -> f32 {
+        self.values[(z * self.dims[1] + y) * self.dims[0] + x]
+    }
+
+    /// Interpolated value and gradient at `p`.
+    pub fn sample(&self, p: Vec3) -> (f32, Vec3) {
+        let hi = self.hi();
+        let q = p.clamp(self.lo, hi);
+        let (v, g) = self.sample_inside(q);
+        let off = p - q;
+        let d = off.length();
+        if d > 0.0 {
+            (v + d, g + off / d)
+        } else {
+            (v, g)
+        }
+    }
+
+    fn sample_inside(&self, q: Vec3) -> (f32, Vec3) {
+        let t = (q - self.lo) / self.cell;
+        let mut i = [0usize; 3];
+        let mut f = [0.0f32; 3];
+        for a in 0..3 {
+            let max_i = self.dims[a] - 2;
+            let fl = t[a].floor().max(0.0) as usize;
+            i[a] = fl.min(max_i);
+            f[a] = (t[a] - i[a] as f32).clamp(0.0, 1.0);
+        }
+        let c = |dx, dy, dz| self.node(i[0] + dx, i[1] + dy, i[2] + dz);
+        let (fx, fy, fz) = (f[0], f[1], f[2]);
+        let c00 = c(0, 0, 0) * (1.0 - fx) + c(1, 0, 0) * fx;
+        let c10 = c(0, 1, 0) * (1.0 - fx) + c(1, 1, 0) * fx;
+        let c01 = c(0, 0, 1) * (1.0 - fx) + c(1, 0, 1) * fx;
+        let c11 = c(0, 1, 1) * (1.0 - fx) + c(1, 1, 1) * fx;
+        let c0 = c00 * (1.0 - fy) + c10 * fy;
+        let c1 = c01 * (1.0 - fy) + c11 * fy;
+        let v = c0 * (1.0 - fz) + c1 * fz;
+        // Partial derivatives of the trilinear interpolant.
+        let dx00 = c(1, 0, 0) - c(0, 0, 0);
+        let dx10 = c(1, 1, 0) - c(0, 1, 0);
+        let dx01 = c(1, 0, 1) - c(0, 0, 1);
+        let dx11 = c(1, 1, 1) - c(0, 1, 1);
+        let dx0 = dx00 * (1.0 - fy) + dx10 * fy;
+        let dx1 = dx01 * (1.0 - fy) + dx11 * fy;
+        let gx = dx0 * (1.0 - fz) + dx1 * fz;
+        let gy = (c10 - c00) * (1.0 - fz) + (c11 - c01) * fz;
+        let gz = c1 - c0;
+        (v, Vec3::new(gx, gy, gz) / self.cell)
+    }
+}
+
+/// L_chm over a batch of strands with `l` points each (`points` holds
+/// `n * l` points, root first): returns the loss and adds its gradient
+/// (times `weight`) to `grad`.
+pub fn chamfer_tips(
+    outer: &DistanceGrid,
+    points: &[Vec3],
+    l: usize,
+    lbar: f32,
+    weight: f32,
+    grad: &mut [Vec3],
+) -> f32 {
+    let n = points.len() / l.max(1);
+    if n == 0 || l < 2 {
+        return 0.0;
+    }
+    let inv = 1.0 / lbar.max(1e-12);
+    let scale = 1.0 / n as f32;
+    let mut loss = 0.0f64;
+    for s in 0..n {
+        let tip = s * l + l - 1;
+        let (u, g) = outer.sample(points[tip]);
+        // The interpolated unsigned distance can dip below zero near the surface.
+        let u = u.max(0.0);
+        let r = u * inv;
+        loss += (r * r) as f64;
+        grad[tip] += weight * scale * 2.0 * r * inv * g;
+    }
+    (loss * scale as f64) as f32
+}
+
+/// L_sdf over a batch of strands with `l` points each: the hinge penetration
+/// of the root mesh over all non-root points. Returns the loss and adds its
+/// gradient (times `weight`) to `grad`.
+pub fn penetration(
+    sdf: &DistanceGrid,
+    points: &[Vec3],
+    l: usize,
+    lbar: f32,
+    weight: f32,
+    grad: &mut [Vec3],
+) -> f32 {
+    let n = points.len() / l.max(1);
+    if n == 0 || l < 2 {
+        return 0.0;
+    }
+    let inv = 1.0 / lbar.max(1e-12);
+    let scale = 1.0 / (n * (l - 1)) as f32;
+    let mut loss = 0.0f64;
+    for s in 0..n {
+        for k in 1..l {
+            let i = s * l + k;
+            let (phi, g) = sdf.sample(points[i]);
+            if phi < 0.0 {
+                loss += (-phi * inv) as f64;
+                grad[i] -= weight * scale * inv * g;
+            }
+        }
+    }
+    (loss * scale as f64) as f32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sphere_grid(res: usize) -> DistanceGrid {
+        DistanceGrid::from_fn(Vec3::splat(-2.0), Vec3::splat(2.0), res, |p| {
+            p.length() - 1.0
+        })
+    }
+
+    #[test]
+    fn grid_reproduces_a_sphere_sdf() {
+        let g = sphere_grid(41);
+        for p in [
+            Vec3::new(0.3, 0.2, 0.1),
+            Vec3::new(1.5, -0.2, 0.7),
+            Vec3::new(-0.9, 0.0, 0.1),
+        ] {
+            let (v, grad) = g.sample(p);
+            assert!((v - (p.length() - 1.0)).abs() < 0.02, "{p}: {v}");
+            assert!(grad.normalize().dot(p.normalize()) > 0.98);
+        }
+        // Outside the box the field keeps growing.
+        let (v, _) = g.sample(Vec3::new(5.0, 0.0, 0.0));
+        assert!((v - 4.0).abs() < 0.05);
+    }
+
+    #[test]
+    fn grid_gradient_matches_finite_differences() {
+        let g = sphere_grid(9);
+        let p = Vec3::new(0.37, -0.61, 0.23);
+        let (_, grad) = g.sample(p);
+        let h = 1e-3;
+        for a in 0..3 {
+            let mut e = Vec3::ZERO;
+            e[a] = h;
+            let fd = (g.sample(p + e).0 - g.sample(p - e).0) / (2.0 * h);
+            assert!((fd - grad[a]).abs() < 1e-2, "axis {a}: {fd} vs {}", grad[a]);
+        }
+    }
+
+    #[test]
+    fn losses_push_the_right_way() {
+        let outer = DistanceGrid::from_fn(Vec3::splat(-3.0), Vec3::splat(3.0), 31, |p| {
+            (p.length() - 2.0).abs()
+        });
+        let body = sphere_grid(31);
+        // One strand: root on the body, one point inside it, tip short of the envelope.
+        let pts = vec![
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.8, 0.0, 0.0),
+            Vec3::new(1.5, 0.0, 0.0),
+        ];
+        let mut g = vec![Vec3::ZERO; 3];
+        let lc = chamfer_tips(&outer, &pts, 3, 1.0, 1.0, &mut g);
+        assert!((lc - 0.25).abs() < 0.02);
+        // Descending moves the tip outward, toward the envelope.
+        assert!(g[2].x < 0.0);
+        let mut g = vec![Vec3::ZERO; 3];
+        let ls = penetration(&body, &pts, 3, 1.0, 1.0, &mut g);
+        assert!(ls > 0.0);
+        assert!(g[1].x < 0.0, "inside point must be pushed out");
+        assert_eq!(g[0], Vec3::ZERO);
+        assert_eq!(g[2], Vec3::ZERO);
+    }
+}
