@@ -1,1 +1,3 @@
-//! (in progress)
+//! Frosting-calibrated defurring (in progress).
+
+pub mod lbfgsb;
