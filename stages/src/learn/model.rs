@@ -1,0 +1,495 @@
+//! The two strand models trained by the shared loop: the codec (encoder +
+//! fine-tuned decoder + placement) and the dense baseline (every point free),
+//! plus the prepared per-root data and the Adam optimisers they use.
+//!
+//! Both models expose the same three operations on a subset of strands:
+//! `forward` (world points of each strand, root first), `backward` (parameter
+//! gradients from point gradients) and `step` (Adam). Work is split into fixed
+//! chunks of [`CHUNK`] strands processed in parallel; per-chunk gradients are
+//! summed in chunk order, so results do not depend on the thread count.
+//!
+//! Optimisers. The codec's parameters are all touched by every iteration, so
+//! it uses plain Adam. The dense baseline's parameters belong to single
+//! strands and only the sampled subset has gradients in an iteration; it uses
+//! "lazy" Adam: each strand keeps its own step count and only sampled strands
+//! are updated (unsampled strands do not drift on stale momentum). Per-strand
+//! colours, shared by both models, use the same lazy Adam. (The renderer's
+//! Adam updates whole tensors; this per-row variant is specific to strand
+//! subsets, hence kept here.)
+
+use glam::{Mat3, Vec3};
+use rayon::prelude::*;
+
+use super::mlp::{Mlp, MlpTape, PositionalEncoding};
+use super::placement::{self, Decoder};
+
+/// Strands per parallel work item.
+pub const CHUNK: usize = 128;
+
+/// Per-root data, prepared once: root, frame, length (scene units), encoder
+/// features `[gamma(r), one-hot part, rho, l / lmax]`.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    pub points: usize,
+    pub roots: Vec<Vec3>,
+    pub frames: Vec<Mat3>,
+    pub lengths: Vec<f32>,
+    pub features: Vec<f32>,
+    pub feature_dim: usize,
+}
+
+impl Prepared {
+    /// Builds the features. `parts` are part indices below `part_count`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        points: usize,
+        roots: Vec<Vec3>,
+        frames: Vec<Mat3>,
+        lengths: Vec<f32>,
+        parts: &[u16],
+        part_count: usize,
+        rho: &[f32],
+        pe: &PositionalEncoding,
+    ) -> Self {
+        let lmax = lengths.iter().copied().fold(0.0f32, f32::max).max(1e-12);
+        let feature_dim = pe.dim() + part_count + 2;
+        let mut features = vec![0.0f32; roots.len() * feature_dim];
+        for (i, row) in features.chunks_mut(feature_dim).enumerate() {
+            pe.encode(roots[i].to_array(), &mut row[..pe.dim()]);
+            let p = parts.get(i).copied().unwrap_or(0) as usize;
+            if p < part_count {
+                row[pe.dim() + p] = 1.0;
+            }
+            row[feature_dim - 2] = rho.get(i).copied().unwrap_or(0.0);
+            row[feature_dim - 1] = lengths[i] / lmax;
+        }
+        Prepared {
+            points,
+            roots,
+            frames,
+            lengths,
+            features,
+            feature_dim,
+        }
+    }
+    pub fn len(&self) -> usize {
+        self.roots.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.roots.is_empty()
+    }
+    /// Mean target length (the `lbar` of the geometric losses).
+    pub fn mean_length(&self) -> f32 {
+        if self.lengths.is_empty() {
+            return 0.0;
+        }
+        (self.lengths.iter().map(|&l| l as f64).sum::<f64>() / self.lengths.len() as f64) as f32
+    }
+}
+
+/// Adam over one flat parameter vector.
+#[derive(Debug, Clone)]
+pub struct Adam {
+    m: Vec<f32>,
+    v: Vec<f32>,
+    t: i32,
+}
+
+pub const BETA1: f32 = 0.9;
+pub const BETA2: f32 = 0.999;
+pub const ADAM_EPS: f32 = 1e-8;
+
+impl Adam {
+    pub fn new(n: usize) -> Self {
+        Adam {
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+            t: 0,
+        }
+    }
+    pub fn step(&mut self, p: &mut [f32], g: &[f32], lr: f32) {
+        self.t += 1;
+        let c1 = 1.0 - BETA1.powi(self.t);
+        let c2 = 1.0 - BETA2.powi(self.t);
+        for i in 0..p.len() {
+            self.m[i] = BETA1 * self.m[i] + (1.0 - BETA1) * g[i];
+            self.v[i] = BETA2 * self.v[i] + (1.0 - BETA2) * g[i] * g[i];
+            p[i] -= lr * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + ADAM_EPS);
+        }
+    }
+}
+
+/// Lazy Adam over rows of equal length; only the rows given are updated.
+#[derive(Debug, Clone)]
+pub struct RowAdam {
+    row: usize,
+    m: Vec<f32>,
+    v: Vec<f32>,
+    t: Vec<i32>,
+}
+
+impl RowAdam {
+    pub fn new(rows: usize, row: usize) -> Self {
+        RowAdam {
+            row,
+            m: vec![0.0; rows * row],
+            v: vec![0.0; rows * row],
+            t: vec![0; rows],
+        }
+    }
+    /// `g` holds one row per entry of `rows`, in that order.
+    pub fn step(&mut self, p: &mut [f32], g: &[f32], rows: &[u32], lr: f32) {
+        let n = self.row;
+        for (k, &r) in rows.iter().enumerate() {
+            let r = r as usize;
+            self.t[r] += 1;
+            let c1 = 1.0 - BETA1.powi(self.t[r]);
+            let c2 = 1.0 - BETA2.powi(self.t[r]);
+            for j in 0..n {
+                let i = r * n + j;
+                let gi = g[k * n + j];
+                self.m[i] = BETA1 * self.m[i] + (1.0 - BETA1) * gi;
+                self.v[i] = BETA2 * self.v[i] + (1.0 - BETA2) * gi * gi;
+                p[i] -= lr * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + ADAM_EPS);
+            }
+        }
+    }
+}
+
+/// Learning rates. Dense point steps are in units of the mean strand length.
+#[derive(Debug, Clone, Copy)]
+pub struct Rates {
+    pub encoder: f32,
+    pub decoder: f32,
+    pub points: f32,
+}
+
+/// The codec: encoder E_theta and fine-tuned decoder D_psi.
+#[derive(Debug, Clone)]
+pub struct Codec {
+    pub mlp: Mlp,
+    pub decoder: Decoder,
+    pub finetune_decoder: bool,
+    adam_theta: Adam,
+    adam_psi: Adam,
+}
+
+/// The dense baseline: the L - 1 non-root points of every strand, world space.
+#[derive(Debug, Clone)]
+pub struct Dense {
+    pub points: Vec<f32>,
+    adam: RowAdam,
+}
+
+/// Either model.
+#[derive(Debug, Clone)]
+pub enum Model {
+    Codec(Codec),
+    Dense(Dense),
+}
+
+/// What a forward pass keeps for its backward pass.
+pub enum Cache {
+    Codec(Vec<CodecChunk>),
+    Dense,
+}
+
+pub struct CodecChunk {
+    tape: MlpTape,
+    z: Vec<f32>,
+    local: Vec<Vec3>,
+}
+
+/// Parameter gradients of one iteration.
+pub enum Grads {
+    Codec { theta: Vec<f32>, psi: Vec<f32> },
+    Dense { rows: Vec<f32> },
+}
+
+impl Codec {
+    pub fn new(mlp: Mlp, decoder: Decoder, finetune_decoder: bool) -> Self {
+        let (nt, np) = (mlp.param_count(), decoder.params.len());
+        Codec {
+            mlp,
+            decoder,
+            finetune_decoder,
+            adam_theta: Adam::new(nt),
+            adam_psi: Adam::new(np),
+        }
+    }
+}
+
+impl Dense {
+    /// Starts from the given strands (`n * l` points, root first).
+    pub fn from_strands(points: &[Vec3], l: usize) -> Self {
+        let n = points.len() / l;
+        let mut p = Vec::with_capacity(n * (l - 1) * 3);
+        for s in 0..n {
+            for q in &points[s * l + 1..(s + 1) * l] {
+                p.extend_from_slice(&q.to_array());
+            }
+        }
+        Dense {
+            points: p,
+            adam: RowAdam::new(n, (l - 1) * 3),
+        }
+    }
+}
+
+impl Model {
+    /// Number of optimised geometry parameters.
+    pub fn parameter_count(&self) -> usize {
+        match self {
+            Model::Codec(c) => {
+                c.mlp.param_count()
+                    + if c.finetune_decoder {
+                        c.decoder.params.len()
+                    } else {
+                        0
+                    }
+            }
+            Model::Dense(d) => d.points.len(),
+        }
+    }
+
+    /// World points of the strands in `subset` (`subset.len() * L`, root first).
+    pub fn forward(&self, prep: &Prepared, subset: &[u32]) -> (Vec<Vec3>, Cache) {
+        let l = prep.points;
+        match self {
+            Model::Codec(c) => {
+                let dim = prep.feature_dim;
+                let k = c.decoder.k;
+                let parts: Vec<(Vec<Vec3>, CodecChunk)> = subset
+                    .par_chunks(CHUNK)
+                    .map(|ids| {
+                        let mut x = Vec::with_capacity(ids.len() * dim);
+                        for &i in ids {
+                            let i = i as usize;
+                            x.extend_from_slice(&prep.features[i * dim..(i + 1) * dim]);
+                        }
+                        let (z, tape) = c.mlp.forward(&x, ids.len());
+                        let mut local = vec![Vec3::ZERO; ids.len() * l];
+                        let mut world = vec![Vec3::ZERO; ids.len() * l];
+                        for (j, &i) in ids.iter().enumerate() {
+                            let i = i as usize;
+                            let loc = &mut local[j * l..(j + 1) * l];
+                            c.decoder.decode(&z[j * k..(j + 1) * k], loc);
+                            placement::place(
+                                loc,
+                                prep.roots[i],
+                                prep.frames[i],
+                                prep.lengths[i],
+                                &mut world[j * l..(j + 1) * l],
+                            );
+                        }
+                        (world, CodecChunk { tape, z, local })
+                    })
+                    .collect();
+                let mut world = Vec::with_capacity(subset.len() * l);
+                let mut chunks = Vec::with_capacity(parts.len());
+                for (w, ch) in parts {
+                    world.extend(w);
+                    chunks.push(ch);
+                }
+                (world, Cache::Codec(chunks))
+            }
+            Model::Dense(d) => {
+                let mut world = Vec::with_capacity(subset.len() * l);
+                let row = (l - 1) * 3;
+                for &i in subset {
+                    let i = i as usize;
+                    world.push(prep.roots[i]);
+                    let r = &d.points[i * row..(i + 1) * row];
+                    world.extend(r.chunks(3).map(|c| Vec3::new(c[0], c[1], c[2])));
+                }
+                (world, Cache::Dense)
+            }
+        }
+    }
+
+    /// Parameter gradients from `grad` = d loss / d world points.
+    pub fn backward(&self, prep: &Prepared, subset: &[u32], cache: &Cache, grad: &[Vec3]) -> Grads {
+        let l = prep.points;
+        match (self, cache) {
+            (Model::Codec(c), Cache::Codec(chunks)) => {
+                let k = c.decoder.k;
+                let nt = c.mlp.param_count();
+                let np = c.decoder.params.len();
+                let per_chunk: Vec<(Vec<f32>, Vec<f32>)> = subset
+                    .par_chunks(CHUNK)
+                    .zip(chunks.par_iter())
+                    .zip(grad.par_chunks(CHUNK * l))
+                    .map(|((ids, ch), g)| {
+                        let mut gz = vec![0.0f32; ids.len() * k];
+                        let mut gpsi = vec![0.0f32; np];
+                        let mut gl = vec![Vec3::ZERO; l];
+                        for (j, &i) in ids.iter().enumerate() {
+                            let i = i as usize;
+                            let loc = &ch.local[j * l..(j + 1) * l];
+                            placement::place_backward(
+                                loc,
+                                prep.frames[i],
+                                prep.lengths[i],
+                                &g[j * l..(j + 1) * l],
+                                &mut gl,
+                            );
+                            c.decoder.backward(
+                                &ch.z[j * k..(j + 1) * k],
+                                &gl,
+                                &mut gz[j * k..(j + 1) * k],
+                                c.finetune_decoder.then_some(&mut gpsi[..]),
+                            );
+                        }
+                        let mut gt = vec![0.0f32; nt];
+                        c.mlp.backward(&ch.tape, &gz, &mut gt);
+                        (gt, gpsi)
+                    })
+                    .collect();
+                let mut theta = vec![0.0f32; nt];
+                let mut psi = vec![0.0f32; np];
+                for (gt, gp) in per_chunk {
+                    for (a, b) in theta.iter_mut().zip(&gt) {
+                        *a += b;
+                    }
+                    for (a, b) in psi.iter_mut().zip(&gp) {
+                        *a += b;
+                    }
+                }
+                Grads::Codec { theta, psi }
+            }
+            _ => {
+                let mut rows = Vec::with_capacity(subset.len() * (l - 1) * 3);
+                for s in 0..subset.len() {
+                    for q in &grad[s * l + 1..(s + 1) * l] {
+                        rows.extend_from_slice(&q.to_array());
+                    }
+                }
+                Grads::Dense { rows }
+            }
+        }
+    }
+
+    /// One Adam step. `lbar` scales the dense point steps.
+    pub fn step(&mut self, grads: &Grads, subset: &[u32], rates: Rates, lbar: f32) {
+        match (self, grads) {
+            (Model::Codec(c), Grads::Codec { theta, psi }) => {
+                c.adam_theta.step(&mut c.mlp.params, theta, rates.encoder);
+                if c.finetune_decoder {
+                    c.adam_psi.step(&mut c.decoder.params, psi, rates.decoder);
+                }
+            }
+            (Model::Dense(d), Grads::Dense { rows }) => {
+                d.adam
+                    .step(&mut d.points, rows, subset, rates.points * lbar);
+            }
+            _ => {}
+        }
+    }
+
+    /// All strands (`n * L` points), computed in chunks without keeping tapes.
+    pub fn all_points(&self, prep: &Prepared) -> Vec<Vec3> {
+        let n = prep.len() as u32;
+        let mut out = Vec::with_capacity(prep.len() * prep.points);
+        let ids: Vec<u32> = (0..n).collect();
+        for block in ids.chunks(CHUNK * 32) {
+            out.extend(self.forward(prep, block).0);
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn codec_backward_matches_finite_differences() {
+        // A tiny codec; loss = sum w . points over a subset.
+        let l = 4;
+        let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 3.0).collect();
+        let comps = vec![
+            (0..l)
+                .map(|i| Vec3::X * (i * i) as f32 * 0.1)
+                .collect::<Vec<_>>(),
+            (0..l).map(|i| Vec3::Y * i as f32 * 0.2).collect(),
+        ];
+        let pe = PositionalEncoding::new(2, [-1.0; 3], [1.0; 3]);
+        let roots = vec![
+            Vec3::new(0.1, 0.2, 0.3),
+            Vec3::new(-0.4, 0.5, 0.0),
+            Vec3::ONE * 0.3,
+        ];
+        let frames = vec![Mat3::IDENTITY; 3];
+        let prep = Prepared::new(
+            l,
+            roots,
+            frames,
+            vec![0.5, 0.7, 0.3],
+            &[0, 1, 1],
+            2,
+            &[0.1, 0.5, 0.9],
+            &pe,
+        );
+        let mut mlp = Mlp::new(prep.feature_dim, 6, 2, 2, 9);
+        for (i, w) in mlp.params.iter_mut().enumerate().rev().take(14) {
+            *w = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
+        }
+        let mut model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true));
+        let subset = [0u32, 2];
+        let w: Vec<Vec3> = (0..subset.len() * l)
+            .map(|i| Vec3::new((i % 3) as f32 - 1.0, 0.5, (i % 2) as f32))
+            .collect();
+        let f = |m: &Model| -> f64 {
+            let (p, _) = m.forward(&prep, &subset);
+            p.iter().zip(&w).map(|(a, b)| a.dot(*b) as f64).sum()
+        };
+        let (_, cache) = model.forward(&prep, &subset);
+        let grads = model.backward(&prep, &subset, &cache, &w);
+        let Grads::Codec { theta, psi } = grads else {
+            panic!()
+        };
+        let h = 1e-2f32;
+        let Model::Codec(c) = &mut model else {
+            panic!()
+        };
+        let nt = c.mlp.param_count();
+        for i in (0..nt).step_by(5) {
+            let o = c.mlp.params[i];
+            c.mlp.params[i] = o + h;
+            let fp = f(&Model::Codec(c.clone()));
+            c.mlp.params[i] = o - h;
+            let fm = f(&Model::Codec(c.clone()));
+            c.mlp.params[i] = o;
+            let fd = (fp - fm) / (2.0 * h as f64);
+            assert!(
+                (fd - theta[i] as f64).abs() < 1e-2 * (1.0 + fd.abs()),
+                "theta {i}: {fd} vs {}",
+                theta[i]
+            );
+        }
+        for i in 0..c.decoder.params.len() {
+            let o = c.decoder.params[i];
+            c.decoder.params[i] = o + h;
+            let fp = f(&Model::Codec(c.clone()));
+            c.decoder.params[i] = o - h;
+            let fm = f(&Model::Codec(c.clone()));
+            c.decoder.params[i] = o;
+            let fd = (fp - fm) / (2.0 * h as f64);
+            assert!(
+                (fd - psi[i] as f64).abs() < 1e-2 * (1.0 + fd.abs()),
+                "psi {i}: {fd} vs {}",
+                psi[i]
+            );
+        }
+    }
+
+    #[test]
+    fn lazy_adam_updates_only_sampled_rows() {
+        let mut p = vec![1.0f32; 6];
+        let mut a = RowAdam::new(3, 2);
+        a.step(&mut p, &[1.0, -1.0], &[1], 0.1);
+        assert_eq!(&p[0..2], &[1.0, 1.0]);
+        assert!((p[2] - 0.9).abs() < 1e-6 && (p[3] - 1.1).abs() < 1e-6);
+        assert_eq!(&p[4..6], &[1.0, 1.0]);
+    }
+}
