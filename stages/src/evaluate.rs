@@ -1,1 +1,1228 @@
-//! (in progress)
+//! Evaluation: strand precision / recall / F-score against ground truth, unsupervised strand-geometry
+//! metrics, and image metrics (PSNR, SSIM) on held-out views. Stage `evaluate`, and the same functions as
+//! a library API for the learning and chart stages.
+//!
+//! # Strand precision / recall / F-score (the rule used)
+//! The public rule (hair-gs `loss/metrics.py`, see prior-art.md) with FurE's centimetre thresholds:
+//! 1. Both strand sets are converted to centimetres (`s_cm`, cm per scene unit) and every strand is
+//!    resampled to a common arc-length spacing (`spacing_cm`, default 0.5 cm): a strand of length `l`
+//!    gets `n = max(1, round(l / spacing))` equal segments, so the point density per centimetre of strand
+//!    is the same on both sides whatever their original sampling. Zero-length strands are skipped.
+//! 2. A resampled strand with points `p_0..p_n` becomes `n` oriented points: segment start `p_j` with the
+//!    unit segment direction `(p_{j+1} - p_j) / |..|`.
+//! 3. A predicted oriented point is a true positive at threshold `(d, a)` when ANY ground-truth oriented
+//!    point lies within distance `d` (ball query, `<= d`) with a direction within angle `a`: unsigned rule
+//!    `|dir_p . dir_g| >= cos a` (direction sign ignored, as in the public code), signed rule
+//!    `dir_p . dir_g >= cos a` (root-to-tip direction must agree too). Precision = true positives / all
+//!    predicted points; recall is the same with the roles swapped; `F = 2PR / (P + R)`, 0 when `P + R = 0`.
+//!    All three are reported in percent.
+//! 4. Ball queries use a uniform grid (cell = the smallest threshold distance, enlarged if the grid would
+//!    be huge) visited ring by ring from the query's cell, stopping as soon as every threshold has a match.
+//!    Every query is independent and the counts are integers, so the result does not depend on threads.
+//!    `max_queries` (0 = all) evaluates a deterministic evenly-strided subset of the query points of each
+//!    side when the sets are huge (the reference side is always complete): precision and recall are
+//!    fractions, so this is an unbiased estimate; the stage records the numbers actually used.
+//!
+//! # Unsupervised geometry metrics (the paper names them without defining them; these are fixed here)
+//! All are computed on strands resampled to `spacing_cm` (so they do not depend on the input sampling),
+//! in centimetres and radians:
+//! - `mean_length_cm`, `std_length_cm`: mean and population standard deviation of the strand arc lengths
+//!   (original polylines, not resampled).
+//! - Turning angle at interior vertex `j`: `theta_j = acos(clamp(t_{j-1} . t_j))` between consecutive unit
+//!   segment directions; discrete curvature `kappa_j = theta_j / (0.5 (|e_{j-1}| + |e_j|))` (rad/cm).
+//! - `global_curvature_variance` (Var_glob(kappa)): variance over strands of each strand's mean curvature,
+//!   `sum_j theta_j / length` (rad/cm), strands with at least one interior vertex. Measures how much
+//!   curliness differs between strands.
+//! - `local_curvature_variance` (Var_loc(kappa)): mean over strands of the variance of `kappa_j` along the
+//!   strand (strands with at least two interior vertices). Measures how irregular each strand's bending is.
+//! - `local_direction_variance` (Var_loc(dir)): mean over strands of the variance of the strand's unit
+//!   segment directions, `1 - |mean_j t_j|^2` (0 for a straight strand, up to 1).
+//! - `first_segment_direction_variance` (Var_loc^first(dir)): for every root, the unit directions of the
+//!   first resampled segment of all strands whose roots lie within `neighbour_cm` (default 1 cm) of it,
+//!   itself included; variance `1 - |mean|^2`; averaged over roots that have at least one neighbour.
+//!   Measures how coherently neighbouring strands leave the skin.
+//!
+//! # Image metrics
+//! - PSNR = `10 log10(1 / MSE)` over all pixels and channels of two images in [0, 1] (equal to
+//!   `20 log10(1 / sqrt(MSE))`); identical images give infinity (the stage clamps to 100 dB).
+//! - SSIM: Wang et al. with an 11x11 Gaussian window (sigma 1.5, normalised), `C1 = 0.01^2`,
+//!   `C2 = 0.03^2`, per channel, averaged over the "valid" window positions (no padding) and channels.
+//! - The stage composites RGBA images over `background` (default black) and compares RGB; rendered view
+//!   `i` (the sorted PNG files of `renders/test/`, or of `renders/` when it has no `test/` folder) is
+//!   compared with held-out camera `i` of `views/transforms_test.json`. PSNR and SSIM are means over views.
+//!   LPIPS is not computed: it needs pretrained network weights that cannot be fetched here.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::image::ImageF32;
+use crate::strands::Strands;
+
+/// Errors of the metric functions.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("images differ in size: {0}x{1}x{2} vs {3}x{4}x{5}")]
+    ImageSize(u32, u32, u32, u32, u32, u32),
+    #[error("image is empty or its data length {0} does not match its size")]
+    ImageData(usize),
+    #[error("image smaller than the 11x11 SSIM window: {0}x{1}")]
+    TooSmall(u32, u32),
+    #[error("invalid argument `{0}`: {1}")]
+    Arg(&'static str, String),
+}
+
+impl From<EvalError> for StageError {
+    fn from(e: EvalError) -> Self {
+        StageError::failed(e)
+    }
+}
+
+/// Precision, recall and F-score (percent) at one threshold.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Prf {
+    pub dist_cm: f32,
+    pub angle_deg: f32,
+    pub precision: f32,
+    pub recall: f32,
+    pub fscore: f32,
+}
+
+/// The paper's three thresholds (cm, degrees).
+pub const PAPER_THRESHOLDS: [(f32, f32); 3] = [(2.0, 20.0), (3.0, 30.0), (4.0, 40.0)];
+
+/// The metrics.json key of a threshold, e.g. `3cm_30deg`.
+pub fn threshold_key(dist_cm: f32, angle_deg: f32) -> String {
+    format!("{dist_cm}cm_{angle_deg}deg")
+}
+
+/// Resamples a polyline to `n = max(1, round(length / spacing))` equal arc-length segments
+/// (`n + 1` points, first and last kept). Returns the input unchanged when it has fewer than two
+/// points or zero length.
+pub fn resample_polyline(points: &[Vec3], spacing: f32) -> Vec<Vec3> {
+    if points.len() < 2 || !(spacing > 0.0) {
+        return points.to_vec();
+    }
+    let mut cum = Vec::with_capacity(points.len());
+    cum.push(0.0f32);
+    for w in points.windows(2) {
+        let last = *cum.last().unwrap_or(&0.0);
+        cum.push(last + (w[1] - w[0]).length());
+    }
+    let total = *cum.last().unwrap_or(&0.0);
+    if !(total > 0.0) || !total.is_finite() {
+        return points.to_vec();
+    }
+    let n = ((total / spacing).round() as usize).max(1);
+    let mut out = Vec::with_capacity(n + 1);
+    let mut seg = 0usize;
+    for i in 0..=n {
+        let s = total * i as f32 / n as f32;
+        while seg + 2 < cum.len() && cum[seg + 1] < s {
+            seg += 1;
+        }
+        let len = cum[seg + 1] - cum[seg];
+        let t = if len > 0.0 {
+            ((s - cum[seg]) / len).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        out.push(points[seg].lerp(points[seg + 1], t));
+    }
+    if let Some(last) = out.last_mut() {
+        *last = points[points.len() - 1];
+    }
+    out
+}
+
+/// Oriented points (segment start, unit direction) of all strands, in centimetres, after resampling
+/// to `spacing_cm`.
+pub fn oriented_points(strands: &Strands, s_cm: f32, spacing_cm: f32) -> (Vec<Vec3>, Vec<Vec3>) {
+    let per: Vec<(Vec<Vec3>, Vec<Vec3>)> = (0..strands.len())
+        .into_par_iter()
+        .map(|s| {
+            let cm: Vec<Vec3> = strands.strand(s).iter().map(|p| *p * s_cm).collect();
+            let r = resample_polyline(&cm, spacing_cm);
+            let mut pts = Vec::with_capacity(r.len());
+            let mut dirs = Vec::with_capacity(r.len());
+            for w in r.windows(2) {
+                let d = w[1] - w[0];
+                let l = d.length();
+                if l > 0.0 && l.is_finite() {
+                    pts.push(w[0]);
+                    dirs.push(d / l);
+                }
+            }
+            (pts, dirs)
+        })
+        .collect();
+    let mut pts = Vec::new();
+    let mut dirs = Vec::new();
+    for (p, d) in per {
+        pts.extend(p);
+        dirs.extend(d);
+    }
+    (pts, dirs)
+}
+
+/// A uniform grid over a point set for ball queries. Deterministic: points are stored sorted by
+/// (cell, index), and queries visit cells in a fixed order.
+pub struct BallGrid {
+    cell: f32,
+    origin: Vec3,
+    dims: [i64; 3],
+    /// Start of each cell's run in `order` (dense, `dims` product + 1 entries).
+    starts: Vec<u32>,
+    order: Vec<u32>,
+}
+
+impl BallGrid {
+    /// Builds a grid with cells of at least `cell` (enlarged so that the grid has at most ~16M cells).
+    pub fn new(points: &[Vec3], cell: f32) -> Self {
+        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for p in points.iter().filter(|p| p.is_finite()) {
+            lo = lo.min(*p);
+            hi = hi.max(*p);
+        }
+        if lo.x > hi.x {
+            lo = Vec3::ZERO;
+            hi = Vec3::ZERO;
+        }
+        let ext = hi - lo;
+        let mut cell = if cell > 0.0 && cell.is_finite() {
+            cell
+        } else {
+            1.0
+        };
+        let max_cells = 16_000_000f64;
+        loop {
+            let n = ((ext / cell).floor() + Vec3::ONE).as_dvec3();
+            if n.x * n.y * n.z <= max_cells {
+                break;
+            }
+            cell *= 1.5;
+        }
+        let dims = [
+            (ext.x / cell).floor() as i64 + 1,
+            (ext.y / cell).floor() as i64 + 1,
+            (ext.z / cell).floor() as i64 + 1,
+        ];
+        let ncell = (dims[0] * dims[1] * dims[2]) as usize;
+        let mut grid = BallGrid {
+            cell,
+            origin: lo,
+            dims,
+            starts: vec![0; ncell + 1],
+            order: Vec::new(),
+        };
+        let mut keyed: Vec<(u32, u32)> = points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.is_finite())
+            .map(|(i, p)| (grid.cell_index(grid.cell_of(*p)) as u32, i as u32))
+            .collect();
+        keyed.par_sort_unstable();
+        for &(c, _) in &keyed {
+            grid.starts[c as usize + 1] += 1;
+        }
+        for c in 0..ncell {
+            grid.starts[c + 1] += grid.starts[c];
+        }
+        grid.order = keyed.into_iter().map(|(_, i)| i).collect();
+        grid
+    }
+
+    fn cell_of(&self, p: Vec3) -> [i64; 3] {
+        let q = (p - self.origin) / self.cell;
+        [
+            (q.x.floor() as i64).clamp(-1, self.dims[0]),
+            (q.y.floor() as i64).clamp(-1, self.dims[1]),
+            (q.z.floor() as i64).clamp(-1, self.dims[2]),
+        ]
+    }
+
+    fn cell_index(&self, c: [i64; 3]) -> usize {
+        ((c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0]) as usize
+    }
+
+    /// Calls `f(index)` for every stored point in cells of Chebyshev ring `ring` around `p`'s cell,
+    /// in a fixed order. Returns false once `f` returns false (stop).
+    fn visit_ring(&self, p: Vec3, ring: i64, f: &mut dyn FnMut(u32) -> bool) -> bool {
+        let c = self.cell_of(p);
+        for dz in -ring..=ring {
+            for dy in -ring..=ring {
+                for dx in -ring..=ring {
+                    if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
+                        continue;
+                    }
+                    let q = [c[0] + dx, c[1] + dy, c[2] + dz];
+                    if (0..3).any(|k| q[k] < 0 || q[k] >= self.dims[k]) {
+                        continue;
+                    }
+                    let ci = self.cell_index(q);
+                    let (a, b) = (self.starts[ci] as usize, self.starts[ci + 1] as usize);
+                    for &i in &self.order[a..b] {
+                        if !f(i) {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        true
+    }
+
+    /// Calls `f(index)` for candidate points (a superset of those within `radius`), nearest cells
+    /// first; stops when `f` returns false.
+    pub fn for_candidates(&self, p: Vec3, radius: f32, f: &mut dyn FnMut(u32) -> bool) {
+        let rings = (radius / self.cell).ceil().max(0.0) as i64 + 1;
+        for ring in 0..=rings {
+            if !self.visit_ring(p, ring, f) {
+                return;
+            }
+        }
+    }
+}
+
+/// For each query point, whether a reference point matches it at each threshold
+/// (`thr`: (distance, cos angle)), as counts per threshold.
+fn match_counts(
+    q_pts: &[Vec3],
+    q_dirs: &[Vec3],
+    r_pts: &[Vec3],
+    r_dirs: &[Vec3],
+    thr: &[(f32, f32)],
+    signed: bool,
+    max_queries: usize,
+) -> (Vec<u64>, usize) {
+    let n = q_pts.len();
+    if n == 0 || thr.is_empty() {
+        return (vec![0; thr.len()], n);
+    }
+    let stride = if max_queries > 0 && n > max_queries {
+        n.div_ceil(max_queries)
+    } else {
+        1
+    };
+    let queries: Vec<usize> = (0..n).step_by(stride).collect();
+    let dmin = thr.iter().map(|t| t.0).fold(f32::MAX, f32::min);
+    let dmax = thr.iter().map(|t| t.0).fold(0.0f32, f32::max);
+    let grid = BallGrid::new(r_pts, dmin.max(1e-6));
+    let chunk = 4096;
+    let partial: Vec<Vec<u64>> = queries
+        .par_chunks(chunk)
+        .map(|qs| {
+            let mut counts = vec![0u64; thr.len()];
+            let mut hit = vec![false; thr.len()];
+            for &qi in qs {
+                let (p, d) = (q_pts[qi], q_dirs[qi]);
+                hit.iter_mut().for_each(|h| *h = false);
+                let mut left = thr.len();
+                grid.for_candidates(p, dmax, &mut |ri| {
+                    let ri = ri as usize;
+                    let dist2 = (r_pts[ri] - p).length_squared();
+                    if dist2 > dmax * dmax {
+                        return true;
+                    }
+                    let dot = d.dot(r_dirs[ri]);
+                    let dot = if signed { dot } else { dot.abs() };
+                    for (k, &(td, tc)) in thr.iter().enumerate() {
+                        if !hit[k] && dist2 <= td * td && dot >= tc {
+                            hit[k] = true;
+                            left -= 1;
+                        }
+                    }
+                    left > 0
+                });
+                for (c, h) in counts.iter_mut().zip(&hit) {
+                    *c += *h as u64;
+                }
+            }
+            counts
+        })
+        .collect();
+    let mut counts = vec![0u64; thr.len()];
+    for p in partial {
+        for (c, x) in counts.iter_mut().zip(p) {
+            *c += x;
+        }
+    }
+    (counts, queries.len())
+}
+
+/// Strand precision / recall / F-score (percent) of `pred` against `gt` at each `(cm, degrees)`
+/// threshold, with the rule in the module doc. `s_cm` converts scene units to cm.
+pub fn strand_prf(
+    pred: &Strands,
+    gt: &Strands,
+    s_cm: f32,
+    spacing_cm: f32,
+    thresholds: &[(f32, f32)],
+    signed: bool,
+) -> Vec<Prf> {
+    strand_prf_limited(pred, gt, s_cm, spacing_cm, thresholds, signed, 0)
+}
+
+/// [`strand_prf`] evaluating at most `max_queries` evenly strided query points per side (0 = all).
+pub fn strand_prf_limited(
+    pred: &Strands,
+    gt: &Strands,
+    s_cm: f32,
+    spacing_cm: f32,
+    thresholds: &[(f32, f32)],
+    signed: bool,
+    max_queries: usize,
+) -> Vec<Prf> {
+    let (pp, pd) = oriented_points(pred, s_cm, spacing_cm);
+    let (gp, gd) = oriented_points(gt, s_cm, spacing_cm);
+    let thr: Vec<(f32, f32)> = thresholds
+        .iter()
+        .map(|&(d, a)| (d, a.to_radians().cos()))
+        .collect();
+    let (tp_p, np) = match_counts(&pp, &pd, &gp, &gd, &thr, signed, max_queries);
+    let (tp_r, nr) = match_counts(&gp, &gd, &pp, &pd, &thr, signed, max_queries);
+    thresholds
+        .iter()
+        .enumerate()
+        .map(|(k, &(d, a))| {
+            let p = if np > 0 {
+                100.0 * tp_p[k] as f64 / np as f64
+            } else {
+                0.0
+            };
+            let r = if nr > 0 {
+                100.0 * tp_r[k] as f64 / nr as f64
+            } else {
+                0.0
+            };
+            let f = if p + r > 0.0 {
+                2.0 * p * r / (p + r)
+            } else {
+                0.0
+            };
+            Prf {
+                dist_cm: d,
+                angle_deg: a,
+                precision: p as f32,
+                recall: r as f32,
+                fscore: f as f32,
+            }
+        })
+        .collect()
+}
+
+/// The unsupervised strand-geometry metrics (definitions in the module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GeometryMetrics {
+    pub strands: usize,
+    pub mean_length_cm: f32,
+    pub std_length_cm: f32,
+    pub global_curvature_variance: f32,
+    pub local_curvature_variance: f32,
+    pub local_direction_variance: f32,
+    pub first_segment_direction_variance: f32,
+}
+
+fn mean_var(xs: &[f64]) -> (f64, f64) {
+    if xs.is_empty() {
+        return (0.0, 0.0);
+    }
+    let n = xs.len() as f64;
+    let m = xs.iter().sum::<f64>() / n;
+    let v = xs.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / n;
+    (m, v)
+}
+
+/// Computes [`GeometryMetrics`] on strands resampled to `spacing_cm`, with the first-segment neighbourhood
+/// radius `neighbour_cm`.
+pub fn geometry_metrics(
+    strands: &Strands,
+    s_cm: f32,
+    spacing_cm: f32,
+    neighbour_cm: f32,
+) -> GeometryMetrics {
+    struct Per {
+        length: f64,
+        mean_curv: Option<f64>,
+        local_curv_var: Option<f64>,
+        dir_var: Option<f64>,
+        root: Vec3,
+        first: Option<Vec3>,
+    }
+    let per: Vec<Per> = (0..strands.len())
+        .into_par_iter()
+        .map(|s| {
+            let cm: Vec<Vec3> = strands.strand(s).iter().map(|p| *p * s_cm).collect();
+            let length: f64 = cm.windows(2).map(|w| (w[1] - w[0]).length() as f64).sum();
+            let r = resample_polyline(&cm, spacing_cm);
+            let segs: Vec<(Vec3, f32)> = r
+                .windows(2)
+                .filter_map(|w| {
+                    let d = w[1] - w[0];
+                    let l = d.length();
+                    (l > 0.0).then(|| (d / l, l))
+                })
+                .collect();
+            let mut thetas = Vec::new();
+            let mut kappas = Vec::new();
+            for w in segs.windows(2) {
+                let th = w[0].0.dot(w[1].0).clamp(-1.0, 1.0).acos() as f64;
+                thetas.push(th);
+                kappas.push(th / (0.5 * (w[0].1 + w[1].1)) as f64);
+            }
+            let mean_curv =
+                (!thetas.is_empty() && length > 0.0).then(|| thetas.iter().sum::<f64>() / length);
+            let local_curv_var = (kappas.len() >= 2).then(|| mean_var(&kappas).1);
+            let dir_var = (!segs.is_empty()).then(|| {
+                let m = segs
+                    .iter()
+                    .fold(glam::DVec3::ZERO, |a, (d, _)| a + d.as_dvec3())
+                    / segs.len() as f64;
+                (1.0 - m.length_squared()).max(0.0)
+            });
+            Per {
+                length,
+                mean_curv,
+                local_curv_var,
+                dir_var,
+                root: cm.first().copied().unwrap_or(Vec3::ZERO),
+                first: segs.first().map(|s| s.0),
+            }
+        })
+        .collect();
+    let lengths: Vec<f64> = per.iter().map(|p| p.length).collect();
+    let (ml, vl) = mean_var(&lengths);
+    let curv: Vec<f64> = per.iter().filter_map(|p| p.mean_curv).collect();
+    let (_, gcv) = mean_var(&curv);
+    let lcv: Vec<f64> = per.iter().filter_map(|p| p.local_curv_var).collect();
+    let (lcv, _) = mean_var(&lcv);
+    let dv: Vec<f64> = per.iter().filter_map(|p| p.dir_var).collect();
+    let (ldv, _) = mean_var(&dv);
+
+    // First-segment variance among neighbouring roots.
+    let with_first: Vec<(Vec3, Vec3)> = per
+        .iter()
+        .filter_map(|p| p.first.map(|f| (p.root, f)))
+        .collect();
+    let roots: Vec<Vec3> = with_first.iter().map(|x| x.0).collect();
+    let fsv = if roots.len() >= 2 && neighbour_cm > 0.0 {
+        let grid = BallGrid::new(&roots, neighbour_cm);
+        let r2 = neighbour_cm * neighbour_cm;
+        let vals: Vec<Option<f64>> = (0..roots.len())
+            .into_par_iter()
+            .map(|i| {
+                let mut sum = glam::DVec3::ZERO;
+                let mut n = 0usize;
+                grid.for_candidates(roots[i], neighbour_cm, &mut |j| {
+                    let j = j as usize;
+                    if (roots[j] - roots[i]).length_squared() <= r2 {
+                        sum += with_first[j].1.as_dvec3();
+                        n += 1;
+                    }
+                    true
+                });
+                (n >= 2).then(|| (1.0 - (sum / n as f64).length_squared()).max(0.0))
+            })
+            .collect();
+        let v: Vec<f64> = vals.into_iter().flatten().collect();
+        mean_var(&v).0
+    } else {
+        0.0
+    };
+    GeometryMetrics {
+        strands: strands.len(),
+        mean_length_cm: ml as f32,
+        std_length_cm: vl.sqrt() as f32,
+        global_curvature_variance: gcv as f32,
+        local_curvature_variance: lcv as f32,
+        local_direction_variance: ldv as f32,
+        first_segment_direction_variance: fsv as f32,
+    }
+}
+
+fn check_pair(a: &ImageF32, b: &ImageF32) -> Result<(), EvalError> {
+    if a.width != b.width || a.height != b.height || a.channels != b.channels {
+        return Err(EvalError::ImageSize(
+            a.width, a.height, a.channels, b.width, b.height, b.channels,
+        ));
+    }
+    for im in [a, b] {
+        let n = im.width as usize * im.height as usize * im.channels as usize;
+        if n == 0 || im.data.len() != n {
+            return Err(EvalError::ImageData(im.data.len()));
+        }
+    }
+    Ok(())
+}
+
+/// PSNR in dB of two images in [0, 1] (all channels); infinity when identical.
+pub fn psnr(a: &ImageF32, b: &ImageF32) -> Result<f32, EvalError> {
+    check_pair(a, b)?;
+    let se: f64 = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| {
+            let d = (*x - *y) as f64;
+            d * d
+        })
+        .sum();
+    let mse = se / a.data.len() as f64;
+    Ok(if mse <= 0.0 {
+        f32::INFINITY
+    } else {
+        (10.0 * (1.0 / mse).log10()) as f32
+    })
+}
+
+/// The normalised 1D Gaussian of the SSIM window (11 taps, sigma 1.5).
+fn ssim_kernel() -> [f64; 11] {
+    let mut k = [0.0f64; 11];
+    for (i, v) in k.iter_mut().enumerate() {
+        let x = i as f64 - 5.0;
+        *v = (-x * x / (2.0 * 1.5 * 1.5)).exp();
+    }
+    let s: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= s);
+    k
+}
+
+/// Separable valid-mode filtering of a `w x h` plane; output `(w - 10) x (h - 10)`.
+fn filter_valid(plane: &[f64], w: usize, h: usize, k: &[f64; 11]) -> Vec<f64> {
+    let (ow, oh) = (w - 10, h - 10);
+    let mut tmp = vec![0.0; ow * h];
+    for y in 0..h {
+        for x in 0..ow {
+            tmp[y * ow + x] = (0..11).map(|i| k[i] * plane[y * w + x + i]).sum();
+        }
+    }
+    let mut out = vec![0.0; ow * oh];
+    for y in 0..oh {
+        for x in 0..ow {
+            out[y * ow + x] = (0..11).map(|i| k[i] * tmp[(y + i) * ow + x]).sum();
+        }
+    }
+    out
+}
+
+/// Mean SSIM of two images in [0, 1] (11x11 Gaussian window, sigma 1.5, valid positions, per channel).
+pub fn ssim(a: &ImageF32, b: &ImageF32) -> Result<f32, EvalError> {
+    check_pair(a, b)?;
+    let (w, h, c) = (a.width as usize, a.height as usize, a.channels as usize);
+    if w < 11 || h < 11 {
+        return Err(EvalError::TooSmall(a.width, a.height));
+    }
+    let k = ssim_kernel();
+    let (c1, c2) = (0.01f64 * 0.01, 0.03f64 * 0.03);
+    let per_channel: Vec<f64> = (0..c)
+        .into_par_iter()
+        .map(|ch| {
+            let x: Vec<f64> = (0..w * h).map(|i| a.data[i * c + ch] as f64).collect();
+            let y: Vec<f64> = (0..w * h).map(|i| b.data[i * c + ch] as f64).collect();
+            let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
+            let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
+            let xy: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
+            let mx = filter_valid(&x, w, h, &k);
+            let my = filter_valid(&y, w, h, &k);
+            let sxx = filter_valid(&xx, w, h, &k);
+            let syy = filter_valid(&yy, w, h, &k);
+            let sxy = filter_valid(&xy, w, h, &k);
+            let mut sum = 0.0;
+            for i in 0..mx.len() {
+                let (ux, uy) = (mx[i], my[i]);
+                let vx = sxx[i] - ux * ux;
+                let vy = syy[i] - uy * uy;
+                let cxy = sxy[i] - ux * uy;
+                sum += ((2.0 * ux * uy + c1) * (2.0 * cxy + c2))
+                    / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+            }
+            sum / mx.len() as f64
+        })
+        .collect();
+    Ok((per_channel.iter().sum::<f64>() / c as f64) as f32)
+}
+
+/// Converts an image to RGB, compositing RGBA over `bg` and expanding grey.
+pub fn to_rgb(im: &ImageF32, bg: [f32; 3]) -> ImageF32 {
+    let mut out = ImageF32::new(im.width, im.height, 3);
+    let c = im.channels as usize;
+    for i in 0..(im.width * im.height) as usize {
+        let px = &im.data[i * c..i * c + c];
+        let (rgb, alpha) = match c {
+            1 => ([px[0]; 3], 1.0),
+            2 => ([px[0]; 3], px[1]),
+            3 => ([px[0], px[1], px[2]], 1.0),
+            _ => ([px[0], px[1], px[2]], px[3]),
+        };
+        for k in 0..3 {
+            out.data[i * 3 + k] = rgb[k] * alpha + bg[k] * (1.0 - alpha);
+        }
+    }
+    out
+}
+
+// ---------------------------------------------------------------------------------------------
+// The stage.
+
+/// Stage `evaluate`.
+pub struct Evaluate;
+
+/// PSNR written for identical images (dB).
+pub const PSNR_CAP_DB: f32 = 100.0;
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct PrfEntry {
+    precision: f32,
+    recall: f32,
+    fscore: f32,
+}
+
+fn prf_map(v: &[Prf]) -> BTreeMap<String, PrfEntry> {
+    v.iter()
+        .map(|p| {
+            (
+                threshold_key(p.dist_cm, p.angle_deg),
+                PrfEntry {
+                    precision: p.precision,
+                    recall: p.recall,
+                    fscore: p.fscore,
+                },
+            )
+        })
+        .collect()
+}
+
+/// Reads a strand file, `.hair` or PLY, by its first bytes.
+pub fn read_strands_any(path: &Path) -> Result<Strands, StageError> {
+    let mut head = [0u8; 4];
+    {
+        use std::io::Read;
+        let mut f = std::fs::File::open(path).map_err(|e| StageError::io(path, e))?;
+        let _ = f.read(&mut head).map_err(|e| StageError::io(path, e))?;
+    }
+    if &head == b"HAIR" {
+        Ok(crate::formats::hair::read_hair(path)?)
+    } else if &head[..3] == b"ply" {
+        Ok(crate::formats::ply::read_ply_strands(path)?)
+    } else {
+        Err(StageError::failed(format!(
+            "{}: not a .hair file (magic \"HAIR\") nor a PLY file (magic \"ply\")",
+            path.display()
+        )))
+    }
+}
+
+/// Lists the PNG files of a directory, sorted by name.
+fn sorted_pngs(dir: &Path) -> Result<Vec<PathBuf>, StageError> {
+    let mut v = Vec::new();
+    for e in std::fs::read_dir(dir).map_err(|e| StageError::io(dir, e))? {
+        let p = e.map_err(|e| StageError::io(dir, e))?.path();
+        if p.extension().and_then(|x| x.to_str()) == Some("png") && p.is_file() {
+            v.push(p);
+        }
+    }
+    v.sort();
+    Ok(v)
+}
+
+/// Mean PSNR and SSIM of rendered held-out views against the GT held-out images.
+fn image_metrics(
+    renders: &Path,
+    views: &Path,
+    bg: [f32; 3],
+) -> Result<(f32, f32, usize), StageError> {
+    let test_dir = renders.join("test");
+    let files = sorted_pngs(if test_dir.is_dir() {
+        &test_dir
+    } else {
+        renders
+    })?;
+    let cams = crate::formats::cameras::read_views(views)?;
+    if files.is_empty() {
+        return Err(StageError::input("renders", renders, "no PNG files found"));
+    }
+    if files.len() != cams.test.len() {
+        return Err(StageError::input(
+            "renders",
+            renders,
+            format!(
+                "{} rendered views but {} held-out cameras in {}",
+                files.len(),
+                cams.test.len(),
+                views.join("transforms_test.json").display()
+            ),
+        ));
+    }
+    let mut ps = Vec::new();
+    let mut ss = Vec::new();
+    for (f, cam) in files.iter().zip(&cams.test) {
+        let r = to_rgb(&crate::formats::images::read_png(f)?, bg);
+        let gpath = views.join(&cam.file_path);
+        let g = to_rgb(&crate::formats::images::read_png(&gpath)?, bg);
+        let p = psnr(&r, &g).map_err(|e| StageError::input("renders", f, e))?;
+        ps.push(p.min(PSNR_CAP_DB) as f64);
+        ss.push(ssim(&r, &g).map_err(|e| StageError::input("renders", f, e))? as f64);
+    }
+    let n = ps.len();
+    Ok((
+        (ps.iter().sum::<f64>() / n as f64) as f32,
+        (ss.iter().sum::<f64>() / n as f64) as f32,
+        n,
+    ))
+}
+
+impl Stage for Evaluate {
+    fn kind(&self) -> &'static str {
+        "evaluate"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "Strand precision/recall/F-score against GT strands (2cm/20deg, 3cm/30deg, 4cm/40deg; unsigned \
+         and signed), unsupervised strand-geometry metrics, PSNR/SSIM on held-out views, training time."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        vec![
+            ParamSpec::float(
+                "spacing_cm",
+                0.5,
+                "common arc-length spacing both strand sets are resampled to (cm)",
+            )
+            .range(0.01, 100.0),
+            ParamSpec::float_list(
+                "thresholds",
+                &[2.0, 20.0, 3.0, 30.0, 4.0, 40.0],
+                "PRF thresholds as flat (cm, degrees) pairs",
+            )
+            .min(0.0),
+            ParamSpec::float(
+                "neighbour_cm",
+                1.0,
+                "root neighbourhood radius of the first-segment direction variance (cm)",
+            )
+            .range(0.001, 1000.0),
+            ParamSpec::int(
+                "max_queries",
+                0,
+                "evaluate at most this many evenly strided query points per side (0 = all)",
+            )
+            .min(0.0),
+            ParamSpec::float_list(
+                "background",
+                &[0.0, 0.0, 0.0],
+                "RGB background RGBA images are composited over before PSNR/SSIM",
+            )
+            .range(0.0, 1.0),
+        ]
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![
+            PortSpec::file(
+                "strands",
+                "hair",
+                "predicted strands (.hair or PLY with edges)",
+            ),
+            PortSpec::file("gt_strands", "hair", "ground-truth strands (.hair or PLY)"),
+            PortSpec::file("gt_scene", "json", "scene.json with s_cm"),
+            PortSpec::dir("renders", "rendered held-out views (test/NNN.png)").optional(),
+            PortSpec::dir("views", "GT views dir (transforms_test.json)").optional(),
+            PortSpec::file("train_report", "json", "the learning stage's metrics.json").optional(),
+        ]
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![PortSpec::file("metrics", "json", "all metrics")]
+    }
+    fn validate(&self, params: &Params) -> Result<(), StageError> {
+        let t = params.f64_list("thresholds")?;
+        if t.is_empty() || t.len() % 2 != 0 {
+            return Err(StageError::param(
+                "thresholds",
+                format!(
+                    "expected a non-empty flat list of (cm, degrees) pairs, found {} numbers",
+                    t.len()
+                ),
+            ));
+        }
+        for pair in t.chunks(2) {
+            if !(pair[0] > 0.0) || !(pair[1] > 0.0 && pair[1] <= 180.0) {
+                return Err(StageError::param(
+                    "thresholds",
+                    format!(
+                        "pair ({}, {}): expected cm > 0 and 0 < degrees <= 180",
+                        pair[0], pair[1]
+                    ),
+                ));
+            }
+        }
+        if params.f64_list("background")?.len() != 3 {
+            return Err(StageError::param("background", "expected 3 numbers (RGB)"));
+        }
+        Ok(())
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        self.validate(ctx.params)?;
+        let p = ctx.params;
+        let spacing = p.f32("spacing_cm")?;
+        let neighbour = p.f32("neighbour_cm")?;
+        let max_q = p.usize("max_queries")?;
+        let thr: Vec<(f32, f32)> = p
+            .f64_list("thresholds")?
+            .chunks(2)
+            .map(|c| (c[0] as f32, c[1] as f32))
+            .collect();
+        let bgv = p.f64_list("background")?;
+        let bg = [bgv[0] as f32, bgv[1] as f32, bgv[2] as f32];
+
+        let scene_path = ctx.input("gt_scene")?;
+        let scene: crate::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
+        let s_cm = scene.s_cm;
+        if !(s_cm > 0.0 && s_cm.is_finite()) {
+            return Err(StageError::input(
+                "gt_scene",
+                scene_path,
+                format!("field `s_cm`: expected a positive number, found {s_cm}"),
+            ));
+        }
+        ctx.progress.message("reading strands");
+        let pred = read_strands_any(ctx.input("strands")?)?;
+        let gt = read_strands_any(ctx.input("gt_strands")?)?;
+        ensure_finite_points("predicted strands", &pred)?;
+        ensure_finite_points("ground-truth strands", &gt)?;
+        if gt.is_empty() {
+            return Err(StageError::input(
+                "gt_strands",
+                ctx.input("gt_strands")?,
+                "holds no strands",
+            ));
+        }
+        ctx.progress.set_total(4);
+        ctx.progress.message("precision / recall (unsigned)");
+        let prf = strand_prf_limited(&pred, &gt, s_cm, spacing, &thr, false, max_q);
+        ctx.progress.advance(1);
+        ctx.progress.message("precision / recall (signed)");
+        let prf_signed = strand_prf_limited(&pred, &gt, s_cm, spacing, &thr, true, max_q);
+        ctx.progress.advance(1);
+        ctx.progress.message("geometry metrics");
+        let geo = geometry_metrics(&pred, s_cm, spacing, neighbour);
+        let geo_gt = geometry_metrics(&gt, s_cm, spacing, neighbour);
+        ctx.progress.advance(1);
+
+        let (psnr_v, ssim_v, n_views) = match (ctx.input_opt("renders"), ctx.input_opt("views")) {
+            (Some(r), Some(v)) => {
+                ctx.progress.message("PSNR / SSIM");
+                let (a, b, n) = image_metrics(r, v, bg)?;
+                (Some(a), Some(b), n)
+            }
+            (Some(_), None) | (None, Some(_)) => {
+                return Err(StageError::failed(
+                    "inputs `renders` and `views` must be connected together (or neither)",
+                ))
+            }
+            (None, None) => (None, None, 0),
+        };
+        ctx.progress.advance(1);
+
+        let (train_seconds, optimised_parameters) = match ctx.input_opt("train_report") {
+            Some(path) => {
+                let v: serde_json::Value = crate::formats::json::read_json(path)?;
+                (
+                    v.get("train_seconds").and_then(|x| x.as_f64()),
+                    v.get("optimised_parameters").and_then(|x| x.as_u64()),
+                )
+            }
+            None => (None, None),
+        };
+
+        let mut finite: Vec<f32> = Vec::new();
+        for x in prf.iter().chain(&prf_signed) {
+            finite.extend([x.precision, x.recall, x.fscore]);
+        }
+        finite.extend(psnr_v.into_iter().chain(ssim_v));
+        fure_stage_api::ensure_finite("evaluation metrics", finite)?;
+
+        let np = oriented_points(&pred, s_cm, spacing).0.len();
+        let ng = oriented_points(&gt, s_cm, spacing).0.len();
+        let out = serde_json::json!({
+            "prf": prf_map(&prf),
+            "prf_signed": prf_map(&prf_signed),
+            "mean_length_cm": geo.mean_length_cm,
+            "std_length_cm": geo.std_length_cm,
+            "global_curvature_variance": geo.global_curvature_variance,
+            "local_curvature_variance": geo.local_curvature_variance,
+            "local_direction_variance": geo.local_direction_variance,
+            "first_segment_direction_variance": geo.first_segment_direction_variance,
+            "gt_geometry": geo_gt,
+            "psnr": psnr_v,
+            "ssim": ssim_v,
+            "views_evaluated": n_views,
+            "lpips": serde_json::Value::Null,
+            "lpips_note": "not computed: LPIPS needs pretrained network weights that cannot be fetched here",
+            "train_seconds": train_seconds,
+            "optimised_parameters": optimised_parameters,
+            "strands": pred.len(),
+            "gt_strands": gt.len(),
+            "oriented_points": np,
+            "gt_oriented_points": ng,
+            "spacing_cm": spacing,
+            "max_queries": max_q,
+            "s_cm": s_cm,
+            "matching_rule": "oriented points (segment start, unit direction) after resampling to spacing_cm; \
+                 a point matches if ANY point of the other set lies within the distance with direction \
+                 within the angle (prf: |dot|, direction sign ignored; prf_signed: dot); percent",
+        });
+        crate::formats::json::write_json(ctx.output("metrics")?, &out)?;
+        let f3 = prf.iter().find(|x| x.dist_cm == 3.0).map(|x| x.fscore);
+        ctx.progress.note(&format!(
+            "F-score (unsigned): {}; mean length {:.2} cm",
+            prf.iter()
+                .map(|x| format!("{}: {:.2}", threshold_key(x.dist_cm, x.angle_deg), x.fscore))
+                .collect::<Vec<_>>()
+                .join(", "),
+            geo.mean_length_cm
+        ));
+        let _ = f3;
+        Ok(())
+    }
+}
+
+fn ensure_finite_points(what: &str, s: &Strands) -> Result<(), StageError> {
+    fure_stage_api::ensure_finite(what, s.points.iter().flat_map(|p| p.to_array()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A patch of straight strands on a grid in the xy plane growing along +z, in cm (s_cm = 1).
+    fn patch(n: usize, gap: f32, len: f32, pts: usize, offset: Vec3) -> Strands {
+        let mut s = Strands::new();
+        for i in 0..n {
+            for j in 0..n {
+                let root = Vec3::new(i as f32 * gap, j as f32 * gap, 0.0) + offset;
+                let p: Vec<Vec3> = (0..pts)
+                    .map(|k| root + Vec3::new(0.0, 0.0, len * k as f32 / (pts - 1) as f32))
+                    .collect();
+                s.push(&p, 0, 0.01, [0.5; 3]);
+            }
+        }
+        s
+    }
+
+    #[test]
+    fn resample_keeps_ends_and_spacing() {
+        let p = [
+            Vec3::ZERO,
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 2.0, 0.0),
+        ];
+        let r = resample_polyline(&p, 0.5);
+        assert_eq!(r.len(), 7);
+        assert_eq!(r[0], p[0]);
+        assert_eq!(r[6], p[2]);
+        for w in r.windows(2) {
+            assert!(((w[1] - w[0]).length() - 0.5).abs() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn identical_sets_score_100() {
+        let a = patch(6, 0.7, 3.0, 5, Vec3::ZERO);
+        let r = strand_prf(&a, &a, 1.0, 0.5, &PAPER_THRESHOLDS, false);
+        for p in &r {
+            assert_eq!((p.precision, p.recall, p.fscore), (100.0, 100.0, 100.0));
+        }
+        // Different point counts per strand give the same answer after resampling.
+        let b = patch(6, 0.7, 3.0, 13, Vec3::ZERO);
+        let r = strand_prf(&a, &b, 1.0, 0.5, &PAPER_THRESHOLDS, true);
+        assert!(r.iter().all(|p| p.fscore == 100.0));
+    }
+
+    #[test]
+    fn shift_drops_at_the_right_threshold() {
+        let a = patch(5, 10.0, 3.0, 4, Vec3::ZERO);
+        // A sideways shift of 2.5 cm: far from every other strand (gap 10 cm).
+        let b = patch(5, 10.0, 3.0, 4, Vec3::new(2.5, 0.0, 0.0));
+        let r = strand_prf(&a, &b, 1.0, 0.5, &PAPER_THRESHOLDS, false);
+        assert_eq!(r[0].fscore, 0.0, "2 cm < 2.5 cm shift");
+        assert_eq!(r[1].fscore, 100.0);
+        assert_eq!(r[2].fscore, 100.0);
+        // s_cm scales distances: the same shift in scene units of 2 cm each is 5 cm.
+        let r = strand_prf(&a, &b, 2.0, 0.5, &PAPER_THRESHOLDS, false);
+        assert!(r.iter().all(|p| p.fscore == 0.0));
+    }
+
+    #[test]
+    fn angle_threshold_and_partial_sets() {
+        let a = patch(4, 10.0, 3.0, 4, Vec3::ZERO);
+        // Tilt every strand by 25 degrees about its root: within 30/40 deg, not 20.
+        let mut b = Strands::new();
+        let t = 25f32.to_radians();
+        for s in 0..a.len() {
+            let pts: Vec<Vec3> = a
+                .strand(s)
+                .iter()
+                .map(|p| {
+                    let r = a.strand(s)[0];
+                    let d = *p - r;
+                    r + Vec3::new(d.z * t.sin(), 0.0, d.z * t.cos())
+                })
+                .collect();
+            b.push(&pts, 0, 0.01, [0.5; 3]);
+        }
+        let r = strand_prf(&a, &b, 1.0, 0.5, &PAPER_THRESHOLDS, false);
+        assert_eq!(r[0].fscore, 0.0);
+        assert_eq!(r[1].fscore, 100.0);
+        // Half the GT missing: precision stays 100, recall halves.
+        let mut half = Strands::new();
+        for s in 0..a.len() / 2 {
+            half.push(a.strand(s), 0, 0.01, [0.5; 3]);
+        }
+        let r = strand_prf(&half, &a, 1.0, 0.5, &PAPER_THRESHOLDS, false);
+        assert_eq!(r[1].precision, 100.0);
+        assert!((r[1].recall - 50.0).abs() < 1e-3);
+        assert!((r[1].fscore - 200.0 / 3.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn signed_vs_unsigned_on_reversed_strands() {
+        let a = patch(4, 10.0, 3.0, 7, Vec3::ZERO);
+        let mut rev = Strands::new();
+        for s in 0..a.len() {
+            let mut p = a.strand(s).to_vec();
+            p.reverse();
+            rev.push(&p, 0, 0.01, [0.5; 3]);
+        }
+        let u = strand_prf(&rev, &a, 1.0, 0.5, &PAPER_THRESHOLDS, false);
+        let s = strand_prf(&rev, &a, 1.0, 0.5, &PAPER_THRESHOLDS, true);
+        assert!(u.iter().all(|p| p.fscore == 100.0));
+        assert!(s.iter().all(|p| p.fscore == 0.0));
+    }
+
+    #[test]
+    fn limited_queries_estimate_and_determinism() {
+        let a = patch(20, 0.9, 3.0, 6, Vec3::ZERO);
+        let b = patch(20, 0.9, 3.0, 6, Vec3::new(0.35, 0.2, 0.1));
+        let full = strand_prf(&a, &b, 1.0, 0.25, &PAPER_THRESHOLDS, true);
+        let again = strand_prf(&a, &b, 1.0, 0.25, &PAPER_THRESHOLDS, true);
+        assert_eq!(full, again);
+        let lim = strand_prf_limited(&a, &b, 1.0, 0.25, &PAPER_THRESHOLDS, true, 500);
+        for (f, l) in full.iter().zip(&lim) {
+            assert!((f.fscore - l.fscore).abs() < 5.0);
+        }
+    }
+
+    #[test]
+    fn geometry_metrics_of_known_strands() {
+        // Straight strands of lengths 2 and 4: mean 3, std 1, no curvature, no direction variance.
+        let mut s = Strands::new();
+        s.push(&[Vec3::ZERO, Vec3::new(0.0, 0.0, 2.0)], 0, 0.01, [0.5; 3]);
+        s.push(
+            &[Vec3::X * 0.5, Vec3::new(0.5, 0.0, 4.0)],
+            0,
+            0.01,
+            [0.5; 3],
+        );
+        let g = geometry_metrics(&s, 1.0, 0.5, 1.0);
+        assert!((g.mean_length_cm - 3.0).abs() < 1e-5);
+        assert!((g.std_length_cm - 1.0).abs() < 1e-5);
+        assert!(g.global_curvature_variance.abs() < 1e-6);
+        assert!(g.local_direction_variance.abs() < 1e-6);
+        assert!(g.first_segment_direction_variance.abs() < 1e-6);
+        // A circle arc of radius R has curvature 1/R everywhere: local variance ~0; two arcs of
+        // different radii give a global variance of ((1/R1 - 1/R2)/2)^2.
+        let arc = |r: f32, x0: f32| -> Vec<Vec3> {
+            (0..=60)
+                .map(|i| {
+                    let t = i as f32 / 60.0 * 1.5;
+                    Vec3::new(x0 + r * (1.0 - t.cos()), 0.0, r * t.sin())
+                })
+                .collect()
+        };
+        let mut c = Strands::new();
+        c.push(&arc(2.0, 0.0), 0, 0.01, [0.5; 3]);
+        c.push(&arc(4.0, 0.3), 0, 0.01, [0.5; 3]);
+        let g = geometry_metrics(&c, 1.0, 0.1, 1.0);
+        let expect = ((0.5f32 - 0.25) / 2.0).powi(2);
+        assert!(
+            (g.global_curvature_variance - expect).abs() < 0.1 * expect,
+            "{g:?}"
+        );
+        assert!(g.local_curvature_variance < 1e-3, "{g:?}");
+        assert!(g.local_direction_variance > 0.05);
+        // The two first segments differ in direction (curvature differs): positive first-seg variance.
+        assert!(g.first_segment_direction_variance > 0.0);
+    }
+
+    fn noise_image(w: u32, h: u32, c: u32, seed: u64) -> ImageF32 {
+        let mut im = ImageF32::new(w, h, c);
+        let mut x = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        for v in im.data.iter_mut() {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            *v = ((x >> 40) as f32 / (1u64 << 24) as f32) * 0.6 + 0.2;
+        }
+        im
+    }
+
+    #[test]
+    fn psnr_known_values() {
+        let a = noise_image(32, 24, 3, 1);
+        assert_eq!(psnr(&a, &a).unwrap(), f32::INFINITY);
+        // A constant offset of 0.1 everywhere: MSE 0.01, PSNR 20 dB.
+        let mut b = a.clone();
+        b.data.iter_mut().for_each(|v| *v += 0.1);
+        assert!((psnr(&a, &b).unwrap() - 20.0).abs() < 1e-3);
+        // Alternating +-0.05: MSE 0.0025, PSNR ~26.02 dB.
+        let mut c = a.clone();
+        c.data
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, v)| *v += if i % 2 == 0 { 0.05 } else { -0.05 });
+        assert!((psnr(&a, &c).unwrap() - 26.0206).abs() < 1e-2);
+        assert!(psnr(&a, &ImageF32::new(32, 23, 3)).is_err());
+    }
+
+    #[test]
+    fn ssim_known_values() {
+        let a = noise_image(40, 30, 3, 2);
+        assert!((ssim(&a, &a).unwrap() - 1.0).abs() < 1e-6);
+        // A constant shift of a constant image: SSIM = luminance term (2 m1 m2 + C1)/(m1^2+m2^2+C1).
+        let mut g1 = ImageF32::new(20, 20, 1);
+        g1.data.iter_mut().for_each(|v| *v = 0.5);
+        let mut g2 = g1.clone();
+        g2.data.iter_mut().for_each(|v| *v = 0.3);
+        let c1 = 1e-4f64;
+        let expect = (2.0 * 0.5 * 0.3 + c1) / (0.25 + 0.09 + c1);
+        assert!((ssim(&g1, &g2).unwrap() as f64 - expect).abs() < 1e-5);
+        // Independent noise lowers SSIM well below 1; more noise lowers it more.
+        let n1 = noise_image(40, 30, 3, 3);
+        let mix = |t: f32| {
+            let mut m = a.clone();
+            m.data
+                .iter_mut()
+                .zip(&n1.data)
+                .for_each(|(v, n)| *v = (1.0 - t) * *v + t * n);
+            m
+        };
+        let s1 = ssim(&a, &mix(0.2)).unwrap();
+        let s2 = ssim(&a, &mix(0.6)).unwrap();
+        assert!(s1 < 1.0 && s2 < s1, "{s1} {s2}");
+        assert!(ssim(&ImageF32::new(8, 8, 1), &ImageF32::new(8, 8, 1)).is_err());
+    }
+
+    #[test]
+    fn rgba_composites_over_background() {
+        let mut im = ImageF32::new(1, 1, 4);
+        im.data.copy_from_slice(&[1.0, 0.0, 0.0, 0.25]);
+        let rgb = to_rgb(&im, [0.0, 0.0, 1.0]);
+        assert_eq!(rgb.data, vec![0.25, 0.0, 0.75]);
+    }
+}
