@@ -2,4 +2,6 @@
 
 pub mod geomloss;
 pub mod mlp;
+pub mod model;
 pub mod placement;
+pub mod train;
