@@ -1,1 +1,4 @@
-//! (in progress)
+//! (in progress) The `synthetic_scene` stage.
+pub mod body;
+pub mod fur;
+pub mod presets;
