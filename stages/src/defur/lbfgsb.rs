@@ -131,6 +131,8 @@ pub enum SolverError {
     },
     #[error("invalid settings: {0}")]
     Settings(&'static str),
+    #[error("preconditioner entry {index} is not a positive finite number")]
+    Preconditioner { index: usize },
     #[error("objective or gradient is not finite at iteration {iteration}")]
     NonFinite { iteration: usize },
 }
@@ -150,12 +152,19 @@ fn projected_gradient_norm(x: &[f64], g: &[f64], lower: &[f64], upper: &[f64]) -
     m
 }
 
-fn masked_dot(a: &[f64], b: &[f64], free: &[bool]) -> f64 {
-    let mut s = 0.0;
-    for i in 0..a.len() {
-        if free[i] {
-            s += a[i] * b[i];
+/// Sum of `a_i b_i m_i` (`m` is the 0/1 free mask); branch-free so it vectorises.
+fn masked_dot(a: &[f64], b: &[f64], m: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ac, bc, mc) = (a.chunks_exact(4), b.chunks_exact(4), m.chunks_exact(4));
+    let (ar, br, mr) = (ac.remainder(), bc.remainder(), mc.remainder());
+    for ((x, y), z) in ac.zip(bc).zip(mc) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k] * z[k];
         }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for ((x, y), z) in ar.iter().zip(br).zip(mr) {
+        s += x * y * z;
     }
     s
 }
@@ -172,7 +181,7 @@ fn all_finite(v: &[f64]) -> bool {
 /// (projected onto the box first). `f(x, g)` returns the objective and
 /// writes its gradient into `g`. Infinite bounds are allowed.
 pub fn minimize<F>(
-    mut f: F,
+    f: F,
     x0: &[f64],
     lower: &[f64],
     upper: &[f64],
@@ -181,8 +190,34 @@ pub fn minimize<F>(
 where
     F: FnMut(&[f64], &mut [f64]) -> f64,
 {
+    minimize_preconditioned(f, x0, lower, upper, None, settings)
+}
+
+/// [`minimize`] with an optional diagonal preconditioner `h0`: positive
+/// per-variable scales used as the initial inverse Hessian of the two-loop
+/// recursion (`H0 = gamma diag(h0)`, `gamma = s.y / (y.diag(h0).y)`), and
+/// for the first (steepest descent) step. This is L-BFGS on the variables
+/// `x_i / sqrt(h0_i)`; a diagonal change of variables keeps the feasible set
+/// a box, so projections, the free set and the stopping tests (which are
+/// evaluated on the original variables) are unchanged. `h0 = 1 / Hessian
+/// diagonal` (Jacobi) removes the dependence on edge-weight scales.
+pub fn minimize_preconditioned<F>(
+    mut f: F,
+    x0: &[f64],
+    lower: &[f64],
+    upper: &[f64],
+    h0: Option<&[f64]>,
+    settings: &Settings,
+) -> Result<Report, SolverError>
+where
+    F: FnMut(&[f64], &mut [f64]) -> f64,
+{
     let n = x0.len();
-    for (what, len) in [("lower bounds", lower.len()), ("upper bounds", upper.len())] {
+    let mut lens = vec![("lower bounds", lower.len()), ("upper bounds", upper.len())];
+    if let Some(h) = h0 {
+        lens.push(("preconditioner", h.len()));
+    }
+    for (what, len) in lens {
         if len != n {
             return Err(SolverError::Length {
                 what,
@@ -210,6 +245,16 @@ where
     if !(settings.ftol >= 0.0 && settings.gtol >= 0.0) {
         return Err(SolverError::Settings("tolerances must be non-negative"));
     }
+    let h0: Vec<f64> = match h0 {
+        Some(h) => {
+            if let Some(i) = h.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(SolverError::Preconditioner { index: i });
+            }
+            h.to_vec()
+        }
+        None => vec![1.0; n],
+    };
+    let preconditioned = h0.iter().any(|&v| v != 1.0);
     if !all_finite(x0) {
         return Err(SolverError::NonFinite { iteration: 0 });
     }
@@ -225,7 +270,10 @@ where
 
     // Correction pairs (s, y), newest last.
     let mut pairs: VecDeque<(Vec<f64>, Vec<f64>)> = VecDeque::with_capacity(settings.memory);
-    let mut free = vec![true; n];
+    let mut free = vec![1.0f64; n];
+    // Restricted curvature `s.y` of each pair over the current free set,
+    // recomputed only when the free set changes (NaN: needs recomputing).
+    let mut curv: VecDeque<f64> = VecDeque::with_capacity(settings.memory);
     let mut d = vec![0.0; n];
     let mut alphas = vec![0.0; settings.memory];
     let mut rhos = vec![0.0; settings.memory];
@@ -253,10 +301,24 @@ where
         }
 
         // Free set.
+        let mut changed = false;
         for i in 0..n {
             let at_lower = x[i] <= lower[i] && g[i] > 0.0;
             let at_upper = x[i] >= upper[i] && g[i] < 0.0;
-            free[i] = lower[i] < upper[i] && !at_lower && !at_upper;
+            let is_free = lower[i] < upper[i] && !at_lower && !at_upper;
+            let m = if is_free { 1.0 } else { 0.0 };
+            changed |= free[i] != m;
+            free[i] = m;
+        }
+        for (c, (s, y)) in curv.iter_mut().zip(&pairs) {
+            if changed || c.is_nan() {
+                let sy = masked_dot(s, y, &free);
+                *c = if sy > f64::EPSILON * masked_dot(y, y, &free) {
+                    sy
+                } else {
+                    -1.0
+                };
+            }
         }
 
         // Direction and line search; retried once with steepest descent.
@@ -264,12 +326,13 @@ where
         for attempt in 0..2 {
             let use_memory = attempt == 0 && !pairs.is_empty();
             for i in 0..n {
-                d[i] = if free[i] { -g[i] } else { 0.0 };
+                d[i] = -g[i] * free[i];
             }
-            if use_memory && !two_loop(&mut d, &pairs, &free, &mut alphas, &mut rhos) {
-                // Curvature lost on the free set: steepest descent.
+            if !(use_memory && two_loop(&mut d, &pairs, &curv, &free, &h0, &mut alphas, &mut rhos))
+            {
+                // No memory, or curvature lost on the free set: (scaled) steepest descent.
                 for i in 0..n {
-                    d[i] = if free[i] { -g[i] } else { 0.0 };
+                    d[i] = -g[i] * free[i] * h0[i];
                 }
             }
             let gd = dot(&g, &d);
@@ -277,11 +340,12 @@ where
             if !(gd < 0.0) || dnorm == 0.0 {
                 if use_memory {
                     pairs.clear();
+                    curv.clear();
                     continue;
                 }
                 break;
             }
-            let mut step = if pairs.is_empty() {
+            let mut step = if pairs.is_empty() && !preconditioned {
                 (1.0 / dnorm).min(1.0)
             } else {
                 1.0
@@ -314,6 +378,7 @@ where
                 break;
             }
             pairs.clear();
+            curv.clear();
         }
         let Some(fnew) = accepted else {
             // No decrease even along projected steepest descent: converged to
@@ -322,17 +387,22 @@ where
             return Ok(finish(x, fx, &g, iterations, evaluations, t));
         };
 
-        let mut s = vec![0.0; n];
-        let mut y = vec![0.0; n];
+        // Reuse the oldest pair's storage when the memory is full.
+        let (mut s, mut y) = if pairs.len() == settings.memory {
+            curv.pop_front();
+            pairs
+                .pop_front()
+                .unwrap_or_else(|| (vec![0.0; n], vec![0.0; n]))
+        } else {
+            (vec![0.0; n], vec![0.0; n])
+        };
         for i in 0..n {
             s[i] = xn[i] - x[i];
             y[i] = gn[i] - g[i];
         }
         if dot(&s, &y) > f64::EPSILON * dot(&y, &y) {
-            if pairs.len() == settings.memory {
-                pairs.pop_front();
-            }
             pairs.push_back((s, y));
+            curv.push_back(f64::NAN);
         }
         iterations += 1;
         let rel = (fx - fnew) / fx.abs().max(fnew.abs()).max(1.0);
@@ -347,19 +417,21 @@ where
 }
 
 /// The two-loop recursion on `d` (holding the masked negative gradient),
-/// with inner products over the free set. False when a stored pair has no
-/// positive curvature on the free set.
+/// with inner products over the free set and initial inverse Hessian
+/// `gamma diag(h0)`. False when a stored pair has no positive curvature on
+/// the free set.
 fn two_loop(
     d: &mut [f64],
     pairs: &VecDeque<(Vec<f64>, Vec<f64>)>,
-    free: &[bool],
+    curv: &VecDeque<f64>,
+    free: &[f64],
+    h0: &[f64],
     alphas: &mut [f64],
     rhos: &mut [f64],
 ) -> bool {
     let n = d.len();
-    for (j, (s, y)) in pairs.iter().enumerate() {
-        let sy = masked_dot(s, y, free);
-        if !(sy > f64::EPSILON * masked_dot(y, y, free)) {
+    for (j, &sy) in curv.iter().enumerate() {
+        if !(sy > 0.0) {
             return false;
         }
         rhos[j] = 1.0 / sy;
@@ -368,22 +440,26 @@ fn two_loop(
         let a = rhos[j] * masked_dot(s, d, free);
         alphas[j] = a;
         for i in 0..n {
-            if free[i] {
-                d[i] -= a * y[i];
-            }
+            d[i] -= a * y[i] * free[i];
         }
     }
-    let (s, y) = &pairs[pairs.len() - 1];
-    let gamma = masked_dot(s, y, free) / masked_dot(y, y, free);
-    for v in d.iter_mut() {
-        *v *= gamma;
+    let y = &pairs[pairs.len() - 1].1;
+    let mut yhy = 0.0;
+    for i in 0..n {
+        yhy += y[i] * y[i] * h0[i] * free[i];
+    }
+    if !(yhy > 0.0) {
+        return false;
+    }
+
+    let gamma = curv[curv.len() - 1] / yhy;
+    for i in 0..n {
+        d[i] *= gamma * h0[i];
     }
     for (j, (s, y)) in pairs.iter().enumerate() {
         let c = alphas[j] - rhos[j] * masked_dot(y, d, free);
         for i in 0..n {
-            if free[i] {
-                d[i] += c * s[i];
-            }
+            d[i] += c * s[i] * free[i];
         }
     }
     true

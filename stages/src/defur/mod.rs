@@ -1,3 +1,5 @@
 //! Frosting-calibrated defurring (in progress).
 
 pub mod lbfgsb;
+pub mod objective;
+pub mod thickness;
