@@ -1,0 +1,414 @@
+//! The image losses of the loop: strands to segment Gaussians, rendered with
+//! the body occluders from the training views, compared with the photos,
+//! masks, fur masks and Gabor orientation maps; gradients back to the points.
+//!
+//! Body occluders. The strands alone cannot explain the photos: behind sparse
+//! fur and on non-fur parts the skin is visible, and without a body the
+//! strands on the far side would show through and corrupt the silhouette and
+//! orientation comparisons. We therefore render the body mesh (M_root, or
+//! M_outer in the shape-prior ablation) as `body_gaussians` opaque, flat
+//! surface Gaussians (area-weighted seeded samples; discs of standard deviation
+//! 0.6 x the sample spacing, one tenth of that thick, fur flag off) with a
+//! trainable colour each. They never move; both methods get the same ones.
+//!
+//! Strand appearance: one trainable RGB colour per strand (degree-0 SH), lazy
+//! Adam on the sampled strands; identical for codec and dense.
+//!
+//! Views: each iteration renders `views_per_iteration` distinct training
+//! views drawn with a seeded generator; the losses are averaged over them.
+//! Targets: the photo composited over the renderer's black background with
+//! its own alpha (when it has one); the silhouette is the view's mask; the fur
+//! mask is `<stem>_fur.png` (when present; else L_mask is skipped for the
+//! view); the orientation target is the `orientation` input's map for the
+//! view (when connected; else L_ori is skipped).
+
+use std::path::Path;
+
+use fure_stage_api::StageError;
+use glam::{Quat, Vec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::model::RowAdam;
+use super::train::ImageTerm;
+use crate::camera::Camera;
+use crate::formats;
+use crate::image::ImageF32;
+use crate::mesh::Mesh;
+use crate::render::{self, GaussianGrads, Gaussians, OutputGrads, RenderOutput, RenderSettings};
+use crate::strands::Strands;
+
+/// Settings of the image losses.
+#[derive(Debug, Clone)]
+pub struct ImageConfig {
+    pub views_per_iteration: usize,
+    pub lr_color: f32,
+    pub l_rgb: f32,
+    pub l_sil: f32,
+    pub l_ori: f32,
+    pub l_mask: f32,
+    pub body_gaussians: usize,
+    pub seed: u64,
+}
+
+/// One training view's targets.
+pub struct ViewData {
+    pub camera: Camera,
+    /// RGB over black.
+    pub rgb: ImageF32,
+    pub mask: Option<ImageF32>,
+    pub fur: Option<ImageF32>,
+    /// Orientation angle in [0, pi) and confidence (1 channel each).
+    pub orientation: Option<(ImageF32, ImageF32)>,
+}
+
+/// The image term.
+pub struct ImageLosses {
+    cfg: ImageConfig,
+    views: Vec<ViewData>,
+    test_cameras: Vec<Camera>,
+    body: Gaussians,
+    body_adam: render::Adam,
+    body_group: usize,
+    widths: Vec<f32>,
+    colors: Vec<[f32; 3]>,
+    color_adam: RowAdam,
+    settings: RenderSettings,
+}
+
+fn fur_mask_path(views: &Path, cam: &Camera) -> std::path::PathBuf {
+    let m = formats::cameras::mask_file_path(&cam.file_path);
+    let stem = m.strip_suffix("_mask.png").unwrap_or(&m);
+    views.join(format!("{stem}_fur.png"))
+}
+
+fn first_channel(img: ImageF32) -> ImageF32 {
+    let c = img.channels as usize;
+    if c == 1 {
+        return img;
+    }
+    ImageF32 {
+        width: img.width,
+        height: img.height,
+        channels: 1,
+        data: img.data.chunks_exact(c).map(|p| p[0]).collect(),
+    }
+}
+
+/// Area-weighted seeded surface samples as flat opaque Gaussians.
+pub fn body_gaussians(mesh: &Mesh, n: usize, seed: u64) -> Gaussians {
+    let mut g = Gaussians::default();
+    if n == 0 || mesh.triangles.is_empty() {
+        return g;
+    }
+    let mut cum = Vec::with_capacity(mesh.triangles.len());
+    let mut total = 0.0f64;
+    for t in &mesh.triangles {
+        let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+        total += 0.5 * (b - a).cross(c - a).length() as f64;
+        cum.push(total);
+    }
+    if total <= 0.0 {
+        return g;
+    }
+    let spacing = (total as f32 / n as f32).sqrt();
+    let scale = Vec3::new(0.6 * spacing, 0.6 * spacing, 0.06 * spacing);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xB0D1);
+    for _ in 0..n {
+        let x = rng.gen::<f64>() * total;
+        let ti = cum.partition_point(|&c| c < x).min(cum.len() - 1);
+        let [a, b, c] = mesh.triangles[ti].map(|i| mesh.positions[i as usize]);
+        let (mut u, mut v) = (rng.gen::<f32>(), rng.gen::<f32>());
+        if u + v > 1.0 {
+            u = 1.0 - u;
+            v = 1.0 - v;
+        }
+        let p = a + u * (b - a) + v * (c - a);
+        let nrm = (b - a).cross(c - a).try_normalize().unwrap_or(Vec3::Z);
+        g.push(
+            p,
+            scale,
+            Quat::from_rotation_arc(Vec3::Z, nrm),
+            1.0,
+            Vec3::splat(0.3),
+            false,
+        );
+    }
+    g
+}
+
+/// The first `n` Gaussians' gradients.
+fn head(g: &GaussianGrads, n: usize) -> GaussianGrads {
+    let mut h = g.clone();
+    h.means.truncate(n);
+    h.scales.truncate(n);
+    h.rotations.truncate(n);
+    h.opacities.truncate(n);
+    h.sh.truncate(n);
+    h.cov3d.truncate(n);
+    h
+}
+
+impl ImageLosses {
+    pub fn new(
+        views_dir: &Path,
+        orientation: Option<&Path>,
+        body_mesh: &Mesh,
+        widths: Vec<f32>,
+        cfg: &ImageConfig,
+    ) -> Result<Self, StageError> {
+        let cams = formats::cameras::read_views(views_dir)?;
+        if cams.train.is_empty() {
+            return Err(StageError::input(
+                "views",
+                views_dir,
+                "no training views in transforms.json",
+            ));
+        }
+        let mut views = Vec::with_capacity(cams.train.len());
+        for (vi, cam) in cams.train.iter().enumerate() {
+            let ipath = formats::cameras::image_path(views_dir, cam);
+            let img = formats::images::read_png(&ipath)?;
+            if (img.width, img.height) != (cam.width, cam.height) {
+                return Err(StageError::input(
+                    "views",
+                    &ipath,
+                    format!(
+                        "image is {}x{}, camera says {}x{}",
+                        img.width, img.height, cam.width, cam.height
+                    ),
+                ));
+            }
+            let c = img.channels as usize;
+            let mut rgb = ImageF32::new(img.width, img.height, 3);
+            let mut alpha = None;
+            if c == 4 || c == 2 {
+                alpha = Some(ImageF32::new(img.width, img.height, 1));
+            }
+            for (i, px) in img.data.chunks_exact(c).enumerate() {
+                let (col, a) = match c {
+                    1 => ([px[0]; 3], 1.0),
+                    2 => ([px[0]; 3], px[1]),
+                    3 => ([px[0], px[1], px[2]], 1.0),
+                    _ => ([px[0], px[1], px[2]], px[3]),
+                };
+                for k in 0..3 {
+                    rgb.data[3 * i + k] = col[k] * a;
+                }
+                if let Some(al) = alpha.as_mut() {
+                    al.data[i] = a;
+                }
+            }
+            let mpath = formats::cameras::mask_path(views_dir, cam);
+            let mask = if mpath.is_file() {
+                Some(first_channel(formats::images::read_png(&mpath)?))
+            } else {
+                alpha
+            };
+            let fpath = fur_mask_path(views_dir, cam);
+            let fur = if fpath.is_file() {
+                Some(first_channel(formats::images::read_png(&fpath)?))
+            } else {
+                None
+            };
+            for (what, im) in [("mask", &mask), ("fur mask", &fur)] {
+                if let Some(m) = im {
+                    if (m.width, m.height) != (cam.width, cam.height) {
+                        return Err(StageError::input(
+                            "views",
+                            views_dir,
+                            format!(
+                                "view {vi}: {what} is {}x{}, expected {}x{}",
+                                m.width, m.height, cam.width, cam.height
+                            ),
+                        ));
+                    }
+                }
+            }
+            let orientation = match orientation {
+                Some(dir) => Some(read_orientation(dir, cam)?),
+                None => None,
+            };
+            views.push(ViewData {
+                camera: cam.clone(),
+                rgb,
+                mask,
+                fur,
+                orientation,
+            });
+        }
+        let body = body_gaussians(body_mesh, cfg.body_gaussians, cfg.seed);
+        let mut body_adam = render::Adam::default();
+        let body_group = body_adam.add_group("body_colour", cfg.lr_color, body.len() * 3);
+        let n = widths.len();
+        Ok(ImageLosses {
+            cfg: cfg.clone(),
+            views,
+            test_cameras: cams.test,
+            body,
+            body_adam,
+            body_group,
+            widths,
+            colors: vec![[0.5, 0.4, 0.3]; n],
+            color_adam: RowAdam::new(n, 3),
+            settings: RenderSettings::default(),
+        })
+    }
+
+    /// The learned strand colours (one per strand).
+    pub fn colors(&self) -> &[[f32; 3]] {
+        &self.colors
+    }
+
+    pub fn appearance_parameters(&self) -> usize {
+        self.colors.len() * 3 + self.body.len() * 3
+    }
+
+    fn scene(
+        &self,
+        points: &[Vec3],
+        l: usize,
+        widths: &[f32],
+        colors: &[[f32; 3]],
+    ) -> Result<(Gaussians, usize), StageError> {
+        let n = points.len() / l;
+        let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
+        let mut g = render::strands_to_gaussians(points, &starts, widths, colors, true)?;
+        let segs = g.len();
+        g.means.extend_from_slice(&self.body.means);
+        g.scales.extend_from_slice(&self.body.scales);
+        g.rotations.extend_from_slice(&self.body.rotations);
+        g.opacities.extend_from_slice(&self.body.opacities);
+        g.sh.extend_from_slice(&self.body.sh);
+        g.fur.extend_from_slice(&self.body.fur);
+        Ok((g, segs))
+    }
+
+    /// Renders every held-out view of `strands` into `dir/test/NNN.png` (RGBA,
+    /// straight alpha) and `dir/test/NNN.exr` (RGBA, premultiplied over black).
+    pub fn render_test_views(&self, strands: &Strands, dir: &Path) -> Result<(), StageError> {
+        let l = if strands.is_empty() {
+            2
+        } else {
+            strands.strand(0).len()
+        };
+        let (g, _) = self.scene(&strands.points, l, &strands.width, &strands.color)?;
+        let out_dir = dir.join("test");
+        std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
+        for (i, cam) in self.test_cameras.iter().enumerate() {
+            let (out, _) = render::render(&g, cam, &self.settings)?;
+            let (w, h) = (cam.width, cam.height);
+            let mut straight = ImageF32::new(w, h, 4);
+            let mut pre = ImageF32::new(w, h, 4);
+            for p in 0..(w * h) as usize {
+                let a = out.alpha.data[p].clamp(0.0, 1.0);
+                for k in 0..3 {
+                    let c = out.rgb.data[3 * p + k];
+                    pre.data[4 * p + k] = c;
+                    straight.data[4 * p + k] = if a > 1e-6 {
+                        (c / a).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                }
+                pre.data[4 * p + 3] = a;
+                straight.data[4 * p + 3] = a;
+            }
+            fure_stage_api::ensure_finite("held-out render", pre.data.iter().copied())?;
+            formats::images::write_png(out_dir.join(format!("{i:03}.png")), &straight)?;
+            formats::images::write_exr(out_dir.join(format!("{i:03}.exr")), &pre)?;
+        }
+        Ok(())
+    }
+}
+
+/// Reads the orientation angle and confidence maps of a view.
+fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
+    let name = Path::new(&cam.file_path)
+        .file_stem()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default();
+    let o = formats::images::read_exr(dir.join(format!("{name}_orient.exr")))?;
+    let c = formats::images::read_exr(dir.join(format!("{name}_conf.exr")))?;
+    Ok((first_channel(o), first_channel(c)))
+}
+
+/// Weighted loss terms of one rendered view and d loss / d outputs.
+fn view_losses(
+    out: &RenderOutput,
+    view: &ViewData,
+    cfg: &ImageConfig,
+) -> Result<(Vec<(&'static str, f32)>, OutputGrads), StageError> {
+    let _ = (out, view, cfg);
+    Ok((Vec::new(), OutputGrads::default()))
+}
+
+impl ImageTerm for ImageLosses {
+    fn eval(
+        &mut self,
+        iteration: usize,
+        points: &[Vec3],
+        l: usize,
+        subset: &[u32],
+        grad: &mut [Vec3],
+    ) -> Result<Vec<(&'static str, f32)>, StageError> {
+        let widths: Vec<f32> = subset.iter().map(|&i| self.widths[i as usize]).collect();
+        let colors: Vec<[f32; 3]> = subset.iter().map(|&i| self.colors[i as usize]).collect();
+        let (g, segs) = self.scene(points, l, &widths, &colors)?;
+        let nv = self.cfg.views_per_iteration.min(self.views.len()).max(1);
+        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0x1A6E ^ (iteration as u64) << 20);
+        let mut vids: Vec<usize> =
+            rand::seq::index::sample(&mut rng, self.views.len(), nv).into_vec();
+        vids.sort_unstable();
+        let inv = 1.0 / nv as f32;
+        let mut terms: Vec<(&'static str, f32)> = Vec::new();
+        let mut gcol = vec![0.0f32; subset.len() * 3];
+        let mut gbody = vec![0.0f32; self.body.len() * 3];
+        let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
+        for &vi in &vids {
+            let view = &self.views[vi];
+            let (out, state) = render::render(&g, &view.camera, &self.settings)?;
+            let (t, dl) = view_losses(&out, view, &self.cfg)?;
+            for (name, v) in t {
+                match terms.iter_mut().find(|x| x.0 == name) {
+                    Some(x) => x.1 += inv * v,
+                    None => terms.push((name, inv * v)),
+                }
+            }
+            let gg = render::backward(&g, &view.camera, &self.settings, &state, &dl)?;
+            let sg = render::strands_backward(points, &starts, &widths, &head(&gg, segs))?;
+            for (a, b) in grad.iter_mut().zip(&sg.points) {
+                *a += inv * *b;
+            }
+            for (s, c) in sg.colors.iter().enumerate() {
+                for k in 0..3 {
+                    gcol[3 * s + k] += inv * c[k];
+                }
+            }
+            for (b, sh) in gg.sh[segs..].iter().enumerate() {
+                for k in 0..3 {
+                    gbody[3 * b + k] += inv * sh[0][k];
+                }
+            }
+        }
+        // Appearance steps (colours stay in [0, 1]).
+        let mut flat: Vec<f32> = self.colors.iter().flat_map(|c| *c).collect();
+        self.color_adam
+            .step(&mut flat, &gcol, subset, self.cfg.lr_color);
+        for (c, f) in self.colors.iter_mut().zip(flat.chunks_exact(3)) {
+            *c = [
+                f[0].clamp(0.0, 1.0),
+                f[1].clamp(0.0, 1.0),
+                f[2].clamp(0.0, 1.0),
+            ];
+        }
+        if !self.body.is_empty() {
+            let mut sh: Vec<f32> = self.body.sh.iter().flat_map(|s| s[0].to_array()).collect();
+            self.body_adam.step(self.body_group, &mut sh, &gbody)?;
+            for (s, f) in self.body.sh.iter_mut().zip(sh.chunks_exact(3)) {
+                s[0] = Vec3::new(f[0], f[1], f[2]);
+            }
+        }
+        Ok(terms)
+    }
+}

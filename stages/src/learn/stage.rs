@@ -1,0 +1,700 @@
+//! The stages `codec_strands` and `dense_strands`: reading the inputs,
+//! preparing roots, lengths and distance grids, running the shared loop, and
+//! writing strands, snapshots, held-out renders and metrics.
+
+use std::path::Path;
+
+use fure_stage_api::{
+    ensure_finite, ParamSpec, ParamType, Params, PortSpec, Stage, StageContext, StageError,
+};
+use glam::Vec3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::geomloss::DistanceGrid;
+use super::image::{ImageConfig, ImageLosses};
+use super::mlp::{Mlp, PositionalEncoding};
+use super::model::{Codec, Dense, Model, Prepared, Rates};
+use super::placement::{frame, Decoder};
+use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
+use crate::basis::StrandBasis;
+use crate::formats;
+use crate::geom::MeshQuery;
+use crate::mesh::Mesh;
+use crate::rootset::Roots;
+use crate::strands::Strands;
+
+const LENGTH_MODES: &[&str] = &["defurred", "fixed", "shape_prior"];
+
+/// Parameters both stages share.
+fn common_params(iterations: i64) -> Vec<ParamSpec> {
+    vec![
+        ParamSpec::int("iterations", iterations, "Optimisation iterations.").min(0.0),
+        ParamSpec::int(
+            "strands_per_iteration",
+            4000,
+            "Strands sampled (seeded) and rendered per iteration (the paper: 15,000 of ~500,000).",
+        )
+        .min(1.0),
+        ParamSpec::int(
+            "max_strands",
+            0,
+            "Keep at most this many roots (seeded subsample; 0 = all fur roots).",
+        )
+        .min(0.0),
+        ParamSpec::int("views_per_iteration", 1, "Training views rendered per iteration.").min(1.0),
+        ParamSpec::float("lr_color", 0.02, "Adam learning rate of strand and body colours.")
+            .min(0.0),
+        ParamSpec::float("l_rgb", 1.0, "Weight of L_rgb (L1 + D-SSIM on the photo).").min(0.0),
+        ParamSpec::float("l_sil", 0.1, "Weight of L_sil (rendered vs given silhouette).").min(0.0),
+        ParamSpec::float(
+            "l_ori",
+            0.1,
+            "Weight of L_ori (image-space orientation vs the Gabor maps, confidence-weighted).",
+        )
+        .min(0.0),
+        ParamSpec::float("l_chm", 2.0, "Weight of L_chm (strand tips toward M_outer).").min(0.0),
+        ParamSpec::float("l_sdf", 1.0, "Weight of L_sdf (penetration of M_root).").min(0.0),
+        ParamSpec::float("l_mask", 0.1, "Weight of L_mask (rendered vs given fur mask).").min(0.0),
+        ParamSpec::float(
+            "snapshot_seconds",
+            5.0,
+            "Training wall-clock seconds between recorded snapshots (0 = final only).",
+        )
+        .min(0.0),
+        ParamSpec::int("seed", 0, "Seed of initialisation and subset sampling.").min(0.0),
+        ParamSpec::string(
+            "length_mode",
+            "defurred",
+            "defurred: per-root lengths on M_root (full method); fixed: one length for all fur \
+             parts; shape_prior: no defurred mesh (roots snapped onto M_outer, which is also the \
+             body for L_sdf).",
+        )
+        .choices(LENGTH_MODES),
+        ParamSpec::optional(
+            "fixed_length_cm",
+            ParamType::Float,
+            "Length for length_mode = fixed (default: the mean over fur parts of their mean length).",
+        ),
+        ParamSpec::int("sdf_resolution", 48, "Nodes along the largest side of the distance grids.")
+            .range(8.0, 256.0),
+        ParamSpec::int(
+            "body_gaussians",
+            20000,
+            "Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).",
+        )
+        .min(0.0),
+    ]
+}
+
+fn ports_in() -> Vec<PortSpec> {
+    vec![
+        PortSpec::file(
+            "roots",
+            "json",
+            "Roots with frames, parts, lengths (stage `roots`).",
+        ),
+        PortSpec::file("basis", "json", "Strand basis (stage `strand_basis`)."),
+        PortSpec::file("outer", "obj", "Outer envelope M_outer."),
+        PortSpec::file("root_mesh", "obj", "Defurred body M_root."),
+        PortSpec::dir(
+            "views",
+            "Training and held-out views (transforms.json, images, masks).",
+        )
+        .optional(),
+        PortSpec::dir(
+            "orientation",
+            "Gabor orientation maps (stage `orientation_maps`).",
+        )
+        .optional(),
+    ]
+}
+
+fn ports_out() -> Vec<PortSpec> {
+    vec![
+        PortSpec::file("strands", "hair", "Final strands (Cem Yuksel .hair)."),
+        PortSpec::file(
+            "strands_ply",
+            "ply",
+            "Final strands (PLY with edges and parts).",
+        ),
+        PortSpec::dir("renders", "Held-out views rendered: test/NNN.png and .exr."),
+        PortSpec::dir(
+            "snapshots",
+            "index.json + snap_NNN.hair at regular training times.",
+        ),
+        PortSpec::file(
+            "metrics",
+            "json",
+            "Training time, iterations, losses, parameter counts.",
+        ),
+    ]
+}
+
+/// Codec strand learning (FurE).
+pub struct CodecStrands;
+/// The dense baseline (NeuralFur-style per-point optimisation).
+pub struct DenseStrands;
+
+impl Stage for CodecStrands {
+    fn kind(&self) -> &'static str {
+        "codec_strands"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
+         shell-width feature and length to PCA codes, a fine-tuned PCA decoder gives a canonical \
+         strand, the placement equation puts it on the root with exactly its length; trained \
+         through the Gaussian renderer with L_rgb, L_sil, L_ori, L_chm, L_sdf, L_mask."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        let mut p = common_params(300);
+        p.extend([
+            ParamSpec::float("lr_encoder", 2e-3, "Adam learning rate of the encoder.").min(0.0),
+            ParamSpec::float(
+                "lr_decoder",
+                1e-4,
+                "Adam learning rate of the decoder fine-tuning.",
+            )
+            .min(0.0),
+            ParamSpec::bool("finetune_decoder", true, "Fine-tune the PCA decoder (psi)."),
+            ParamSpec::int("pe_frequencies", 10, "Positional-encoding frequencies.")
+                .range(0.0, 20.0),
+            ParamSpec::int("mlp_width", 64, "Hidden width of the encoder.").range(1.0, 1024.0),
+            ParamSpec::int("mlp_depth", 3, "Hidden layers of the encoder.").range(1.0, 16.0),
+            ParamSpec::int(
+                "components",
+                0,
+                "Use the first K basis components (0 = all).",
+            )
+            .min(0.0),
+        ]);
+        p
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_in()
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_out()
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        run_stage(ctx, false)
+    }
+}
+
+impl Stage for DenseStrands {
+    fn kind(&self) -> &'static str {
+        "dense_strands"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
+         losses and subset sampling as codec_strands, but every non-root point of every strand is \
+         a free parameter (lazy Adam on the sampled strands)."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        let mut p = common_params(1200);
+        p.push(
+            ParamSpec::float(
+                "lr_points",
+                0.01,
+                "Adam learning rate of the points, in mean strand lengths per step.",
+            )
+            .min(0.0),
+        );
+        p
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_in()
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_out()
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        run_stage(ctx, true)
+    }
+}
+
+/// One entry of `snapshots/index.json`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SnapshotEntry {
+    pub file: String,
+    pub seconds: f64,
+    pub iteration: usize,
+    pub optimised_parameters: usize,
+}
+
+/// `metrics.json` of both stages.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct LearnMetrics {
+    pub method: String,
+    pub length_mode: String,
+    pub train_seconds: f64,
+    pub iterations: usize,
+    pub final_losses: std::collections::BTreeMap<String, f32>,
+    /// Geometry parameters optimised (encoder + decoder, or every free point).
+    pub optimised_parameters: usize,
+    /// Appearance parameters optimised (strand and body colours), the same for both methods.
+    pub appearance_parameters: usize,
+    pub strands: usize,
+    pub points_per_strand: usize,
+    pub strands_per_iteration: usize,
+    pub mean_length: f32,
+    /// Loss after every iteration.
+    pub loss_history: Vec<f32>,
+}
+
+fn read_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
+    let path = ctx.input(port)?;
+    let mesh = formats::obj::read_obj(path)?;
+    if mesh.triangles.is_empty() {
+        return Err(StageError::input(port, path, "mesh has no triangles"));
+    }
+    Ok(mesh)
+}
+
+/// Checks the roots' arrays agree and are finite.
+fn check_roots(r: &Roots, path: &Path) -> Result<(), StageError> {
+    let n = r.len();
+    for (what, len) in [
+        ("normals", r.normals.len()),
+        ("tangents", r.tangents.len()),
+        ("bitangents", r.bitangents.len()),
+        ("part", r.part.len()),
+        ("length", r.length.len()),
+        ("width", r.width.len()),
+        ("rho", r.rho.len()),
+    ] {
+        if len != n {
+            return Err(StageError::input(
+                "roots",
+                path,
+                format!("field `{what}` has {len} entries, expected {n} (one per position)"),
+            ));
+        }
+    }
+    let finite = r
+        .positions
+        .iter()
+        .chain(&r.normals)
+        .chain(&r.tangents)
+        .chain(&r.bitangents)
+        .all(|v| v.is_finite())
+        && r.length
+            .iter()
+            .chain(&r.width)
+            .chain(&r.rho)
+            .all(|v| v.is_finite());
+    if !finite {
+        return Err(StageError::input("roots", path, "non-finite values"));
+    }
+    if !(r.s_cm.is_finite() && r.s_cm > 0.0) {
+        return Err(StageError::input(
+            "roots",
+            path,
+            format!("field `s_cm` must be a positive number, found {}", r.s_cm),
+        ));
+    }
+    Ok(())
+}
+
+fn check_basis(b: &StrandBasis, path: &Path) -> Result<(), StageError> {
+    if b.points < 2 || b.mean.len() != b.points {
+        return Err(StageError::input(
+            "basis",
+            path,
+            format!(
+                "`mean` has {} points but `points` is {} (need at least 2)",
+                b.mean.len(),
+                b.points
+            ),
+        ));
+    }
+    for (k, c) in b.components.iter().enumerate() {
+        if c.len() != b.points {
+            return Err(StageError::input(
+                "basis",
+                path,
+                format!(
+                    "`components[{k}]` has {} points, expected {}",
+                    c.len(),
+                    b.points
+                ),
+            ));
+        }
+    }
+    ensure_finite(
+        "basis",
+        b.mean
+            .iter()
+            .chain(b.components.iter().flatten())
+            .flat_map(|v| v.to_array()),
+    )
+}
+
+/// The per-root lengths of a length mode (scene units); roots of length 0 grow no strand.
+pub fn mode_lengths(r: &Roots, mode: &str, fixed_cm: Option<f64>) -> Result<Vec<f32>, StageError> {
+    match mode {
+        "defurred" | "shape_prior" => Ok(r.length.clone()),
+        "fixed" => {
+            let cm = match fixed_cm {
+                Some(v) if v > 0.0 => v as f32,
+                Some(v) => {
+                    return Err(StageError::param(
+                        "fixed_length_cm",
+                        format!("must be positive, found {v}"),
+                    ))
+                }
+                None => {
+                    // Mean over fur parts of each part's mean root length.
+                    let parts = r
+                        .part_names
+                        .len()
+                        .max(r.part.iter().map(|&p| p as usize + 1).max().unwrap_or(0));
+                    let mut sum = vec![0.0f64; parts];
+                    let mut cnt = vec![0usize; parts];
+                    for (i, &l) in r.length.iter().enumerate() {
+                        if l > 0.0 {
+                            sum[r.part[i] as usize] += l as f64;
+                            cnt[r.part[i] as usize] += 1;
+                        }
+                    }
+                    let means: Vec<f64> = (0..parts)
+                        .filter(|&p| cnt[p] > 0)
+                        .map(|p| sum[p] / cnt[p] as f64)
+                        .collect();
+                    if means.is_empty() {
+                        return Err(StageError::failed("no root has a positive length"));
+                    }
+                    (means.iter().sum::<f64>() / means.len() as f64 * r.s_cm as f64) as f32
+                }
+            };
+            let l = cm / r.s_cm;
+            Ok(r.length
+                .iter()
+                .map(|&x| if x > 0.0 { l } else { 0.0 })
+                .collect())
+        }
+        other => Err(StageError::param(
+            "length_mode",
+            format!("unknown mode `{other}` (expected one of {LENGTH_MODES:?})"),
+        )),
+    }
+}
+
+/// Everything prepared from the inputs.
+struct Setup {
+    prep: Prepared,
+    keep: Vec<usize>,
+    roots: Roots,
+    geometry: Geometry,
+    decoder: Decoder,
+    lengths: Vec<f32>,
+    body_mesh: Mesh,
+    outer: Mesh,
+}
+
+fn setup(
+    ctx: &StageContext<'_>,
+    pe_frequencies: usize,
+    components: usize,
+) -> Result<Setup, StageError> {
+    let p = ctx.params;
+    let roots_path = ctx.input("roots")?;
+    let mut roots: Roots = formats::json::read_json(roots_path)?;
+    check_roots(&roots, roots_path)?;
+    let basis_path = ctx.input("basis")?;
+    let basis: StrandBasis = formats::json::read_json(basis_path)?;
+    check_basis(&basis, basis_path)?;
+    let outer = read_mesh(ctx, "outer")?;
+    let root_mesh = read_mesh(ctx, "root_mesh")?;
+    let mode = p.str("length_mode")?.to_string();
+    let fixed_cm = p.f64_opt("fixed_length_cm")?;
+    let lengths_all = mode_lengths(&roots, &mode, fixed_cm)?;
+
+    // Shape-prior ablation: no defurred mesh, roots on M_outer.
+    let body_mesh = if mode == "shape_prior" {
+        let q = MeshQuery::new(&outer)?;
+        for i in 0..roots.len() {
+            let (c, _, tri) = q.closest_point(roots.positions[i]);
+            roots.positions[i] = c;
+            if let Some(t) = outer.triangles.get(tri as usize) {
+                let [a, b, cc] = t.map(|v| outer.positions[v as usize]);
+                if let Some(nrm) = (b - a).cross(cc - a).try_normalize() {
+                    // Re-orthonormalise the frame around the envelope's normal.
+                    let tan = (roots.tangents[i] - nrm * nrm.dot(roots.tangents[i]))
+                        .try_normalize()
+                        .unwrap_or_else(|| nrm.any_orthonormal_vector());
+                    roots.normals[i] = nrm;
+                    roots.tangents[i] = tan;
+                    roots.bitangents[i] = nrm.cross(tan);
+                }
+            }
+        }
+        outer.clone()
+    } else {
+        root_mesh
+    };
+
+    // Fur roots only, optionally a seeded subsample.
+    let mut keep: Vec<usize> = (0..roots.len()).filter(|&i| lengths_all[i] > 0.0).collect();
+    let max = p.usize("max_strands")?;
+    if max > 0 && keep.len() > max {
+        let mut rng = ChaCha8Rng::seed_from_u64(p.u64("seed")? ^ 0x5EED_0F_F0);
+        let mut pick: Vec<usize> = rand::seq::index::sample(&mut rng, keep.len(), max)
+            .into_iter()
+            .collect();
+        pick.sort_unstable();
+        keep = pick.into_iter().map(|j| keep[j]).collect();
+    }
+    if keep.is_empty() {
+        return Err(StageError::input(
+            "roots",
+            roots_path,
+            "no root with a positive strand length (all parts are non-fur?)",
+        ));
+    }
+    let part_count = roots.part_names.len().max(
+        roots
+            .part
+            .iter()
+            .map(|&x| x as usize + 1)
+            .max()
+            .unwrap_or(1),
+    );
+    let (lo, hi) = outer.bounds();
+    let pe = PositionalEncoding::new(pe_frequencies, lo.to_array(), hi.to_array());
+    let lengths: Vec<f32> = keep.iter().map(|&i| lengths_all[i]).collect();
+    let prep = Prepared::new(
+        basis.points,
+        keep.iter().map(|&i| roots.positions[i]).collect(),
+        keep.iter()
+            .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]))
+            .collect(),
+        lengths.clone(),
+        &keep.iter().map(|&i| roots.part[i]).collect::<Vec<_>>(),
+        part_count,
+        &keep.iter().map(|&i| roots.rho[i]).collect::<Vec<_>>(),
+        &pe,
+    );
+    let k = if components == 0 {
+        basis.k()
+    } else {
+        components.min(basis.k())
+    };
+    let decoder = Decoder::new(&basis.mean, &basis.components[..k]);
+
+    // Distance grids over both meshes' box padded by 10% of the diagonal.
+    ctx.progress.message("distance grids");
+    let (blo, bhi) = body_mesh.bounds();
+    let lo = lo.min(blo);
+    let hi = hi.max(bhi);
+    let pad = 0.1 * (hi - lo).length();
+    let res = p.usize("sdf_resolution")?;
+    let oq = MeshQuery::new(&outer)?;
+    let bq = MeshQuery::new(&body_mesh)?;
+    let geometry = Geometry {
+        outer: DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.closest_point(x).1),
+        body: DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| bq.signed_distance(x)),
+    };
+    ensure_finite(
+        "distance grids",
+        geometry
+            .outer
+            .values
+            .iter()
+            .chain(&geometry.body.values)
+            .copied(),
+    )?;
+    Ok(Setup {
+        prep,
+        keep,
+        roots,
+        geometry,
+        decoder,
+        lengths,
+        body_mesh,
+        outer,
+    })
+}
+
+/// Strands from flat points, with the roots' parts and widths.
+fn to_strands(points: &[Vec3], l: usize, s: &Setup, colors: Option<&[[f32; 3]]>) -> Strands {
+    let mut out = Strands::new();
+    out.part_names = s.roots.part_names.clone();
+    for (j, &i) in s.keep.iter().enumerate() {
+        let c = colors.map(|c| c[j]).unwrap_or([0.5, 0.4, 0.3]);
+        out.push(
+            &points[j * l..(j + 1) * l],
+            s.roots.part[i],
+            s.roots.width[i],
+            c,
+        );
+    }
+    out
+}
+
+fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
+    let p = ctx.params;
+    let seed = p.u64("seed")?;
+    let (pe_f, comps) = if dense {
+        (0, 0)
+    } else {
+        (p.usize("pe_frequencies")?, p.usize("components")?)
+    };
+    ctx.progress.message("reading inputs");
+    let s = setup(ctx, pe_f, comps)?;
+    let l = s.prep.points;
+
+    // The initial codec; the dense baseline starts from its strands.
+    let mlp = if dense {
+        Mlp::new(s.prep.feature_dim, 8, 1, s.decoder.k, seed)
+    } else {
+        Mlp::new(
+            s.prep.feature_dim,
+            p.usize("mlp_width")?,
+            p.usize("mlp_depth")?,
+            s.decoder.k,
+            seed,
+        )
+    };
+    let codec = Model::Codec(Codec::new(
+        mlp,
+        s.decoder.clone(),
+        !dense && p.bool("finetune_decoder")?,
+    ));
+    let mut model = if dense {
+        Model::Dense(Dense::from_strands(&codec.all_points(&s.prep), l))
+    } else {
+        codec
+    };
+    let rates = Rates {
+        encoder: if dense { 0.0 } else { p.f32("lr_encoder")? },
+        decoder: if dense { 0.0 } else { p.f32("lr_decoder")? },
+        points: if dense { p.f32("lr_points")? } else { 0.0 },
+    };
+    let cfg = TrainConfig {
+        iterations: p.usize("iterations")?,
+        subset: p.usize("strands_per_iteration")?,
+        seed,
+        rates,
+        w_chm: p.f32("l_chm")?,
+        w_sdf: p.f32("l_sdf")?,
+        snapshot_seconds: p.f64("snapshot_seconds")?,
+    };
+
+    // Image losses when views are connected.
+    let mut image = match ctx.input_opt("views") {
+        Some(views) => {
+            ctx.progress.message("reading views");
+            let icfg = ImageConfig {
+                views_per_iteration: p.usize("views_per_iteration")?,
+                lr_color: p.f32("lr_color")?,
+                l_rgb: p.f32("l_rgb")?,
+                l_sil: p.f32("l_sil")?,
+                l_ori: p.f32("l_ori")?,
+                l_mask: p.f32("l_mask")?,
+                body_gaussians: p.usize("body_gaussians")?,
+                seed,
+            };
+            let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
+            Some(ImageLosses::new(
+                views,
+                ctx.input_opt("orientation"),
+                &s.body_mesh,
+                widths,
+                &icfg,
+            )?)
+        }
+        None => None,
+    };
+
+    // Snapshots.
+    let snap_dir = ctx.output("snapshots")?.to_path_buf();
+    let mut index: Vec<SnapshotEntry> = Vec::new();
+    let params_count = model.parameter_count();
+    let mut snap_err: Option<StageError> = None;
+    let report: TrainReport = {
+        let img_ref = image.as_mut();
+        let colors_snapshot = img_ref.as_ref().map(|i| i.colors().to_vec());
+        let _ = colors_snapshot;
+        let mut snapshot = |m: &Model, it: usize, secs: f64| -> Result<(), StageError> {
+            let pts = m.all_points(&s.prep);
+            let strands = to_strands(&pts, l, &s, None);
+            let file = format!("snap_{:03}.hair", index.len());
+            formats::hair::write_hair(snap_dir.join(&file), &strands)?;
+            index.push(SnapshotEntry {
+                file,
+                seconds: secs,
+                iteration: it,
+                optimised_parameters: params_count,
+            });
+            Ok(())
+        };
+        ctx.progress.message(if dense {
+            "dense training"
+        } else {
+            "codec training"
+        });
+        let r = train::train(
+            &mut model,
+            &s.prep,
+            &s.geometry,
+            img_ref.map(|i| i as &mut dyn ImageTerm),
+            &cfg,
+            ctx.progress,
+            &mut snapshot,
+        );
+        match r {
+            Ok(r) => r,
+            Err(e) => {
+                snap_err = Some(e);
+                TrainReport::default()
+            }
+        }
+    };
+    if let Some(e) = snap_err {
+        return Err(e);
+    }
+    formats::json::write_json(snap_dir.join("index.json"), &index)?;
+
+    // Final strands.
+    let pts = model.all_points(&s.prep);
+    ensure_finite("final strands", pts.iter().flat_map(|v| v.to_array()))?;
+    let colors = image.as_ref().map(|i| i.colors().to_vec());
+    let strands = to_strands(&pts, l, &s, colors.as_deref());
+    formats::hair::write_hair(ctx.output("strands")?, &strands)?;
+    formats::ply::write_ply_strands(ctx.output("strands_ply")?, &strands)?;
+
+    // Held-out renders.
+    if let Some(img) = image.as_ref() {
+        ctx.progress.message("rendering held-out views");
+        img.render_test_views(&strands, ctx.output("renders")?)?;
+    }
+
+    let metrics = LearnMetrics {
+        method: if dense { "dense" } else { "codec" }.into(),
+        length_mode: p.str("length_mode")?.into(),
+        train_seconds: report.train_seconds,
+        iterations: report.iterations,
+        final_losses: report.final_losses.clone(),
+        optimised_parameters: params_count,
+        appearance_parameters: image
+            .as_ref()
+            .map(|i| i.appearance_parameters())
+            .unwrap_or(0),
+        strands: s.keep.len(),
+        points_per_strand: l,
+        strands_per_iteration: cfg.subset.min(s.keep.len()),
+        mean_length: s.prep.mean_length(),
+        loss_history: report.history.clone(),
+    };
+    let _ = (&s.lengths, &s.outer);
+    formats::json::write_json(ctx.output("metrics")?, &metrics)?;
+    Ok(())
+}
