@@ -1,0 +1,1 @@
+//! (in progress) Writing renders to disk for inspection.

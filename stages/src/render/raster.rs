@@ -1,0 +1,570 @@
+//! Tiling, depth sorting, front-to-back compositing and its adjoint.
+//!
+//! Work is split into 16x16 tiles, one rayon task per tile; inside a tile the
+//! loop runs over the tile's depth-sorted Gaussians and, for each, over the
+//! pixels inside its support ellipse only (row intervals solved from the
+//! conic), keeping per-pixel transmittance and accumulators. The backward
+//! pass runs the same loop back to front, recovering each transmittance by
+//! division, and writes one gradient record per (tile, Gaussian) instance;
+//! records are summed per Gaussian in instance (tile-major) order, so the
+//! result does not depend on the thread count.
+
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+
+use super::gaussians::{GaussianGrads, Gaussians};
+use super::project::{
+    project_backward, project_one, CamData, Splat, SplatGrad, F_ALPHA, F_DEPTH, F_FUR, F_OX, F_OY,
+    NF,
+};
+use super::{RenderError, RenderSettings, TILE};
+use crate::camera::Camera;
+use crate::image::ImageF32;
+
+const TP: usize = (TILE * TILE) as usize;
+/// Gaussians per rayon task in the per-Gaussian passes.
+const CHUNK: usize = 4096;
+
+/// The rendered images (see the [`crate::render`] module doc).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderOutput {
+    /// 3 channels, linear RGB over the background.
+    pub rgb: ImageF32,
+    /// 1 channel, `1 - final transmittance`.
+    pub alpha: ImageF32,
+    /// 1 channel, alpha-blended view depth (not divided by alpha).
+    pub depth: ImageF32,
+    /// 2 channels, blended `((a - c), 2b) / (a + c)` of the 2D covariance.
+    pub orientation: ImageF32,
+    /// 1 channel, blended fur flag.
+    pub fur: ImageF32,
+}
+
+/// What [`backward`] needs from [`render`].
+#[derive(Debug, Clone)]
+pub struct RenderState {
+    width: u32,
+    height: u32,
+    n_gaussians: usize,
+    splats: Vec<Splat>,
+    /// Gaussian index of every (tile, Gaussian) instance, tile-major, depth-sorted within a tile.
+    instances: Vec<u32>,
+    /// Instance range of every tile.
+    tile_ranges: Vec<(u32, u32)>,
+    /// Per pixel (row-major): final transmittance.
+    t_final: Vec<f32>,
+    /// Per pixel: 1 + the in-tile index of the last blended Gaussian (0 = none).
+    n_contrib: Vec<u32>,
+    /// Gaussian-pixel evaluations in the forward pass.
+    pub evaluations: u64,
+}
+
+impl RenderState {
+    /// Number of (tile, Gaussian) instances.
+    pub fn instance_count(&self) -> usize {
+        self.instances.len()
+    }
+    /// Number of Gaussians that survived culling.
+    pub fn visible_count(&self) -> usize {
+        self.splats.iter().filter(|s| s.visible).count()
+    }
+}
+
+/// dL/d(output image); `None` means zero.
+#[derive(Debug, Clone, Default)]
+pub struct OutputGrads {
+    pub rgb: Option<ImageF32>,
+    pub alpha: Option<ImageF32>,
+    pub depth: Option<ImageF32>,
+    pub orientation: Option<ImageF32>,
+    pub fur: Option<ImageF32>,
+}
+
+/// Integer pixel interval of row `y` covered by the support ellipse (unclamped).
+#[inline]
+fn row_span(sp: &Splat, y: i32) -> Option<(i32, i32)> {
+    let [ca, cb, cc] = sp.conic;
+    let dy = y as f32 + 0.5 - sp.mean.y;
+    let disc = cb * cb * dy * dy - ca * (cc * dy * dy - sp.k2);
+    if !(disc >= 0.0) {
+        return None;
+    }
+    let sq = disc.sqrt();
+    let x0 = sp.mean.x + (-cb * dy - sq) / ca;
+    let x1 = sp.mean.x + (-cb * dy + sq) / ca;
+    let lo = (x0 - 0.5).ceil();
+    let hi = (x1 - 0.5).floor();
+    if !(lo <= hi) {
+        return None;
+    }
+    Some((lo.max(-1.0e6) as i32, hi.min(1.0e6) as i32))
+}
+
+/// Pixel rows covered by the support (unclamped).
+#[inline]
+fn row_range(sp: &Splat) -> (i32, i32) {
+    let ey = (sp.k2 * sp.cov[2]).sqrt();
+    let lo = (sp.mean.y - ey - 0.5).ceil().max(-1.0e6) as i32;
+    let hi = (sp.mean.y + ey - 0.5).floor().min(1.0e6) as i32;
+    (lo, hi)
+}
+
+/// Calls `f(tile_x, tile_y)` for every tile the support touches (exact for the ellipse).
+#[inline]
+fn for_each_tile(sp: &Splat, w: u32, h: u32, mut f: impl FnMut(u32, u32)) {
+    let (r0, r1) = row_range(sp);
+    let (r0, r1) = (r0.max(0), r1.min(h as i32 - 1));
+    if r0 > r1 {
+        return;
+    }
+    let t = TILE as i32;
+    let mut band = r0 / t;
+    let (mut lo, mut hi) = (i32::MAX, i32::MIN);
+    let flush = |band: i32, lo: i32, hi: i32, f: &mut dyn FnMut(u32, u32)| {
+        if lo <= hi {
+            for tx in lo / t..=hi / t {
+                f(tx as u32, band as u32);
+            }
+        }
+    };
+    for y in r0..=r1 {
+        if y / t != band {
+            flush(band, lo, hi, &mut f);
+            band = y / t;
+            lo = i32::MAX;
+            hi = i32::MIN;
+        }
+        if let Some((a, b)) = row_span(sp, y) {
+            let (a, b) = (a.max(0), b.min(w as i32 - 1));
+            if a <= b {
+                lo = lo.min(a);
+                hi = hi.max(b);
+            }
+        }
+    }
+    flush(band, lo, hi, &mut f);
+}
+
+/// Alpha of a splat at pixel (x, y) and the Gaussian factor; `None` when skipped.
+#[inline(always)]
+fn eval(sp: &Splat, x: i32, y: i32, s: &RenderSettings) -> Option<(f32, f32, f32, f32, bool)> {
+    let dx = x as f32 + 0.5 - sp.mean.x;
+    let dy = y as f32 + 0.5 - sp.mean.y;
+    let [ca, cb, cc] = sp.conic;
+    let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
+    let gauss = power.min(0.0).exp();
+    let raw = sp.opacity * gauss;
+    let clamped = raw > s.alpha_max;
+    let alpha = if clamped { s.alpha_max } else { raw };
+    if alpha < s.alpha_min || !(alpha > 0.0) {
+        return None;
+    }
+    Some((alpha, gauss, dx, dy, clamped))
+}
+
+fn check_image(
+    what: &'static str,
+    img: &ImageF32,
+    w: u32,
+    h: u32,
+    ch: u32,
+) -> Result<(), RenderError> {
+    if img.width != w
+        || img.height != h
+        || img.channels != ch
+        || img.data.len() != (w * h * ch) as usize
+    {
+        return Err(RenderError::Image {
+            what,
+            width: w,
+            height: h,
+            channels: ch,
+            found: format!(
+                "{}x{}x{} ({} values)",
+                img.width,
+                img.height,
+                img.channels,
+                img.data.len()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Renders `g` from `cam`. Returns the images and the state for [`backward`].
+pub fn render(
+    g: &Gaussians,
+    cam: &Camera,
+    s: &RenderSettings,
+) -> Result<(RenderOutput, RenderState), RenderError> {
+    s.validate()?;
+    g.validate()?;
+    let cd = CamData::new(cam)?;
+    let (w, h) = (cd.width, cd.height);
+    let n = g.len();
+    // 1. Project (independent per Gaussian).
+    let mut splats = vec![Splat::default(); n];
+    splats
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .for_each(|(c, out)| {
+            for (j, sp) in out.iter_mut().enumerate() {
+                let i = c * CHUNK + j;
+                *sp = project_one(
+                    g.means[i],
+                    g.scales[i],
+                    g.rotations[i],
+                    g.opacities[i],
+                    &g.sh[i],
+                    g.fur[i],
+                    &cd,
+                    s,
+                );
+            }
+        });
+    // 2. Global depth order: key (depth bits, index) is unique, so the order is total.
+    let mut order: Vec<u64> = splats
+        .iter()
+        .enumerate()
+        .filter(|(_, sp)| sp.visible)
+        .map(|(i, sp)| ((sp.feat[F_DEPTH].to_bits() as u64) << 32) | i as u64)
+        .collect();
+    order.par_sort_unstable();
+    // 3. Tiles per splat (in depth order), then a stable counting sort by tile.
+    let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    let n_tiles = (tx * ty) as usize;
+    let counts: Vec<u32> = order
+        .par_chunks(CHUNK)
+        .flat_map_iter(|ch| {
+            ch.iter()
+                .map(|&k| {
+                    let mut c = 0u32;
+                    for_each_tile(&splats[(k & 0xffff_ffff) as usize], w, h, |_, _| c += 1);
+                    c
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let mut offsets = Vec::with_capacity(order.len() + 1);
+    let mut total = 0usize;
+    offsets.push(0usize);
+    for &c in &counts {
+        total += c as usize;
+        offsets.push(total);
+    }
+    let mut inst_tile = vec![0u32; total];
+    {
+        let mut slices = Vec::new();
+        let mut rest: &mut [u32] = &mut inst_tile;
+        for c in 0..order.len().div_ceil(CHUNK) {
+            let a = offsets[c * CHUNK];
+            let b = offsets[((c + 1) * CHUNK).min(order.len())];
+            let (head, tail) = rest.split_at_mut(b - a);
+            slices.push(head);
+            rest = tail;
+        }
+        slices.into_par_iter().enumerate().for_each(|(c, out)| {
+            let mut j = 0;
+            for &k in &order[c * CHUNK..((c + 1) * CHUNK).min(order.len())] {
+                for_each_tile(&splats[(k & 0xffff_ffff) as usize], w, h, |x, y| {
+                    out[j] = y * tx + x;
+                    j += 1;
+                });
+            }
+        });
+    }
+    let mut tile_count = vec![0u32; n_tiles + 1];
+    for &t in &inst_tile {
+        tile_count[t as usize + 1] += 1;
+    }
+    for t in 0..n_tiles {
+        tile_count[t + 1] += tile_count[t];
+    }
+    let tile_ranges: Vec<(u32, u32)> = (0..n_tiles)
+        .map(|t| (tile_count[t], tile_count[t + 1]))
+        .collect();
+    let mut cursor = tile_count;
+    let mut instances = vec![0u32; total];
+    for (si, &k) in order.iter().enumerate() {
+        let gi = (k & 0xffff_ffff) as u32;
+        for &t in &inst_tile[offsets[si]..offsets[si + 1]] {
+            instances[cursor[t as usize] as usize] = gi;
+            cursor[t as usize] += 1;
+        }
+    }
+    drop(inst_tile);
+    // 4. Composite per tile.
+    struct TileOut {
+        acc: Vec<[f32; NF]>,
+        t: Vec<f32>,
+        nc: Vec<u32>,
+        evals: u64,
+    }
+    let tiles: Vec<TileOut> = (0..n_tiles)
+        .into_par_iter()
+        .map(|t| {
+            let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
+            let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
+            let (x0, y0) = (x0 as i32, y0 as i32);
+            let npix = ((x1 - x0) * (y1 - y0)) as usize;
+            let mut acc = vec![[0.0f32; NF]; TP];
+            let mut tr = vec![1.0f32; TP];
+            let mut nc = vec![0u32; TP];
+            let mut done = [false; TP];
+            let mut n_done = 0usize;
+            let mut evals = 0u64;
+            let (a, b) = tile_ranges[t];
+            for (k, &gi) in instances[a as usize..b as usize].iter().enumerate() {
+                let sp = &splats[gi as usize];
+                let (r0, r1) = row_range(sp);
+                for y in r0.max(y0)..=r1.min(y1 - 1) {
+                    let Some((c0, c1)) = row_span(sp, y) else {
+                        continue;
+                    };
+                    for x in c0.max(x0)..=c1.min(x1 - 1) {
+                        let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
+                        if done[p] {
+                            continue;
+                        }
+                        evals += 1;
+                        let Some((alpha, ..)) = eval(sp, x, y, s) else {
+                            continue;
+                        };
+                        let tn = tr[p] * (1.0 - alpha);
+                        if tn < s.transmittance_min {
+                            done[p] = true;
+                            n_done += 1;
+                            continue;
+                        }
+                        let wgt = alpha * tr[p];
+                        for c in 0..NF {
+                            acc[p][c] += sp.feat[c] * wgt;
+                        }
+                        tr[p] = tn;
+                        nc[p] = k as u32 + 1;
+                    }
+                }
+                if n_done == npix {
+                    break;
+                }
+            }
+            TileOut {
+                acc,
+                t: tr,
+                nc,
+                evals,
+            }
+        })
+        .collect();
+    // 5. Scatter into images.
+    let mut out = RenderOutput {
+        rgb: ImageF32::new(w, h, 3),
+        alpha: ImageF32::new(w, h, 1),
+        depth: ImageF32::new(w, h, 1),
+        orientation: ImageF32::new(w, h, 2),
+        fur: ImageF32::new(w, h, 1),
+    };
+    let mut t_final = vec![1.0f32; (w * h) as usize];
+    let mut n_contrib = vec![0u32; (w * h) as usize];
+    let mut evaluations = 0u64;
+    let bg = s.background;
+    for (t, to) in tiles.iter().enumerate() {
+        evaluations += to.evals;
+        let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
+        for y in y0..(y0 + TILE).min(h) {
+            for x in x0..(x0 + TILE).min(w) {
+                let p = ((y - y0) * TILE + (x - x0)) as usize;
+                let q = (y * w + x) as usize;
+                let (a, tr) = (&to.acc[p], to.t[p]);
+                out.rgb.data[3 * q] = a[0] + tr * bg.x;
+                out.rgb.data[3 * q + 1] = a[1] + tr * bg.y;
+                out.rgb.data[3 * q + 2] = a[2] + tr * bg.z;
+                out.alpha.data[q] = 1.0 - tr;
+                out.depth.data[q] = a[F_DEPTH];
+                out.orientation.data[2 * q] = a[F_OX];
+                out.orientation.data[2 * q + 1] = a[F_OY];
+                out.fur.data[q] = a[F_FUR];
+                t_final[q] = tr;
+                n_contrib[q] = to.nc[p];
+            }
+        }
+    }
+    let state = RenderState {
+        width: w,
+        height: h,
+        n_gaussians: n,
+        splats,
+        instances,
+        tile_ranges,
+        t_final,
+        n_contrib,
+        evaluations,
+    };
+    Ok((out, state))
+}
+
+/// Gradients of all Gaussian parameters given dL/d(outputs). `g`, `cam` and
+/// `s` must be the ones `st` was rendered with.
+pub fn backward(
+    g: &Gaussians,
+    cam: &Camera,
+    s: &RenderSettings,
+    st: &RenderState,
+    dl: &OutputGrads,
+) -> Result<GaussianGrads, RenderError> {
+    s.validate()?;
+    let cd = CamData::new(cam)?;
+    let (w, h) = (st.width, st.height);
+    if cd.width != w || cd.height != h {
+        return Err(RenderError::Camera(format!(
+            "camera is {}x{} but the render state is {w}x{h}",
+            cd.width, cd.height
+        )));
+    }
+    if g.len() != st.n_gaussians {
+        return Err(RenderError::Length {
+            what: "gaussians (vs the render state)",
+            expected: st.n_gaussians,
+            found: g.len(),
+        });
+    }
+    g.validate()?;
+    // Per-pixel output gradients in feature layout.
+    let mut gpix = vec![[0.0f32; NF]; (w * h) as usize];
+    let chans: [(&Option<ImageF32>, &'static str, u32, usize); 5] = [
+        (&dl.rgb, "rgb gradient", 3, 0),
+        (&dl.alpha, "alpha gradient", 1, F_ALPHA),
+        (&dl.depth, "depth gradient", 1, F_DEPTH),
+        (&dl.orientation, "orientation gradient", 2, F_OX),
+        (&dl.fur, "fur gradient", 1, F_FUR),
+    ];
+    for (img, what, ch, f0) in chans {
+        if let Some(img) = img {
+            check_image(what, img, w, h, ch)?;
+            for (q, gp) in gpix.iter_mut().enumerate() {
+                for c in 0..ch as usize {
+                    let v = img.data[q * ch as usize + c];
+                    if !v.is_finite() {
+                        return Err(RenderError::NonFinite { what, index: q });
+                    }
+                    gp[f0 + c] = v;
+                }
+            }
+        }
+    }
+    let (tx, n_tiles) = (w.div_ceil(TILE), st.tile_ranges.len());
+    let bg = s.background;
+    // Per-instance gradients, one disjoint slice per tile.
+    let mut inst = vec![SplatGrad::default(); st.instances.len()];
+    {
+        let mut slices = Vec::with_capacity(n_tiles);
+        let mut rest: &mut [SplatGrad] = &mut inst;
+        for &(a, b) in &st.tile_ranges {
+            let (head, tail) = rest.split_at_mut((b - a) as usize);
+            slices.push(head);
+            rest = tail;
+        }
+        slices.into_par_iter().enumerate().for_each(|(t, out)| {
+            let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
+            let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
+            let (x0, y0) = (x0 as i32, y0 as i32);
+            let mut tr = [0.0f32; TP];
+            let mut sacc = [[0.0f32; NF]; TP];
+            let mut gp = [[0.0f32; NF]; TP];
+            let mut nc = [0u32; TP];
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
+                    let q = (y as u32 * w + x as u32) as usize;
+                    tr[p] = st.t_final[q];
+                    sacc[p][0] = bg.x * tr[p];
+                    sacc[p][1] = bg.y * tr[p];
+                    sacc[p][2] = bg.z * tr[p];
+                    gp[p] = gpix[q];
+                    nc[p] = st.n_contrib[q];
+                }
+            }
+            let (a, _) = st.tile_ranges[t];
+            let list = &st.instances[a as usize..a as usize + out.len()];
+            for k in (0..list.len()).rev() {
+                let sp = &st.splats[list[k] as usize];
+                let [ca, cb, cc] = sp.conic;
+                let mut gr = SplatGrad::default();
+                let (r0, r1) = row_range(sp);
+                for y in r0.max(y0)..=r1.min(y1 - 1) {
+                    let Some((c0, c1)) = row_span(sp, y) else {
+                        continue;
+                    };
+                    for x in c0.max(x0)..=c1.min(x1 - 1) {
+                        let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
+                        if k as u32 >= nc[p] {
+                            continue;
+                        }
+                        let Some((alpha, gauss, dx, dy, clamped)) = eval(sp, x, y, s) else {
+                            continue;
+                        };
+                        let one_m = 1.0 - alpha;
+                        let ti = tr[p] / one_m;
+                        let wgt = alpha * ti;
+                        let mut dalpha = 0.0f32;
+                        for c in 0..NF {
+                            dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] / one_m);
+                            gr.feat[c] += gp[p][c] * wgt;
+                            sacc[p][c] += sp.feat[c] * wgt;
+                        }
+                        tr[p] = ti;
+                        if !clamped {
+                            gr.opacity += dalpha * gauss;
+                            let dp = dalpha * alpha;
+                            gr.mean[0] += dp * (ca * dx + cb * dy);
+                            gr.mean[1] += dp * (cb * dx + cc * dy);
+                            gr.conic[0] += -0.5 * dp * dx * dx;
+                            gr.conic[1] += -dp * dx * dy;
+                            gr.conic[2] += -0.5 * dp * dy * dy;
+                        }
+                    }
+                }
+                out[k] = gr;
+            }
+        });
+    }
+    // Sum per Gaussian in instance order (deterministic).
+    let mut acc = vec![SplatGrad::default(); g.len()];
+    for (j, &gi) in st.instances.iter().enumerate() {
+        acc[gi as usize].add(&inst[j]);
+    }
+    drop(inst);
+    // Projection adjoint, independent per Gaussian.
+    let mut out = GaussianGrads::zeros(g.len());
+    let n = g.len();
+    let parts: Vec<Vec<super::project::ParamGrad>> = (0..n.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|c| {
+            (c * CHUNK..((c + 1) * CHUNK).min(n))
+                .map(|i| {
+                    project_backward(
+                        g.means[i],
+                        g.scales[i],
+                        g.rotations[i],
+                        &g.sh[i],
+                        &st.splats[i],
+                        &acc[i],
+                        &cd,
+                        s,
+                    )
+                })
+                .collect()
+        })
+        .collect();
+    for (i, pg) in parts.into_iter().flatten().enumerate() {
+        out.means[i] = pg.mean;
+        out.scales[i] = pg.scale;
+        out.rotations[i] = pg.rot;
+        out.opacities[i] = pg.opacity;
+        out.sh[i] = pg.sh;
+        out.cov3d[i] = pg.cov3d;
+        out.means2d[i] = Vec2::new(acc[i].mean[0], acc[i].mean[1]);
+    }
+    let _ = Vec3::ZERO;
+    Ok(out)
+}
