@@ -1,0 +1,723 @@
+//! Camera sets in the NeRF / instant-ngp / NeuS2 `transforms.json` convention.
+//!
+//! A *views directory* holds the cameras and the images they saw:
+//!
+//! - training frames: `transforms.json` (instant-ngp, NeuS2, our own writer) or, when that file is
+//!   absent, `transforms_train.json` (Blender NeRF synthetic). When both exist `transforms.json` wins:
+//!   it is the file our writer produces and the one instant-ngp reads.
+//! - held-out frames: `transforms_test.json`, or `transforms_val.json` when there is no test file
+//!   (Blender NeRF synthetic ships both; test is the held-out set by convention). Neither file means
+//!   no held-out views.
+//!
+//! Each file is a JSON object with a `frames` array. Per frame: `file_path` (relative to the
+//! directory) and `transform_matrix`, the camera-to-world matrix as rows, OpenGL camera axes (the
+//! camera looks down -z, +y up), 4x4 or 3x4. Intrinsics can sit at the top level (shared) or in a
+//! frame (per-frame values win), in any of these forms, first match wins at each level:
+//!
+//! - `fl_x`, `fl_y`, `cx`, `cy` in pixels (instant-ngp, nerfstudio); `fl_y` defaults to `fl_x`;
+//! - `intrinsic_matrix` (NeuS2): a 3x3 or 4x4 K as rows, `fx = K[0][0]`, `fy = K[1][1]`,
+//!   `cx = K[0][2]`, `cy = K[1][2]`;
+//! - `camera_angle_x` (full horizontal field of view, radians; `fx = 0.5 w / tan(angle_x / 2)`) with
+//!   optional `camera_angle_y` for `fy`; without it `fy = fx` (square pixels, as instant-ngp does).
+//!
+//! The principal point defaults to the image centre `(w / 2, h / 2)`, which in our pixel convention
+//! (pixel centres at half-integers, see [`Camera`]) is exactly the middle of the image. `w` and `h`
+//! come from the frame, then the file, then the image header (PNG, EXR or JPEG) when missing.
+//!
+//! Extra keys (distortion `k1 k2 p1 p2`, `aabb_scale`, `sharpness`, `scale`, `offset`, `colmap_im_id`,
+//! ...) are ignored: distortion is not modelled (COLMAP conversions for NeRF are normally
+//! undistorted first), and instant-ngp's `scale`/`offset` only move its own training box, so the
+//! cameras stay in the file's world frame.
+//!
+//! `file_path` is normalised when read: backslashes become `/`, a leading `./` is dropped, and a
+//! path without an image extension gets one (`./train/r_0` -> `train/r_0.png`): the first of `.png`,
+//! `.jpg`, `.jpeg`, `.exr` (any case) that exists next to it, `.png` when none does.
+//! Foreground masks live next to the images as `<stem>_mask.png` ([`mask_path`]); captures that
+//! keep the mask in the image's alpha channel work too ([`read_view`]).
+//!
+//! Writing puts intrinsics at the top level when every camera of a file shares them (and then also
+//! `camera_angle_x`/`camera_angle_y`, which Blender-NeRF-style loaders require), otherwise in every
+//! frame. Both `transforms.json` and `transforms_test.json` are always written (an empty `frames`
+//! list for no held-out views), so a directory we wrote reads back to the same [`CameraSet`].
+
+use std::path::{Path, PathBuf};
+
+use glam::{Mat4, Vec4};
+use serde::Serialize;
+use serde_json::{Map, Value};
+
+use super::json::{from_slice, to_pretty_bytes};
+use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
+use crate::camera::{Camera, CameraSet};
+use crate::image::ImageF32;
+
+/// Image extensions probed for extension-less `file_path`s, in order.
+const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];
+
+/// Reads a views directory (see the module doc for which files count).
+pub fn read_views(dir: impl AsRef<Path>) -> Result<CameraSet, FormatError> {
+    let dir = dir.as_ref();
+    let train_path = ["transforms.json", "transforms_train.json"]
+        .iter()
+        .map(|n| dir.join(n))
+        .find(|p| p.is_file())
+        .ok_or_else(|| {
+            FormatError::invalid(
+                dir,
+                "no camera file: expected transforms.json or transforms_train.json in this directory",
+            )
+        })?;
+    let train = read_transforms(&train_path)?;
+    let test = match ["transforms_test.json", "transforms_val.json"]
+        .iter()
+        .map(|n| dir.join(n))
+        .find(|p| p.is_file())
+    {
+        Some(p) => read_transforms(&p)?,
+        None => Vec::new(),
+    };
+    Ok(CameraSet { train, test })
+}
+
+/// Writes `transforms.json` (training) and `transforms_test.json` (held-out) into `dir`.
+pub fn write_views(dir: impl AsRef<Path>, cameras: &CameraSet) -> Result<(), FormatError> {
+    let dir = dir.as_ref();
+    write_transforms(dir.join("transforms.json"), &cameras.train)?;
+    write_transforms(dir.join("transforms_test.json"), &cameras.test)
+}
+
+/// Absolute (or `dir`-relative) path of a camera's image.
+pub fn image_path(dir: impl AsRef<Path>, camera: &Camera) -> PathBuf {
+    dir.as_ref().join(&camera.file_path)
+}
+
+/// Path of a camera's foreground mask: the image path with its extension replaced by `_mask.png`
+/// (`train/r_000.png` -> `train/r_000_mask.png`).
+pub fn mask_path(dir: impl AsRef<Path>, camera: &Camera) -> PathBuf {
+    dir.as_ref().join(mask_file_path(&camera.file_path))
+}
+
+/// `file_path` of a camera's mask, relative like the image's.
+pub fn mask_file_path(file_path: &str) -> String {
+    let p = Path::new(file_path);
+    let stem_len = match p.extension() {
+        Some(ext) => file_path.len() - ext.len() - 1,
+        None => file_path.len(),
+    };
+    format!("{}_mask.png", &file_path[..stem_len])
+}
+
+/// One view's pixels: colour (3 channels, [0, 1]) and the foreground mask (1 channel, [0, 1]) if
+/// the capture has one.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewImages {
+    pub rgb: ImageF32,
+    pub mask: Option<ImageF32>,
+}
+
+/// Reads a camera's image and mask. The mask is `<stem>_mask.png` when that file exists (its first
+/// channel), else the image's alpha channel when it has one, else `None`. Gray images are expanded
+/// to RGB. The image size must match the camera's `w` x `h`.
+pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, FormatError> {
+    let dir = dir.as_ref();
+    let path = image_path(dir, camera);
+    let img = super::images::read_image(&path)?;
+    if (img.width, img.height) != (camera.width, camera.height) {
+        return Err(FormatError::invalid(
+            &path,
+            format!(
+                "image is {} x {} but its camera says {} x {}",
+                img.width, img.height, camera.width, camera.height
+            ),
+        ));
+    }
+    let n = (img.width * img.height) as usize;
+    let c = img.channels as usize;
+    let mut rgb = ImageF32::new(img.width, img.height, 3);
+    for i in 0..n {
+        let px = &img.data[i * c..i * c + c];
+        let (r, g, b) = match c {
+            1 | 2 => (px[0], px[0], px[0]),
+            _ => (px[0], px[1], px[2]),
+        };
+        rgb.data[3 * i..3 * i + 3].copy_from_slice(&[r, g, b]);
+    }
+    let mpath = mask_path(dir, camera);
+    let mask = if mpath.is_file() {
+        let m = super::images::read_png(&mpath)?;
+        if (m.width, m.height) != (img.width, img.height) {
+            return Err(FormatError::invalid(
+                &mpath,
+                format!(
+                    "mask is {} x {} but its image is {} x {}",
+                    m.width, m.height, img.width, img.height
+                ),
+            ));
+        }
+        let mc = m.channels as usize;
+        Some(ImageF32 {
+            width: m.width,
+            height: m.height,
+            channels: 1,
+            data: m.data.chunks_exact(mc).map(|p| p[0]).collect(),
+        })
+    } else if c == 2 || c == 4 {
+        Some(ImageF32 {
+            width: img.width,
+            height: img.height,
+            channels: 1,
+            data: img.data.chunks_exact(c).map(|p| p[c - 1]).collect(),
+        })
+    } else {
+        None
+    };
+    Ok(ViewImages { rgb, mask })
+}
+
+/// Reads one `transforms*.json` file. `file_path`s are resolved against the file's directory.
+pub fn read_transforms(path: impl AsRef<Path>) -> Result<Vec<Camera>, FormatError> {
+    let path = path.as_ref();
+    let bytes = read_bytes(path)?;
+    let root: Value = from_slice(path, &bytes)?;
+    let dir = path.parent().unwrap_or(Path::new(""));
+    let top = root.as_object().ok_or_else(|| {
+        FormatError::at(
+            path,
+            Position::Line(1),
+            "expected a JSON object at the top level",
+        )
+    })?;
+    let frames = match top.get("frames") {
+        Some(Value::Array(f)) => f,
+        Some(_) => {
+            return Err(FormatError::at(
+                path,
+                field("frames"),
+                "expected an array of frame objects",
+            ))
+        }
+        None => {
+            return Err(FormatError::at(
+                path,
+                field("frames"),
+                "missing (no frames list)",
+            ))
+        }
+    };
+    let top_intr = Level::read(path, top, "")?;
+    let mut cameras = Vec::with_capacity(frames.len());
+    for (i, frame) in frames.iter().enumerate() {
+        let prefix = format!("frames[{i}]");
+        let obj = frame
+            .as_object()
+            .ok_or_else(|| FormatError::at(path, field(&prefix), "expected a frame object"))?;
+        cameras.push(read_frame(path, dir, obj, &prefix, &top_intr)?);
+    }
+    Ok(cameras)
+}
+
+fn field(name: &str) -> Position {
+    Position::Field(name.to_string())
+}
+
+fn join_field(prefix: &str, key: &str) -> String {
+    if prefix.is_empty() {
+        key.to_string()
+    } else {
+        format!("{prefix}.{key}")
+    }
+}
+
+/// Intrinsics as found at one level (the file or a frame); every entry optional.
+#[derive(Default)]
+struct Level {
+    w: Option<u32>,
+    h: Option<u32>,
+    fl_x: Option<f64>,
+    fl_y: Option<f64>,
+    cx: Option<f64>,
+    cy: Option<f64>,
+    /// (fx, fy, cx, cy) from `intrinsic_matrix`.
+    k: Option<[f64; 4]>,
+    angle_x: Option<f64>,
+    angle_y: Option<f64>,
+}
+
+impl Level {
+    fn read(path: &Path, obj: &Map<String, Value>, prefix: &str) -> Result<Level, FormatError> {
+        let num = |key: &str| -> Result<Option<f64>, FormatError> {
+            match obj.get(key) {
+                None | Some(Value::Null) => Ok(None),
+                Some(Value::Number(n)) => {
+                    let v = n.as_f64().unwrap_or(f64::NAN);
+                    if v.is_finite() {
+                        Ok(Some(v))
+                    } else {
+                        Err(FormatError::at(
+                            path,
+                            field(&join_field(prefix, key)),
+                            "expected a finite number",
+                        ))
+                    }
+                }
+                Some(other) => Err(FormatError::at(
+                    path,
+                    field(&join_field(prefix, key)),
+                    format!("expected a number, found {}", kind(other)),
+                )),
+            }
+        };
+        let positive = |key: &str| -> Result<Option<f64>, FormatError> {
+            match num(key)? {
+                Some(v) if v <= 0.0 => Err(FormatError::at(
+                    path,
+                    field(&join_field(prefix, key)),
+                    format!("expected a positive value, found {v}"),
+                )),
+                other => Ok(other),
+            }
+        };
+        let size = |key: &str| -> Result<Option<u32>, FormatError> {
+            match positive(key)? {
+                None => Ok(None),
+                Some(v) if v.fract() == 0.0 && v <= u32::MAX as f64 => Ok(Some(v as u32)),
+                Some(v) => Err(FormatError::at(
+                    path,
+                    field(&join_field(prefix, key)),
+                    format!("expected a whole number of pixels, found {v}"),
+                )),
+            }
+        };
+        let k = match obj.get("intrinsic_matrix") {
+            None | Some(Value::Null) => None,
+            Some(v) => {
+                let f = join_field(prefix, "intrinsic_matrix");
+                let rows = matrix_rows(path, &f, v)?;
+                if !(rows.len() == 3 || rows.len() == 4) || rows.iter().any(|r| r.len() < 3) {
+                    return Err(FormatError::at(
+                        path,
+                        field(&f),
+                        "expected a 3x3 or 4x4 matrix as rows",
+                    ));
+                }
+                let kk = [rows[0][0], rows[1][1], rows[0][2], rows[1][2]];
+                if kk[0] <= 0.0 || kk[1] <= 0.0 {
+                    return Err(FormatError::at(
+                        path,
+                        field(&f),
+                        "expected positive focal lengths K[0][0] and K[1][1]",
+                    ));
+                }
+                Some(kk)
+            }
+        };
+        let angle = |key: &str| -> Result<Option<f64>, FormatError> {
+            match positive(key)? {
+                Some(a) if a >= std::f64::consts::PI => Err(FormatError::at(
+                    path,
+                    field(&join_field(prefix, key)),
+                    format!("expected a field of view in radians below pi, found {a}"),
+                )),
+                other => Ok(other),
+            }
+        };
+        Ok(Level {
+            w: size("w")?,
+            h: size("h")?,
+            fl_x: positive("fl_x")?,
+            fl_y: positive("fl_y")?,
+            cx: num("cx")?,
+            cy: num("cy")?,
+            k,
+            angle_x: angle("camera_angle_x")?,
+            angle_y: angle("camera_angle_y")?,
+        })
+    }
+
+    /// (fx, fy) from this level, given the image size.
+    fn focal(&self, w: u32, h: u32) -> Option<(f64, f64)> {
+        if let Some(fx) = self.fl_x {
+            return Some((fx, self.fl_y.unwrap_or(fx)));
+        }
+        if let Some(k) = self.k {
+            return Some((k[0], k[1]));
+        }
+        if let Some(ax) = self.angle_x {
+            let fx = 0.5 * w as f64 / (0.5 * ax).tan();
+            let fy = match self.angle_y {
+                Some(ay) => 0.5 * h as f64 / (0.5 * ay).tan(),
+                None => fx,
+            };
+            return Some((fx, fy));
+        }
+        None
+    }
+
+    fn principal(&self) -> (Option<f64>, Option<f64>) {
+        match (self.cx, self.cy, self.k) {
+            (None, None, Some(k)) => (Some(k[2]), Some(k[3])),
+            (cx, cy, _) => (cx, cy),
+        }
+    }
+}
+
+fn kind(v: &Value) -> &'static str {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+/// A matrix given as an array of rows of numbers.
+fn matrix_rows(path: &Path, f: &str, v: &Value) -> Result<Vec<Vec<f64>>, FormatError> {
+    let rows = v.as_array().ok_or_else(|| {
+        FormatError::at(
+            path,
+            field(f),
+            format!("expected an array of rows, found {}", kind(v)),
+        )
+    })?;
+    rows.iter()
+        .enumerate()
+        .map(|(r, row)| {
+            let row = row.as_array().ok_or_else(|| {
+                FormatError::at(
+                    path,
+                    field(&format!("{f}[{r}]")),
+                    "expected a row (array of numbers)",
+                )
+            })?;
+            row.iter()
+                .enumerate()
+                .map(|(c, x)| {
+                    x.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
+                        FormatError::at(
+                            path,
+                            field(&format!("{f}[{r}][{c}]")),
+                            format!("expected a finite number, found {}", kind(x)),
+                        )
+                    })
+                })
+                .collect()
+        })
+        .collect()
+}
+
+fn read_frame(
+    path: &Path,
+    dir: &Path,
+    obj: &Map<String, Value>,
+    prefix: &str,
+    top: &Level,
+) -> Result<Camera, FormatError> {
+    let fp_field = join_field(prefix, "file_path");
+    let raw_path = match obj.get("file_path") {
+        Some(Value::String(s)) if !s.trim().is_empty() => s.as_str(),
+        Some(other) => {
+            return Err(FormatError::at(
+                path,
+                field(&fp_field),
+                format!("expected a non-empty string, found {}", kind(other)),
+            ))
+        }
+        None => {
+            return Err(FormatError::at(
+                path,
+                field(&fp_field),
+                "missing (image path)",
+            ))
+        }
+    };
+    let file_path = normalise_file_path(dir, raw_path);
+
+    let tm_field = join_field(prefix, "transform_matrix");
+    let tm = obj.get("transform_matrix").ok_or_else(|| {
+        FormatError::at(
+            path,
+            field(&tm_field),
+            "missing (camera-to-world 4x4 matrix)",
+        )
+    })?;
+    let rows = matrix_rows(path, &tm_field, tm)?;
+    if !(rows.len() == 3 || rows.len() == 4) || rows.iter().any(|r| r.len() != 4) {
+        return Err(FormatError::at(
+            path,
+            field(&tm_field),
+            format!(
+                "expected 4 rows (or 3) of 4 numbers, found {} rows of lengths {:?}",
+                rows.len(),
+                rows.iter().map(Vec::len).collect::<Vec<_>>()
+            ),
+        ));
+    }
+    if rows.len() == 4 {
+        let last = &rows[3];
+        let ok = (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) < 1e-4;
+        if !ok {
+            return Err(FormatError::at(
+                path,
+                field(&format!("{tm_field}[3]")),
+                format!("expected the last row [0, 0, 0, 1] of a rigid camera-to-world matrix, found {last:?}"),
+            ));
+        }
+    }
+    let col = |c: usize| {
+        Vec4::new(
+            rows[0][c] as f32,
+            rows[1][c] as f32,
+            rows[2][c] as f32,
+            if c == 3 { 1.0 } else { 0.0 },
+        )
+    };
+    let c2w = Mat4::from_cols(col(0), col(1), col(2), col(3));
+    if c2w.determinant().abs() < 1e-12 || !c2w.is_finite() {
+        return Err(FormatError::at(
+            path,
+            field(&tm_field),
+            "matrix is singular or out of f32 range",
+        ));
+    }
+
+    let local = Level::read(path, obj, prefix)?;
+    let (w, h) = match (local.w.or(top.w), local.h.or(top.h)) {
+        (Some(w), Some(h)) => (w, h),
+        (w, h) => {
+            let img = dir.join(&file_path);
+            let (iw, ih) = image_size_any(&img).map_err(|e| {
+                FormatError::at(
+                    path,
+                    field(&join_field(prefix, "w")),
+                    format!("image size not given (w/h) and not readable from the image: {e}"),
+                )
+            })?;
+            (w.unwrap_or(iw), h.unwrap_or(ih))
+        }
+    };
+    let (fx, fy) = local.focal(w, h).or_else(|| top.focal(w, h)).ok_or_else(|| {
+        FormatError::at(
+            path,
+            field(&join_field(prefix, "fl_x")),
+            "no focal length: expected fl_x, intrinsic_matrix or camera_angle_x in the frame or at the top level",
+        )
+    })?;
+    let (lcx, lcy) = local.principal();
+    let (tcx, tcy) = top.principal();
+    let cx = lcx.or(tcx).unwrap_or(0.5 * w as f64);
+    let cy = lcy.or(tcy).unwrap_or(0.5 * h as f64);
+    let camera = Camera {
+        file_path,
+        c2w,
+        fx: fx as f32,
+        fy: fy as f32,
+        cx: cx as f32,
+        cy: cy as f32,
+        width: w,
+        height: h,
+    };
+    if ![camera.fx, camera.fy, camera.cx, camera.cy]
+        .iter()
+        .all(|v| v.is_finite())
+        || camera.fx <= 0.0
+        || camera.fy <= 0.0
+    {
+        return Err(FormatError::at(
+            path,
+            field(prefix),
+            "intrinsics out of f32 range or not positive",
+        ));
+    }
+    Ok(camera)
+}
+
+/// Normalises a frame's `file_path` (see the module doc).
+fn normalise_file_path(dir: &Path, raw: &str) -> String {
+    let mut p = raw.trim().replace('\\', "/");
+    while let Some(rest) = p.strip_prefix("./") {
+        p = rest.to_string();
+    }
+    let has_image_ext = Path::new(&p)
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        .unwrap_or(false);
+    if has_image_ext {
+        return p;
+    }
+    for ext in IMAGE_EXTENSIONS {
+        for e in [ext.to_string(), ext.to_ascii_uppercase()] {
+            let candidate = format!("{p}.{e}");
+            if dir.join(&candidate).is_file() {
+                return candidate;
+            }
+        }
+    }
+    if dir.join(&p).is_file() {
+        return p;
+    }
+    format!("{p}.png")
+}
+
+/// Image size from the header: PNG and EXR through [`super::images::image_size`], JPEG here.
+fn image_size_any(path: &Path) -> Result<(u32, u32), FormatError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    if ext == "jpg" || ext == "jpeg" {
+        jpeg_size(path)
+    } else {
+        super::images::image_size(path)
+    }
+}
+
+/// Width and height from a JPEG's SOF marker.
+fn jpeg_size(path: &Path) -> Result<(u32, u32), FormatError> {
+    let bytes = read_bytes(path)?;
+    if bytes.len() < 2 || bytes[0] != 0xFF || bytes[1] != 0xD8 {
+        return Err(FormatError::at(
+            path,
+            Position::Byte(0),
+            "expected the JPEG SOI marker FF D8",
+        ));
+    }
+    let mut i = 2usize;
+    loop {
+        // Skip fill bytes, then read a marker.
+        while i < bytes.len() && bytes[i] == 0xFF && bytes.get(i + 1) == Some(&0xFF) {
+            i += 1;
+        }
+        if i + 4 > bytes.len() || bytes[i] != 0xFF {
+            return Err(FormatError::at(
+                path,
+                Position::Byte(i as u64),
+                "expected a JPEG marker segment before the frame header (truncated file?)",
+            ));
+        }
+        let marker = bytes[i + 1];
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        let is_sof = (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker);
+        if is_sof {
+            if i + 9 > bytes.len() {
+                return Err(FormatError::at(
+                    path,
+                    Position::Byte(i as u64),
+                    "truncated JPEG frame header",
+                ));
+            }
+            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]) as u32;
+            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]) as u32;
+            return Ok((w, h));
+        }
+        if len < 2 {
+            return Err(FormatError::at(
+                path,
+                Position::Byte(i as u64 + 2),
+                "invalid JPEG segment length",
+            ));
+        }
+        i += 2 + len;
+    }
+}
+
+#[derive(Serialize)]
+struct FileOut<'a> {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    camera_angle_x: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    camera_angle_y: Option<f32>,
+    #[serde(flatten)]
+    intrinsics: Option<Intrinsics>,
+    frames: Vec<FrameOut<'a>>,
+}
+
+#[derive(Serialize, Clone, Copy, PartialEq)]
+struct Intrinsics {
+    fl_x: f32,
+    fl_y: f32,
+    cx: f32,
+    cy: f32,
+    w: u32,
+    h: u32,
+}
+
+#[derive(Serialize)]
+struct FrameOut<'a> {
+    file_path: &'a str,
+    transform_matrix: [[f32; 4]; 4],
+    #[serde(flatten)]
+    intrinsics: Option<Intrinsics>,
+}
+
+fn intrinsics(c: &Camera) -> Intrinsics {
+    Intrinsics {
+        fl_x: c.fx,
+        fl_y: c.fy,
+        cx: c.cx,
+        cy: c.cy,
+        w: c.width,
+        h: c.height,
+    }
+}
+
+/// Writes one `transforms*.json` file (see the module doc for the layout).
+pub fn write_transforms(path: impl AsRef<Path>, cameras: &[Camera]) -> Result<(), FormatError> {
+    let path = path.as_ref();
+    for (i, c) in cameras.iter().enumerate() {
+        check_finite(
+            path,
+            &format!("camera {i} ({})", c.file_path),
+            c.c2w
+                .to_cols_array()
+                .into_iter()
+                .chain([c.fx, c.fy, c.cx, c.cy]),
+        )?;
+        if c.fx <= 0.0 || c.fy <= 0.0 || c.width == 0 || c.height == 0 {
+            return Err(FormatError::invalid(
+                path,
+                format!(
+                    "camera {i} ({}): focal lengths and image size must be positive",
+                    c.file_path
+                ),
+            ));
+        }
+    }
+    let shared = match cameras.first() {
+        Some(first) if cameras.iter().all(|c| intrinsics(c) == intrinsics(first)) => {
+            Some(intrinsics(first))
+        }
+        _ => None,
+    };
+    let frames = cameras
+        .iter()
+        .map(|c| {
+            let mut m = [[0.0f32; 4]; 4];
+            for (r, row) in m.iter_mut().enumerate() {
+                for (k, v) in row.iter_mut().enumerate() {
+                    *v = c.c2w.col(k)[r];
+                }
+            }
+            FrameOut {
+                file_path: &c.file_path,
+                transform_matrix: m,
+                intrinsics: if shared.is_some() {
+                    None
+                } else {
+                    Some(intrinsics(c))
+                },
+            }
+        })
+        .collect();
+    let out = FileOut {
+        camera_angle_x: shared.map(|k| 2.0 * (0.5 * k.w as f32 / k.fl_x).atan()),
+        camera_angle_y: shared.map(|k| 2.0 * (0.5 * k.h as f32 / k.fl_y).atan()),
+        intrinsics: shared,
+        frames,
+    };
+    let bytes = to_pretty_bytes(path, &out)?;
+    write_bytes(path, &bytes)
+}

@@ -1,0 +1,504 @@
+//! Images: PNG (8 and 16 bit, gray / gray+alpha / RGB / RGBA, palettes expanded) and OpenEXR.
+//!
+//! In memory every image is an [`ImageF32`]: row-major, top row first, interleaved channels.
+//!
+//! PNG. Reading maps integer samples to [0, 1] (`v / 255` or `v / 65535`) and keeps the file's
+//! channel count (1 gray, 2 gray+alpha, 3 RGB, 4 RGBA). Values are taken as stored: no sRGB to
+//! linear conversion happens here (stages that need linear light convert explicitly, so that masks
+//! and data maps stored as PNG are never distorted). Writing clamps to [0, 1], rounds to the
+//! nearest of 256 levels and writes 8-bit gray / gray+alpha / RGB / RGBA for 1 / 2 / 3 / 4
+//! channels. NaN or infinite samples are refused (clamping would hide a bug upstream).
+//!
+//! EXR. Float data of any range: renders, depth, masks and scalar maps. Reading takes the first
+//! layer at full resolution; channels are ordered `R G B A` (any subset, in that order) or `Y A`
+//! (gray); a single channel of any name (`Z`, `depth`, ...) reads as one channel. Samples of any
+//! EXR sample type are converted to f32. Writing stores f32 samples, named `Y` / `Y A` / `R G B` /
+//! `R G B A` for 1 / 2 / 3 / 4 channels, ZIP-compressed (lossless), single-threaded so the bytes
+//! never depend on the thread count.
+//!
+//! Decoder errors rarely say where they happened; both readers decode from memory through a reader
+//! that tracks the furthest byte consumed, and report that offset with the decoder's message.
+
+use std::path::Path;
+
+use exr::prelude as ex;
+use exr::prelude::traits::*;
+use image::{DynamicImage, ImageDecoder};
+
+use super::{check_finite, read_bytes, write_bytes, FormatError, Position, TrackingReader};
+use crate::image::ImageF32;
+
+const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
+
+/// Reads an image by file extension (`.png` or `.exr`, case-insensitive).
+pub fn read_image(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
+    let path = path.as_ref();
+    match extension(path).as_str() {
+        "png" => read_png(path),
+        "exr" => read_exr(path),
+        other => Err(FormatError::invalid(
+            path,
+            format!("unsupported image extension `{other}`: expected .png or .exr"),
+        )),
+    }
+}
+
+/// Writes an image by file extension (`.png` or `.exr`).
+pub fn write_image(path: impl AsRef<Path>, image: &ImageF32) -> Result<(), FormatError> {
+    let path = path.as_ref();
+    match extension(path).as_str() {
+        "png" => write_png(path, image),
+        "exr" => write_exr(path, image),
+        other => Err(FormatError::invalid(
+            path,
+            format!("unsupported image extension `{other}`: expected .png or .exr"),
+        )),
+    }
+}
+
+/// Width and height from the image header only (PNG: the IHDR chunk; EXR: the header).
+pub fn image_size(path: impl AsRef<Path>) -> Result<(u32, u32), FormatError> {
+    let path = path.as_ref();
+    match extension(path).as_str() {
+        "png" => {
+            let mut head = [0u8; 24];
+            let mut f = std::fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+            let n = read_up_to(&mut f, &mut head).map_err(|e| FormatError::io(path, e))?;
+            png_header(path, &head[..n])
+        }
+        "exr" => {
+            let meta =
+                ex::MetaData::read_from_file(path, false).map_err(|e| exr_error(path, e, None))?;
+            let header = meta
+                .headers
+                .first()
+                .ok_or_else(|| FormatError::invalid(path, "EXR file has no header (no layers)"))?;
+            let s = header.layer_size;
+            Ok((s.0 as u32, s.1 as u32))
+        }
+        other => Err(FormatError::invalid(
+            path,
+            format!("unsupported image extension `{other}`: expected .png or .exr"),
+        )),
+    }
+}
+
+fn read_up_to(r: &mut impl std::io::Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match r.read(&mut buf[n..])? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    Ok(n)
+}
+
+fn extension(path: &Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase()
+}
+
+/// Checks the PNG signature and IHDR chunk; returns (width, height).
+fn png_header(path: &Path, bytes: &[u8]) -> Result<(u32, u32), FormatError> {
+    if bytes.len() < 8 || bytes[..8] != PNG_SIGNATURE {
+        let n = bytes.len().min(8);
+        let off = (0..n).find(|&i| bytes[i] != PNG_SIGNATURE[i]).unwrap_or(n);
+        return Err(FormatError::at(
+            path,
+            Position::Byte(off as u64),
+            "expected the 8-byte PNG signature (\\x89PNG\\r\\n\\x1a\\n): not a PNG file or truncated",
+        ));
+    }
+    if bytes.len() < 24 {
+        return Err(FormatError::at(
+            path,
+            Position::Byte(bytes.len() as u64),
+            "file ends inside the IHDR chunk (expected width and height at bytes 16..24)",
+        ));
+    }
+    if &bytes[12..16] != b"IHDR" {
+        return Err(FormatError::at(
+            path,
+            Position::Byte(12),
+            "expected the IHDR chunk right after the signature",
+        ));
+    }
+    let w = u32::from_be_bytes([bytes[16], bytes[17], bytes[18], bytes[19]]);
+    let h = u32::from_be_bytes([bytes[20], bytes[21], bytes[22], bytes[23]]);
+    Ok((w, h))
+}
+
+/// Reads a PNG into [0, 1] floats, keeping its channel count.
+pub fn read_png(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
+    let path = path.as_ref();
+    let bytes = read_bytes(path)?;
+    png_header(path, &bytes)?;
+    let mut reader = TrackingReader::new(&bytes);
+    let result = image::codecs::png::PngDecoder::new(&mut reader).and_then(|mut d| {
+        // Generous limits: our images are at most a few thousand pixels wide.
+        d.set_limits(image::Limits::no_limits())?;
+        DynamicImage::from_decoder(d)
+    });
+    let img = result.map_err(|e| {
+        FormatError::at(
+            path,
+            Position::Byte(reader.furthest()),
+            format!("PNG decoding failed near here: {e}"),
+        )
+    })?;
+    let (w, h) = (img.width(), img.height());
+    let (channels, data): (u32, Vec<f32>) = match img {
+        DynamicImage::ImageLuma8(b) => (1, scale8(b.as_raw())),
+        DynamicImage::ImageLumaA8(b) => (2, scale8(b.as_raw())),
+        DynamicImage::ImageRgb8(b) => (3, scale8(b.as_raw())),
+        DynamicImage::ImageRgba8(b) => (4, scale8(b.as_raw())),
+        DynamicImage::ImageLuma16(b) => (1, scale16(b.as_raw())),
+        DynamicImage::ImageLumaA16(b) => (2, scale16(b.as_raw())),
+        DynamicImage::ImageRgb16(b) => (3, scale16(b.as_raw())),
+        DynamicImage::ImageRgba16(b) => (4, scale16(b.as_raw())),
+        DynamicImage::ImageRgb32F(b) => (3, b.into_raw()),
+        DynamicImage::ImageRgba32F(b) => (4, b.into_raw()),
+        other => {
+            return Err(FormatError::invalid(
+                path,
+                format!("unsupported PNG pixel layout {:?}", other.color()),
+            ))
+        }
+    };
+    Ok(ImageF32 {
+        width: w,
+        height: h,
+        channels,
+        data,
+    })
+}
+
+fn scale8(v: &[u8]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32 / 255.0).collect()
+}
+
+fn scale16(v: &[u16]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32 / 65535.0).collect()
+}
+
+fn check_shape(path: &Path, image: &ImageF32) -> Result<(), FormatError> {
+    if !(1..=4).contains(&image.channels) {
+        return Err(FormatError::invalid(
+            path,
+            format!(
+                "cannot write an image with {} channels: expected 1 to 4",
+                image.channels
+            ),
+        ));
+    }
+    let expected = image.width as u64 * image.height as u64 * image.channels as u64;
+    if image.data.len() as u64 != expected {
+        return Err(FormatError::invalid(
+            path,
+            format!(
+                "image data has {} samples, expected {} x {} x {} = {expected}",
+                image.data.len(),
+                image.width,
+                image.height,
+                image.channels
+            ),
+        ));
+    }
+    if image.width == 0 || image.height == 0 {
+        return Err(FormatError::invalid(
+            path,
+            format!(
+                "cannot write an empty {} x {} image",
+                image.width, image.height
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Writes an 8-bit PNG (gray, gray+alpha, RGB or RGBA for 1 to 4 channels), clamping to [0, 1].
+pub fn write_png(path: impl AsRef<Path>, image: &ImageF32) -> Result<(), FormatError> {
+    let path = path.as_ref();
+    check_shape(path, image)?;
+    check_finite(path, "sample", image.data.iter().copied())?;
+    let raw: Vec<u8> = image
+        .data
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    let color = match image.channels {
+        1 => image::ExtendedColorType::L8,
+        2 => image::ExtendedColorType::La8,
+        3 => image::ExtendedColorType::Rgb8,
+        _ => image::ExtendedColorType::Rgba8,
+    };
+    let mut out = Vec::new();
+    let encoder = image::codecs::png::PngEncoder::new_with_quality(
+        &mut out,
+        image::codecs::png::CompressionType::Default,
+        image::codecs::png::FilterType::Adaptive,
+    );
+    image::ImageEncoder::write_image(encoder, &raw, image.width, image.height, color)
+        .map_err(|e| FormatError::invalid(path, format!("PNG encoding failed: {e}")))?;
+    write_bytes(path, &out)
+}
+
+fn exr_error(path: &Path, e: ex::Error, offset: Option<u64>) -> FormatError {
+    match (e, offset) {
+        (ex::Error::Io(io), None) => FormatError::io(path, io),
+        (ex::Error::Io(io), Some(off)) => FormatError::at(
+            path,
+            Position::Byte(off),
+            format!("EXR file ends or breaks near here ({io})"),
+        ),
+        (other, Some(off)) => FormatError::at(
+            path,
+            Position::Byte(off),
+            format!("EXR decoding failed near here: {other}"),
+        ),
+        (other, None) => FormatError::invalid(path, format!("EXR: {other}")),
+    }
+}
+
+/// Reads the first layer of an EXR file as f32 (see the module doc for channel order).
+pub fn read_exr(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
+    let path = path.as_ref();
+    let bytes = read_bytes(path)?;
+    let mut reader = TrackingReader::new(&bytes);
+    let result = ex::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .non_parallel()
+        .from_buffered(&mut reader);
+    let image = result.map_err(|e| exr_error(path, e, Some(reader.furthest())))?;
+    let layer = &image.layer_data;
+    let (w, h) = (layer.size.0, layer.size.1);
+    let list = &layer.channel_data.list;
+    let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
+    let order = channel_order(&names).ok_or_else(|| {
+        FormatError::invalid(
+            path,
+            format!(
+                "unsupported EXR channels {names:?}: expected R G B A (any subset), Y, Y A, or one channel"
+            ),
+        )
+    })?;
+    let c = order.len();
+    let planes: Vec<Vec<f32>> = order
+        .iter()
+        .map(|&i| list[i].sample_data.values_as_f32().collect())
+        .collect();
+    let n = w * h;
+    if planes.iter().any(|p| p.len() != n) {
+        return Err(FormatError::invalid(
+            path,
+            "EXR channel sizes do not match the layer size",
+        ));
+    }
+    let mut data = vec![0.0f32; n * c];
+    for (k, plane) in planes.iter().enumerate() {
+        for (i, &v) in plane.iter().enumerate() {
+            data[i * c + k] = v;
+        }
+    }
+    Ok(ImageF32 {
+        width: w as u32,
+        height: h as u32,
+        channels: c as u32,
+        data,
+    })
+}
+
+/// Indices into `names` in our interleaving order, or None for an unsupported set.
+fn channel_order(names: &[String]) -> Option<Vec<usize>> {
+    let find = |n: &str| names.iter().position(|x| x == n);
+    if names.len() == 1 {
+        return Some(vec![0]);
+    }
+    if names.len() == 2 {
+        if let (Some(y), Some(a)) = (find("Y"), find("A")) {
+            return Some(vec![y, a]);
+        }
+    }
+    let mut order = Vec::new();
+    for n in ["R", "G", "B", "A"] {
+        if let Some(i) = find(n) {
+            order.push(i);
+        }
+    }
+    (order.len() == names.len() && !order.is_empty() && order.len() <= 4).then_some(order)
+}
+
+/// Writes an f32 EXR (`Y`, `Y A`, `R G B` or `R G B A` for 1 to 4 channels).
+pub fn write_exr(path: impl AsRef<Path>, image: &ImageF32) -> Result<(), FormatError> {
+    let path = path.as_ref();
+    check_shape(path, image)?;
+    let names: &[&str] = match image.channels {
+        1 => &["Y"],
+        2 => &["Y", "A"],
+        3 => &["R", "G", "B"],
+        _ => &["R", "G", "B", "A"],
+    };
+    let c = image.channels as usize;
+    let channels: Vec<ex::AnyChannel<ex::FlatSamples>> = names
+        .iter()
+        .enumerate()
+        .map(|(k, name)| {
+            let plane: Vec<f32> = image.data.iter().skip(k).step_by(c).copied().collect();
+            ex::AnyChannel::new(*name, ex::FlatSamples::F32(plane))
+        })
+        .collect();
+    let layer = ex::Layer::new(
+        (image.width as usize, image.height as usize),
+        ex::LayerAttributes::default(),
+        ex::Encoding {
+            compression: ex::Compression::ZIP16,
+            ..ex::Encoding::default()
+        },
+        ex::AnyChannels::sort(ex::SmallVec::from_vec(channels)),
+    );
+    let img = ex::Image::from_layer(layer);
+    let mut out = std::io::Cursor::new(Vec::new());
+    ex::WritableImage::write(&img)
+        .non_parallel()
+        .to_buffered(&mut out)
+        .map_err(|e| FormatError::invalid(path, format!("EXR encoding failed: {e}")))?;
+    write_bytes(path, &out.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pattern(w: u32, h: u32, c: u32) -> ImageF32 {
+        let mut img = ImageF32::new(w, h, c);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = ((i * 37 + 11) % 256) as f32 / 255.0;
+        }
+        img
+    }
+
+    #[test]
+    fn png_round_trip_all_channel_counts() {
+        let dir = tempfile::tempdir().unwrap();
+        for c in 1..=4 {
+            let p = dir.path().join(format!("a/{c}.png"));
+            let img = pattern(7, 5, c);
+            write_png(&p, &img).unwrap();
+            let back = read_png(&p).unwrap();
+            assert_eq!((back.width, back.height, back.channels), (7, 5, c));
+            // 8-bit levels are exact after the /255 mapping.
+            assert_eq!(back.data, img.data, "channels {c}");
+            assert_eq!(image_size(&p).unwrap(), (7, 5));
+            let bytes = std::fs::read(&p).unwrap();
+            write_png(&p, &back).unwrap();
+            assert_eq!(std::fs::read(&p).unwrap(), bytes, "deterministic bytes");
+        }
+    }
+
+    #[test]
+    fn png_write_clamps_and_rounds() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("c.png");
+        let img = ImageF32 {
+            width: 4,
+            height: 1,
+            channels: 1,
+            data: vec![-0.5, 2.0, 0.5, 0.1],
+        };
+        write_png(&p, &img).unwrap();
+        let back = read_png(&p).unwrap();
+        let expect = [0.0, 1.0, 128.0 / 255.0, 26.0 / 255.0];
+        assert_eq!(back.data, expect);
+        let mut bad = img.clone();
+        bad.data[2] = f32::NAN;
+        assert!(write_png(&p, &bad).is_err());
+    }
+
+    #[test]
+    fn png_16_bit_reads_to_unit_range() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("d.png");
+        let buf: image::ImageBuffer<image::Rgb<u16>, Vec<u16>> =
+            image::ImageBuffer::from_raw(2, 1, vec![0, 65535, 32768, 1, 2, 3]).unwrap();
+        buf.save(&p).unwrap();
+        let back = read_png(&p).unwrap();
+        assert_eq!(back.channels, 3);
+        assert_eq!(back.data[1], 1.0);
+        assert!((back.data[2] - 32768.0 / 65535.0).abs() < 1e-7);
+    }
+
+    #[test]
+    fn png_truncated_and_malformed() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("t.png");
+        write_png(&p, &pattern(64, 64, 3)).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+        let e = read_png(&p).unwrap_err();
+        let s = e.to_string();
+        assert!(s.contains("t.png") && s.contains("byte"), "{s}");
+        std::fs::write(&p, b"GIF89a......").unwrap();
+        let e = read_png(&p).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::Byte(0)), "{e}");
+        std::fs::write(&p, &bytes[..20]).unwrap();
+        let e = read_png(&p).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::Byte(20)), "{e}");
+        assert!(image_size(&p).is_err());
+    }
+
+    #[test]
+    fn exr_round_trip_exact_floats() {
+        let dir = tempfile::tempdir().unwrap();
+        for c in 1..=4 {
+            let p = dir.path().join(format!("e{c}.exr"));
+            let mut img = pattern(9, 4, c);
+            img.data[0] = -12.5;
+            img.data[1] = 1e20;
+            write_exr(&p, &img).unwrap();
+            let back = read_exr(&p).unwrap();
+            assert_eq!(back, img, "channels {c}");
+            assert_eq!(image_size(&p).unwrap(), (9, 4));
+            let bytes = std::fs::read(&p).unwrap();
+            write_exr(&p, &back).unwrap();
+            assert_eq!(std::fs::read(&p).unwrap(), bytes);
+        }
+    }
+
+    #[test]
+    fn exr_truncated_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("t.exr");
+        write_exr(&p, &pattern(32, 32, 3)).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let e = read_exr(&p).unwrap_err();
+        assert!(e.to_string().contains("t.exr"), "{e}");
+        std::fs::write(&p, b"not an exr").unwrap();
+        let e = read_exr(&p).unwrap_err();
+        assert!(e.position().is_some(), "{e}");
+    }
+
+    #[test]
+    fn bad_shapes_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.png");
+        let mut img = pattern(2, 2, 3);
+        img.data.pop();
+        assert!(write_png(&p, &img).is_err());
+        assert!(write_exr(dir.path().join("x.exr"), &img).is_err());
+        let img5 = ImageF32 {
+            width: 1,
+            height: 1,
+            channels: 5,
+            data: vec![0.0; 5],
+        };
+        assert!(write_png(&p, &img5).is_err());
+    }
+}
