@@ -618,11 +618,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let snap_dir = ctx.output("snapshots")?.to_path_buf();
     let mut index: Vec<SnapshotEntry> = Vec::new();
     let params_count = model.parameter_count();
-    let mut snap_err: Option<StageError> = None;
     let report: TrainReport = {
-        let img_ref = image.as_mut();
-        let colors_snapshot = img_ref.as_ref().map(|i| i.colors().to_vec());
-        let _ = colors_snapshot;
         let mut snapshot = |m: &Model, it: usize, secs: f64| -> Result<(), StageError> {
             let pts = m.all_points(&s.prep);
             let strands = to_strands(&pts, l, &s, None);
@@ -641,26 +637,16 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         } else {
             "codec training"
         });
-        let r = train::train(
+        train::train(
             &mut model,
             &s.prep,
             &s.geometry,
-            img_ref.map(|i| i as &mut dyn ImageTerm),
+            image.as_mut().map(|i| i as &mut dyn ImageTerm),
             &cfg,
             ctx.progress,
             &mut snapshot,
-        );
-        match r {
-            Ok(r) => r,
-            Err(e) => {
-                snap_err = Some(e);
-                TrainReport::default()
-            }
-        }
+        )?
     };
-    if let Some(e) = snap_err {
-        return Err(e);
-    }
     formats::json::write_json(snap_dir.join("index.json"), &index)?;
 
     // Final strands.
