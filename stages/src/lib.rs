@@ -45,5 +45,6 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     // Each stage module adds its stages here, one line each.
     stages.push(Box::new(learn::CodecStrands));
     stages.push(Box::new(learn::DenseStrands));
+    stages.push(Box::new(synthetic::SyntheticScene));
     stages
 }
