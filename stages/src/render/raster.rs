@@ -568,3 +568,10 @@ pub fn backward(
     let _ = Vec3::ZERO;
     Ok(out)
 }
+
+#[cfg(test)]
+impl RenderState {
+    pub(crate) fn splats_visible(&self, i: usize) -> bool {
+        self.splats[i].visible
+    }
+}

@@ -303,3 +303,339 @@ fn strand_gradients_match_finite_differences() {
     assert!(sg.points.iter().all(|p| p.is_finite()));
     assert!(sg.widths.iter().all(|p| p.is_finite()));
 }
+
+/// A brute-force reference: every Gaussian at every pixel, depth-sorted.
+fn brute_force(g: &Gaussians, cam: &Camera, s: &RenderSettings) -> RenderOutput {
+    use super::project::{project_one, CamData, F_DEPTH, NF};
+    let cd = CamData::new(cam).unwrap();
+    let mut sp: Vec<_> = (0..g.len())
+        .map(|i| {
+            project_one(
+                g.means[i],
+                g.scales[i],
+                g.rotations[i],
+                g.opacities[i],
+                &g.sh[i],
+                g.fur[i],
+                &cd,
+                s,
+            )
+        })
+        .filter(|p| p.visible)
+        .collect();
+    sp.sort_by(|a, b| a.feat[F_DEPTH].total_cmp(&b.feat[F_DEPTH]));
+    let (w, h) = (cam.width, cam.height);
+    let mut out = RenderOutput {
+        rgb: ImageF32::new(w, h, 3),
+        alpha: ImageF32::new(w, h, 1),
+        depth: ImageF32::new(w, h, 1),
+        orientation: ImageF32::new(w, h, 2),
+        fur: ImageF32::new(w, h, 1),
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let mut t = 1.0f32;
+            let mut acc = [0.0f32; NF];
+            for p in &sp {
+                let dx = x as f32 + 0.5 - p.mean.x;
+                let dy = y as f32 + 0.5 - p.mean.y;
+                let [a, b, c] = p.conic;
+                let q = a * dx * dx + c * dy * dy + 2.0 * b * dx * dy;
+                if q > p.k2 {
+                    continue;
+                }
+                let alpha = (p.opacity * (-0.5 * q).exp()).min(s.alpha_max);
+                if alpha < s.alpha_min {
+                    continue;
+                }
+                let tn = t * (1.0 - alpha);
+                if tn < s.transmittance_min {
+                    break;
+                }
+                for k in 0..NF {
+                    acc[k] += p.feat[k] * alpha * t;
+                }
+                t = tn;
+            }
+            let i = (y * w + x) as usize;
+            for k in 0..3 {
+                out.rgb.data[3 * i + k] = acc[k] + t * s.background[k];
+            }
+            out.alpha.data[i] = 1.0 - t;
+            out.depth.data[i] = acc[4];
+            out.orientation.data[2 * i] = acc[5];
+            out.orientation.data[2 * i + 1] = acc[6];
+            out.fur.data[i] = acc[7];
+        }
+    }
+    out
+}
+
+fn max_diff(a: &ImageF32, b: &ImageF32) -> f32 {
+    a.data
+        .iter()
+        .zip(&b.data)
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()))
+}
+
+#[test]
+fn tiled_render_matches_brute_force_reference() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut g = random_gaussians(&mut rng, 300);
+    // Spread them so some straddle tile borders and the image edge.
+    for m in g.means.iter_mut() {
+        *m *= 2.5;
+    }
+    let cam = test_camera(50, Vec3::new(0.5, 1.0, 5.0), Vec3::ZERO);
+    for s in [
+        RenderSettings::default(),
+        RenderSettings {
+            background: Vec3::new(1.0, 0.5, 0.0),
+            sh_degree: 1,
+            ..RenderSettings::smooth()
+        },
+    ] {
+        let (out, st) = render(&g, &cam, &s).unwrap();
+        let reference = brute_force(&g, &cam, &s);
+        assert!(st.instance_count() > 300, "{}", st.instance_count());
+        assert!(out.alpha.data.iter().filter(|&&a| a > 0.5).count() > 200);
+        for (name, a, b) in [
+            ("rgb", &out.rgb, &reference.rgb),
+            ("alpha", &out.alpha, &reference.alpha),
+            ("depth", &out.depth, &reference.depth),
+            ("orientation", &out.orientation, &reference.orientation),
+            ("fur", &out.fur, &reference.fur),
+        ] {
+            let d = max_diff(a, b);
+            assert!(d < 1e-4, "{name}: max difference {d}");
+        }
+    }
+}
+
+fn grads_bits(gr: &GaussianGrads) -> Vec<u32> {
+    let mut v = Vec::new();
+    for i in 0..gr.len() {
+        v.extend(gr.means[i].to_array().map(f32::to_bits));
+        v.extend(gr.scales[i].to_array().map(f32::to_bits));
+        v.extend(gr.rotations[i].to_array().map(f32::to_bits));
+        v.push(gr.opacities[i].to_bits());
+        for c in gr.sh[i] {
+            v.extend(c.to_array().map(f32::to_bits));
+        }
+        v.extend(gr.cov3d[i].map(f32::to_bits));
+    }
+    v
+}
+
+#[test]
+fn images_and_gradients_are_identical_for_any_thread_count() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut g = random_gaussians(&mut rng, 3000);
+    for (m, s) in g.means.iter_mut().zip(g.scales.iter_mut()) {
+        *m *= 2.0;
+        *s *= 0.4;
+    }
+    let cam = test_camera(64, Vec3::new(0.0, 0.5, 4.5), Vec3::ZERO);
+    let s = RenderSettings {
+        sh_degree: 1,
+        ..Default::default()
+    };
+    let loss = LinearLoss::new(&mut rng, 64, 64);
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let (out, st) = render(&g, &cam, &s).unwrap();
+            let gr = backward(&g, &cam, &s, &st, &loss.dl).unwrap();
+            let img: Vec<u32> = out.rgb.data.iter().map(|v| v.to_bits()).collect();
+            (img, grads_bits(&gr))
+        })
+    };
+    let one = run(1);
+    assert!(one.1.iter().any(|&b| f32::from_bits(b) != 0.0));
+    for threads in [2, 3, 8] {
+        let other = run(threads);
+        assert!(one.0 == other.0, "image differs with {threads} threads");
+        assert!(one.1 == other.1, "gradients differ with {threads} threads");
+    }
+}
+
+#[test]
+fn degenerate_inputs_give_finite_results() {
+    let cam = test_camera(32, Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO);
+    let mut g = Gaussians::default();
+    let rgb = Vec3::splat(0.5);
+    // Behind the camera, at the camera centre, far outside the image, zero
+    // scales, zero quaternion, huge and tiny Gaussians, zero opacity.
+    g.push(
+        Vec3::new(0.0, 0.0, 5.0),
+        Vec3::splat(0.2),
+        Quat::IDENTITY,
+        0.8,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(0.0, 0.0, 3.0),
+        Vec3::splat(0.2),
+        Quat::IDENTITY,
+        0.8,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(50.0, 0.0, 0.0),
+        Vec3::splat(0.2),
+        Quat::IDENTITY,
+        0.8,
+        rgb,
+        false,
+    );
+    g.push(Vec3::ZERO, Vec3::ZERO, Quat::IDENTITY, 0.8, rgb, true);
+    g.push(
+        Vec3::new(0.1, 0.0, 0.0),
+        Vec3::splat(0.1),
+        Quat::from_xyzw(0.0, 0.0, 0.0, 0.0),
+        0.8,
+        rgb,
+        true,
+    );
+    g.push(
+        Vec3::new(0.0, 0.1, 0.0),
+        Vec3::splat(1e4),
+        Quat::IDENTITY,
+        0.5,
+        rgb,
+        true,
+    );
+    g.push(
+        Vec3::new(0.0, -0.1, 0.0),
+        Vec3::splat(1e-20),
+        Quat::IDENTITY,
+        0.5,
+        rgb,
+        true,
+    );
+    g.push(
+        Vec3::new(0.2, 0.1, 0.0),
+        Vec3::splat(0.1),
+        Quat::IDENTITY,
+        0.0,
+        rgb,
+        true,
+    );
+    // A strand with a zero-length and an anti-parallel segment.
+    let pts = [
+        Vec3::new(0.3, 0.3, 0.0),
+        Vec3::new(0.3, 0.3, 0.0),
+        Vec3::new(-0.3, 0.3, 0.0),
+        Vec3::new(0.3, 0.3, 0.0),
+    ];
+    let sg = strands_to_gaussians(&pts, &[0, 4], &[0.02], &[[0.9, 0.1, 0.1]], true).unwrap();
+    g.means.extend(&sg.means);
+    g.scales.extend(&sg.scales);
+    g.rotations.extend(&sg.rotations);
+    g.opacities.extend(&sg.opacities);
+    g.sh.extend(&sg.sh);
+    g.fur.extend(&sg.fur);
+    for s in [RenderSettings::default(), RenderSettings::smooth()] {
+        let (out, st) = render(&g, &cam, &s).unwrap();
+        for img in [&out.rgb, &out.alpha, &out.depth, &out.orientation, &out.fur] {
+            assert!(img.data.iter().all(|v| v.is_finite()));
+        }
+        assert!(!st.splats_visible(0) && !st.splats_visible(1) && !st.splats_visible(2));
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let loss = LinearLoss::new(&mut rng, 32, 32);
+        let gr = backward(&g, &cam, &s, &st, &loss.dl).unwrap();
+        assert!(grads_bits(&gr)
+            .iter()
+            .all(|&b| f32::from_bits(b).is_finite()));
+        let n = sg.len();
+        let sgr = GaussianGrads {
+            means: gr.means[g.len() - n..].to_vec(),
+            cov3d: gr.cov3d[g.len() - n..].to_vec(),
+            sh: gr.sh[g.len() - n..].to_vec(),
+            ..Default::default()
+        };
+        let back = strands_backward(&pts, &[0, 4], &[0.02], &sgr).unwrap();
+        assert!(back.points.iter().all(|p| p.is_finite()));
+        assert!(back.points.iter().any(|p| p.length() > 0.0));
+    }
+    // Non-finite input is an error naming the array and index.
+    let mut bad = g.clone();
+    bad.means[3].x = f32::NAN;
+    let e = render(&bad, &cam, &RenderSettings::default()).unwrap_err();
+    assert!(e.to_string().contains("means[3]"), "{e}");
+    bad.means[3].x = 0.0;
+    bad.opacities.pop();
+    assert!(render(&bad, &cam, &RenderSettings::default()).is_err());
+}
+
+#[test]
+fn orientation_channel_follows_the_image_convention() {
+    use std::f32::consts::PI;
+    // Camera on +z looking at the origin: world +x is right, world -y is down.
+    let cam = test_camera(32, Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO);
+    for (dir, want) in [
+        (Vec3::new(1.0, 0.0, 0.0), 0.0),
+        (Vec3::new(1.0, -1.0, 0.0), 0.25 * PI),
+        (Vec3::new(0.0, 1.0, 0.0), 0.5 * PI),
+        (Vec3::new(-1.0, -1.0, 0.0), 0.75 * PI),
+    ] {
+        let pts = [-0.4 * dir, 0.4 * dir];
+        let g = strands_to_gaussians(&pts, &[0, 2], &[0.01], &[[1.0; 3]], true).unwrap();
+        let (out, _) = render(&g, &cam, &RenderSettings::default()).unwrap();
+        let o = out.orientation.pixel(16, 16);
+        let theta = orientation_from_feature(o[0], o[1]);
+        let (d, _) = losses::angle_diff(theta, want);
+        assert!(d < 0.02, "{dir:?}: theta {theta}, want {want}");
+        // Thin strands are strongly anisotropic on screen.
+        assert!((o[0] * o[0] + o[1] * o[1]).sqrt() > 0.8 * out.alpha.pixel(16, 16)[0]);
+        // The segment direction's screen projection has the same orientation.
+        let (a, _) = cam.project(pts[0]);
+        let (b, _) = cam.project(pts[1]);
+        let t2 = orientation_angle(b.x - a.x, b.y - a.y);
+        assert!(losses::angle_diff(t2, want).0 < 1e-3);
+    }
+}
+
+#[test]
+fn compositing_is_front_to_back_whatever_the_input_order() {
+    let cam = test_camera(32, Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO);
+    let mut g = Gaussians::default();
+    let red = Vec3::new(1.0, 0.0, 0.0);
+    let blue = Vec3::new(0.0, 0.0, 1.0);
+    // Back (blue) first in the input, front (red) second.
+    g.push(
+        Vec3::new(0.0, 0.0, -0.5),
+        Vec3::splat(0.5),
+        Quat::IDENTITY,
+        0.95,
+        blue,
+        false,
+    );
+    g.push(
+        Vec3::new(0.0, 0.0, 0.5),
+        Vec3::splat(0.5),
+        Quat::IDENTITY,
+        0.95,
+        red,
+        true,
+    );
+    let (out, _) = render(&g, &cam, &RenderSettings::default()).unwrap();
+    let c = out.rgb.pixel(16, 16);
+    // Front alpha 0.95: red 0.95, blue 0.05 * 0.95.
+    assert!(
+        (c[0] - 0.95).abs() < 0.01 && (c[2] - 0.0475).abs() < 0.01,
+        "{c:?}"
+    );
+    assert!((out.fur.pixel(16, 16)[0] - 0.95).abs() < 0.01);
+    // Depth: 0.95 * 2.5 + 0.0475 * 3.5.
+    let d = out.depth.pixel(16, 16)[0];
+    assert!((d - (0.95 * 2.5 + 0.0475 * 3.5)).abs() < 0.02, "{d}");
+    // The peak sits at the projected mean.
+    let (uv, _) = cam.project(Vec3::new(0.0, 0.0, 0.5));
+    assert!((uv.x - 16.0).abs() < 1e-4 && (uv.y - 16.0).abs() < 1e-4);
+}
