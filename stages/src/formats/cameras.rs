@@ -465,12 +465,17 @@ fn read_frame(
             ));
         }
     }
+    // The bottom row is kept as written (validated above) so that a round trip is exact.
+    let bottom = |c: usize| match rows.get(3) {
+        Some(last) => last[c] as f32,
+        None => (c == 3) as u8 as f32,
+    };
     let col = |c: usize| {
         Vec4::new(
             rows[0][c] as f32,
             rows[1][c] as f32,
             rows[2][c] as f32,
-            if c == 3 { 1.0 } else { 0.0 },
+            bottom(c),
         )
     };
     let c2w = Mat4::from_cols(col(0), col(1), col(2), col(3));
@@ -720,4 +725,302 @@ pub fn write_transforms(path: impl AsRef<Path>, cameras: &[Camera]) -> Result<()
     };
     let bytes = to_pretty_bytes(path, &out)?;
     write_bytes(path, &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn data(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/data/formats")
+            .join(name)
+    }
+
+    /// Rows of every frame's `transform_matrix`, read straight from the JSON (not through our reader).
+    fn raw_matrices(path: &Path) -> Vec<[[f64; 4]; 4]> {
+        let v: Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+        v["frames"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| {
+                let mut m = [[0.0; 4]; 4];
+                for (r, row) in m.iter_mut().enumerate() {
+                    for (c, x) in row.iter_mut().enumerate() {
+                        *x = f["transform_matrix"][r][c].as_f64().unwrap();
+                    }
+                }
+                m
+            })
+            .collect()
+    }
+
+    /// Independent projection in the OpenCV convention (x right, y down, z forward): the OpenGL
+    /// camera axes flipped, `u = fx x / z + cx`, `v = fy y / z + cy`.
+    fn project_cv(m: &[[f64; 4]; 4], k: [f64; 4], p: [f64; 3]) -> (f64, f64) {
+        let d = [p[0] - m[0][3], p[1] - m[1][3], p[2] - m[2][3]];
+        let axis = |c: usize| (0..3).map(|r| m[r][c] * d[r]).sum::<f64>();
+        let (x, y, z) = (axis(0), -axis(1), -axis(2));
+        (k[0] * x / z + k[2], k[1] * y / z + k[3])
+    }
+
+    #[test]
+    fn blender_nerf_synthetic_reads() {
+        let dir = data("nerf_synthetic");
+        let set = read_views(&dir).unwrap();
+        assert_eq!(set.train.len(), 3, "transforms_train.json");
+        assert_eq!(
+            set.test.len(),
+            2,
+            "transforms_test.json preferred over transforms_val.json"
+        );
+        assert_eq!(set.train[0].file_path, "train/r_0.png");
+        assert_eq!(set.test[1].file_path, "test/r_1.png");
+        let angle = 0.6911112070083618f64;
+        let f = 0.5 * 8.0 / (0.5 * angle).tan();
+        let mats = raw_matrices(&dir.join("transforms_train.json"));
+        for (cam, m) in set.train.iter().zip(&mats) {
+            assert_eq!((cam.width, cam.height), (8, 6), "size from the PNG header");
+            assert!((cam.fx as f64 - f).abs() < 1e-4 && (cam.fy as f64 - f).abs() < 1e-4);
+            assert_eq!((cam.cx, cam.cy), (4.0, 3.0));
+            // The cameras look at the origin: it lands on the image centre, in front.
+            let (uv, depth) = cam.project(Vec3::ZERO);
+            assert!(
+                (uv.x - 4.0).abs() < 1e-4 && (uv.y - 3.0).abs() < 1e-4,
+                "{uv}"
+            );
+            assert!((depth - 4.031).abs() < 1e-4, "{depth}");
+            // An off-centre point agrees with an independent OpenCV-convention projection.
+            let p = [1.0, -0.8, 1.2];
+            let (u, v) = project_cv(m, [f, f, 4.0, 3.0], p);
+            let (uv, _) = cam.project(Vec3::new(1.0, -0.8, 1.2));
+            assert!(
+                (uv.x as f64 - u).abs() < 1e-3 && (uv.y as f64 - v).abs() < 1e-3,
+                "{uv} vs {u},{v}"
+            );
+            assert!(
+                (uv - glam::Vec2::new(4.0, 3.0)).length() > 1.0,
+                "the test point must be off-centre: {uv}"
+            );
+            // The ray through that pixel passes through the point.
+            let (o, d) = cam.ray(uv.x, uv.y);
+            let q = Vec3::new(1.0, -0.8, 1.2) - o;
+            assert!(q.cross(d).length() < 1e-4);
+        }
+        let view = read_view(&dir, &set.train[1]).unwrap();
+        assert_eq!(view.rgb.channels, 3);
+        let mask = view.mask.expect("alpha channel is the mask");
+        assert_eq!(mask.data[0], 0.0); // (x + y) % 3 == 0 -> transparent
+        assert_eq!(mask.data[1], 1.0);
+    }
+
+    #[test]
+    fn instant_ngp_colmap_capture_reads() {
+        let dir = data("ngp_capture");
+        let set = read_views(&dir).unwrap();
+        assert_eq!(set.train.len(), 4);
+        assert!(set.test.is_empty());
+        let c = &set.train[2];
+        assert_eq!(c.file_path, "images/0003.jpg");
+        assert_eq!((c.width, c.height), (1920, 1080));
+        assert_eq!(
+            (c.fx, c.fy),
+            (1375.5210563891232f64 as f32, 1374.4929911283916f64 as f32)
+        );
+        assert_eq!(
+            (c.cx, c.cy),
+            (964.2156614587127f64 as f32, 541.1364584958453f64 as f32)
+        );
+        let mats = raw_matrices(&dir.join("transforms.json"));
+        let k = [
+            1375.5210563891232,
+            1374.4929911283916,
+            964.2156614587127,
+            541.1364584958453,
+        ];
+        for (cam, m) in set.train.iter().zip(&mats) {
+            let (uv, _) = cam.project(Vec3::new(0.05, -0.02, 0.1));
+            assert!(
+                (uv.x - cam.cx).abs() < 1e-2 && (uv.y - cam.cy).abs() < 1e-2,
+                "{uv}"
+            );
+            let (u, v) = project_cv(m, k, [0.5, 0.4, -0.3]);
+            let (uv, _) = cam.project(Vec3::new(0.5, 0.4, -0.3));
+            assert!(
+                (uv.x as f64 - u).abs() < 2e-2 && (uv.y as f64 - v).abs() < 2e-2,
+                "{uv} vs {u},{v}"
+            );
+        }
+    }
+
+    fn camera(i: usize, fx: f32) -> Camera {
+        let eye = Vec3::new(1.0 + i as f32, -2.0, 0.5 * i as f32 + 0.3);
+        let c2w = Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Z).inverse();
+        Camera {
+            file_path: format!("train/r_{i:03}.png"),
+            c2w,
+            fx,
+            fy: fx * 1.01,
+            cx: 40.5,
+            cy: 29.75,
+            width: 80,
+            height: 60,
+        }
+    }
+
+    #[test]
+    fn round_trip_shared_and_per_frame_intrinsics() {
+        let dir = tempfile::tempdir().unwrap();
+        let shared = CameraSet {
+            train: (0..4).map(|i| camera(i, 71.3)).collect(),
+            test: vec![camera(9, 71.3)],
+        };
+        write_views(dir.path(), &shared).unwrap();
+        assert_eq!(read_views(dir.path()).unwrap(), shared);
+        let text = std::fs::read_to_string(dir.path().join("transforms.json")).unwrap();
+        assert!(text.contains("camera_angle_x") && text.ends_with("}\n"));
+        let bytes = text.into_bytes();
+        write_views(dir.path(), &read_views(dir.path()).unwrap()).unwrap();
+        assert_eq!(
+            std::fs::read(dir.path().join("transforms.json")).unwrap(),
+            bytes
+        );
+
+        let mixed = CameraSet {
+            train: (0..3).map(|i| camera(i, 50.0 + i as f32 / 3.0)).collect(),
+            test: Vec::new(),
+        };
+        let dir2 = tempfile::tempdir().unwrap();
+        write_views(dir2.path(), &mixed).unwrap();
+        assert_eq!(read_views(dir2.path()).unwrap(), mixed);
+        assert!(dir2.path().join("transforms_test.json").is_file());
+    }
+
+    #[test]
+    fn neus2_intrinsic_matrix_and_per_frame_overrides() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = r#"{"w": 64, "h": 48, "fl_x": 10, "frames": [
+            {"file_path": "image/000.png", "intrinsic_matrix": [[60.5, 0, 31.25, 0], [0, 61.5, 23.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+             "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2]]},
+            {"file_path": "image\\001.png", "w": 32, "camera_angle_x": 1.0, "cy": 7,
+             "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]},
+            {"file_path": "./image/002.png",
+             "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]}]}"#;
+        std::fs::write(dir.path().join("transforms.json"), text).unwrap();
+        let set = read_views(dir.path()).unwrap();
+        let c = &set.train;
+        assert_eq!(
+            (c[0].fx, c[0].fy, c[0].cx, c[0].cy),
+            (60.5, 61.5, 31.25, 23.5)
+        );
+        assert_eq!((c[0].width, c[0].height), (64, 48));
+        assert_eq!(c[1].file_path, "image/001.png");
+        assert_eq!(c[1].width, 32);
+        let f = (16.0 / 0.5f64.tan()) as f32;
+        assert_eq!((c[1].fx, c[1].fy, c[1].cx, c[1].cy), (f, f, 16.0, 7.0));
+        assert_eq!(
+            (c[2].fx, c[2].fy, c[2].cx, c[2].cy),
+            (10.0, 10.0, 32.0, 24.0)
+        );
+        assert_eq!(c[2].center(), Vec3::new(0.0, 0.0, 2.0));
+    }
+
+    #[test]
+    fn malformed_files_name_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("transforms.json");
+        let frame_ok = r#"{"file_path": "a.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}"#;
+        let cases: Vec<(String, &str)> = vec![
+            (
+                format!(
+                    r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{frame_ok}, {{"file_path": "b.png"}}]}}"#
+                ),
+                "frames[1].transform_matrix",
+            ),
+            (
+                format!(
+                    r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{frame_ok}, {{"file_path": "b.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,1,1]]}}]}}"#
+                ),
+                "frames[1].transform_matrix[3]",
+            ),
+            (
+                format!(
+                    r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{{"file_path": "b.png", "transform_matrix": [[1,0,0],[0,1,0],[0,0,1]]}}]}}"#
+                ),
+                "frames[0].transform_matrix",
+            ),
+            (
+                format!(
+                    r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{{"file_path": "b.png", "transform_matrix": [[1,0,0,"x"],[0,1,0,0],[0,0,1,0]]}}]}}"#
+                ),
+                "frames[0].transform_matrix[0][3]",
+            ),
+            (
+                format!(r#"{{"w": 4, "h": 4, "frames": [{frame_ok}]}}"#),
+                "frames[0].fl_x",
+            ),
+            (
+                format!(r#"{{"fl_x": -5, "w": 4, "h": 4, "frames": [{frame_ok}]}}"#),
+                "fl_x",
+            ),
+            (
+                format!(r#"{{"fl_x": 5, "w": 4.5, "h": 4, "frames": [{frame_ok}]}}"#),
+                "w",
+            ),
+            (
+                format!(r#"{{"fl_x": 5, "frames": [{frame_ok}]}}"#),
+                "frames[0].w",
+            ),
+            (
+                format!(r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{{"transform_matrix": []}}]}}"#),
+                "frames[0].file_path",
+            ),
+            (r#"{"fl_x": 5, "w": 4, "h": 4}"#.to_string(), "frames"),
+        ];
+        for (text, fieldname) in cases {
+            std::fs::write(&p, &text).unwrap();
+            let e = read_views(dir.path()).unwrap_err();
+            assert_eq!(
+                e.position(),
+                Some(&Position::Field(fieldname.to_string())),
+                "{text}: {e}"
+            );
+            assert!(e.to_string().contains("transforms.json"), "{e}");
+        }
+        // Syntax errors and truncation: line and column.
+        std::fs::write(&p, "{\n  \"frames\": [\n    {\"file_path\": \"a.png\",\n").unwrap();
+        let e = read_views(dir.path()).unwrap_err();
+        assert!(
+            matches!(e.position(), Some(Position::LineColumn { line: 4, .. })),
+            "{e}"
+        );
+        // No camera file at all.
+        std::fs::remove_file(&p).unwrap();
+        let e = read_views(dir.path()).unwrap_err();
+        assert!(e.to_string().contains("transforms.json"), "{e}");
+    }
+
+    #[test]
+    fn paths_and_masks() {
+        assert_eq!(mask_file_path("train/r_000.png"), "train/r_000_mask.png");
+        assert_eq!(mask_file_path("a.b/c"), "a.b/c_mask.png");
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("im")).unwrap();
+        std::fs::write(dir.path().join("im/x.JPG"), b"").unwrap();
+        assert_eq!(normalise_file_path(dir.path(), "./im/x"), "im/x.JPG");
+        assert_eq!(normalise_file_path(dir.path(), "im/y"), "im/y.png");
+        assert_eq!(
+            normalise_file_path(dir.path(), "im/frame.0001.jpeg"),
+            "im/frame.0001.jpeg"
+        );
+        // A JPEG header is enough for the size.
+        let mut jpg = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x04, 0, 0];
+        jpg.extend_from_slice(&[0xFF, 0xC0, 0x00, 0x11, 8, 0x01, 0xE0, 0x02, 0x80, 3]);
+        std::fs::write(dir.path().join("im/z.jpg"), &jpg).unwrap();
+        assert_eq!(jpeg_size(&dir.path().join("im/z.jpg")).unwrap(), (640, 480));
+        std::fs::write(dir.path().join("im/z.jpg"), &jpg[..6]).unwrap();
+        assert!(jpeg_size(&dir.path().join("im/z.jpg")).is_err());
+    }
 }
