@@ -330,17 +330,97 @@ fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), St
         .unwrap_or_default();
     let o = formats::images::read_exr(dir.join(format!("{name}_orient.exr")))?;
     let c = formats::images::read_exr(dir.join(format!("{name}_conf.exr")))?;
-    Ok((first_channel(o), first_channel(c)))
+    let (o, mut c) = (first_channel(o), first_channel(c));
+    if (o.width, o.height) != (cam.width, cam.height)
+        || (c.width, c.height) != (cam.width, cam.height)
+    {
+        return Err(StageError::input(
+            "orientation",
+            dir,
+            format!(
+                "maps of {name} are {}x{} / {}x{}, the camera is {}x{}",
+                o.width, o.height, c.width, c.height, cam.width, cam.height
+            ),
+        ));
+    }
+    normalise_confidence(&mut c);
+    Ok((o, c))
+}
+
+/// Gabor confidences span many orders of magnitude (1 / (var^2 + 1e-7)); we
+/// divide by the 95th percentile of the positive values and clamp to [0, 1],
+/// so the orientation loss is a mean angle error in radians over confident
+/// pixels, comparable across views.
+pub fn normalise_confidence(c: &mut ImageF32) {
+    let mut pos: Vec<f32> = c
+        .data
+        .iter()
+        .copied()
+        .filter(|v| *v > 0.0 && v.is_finite())
+        .collect();
+    if pos.is_empty() {
+        c.data.iter_mut().for_each(|v| *v = 0.0);
+        return;
+    }
+    let k = ((pos.len() - 1) as f32 * 0.95).round() as usize;
+    let (_, p95, _) = pos.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
+    let p95 = p95.max(1e-30);
+    for v in &mut c.data {
+        *v = if v.is_finite() {
+            (*v / p95).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+    }
 }
 
 /// Weighted loss terms of one rendered view and d loss / d outputs.
+///
+/// L_rgb = 0.8 L1 + 0.2 (1 - SSIM) over the whole image (3DGS's photometric
+/// loss; the targets are composited over the same black background);
+/// L_sil = mean |alpha - mask|; L_mask = mean |fur - fur mask|; L_ori = the
+/// pi-periodic angle difference weighted by the normalised Gabor confidence
+/// inside the GT fur mask (the silhouette mask when there is no fur mask).
 fn view_losses(
     out: &RenderOutput,
     view: &ViewData,
     cfg: &ImageConfig,
 ) -> Result<(Vec<(&'static str, f32)>, OutputGrads), StageError> {
-    let _ = (out, view, cfg);
-    Ok((Vec::new(), OutputGrads::default()))
+    use render::losses;
+    let mut terms = Vec::new();
+    let mut dl = OutputGrads::default();
+    let scale = |mut g: ImageF32, w: f32| {
+        g.data.iter_mut().for_each(|v| *v *= w);
+        g
+    };
+    if cfg.l_rgb > 0.0 {
+        let (v, g) = losses::l1_dssim(&out.rgb, &view.rgb, None, 0.2)?;
+        terms.push(("rgb", cfg.l_rgb * v));
+        dl.rgb = Some(scale(g, cfg.l_rgb));
+    }
+    if cfg.l_sil > 0.0 {
+        if let Some(m) = &view.mask {
+            let (v, g) = losses::silhouette(&out.alpha, m, None)?;
+            terms.push(("sil", cfg.l_sil * v));
+            dl.alpha = Some(scale(g, cfg.l_sil));
+        }
+    }
+    if cfg.l_mask > 0.0 {
+        if let Some(f) = &view.fur {
+            let (v, g) = losses::fur_mask(&out.fur, f, None)?;
+            terms.push(("mask", cfg.l_mask * v));
+            dl.fur = Some(scale(g, cfg.l_mask));
+        }
+    }
+    if cfg.l_ori > 0.0 {
+        if let Some((angle, conf)) = &view.orientation {
+            let region = view.fur.as_ref().or(view.mask.as_ref());
+            let (v, g) = losses::orientation(&out.orientation, angle, conf, region)?;
+            terms.push(("ori", cfg.l_ori * v));
+            dl.orientation = Some(scale(g, cfg.l_ori));
+        }
+    }
+    Ok((terms, dl))
 }
 
 impl ImageTerm for ImageLosses {

@@ -684,3 +684,215 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fure_stage_api::{NoProgress, Value};
+    use std::collections::BTreeMap;
+    use std::path::PathBuf;
+
+    /// A UV sphere (closed, outward normals).
+    pub(crate) fn sphere(radius: f32, rings: usize, segs: usize) -> Mesh {
+        let mut m = Mesh::default();
+        m.positions.push(Vec3::Y * radius);
+        for r in 1..rings {
+            let th = std::f32::consts::PI * r as f32 / rings as f32;
+            for s in 0..segs {
+                let ph = std::f32::consts::TAU * s as f32 / segs as f32;
+                m.positions
+                    .push(radius * Vec3::new(th.sin() * ph.cos(), th.cos(), -th.sin() * ph.sin()));
+            }
+        }
+        m.positions.push(-Vec3::Y * radius);
+        let last = (m.positions.len() - 1) as u32;
+        let idx = |r: usize, s: usize| (1 + (r - 1) * segs + s % segs) as u32;
+        for s in 0..segs {
+            m.triangles.push([0, idx(1, s), idx(1, s + 1)]);
+            m.triangles
+                .push([last, idx(rings - 1, s + 1), idx(rings - 1, s)]);
+        }
+        for r in 1..rings - 1 {
+            for s in 0..segs {
+                m.triangles
+                    .push([idx(r, s), idx(r + 1, s), idx(r + 1, s + 1)]);
+                m.triangles
+                    .push([idx(r, s), idx(r + 1, s + 1), idx(r, s + 1)]);
+            }
+        }
+        m.part = vec![0; m.positions.len()];
+        m.part_names = vec!["torso".into()];
+        m.recompute_normals();
+        m
+    }
+
+    fn roots(n: usize) -> Roots {
+        let mut r = Roots {
+            s_cm: 10.0,
+            part_names: vec!["torso".into(), "eyes".into()],
+            ..Default::default()
+        };
+        let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+        for i in 0..n {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let rr = (1.0 - y * y).sqrt();
+            let th = golden * i as f32;
+            let nrm = Vec3::new(rr * th.cos(), y, rr * th.sin());
+            let t = nrm.any_orthonormal_vector();
+            r.positions.push(nrm);
+            r.normals.push(nrm);
+            r.tangents.push(t);
+            r.bitangents.push(nrm.cross(t));
+            // Every tenth root is a non-fur part.
+            let fur = i % 10 != 0;
+            r.part.push(if fur { 0 } else { 1 });
+            r.length.push(if fur {
+                0.4 + 0.2 * (i % 3) as f32 / 2.0
+            } else {
+                0.0
+            });
+            r.width.push(0.01);
+            r.rho.push(0.5);
+        }
+        r
+    }
+
+    fn basis() -> StrandBasis {
+        let l = 8;
+        let t = |k: usize| k as f32 / (l - 1) as f32;
+        StrandBasis {
+            points: l,
+            mean: (0..l).map(|k| Vec3::new(0.3, 0.0, 0.9) * t(k)).collect(),
+            components: vec![
+                (0..l).map(|k| Vec3::X * t(k) * t(k)).collect(),
+                (0..l).map(|k| Vec3::Y * t(k)).collect(),
+                (0..l).map(|k| Vec3::Z * t(k) * t(k)).collect(),
+            ],
+            variance: vec![0.5, 0.3, 0.1],
+        }
+    }
+
+    fn write_inputs(dir: &Path) -> BTreeMap<String, PathBuf> {
+        let mut inputs = BTreeMap::new();
+        let p = dir.join("roots.json");
+        formats::json::write_json(&p, &roots(300)).unwrap();
+        inputs.insert("roots".to_string(), p);
+        let p = dir.join("basis.json");
+        formats::json::write_json(&p, &basis()).unwrap();
+        inputs.insert("basis".to_string(), p);
+        let p = dir.join("outer.obj");
+        formats::obj::write_obj(&p, &sphere(1.3, 12, 16)).unwrap();
+        inputs.insert("outer".to_string(), p);
+        let p = dir.join("root_mesh.obj");
+        formats::obj::write_obj(&p, &sphere(1.0, 12, 16)).unwrap();
+        inputs.insert("root_mesh".to_string(), p);
+        inputs
+    }
+
+    fn params(stage: &dyn Stage, over: &[(&str, Value)]) -> Params {
+        let mut p = Params::default();
+        for s in stage.params() {
+            if let Some(d) = s.default {
+                p.0.insert(s.name.to_string(), d);
+            }
+        }
+        for (k, v) in over {
+            p.0.insert(k.to_string(), v.clone());
+        }
+        p
+    }
+
+    fn run(stage: &dyn Stage, over: &[(&str, Value)], dir: &Path) -> PathBuf {
+        let inputs = write_inputs(dir);
+        let params = params(stage, over);
+        let out = dir.join("out");
+        let mut outputs = BTreeMap::new();
+        for port in stage.outputs(&params) {
+            let path = out.join(port.file_name());
+            if port.kind == fure_stage_api::PortKind::Dir {
+                std::fs::create_dir_all(&path).unwrap();
+            }
+            outputs.insert(port.name.clone(), path);
+        }
+        std::fs::create_dir_all(&out).unwrap();
+        let ctx = StageContext {
+            name: "test",
+            params: &params,
+            inputs,
+            outputs,
+            progress: &NoProgress,
+        };
+        stage.run(&ctx).unwrap();
+        out
+    }
+
+    fn small() -> Vec<(&'static str, Value)> {
+        vec![
+            ("iterations", Value::Int(40)),
+            ("strands_per_iteration", Value::Int(100)),
+            ("sdf_resolution", Value::Int(24)),
+            ("pe_frequencies", Value::Int(4)),
+            ("mlp_width", Value::Int(16)),
+            ("mlp_depth", Value::Int(2)),
+        ]
+    }
+
+    #[test]
+    fn codec_stage_writes_exact_length_strands_deterministically() {
+        let a = tempfile::tempdir().unwrap();
+        let b = tempfile::tempdir().unwrap();
+        let out_a = run(&CodecStrands, &small(), a.path());
+        let out_b = run(&CodecStrands, &small(), b.path());
+        let bytes = |o: &Path| std::fs::read(o.join("strands.hair")).unwrap();
+        assert_eq!(bytes(&out_a), bytes(&out_b));
+        let strands = formats::hair::read_hair(out_a.join("strands.hair")).unwrap();
+        let r = roots(300);
+        let fur: Vec<usize> = (0..300).filter(|&i| r.length[i] > 0.0).collect();
+        assert_eq!(strands.len(), fur.len());
+        for (s, &i) in fur.iter().enumerate() {
+            assert!((strands.length(s) - r.length[i]).abs() < 1e-4 * r.length[i] + 1e-5);
+            assert!((strands.strand(s)[0] - r.positions[i]).length() < 1e-5);
+        }
+        let m: LearnMetrics = formats::json::read_json(out_a.join("metrics.json")).unwrap();
+        assert_eq!(m.iterations, 40);
+        assert_eq!(m.strands, fur.len());
+        assert!(m.loss_history[39] < m.loss_history[0]);
+        let idx: Vec<SnapshotEntry> =
+            formats::json::read_json(out_a.join("snapshots").join("index.json")).unwrap();
+        assert_eq!(idx.last().unwrap().iteration, 40);
+        assert!(out_a
+            .join("snapshots")
+            .join(&idx.last().unwrap().file)
+            .is_file());
+    }
+
+    #[test]
+    fn dense_and_fixed_length_variants_run() {
+        let d = tempfile::tempdir().unwrap();
+        let mut over = small();
+        over.push(("lr_points", Value::Float(0.02)));
+        let out = run(&DenseStrands, &over, d.path());
+        let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
+        assert_eq!(m.method, "dense");
+        assert_eq!(m.optimised_parameters, m.strands * 7 * 3);
+        assert!(m.loss_history[39] < m.loss_history[0]);
+
+        let f = tempfile::tempdir().unwrap();
+        let mut over = small();
+        over.push(("length_mode", Value::Str("fixed".into())));
+        let out = run(&CodecStrands, &over, f.path());
+        let strands = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+        // Default fixed length: the mean fur length (one fur part here).
+        let r = roots(300);
+        let fur: Vec<f32> = r.length.iter().copied().filter(|&x| x > 0.0).collect();
+        let mean = fur.iter().sum::<f32>() / fur.len() as f32;
+        assert_eq!(strands.len(), fur.len());
+        for s in 0..strands.len() {
+            assert!(
+                (strands.length(s) - mean).abs() < 1e-4,
+                "{}",
+                strands.length(s)
+            );
+        }
+    }
+}
