@@ -105,7 +105,8 @@ pub use gaussians::{
 };
 pub use raster::{backward, render, OutputGrads, RenderOutput, RenderState};
 
-use glam::Vec3;
+/// The vector types of this API, re-exported for users without a glam dependency.
+pub use glam::{Mat3, Mat4, Quat, Vec2, Vec3};
 
 /// Spherical-harmonics band-0 constant.
 pub const SH_C0: f32 = 0.282_094_8;

@@ -1,0 +1,210 @@
+//! Benchmark of the CPU Gaussian renderer (`cargo bench --bench render`).
+//!
+//! Scenes are synthetic fur: strands of 8 segments grown outward (with a
+//! random lean) from roots on a unit sphere, one Gaussian per segment, seen
+//! from a camera 3.2 units away with a 50-degree-ish field of view, so the
+//! whole ball fills most of the image. For every resolution (128^2, 256^2,
+//! 512^2) and segment count (10k, 100k, 1M) it times the forward pass and
+//! forward + backward (an L1 photometric gradient on RGB plus alpha), median
+//! of several runs, and prints milliseconds and Gaussian-pixel evaluations
+//! per second (evaluations counted by the forward pass). It then times the
+//! issue's target case (256^2, 200k segments, forward + backward <= 0.5 s)
+//! and writes every record as JSON to `target/bench/render.json`.
+//!
+//! Environment: `FURE_BENCH_QUICK=1` runs only the target case;
+//! `RAYON_NUM_THREADS` sets the thread count.
+
+use std::time::Instant;
+
+use fure_stages::camera::Camera;
+use fure_stages::image::ImageF32;
+use fure_stages::render::{
+    backward, render, strands_to_gaussians, Gaussians, Mat4, OutputGrads, RenderSettings, Vec3,
+};
+
+/// SplitMix64: a tiny deterministic generator (no extra dependencies).
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+const SEGS_PER_STRAND: usize = 8;
+
+fn fur_ball(segments: usize, seed: u64) -> Gaussians {
+    let mut rng = Rng(seed);
+    let strands = segments / SEGS_PER_STRAND;
+    let mut points = Vec::with_capacity(strands * (SEGS_PER_STRAND + 1));
+    let mut starts = vec![0u32];
+    let mut widths = Vec::with_capacity(strands);
+    let mut colors = Vec::with_capacity(strands);
+    for _ in 0..strands {
+        // Uniform direction on the sphere.
+        let z = 2.0 * rng.next() - 1.0;
+        let phi = std::f32::consts::TAU * rng.next();
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let n = Vec3::new(r * phi.cos(), r * phi.sin(), z);
+        let lean = Vec3::new(rng.next() - 0.5, rng.next() - 0.5, rng.next() - 0.5);
+        let len = 0.12 + 0.1 * rng.next();
+        let mut p = n;
+        let mut d = (n + 0.8 * lean).normalize();
+        let step = len / SEGS_PER_STRAND as f32;
+        for _ in 0..=SEGS_PER_STRAND {
+            points.push(p);
+            p += d * step;
+            d = (d - Vec3::new(0.0, 0.15, 0.0)).normalize();
+        }
+        starts.push(points.len() as u32);
+        widths.push(0.004);
+        let t = rng.next();
+        colors.push([0.6 + 0.3 * t, 0.4 + 0.2 * t, 0.2]);
+    }
+    strands_to_gaussians(&points, &starts, &widths, &colors, true).expect("valid strands")
+}
+
+fn camera(size: u32) -> Camera {
+    let w2c = Mat4::look_at_rh(Vec3::new(0.0, 0.6, 3.2), Vec3::ZERO, Vec3::Y);
+    Camera {
+        file_path: String::new(),
+        c2w: w2c.inverse(),
+        fx: size as f32 * 1.1,
+        fy: size as f32 * 1.1,
+        cx: size as f32 * 0.5,
+        cy: size as f32 * 0.5,
+        width: size,
+        height: size,
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+struct Record {
+    size: u32,
+    segments: usize,
+    instances: usize,
+    evaluations: u64,
+    forward_ms: f64,
+    forward_backward_ms: f64,
+}
+
+fn bench(size: u32, segments: usize) -> Record {
+    let g = fur_ball(segments, 1234 + segments as u64);
+    let cam = camera(size);
+    let s = RenderSettings {
+        background: Vec3::splat(1.0),
+        ..Default::default()
+    };
+    // Warm-up and the loss gradient (L1 towards a flat grey target).
+    let (out, st) = render(&g, &cam, &s).expect("render");
+    let mut grgb = ImageF32::new(size, size, 3);
+    for (gv, v) in grgb.data.iter_mut().zip(&out.rgb.data) {
+        *gv = if *v > 0.5 { 1.0 } else { -1.0 } / (3 * size * size) as f32;
+    }
+    let mut galpha = ImageF32::new(size, size, 1);
+    for (gv, v) in galpha.data.iter_mut().zip(&out.alpha.data) {
+        *gv = if *v > 0.5 { -1.0 } else { 1.0 } / (size * size) as f32;
+    }
+    let dl = OutputGrads {
+        rgb: Some(grgb),
+        alpha: Some(galpha),
+        ..Default::default()
+    };
+    let reps = if segments >= 1_000_000 { 3 } else { 5 };
+    let mut fwd = Vec::new();
+    let mut both = Vec::new();
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let (o, st2) = render(&g, &cam, &s).expect("render");
+        let t1 = Instant::now();
+        let gr = backward(&g, &cam, &s, &st2, &dl).expect("backward");
+        let t2 = Instant::now();
+        std::hint::black_box((&o, &gr));
+        fwd.push((t1 - t0).as_secs_f64() * 1e3);
+        both.push((t2 - t0).as_secs_f64() * 1e3);
+    }
+    Record {
+        size,
+        segments: g.len(),
+        instances: st.instance_count(),
+        evaluations: st.evaluations,
+        forward_ms: median(fwd),
+        forward_backward_ms: median(both),
+    }
+}
+
+fn print(r: &Record) {
+    println!(
+        "{:>4}^2 {:>8} segs  {:>9} inst  fwd {:>9.1} ms  fwd+bwd {:>9.1} ms  {:>7.1} M Gaussian-px evals/s (fwd)",
+        r.size,
+        r.segments,
+        r.instances,
+        r.forward_ms,
+        r.forward_backward_ms,
+        r.evaluations as f64 / (r.forward_ms * 1e-3) / 1e6
+    );
+}
+
+fn main() {
+    let quick = std::env::var("FURE_BENCH_QUICK").is_ok_and(|v| v == "1");
+    let threads = rayon::current_num_threads();
+    println!("render benchmark: {threads} rayon threads, median of runs");
+    let mut records = Vec::new();
+    if !quick {
+        for size in [128u32, 256, 512] {
+            for segments in [10_000usize, 100_000, 1_000_000] {
+                let r = bench(size, segments);
+                print(&r);
+                records.push(r);
+            }
+        }
+    }
+    let target = bench(256, 200_000);
+    print(&target);
+    println!(
+        "target (256^2, 200k segments, fwd+bwd <= 500 ms): {:.1} ms -> {}",
+        target.forward_backward_ms,
+        if target.forward_backward_ms <= 500.0 {
+            "met"
+        } else {
+            "NOT met"
+        }
+    );
+    records.push(target);
+    let json: Vec<serde_json::Value> = records
+        .iter()
+        .map(|r| {
+            serde_json::json!({
+                "size": r.size,
+                "segments": r.segments,
+                "instances": r.instances,
+                "evaluations": r.evaluations,
+                "forward_ms": r.forward_ms,
+                "forward_backward_ms": r.forward_backward_ms,
+                "evaluations_per_s": r.evaluations as f64 / (r.forward_ms * 1e-3),
+            })
+        })
+        .collect();
+    let dir = std::path::Path::new(
+        &std::env::var("CARGO_TARGET_DIR").unwrap_or_else(|_| "target".into()),
+    )
+    .join("bench");
+    let doc = serde_json::json!({ "threads": threads, "records": json });
+    match std::fs::create_dir_all(&dir).and_then(|_| {
+        std::fs::write(
+            dir.join("render.json"),
+            serde_json::to_string_pretty(&doc).unwrap_or_default(),
+        )
+    }) {
+        Ok(()) => println!("wrote {}", dir.join("render.json").display()),
+        Err(e) => eprintln!("could not write {}: {e}", dir.display()),
+    }
+}
