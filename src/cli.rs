@@ -1,0 +1,710 @@
+//! The `fure` command line.
+//!
+//! Exit codes: 0 success; 1 a stage failed (or `verify` found damage);
+//! 2 a bad pipeline or bad usage. Every command takes `--cache DIR` (or the
+//! `FURE_CACHE` environment variable; default `cache/` in the current
+//! directory).
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use fure_stage_api::{PortKind, Stage};
+
+use crate::cache::{self, Access, Cache, GcOptions};
+use crate::exec::{self, RunOptions, RunReport, Status};
+use crate::pipeline::{parse_cli_list, PipelineErrors};
+use crate::plan::{show, Plan, Source};
+use crate::ui::UiMode;
+use crate::{bench, sweep, Engine};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "fure",
+    version,
+    about = "Strand-based fur reconstruction on a cached dataflow engine"
+)]
+pub struct Cli {
+    /// Cache directory.
+    #[arg(long, global = true, env = "FURE_CACHE", default_value = "cache")]
+    pub cache: PathBuf,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run a pipeline (only what is not cached).
+    Run {
+        pipeline: PathBuf,
+        /// Override a parameter: STAGE.PARAM=VALUE (VALUE is TOML; bare words are strings).
+        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+        sets: Vec<String>,
+        /// Stages running at once (default: number of cores).
+        #[arg(long, short)]
+        jobs: Option<usize>,
+        /// Run only this stage and what it depends on.
+        #[arg(long)]
+        until: Option<String>,
+        /// Write the run report (JSON) here.
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Show what would run, run nothing.
+        #[arg(long)]
+        dry_run: bool,
+        /// Where outputs are materialised (`<out>/<pipeline>/<stage>/`).
+        #[arg(long, default_value = "out")]
+        out: PathBuf,
+        /// Plain lines even on a terminal.
+        #[arg(long)]
+        plain: bool,
+        /// Keep running independent stages after a failure.
+        #[arg(long)]
+        keep_going: bool,
+    },
+    /// For every stage: cached, or will run and why.
+    Status {
+        pipeline: PathBuf,
+        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+        sets: Vec<String>,
+        #[arg(long)]
+        until: Option<String>,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print the stage graph.
+    Dag {
+        pipeline: PathBuf,
+        #[arg(long, value_enum, default_value = "text")]
+        format: DagFormat,
+        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+        sets: Vec<String>,
+    },
+    /// Run every variant of a parameter grid ([sweep] table and --grid).
+    Sweep {
+        pipeline: PathBuf,
+        /// A grid axis: STAGE.PARAM=V1,V2,... (or a TOML array).
+        #[arg(long = "grid", value_name = "STAGE.PARAM=V1,V2,...")]
+        grids: Vec<String>,
+        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+        sets: Vec<String>,
+        #[arg(long, short)]
+        jobs: Option<usize>,
+        #[arg(long, default_value = "out")]
+        out: PathBuf,
+        /// Table path prefix (writes PREFIX.md and PREFIX.csv); default `<out>/<pipeline>/sweep`.
+        #[arg(long)]
+        table: Option<PathBuf>,
+        #[arg(long)]
+        keep_going: bool,
+    },
+    /// Remove cache entries and objects.
+    Gc {
+        /// Keep only the entries these pipelines currently resolve to (repeatable).
+        #[arg(long = "keep", value_name = "PIPELINE")]
+        keep: Vec<PathBuf>,
+        /// Evict entries (not kept ones) until the cache fits: 500M, 10G, ...
+        #[arg(long)]
+        max_size: Option<String>,
+    },
+    /// Rehash every object; drop corrupted entries.
+    Verify,
+    /// Reproducible benchmark: N runs on fresh temporary caches.
+    Bench {
+        pipeline: PathBuf,
+        #[arg(long, default_value_t = 3)]
+        repeat: usize,
+        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+        sets: Vec<String>,
+        #[arg(long, short)]
+        jobs: Option<usize>,
+        /// Output prefix (writes PREFIX.json and PREFIX.md); default `out/<pipeline>/bench`.
+        #[arg(long)]
+        output: Option<PathBuf>,
+    },
+    /// List the stage kinds with their parameters and ports.
+    Stages {
+        /// Show only this kind.
+        kind: Option<String>,
+    },
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum DagFormat {
+    Text,
+    Dot,
+    Mermaid,
+}
+
+/// Exit status for a bad pipeline or bad usage.
+const EXIT_USAGE: u8 = 2;
+const EXIT_FAILED: u8 = 1;
+
+/// Runs the command line with these stage kinds.
+pub fn main_with(stages: Vec<Box<dyn Stage>>) -> ExitCode {
+    install_panic_hook();
+    let cli = Cli::parse();
+    let engine = match Engine::new(stages) {
+        Ok(e) => e,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(EXIT_USAGE);
+        }
+    };
+    match dispatch(&engine, &cli) {
+        Ok(code) => code,
+        Err(Failure::Usage(msg)) => {
+            eprintln!("{msg}");
+            ExitCode::from(EXIT_USAGE)
+        }
+        Err(Failure::Failed(msg)) => {
+            eprintln!("{msg}");
+            ExitCode::from(EXIT_FAILED)
+        }
+    }
+}
+
+/// Panics inside stages are reported as stage failures by the engine: keep
+/// their default message off the terminal.
+fn install_panic_hook() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let in_stage = std::thread::current()
+            .name()
+            .map(|n| n.starts_with("fure-stage"))
+            .unwrap_or(false);
+        if !in_stage {
+            default(info);
+        }
+    }));
+}
+
+enum Failure {
+    Usage(String),
+    Failed(String),
+}
+
+impl From<PipelineErrors> for Failure {
+    fn from(e: PipelineErrors) -> Self {
+        Failure::Usage(e.to_string())
+    }
+}
+
+fn open_cache(dir: &Path, access: Access) -> Result<Cache, Failure> {
+    Cache::open(dir, access).map_err(|e| Failure::Failed(format!("error: {e}")))
+}
+
+fn load_plan(
+    engine: &Engine,
+    path: &Path,
+    sets: &[String],
+    until: Option<&str>,
+) -> Result<Plan, Failure> {
+    let p = engine.load(path, sets)?;
+    let plan = engine.plan(&p)?;
+    match until {
+        Some(u) => plan.until(u).map_err(|e| Failure::Usage(e.to_string())),
+        None => Ok(plan),
+    }
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), Failure> {
+    if let Some(p) = path.parent() {
+        if !p.as_os_str().is_empty() {
+            std::fs::create_dir_all(p)
+                .map_err(|e| Failure::Failed(format!("error: {}: {e}", p.display())))?;
+        }
+    }
+    std::fs::write(path, bytes)
+        .map_err(|e| Failure::Failed(format!("error: {}: {e}", path.display())))
+}
+
+fn jobs_or_default(jobs: Option<usize>) -> Result<usize, Failure> {
+    match jobs {
+        Some(0) => Err(Failure::Usage("error: --jobs must be at least 1".into())),
+        Some(j) => Ok(j),
+        None => Ok(exec::available_cores()),
+    }
+}
+
+fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
+    match &cli.command {
+        Command::Run {
+            pipeline,
+            sets,
+            jobs,
+            until,
+            report,
+            dry_run,
+            out,
+            plain,
+            keep_going,
+        } => {
+            let plan = load_plan(engine, pipeline, sets, until.as_deref())?;
+            let cache = open_cache(&cli.cache, Access::Shared)?;
+            let opts = RunOptions {
+                jobs: jobs_or_default(*jobs)?,
+                cores: exec::available_cores(),
+                out_root: Some(out.clone()),
+                dry_run: *dry_run,
+                ui: if *plain {
+                    UiMode::Plain
+                } else {
+                    UiMode::detect()
+                },
+                keep_going: *keep_going,
+            };
+            let rep = exec::run(&plan, &cache, &opts);
+            let json = serde_json::to_vec_pretty(&rep).unwrap_or_default();
+            if !dry_run {
+                cache.save_run_report(&plan.name, &json);
+            }
+            if let Some(path) = report {
+                write_file(path, &json)?;
+            }
+            print_summary(&rep, *dry_run, out);
+            Ok(if rep.ok() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(EXIT_FAILED)
+            })
+        }
+        Command::Status {
+            pipeline,
+            sets,
+            until,
+            json,
+        } => {
+            let plan = load_plan(engine, pipeline, sets, until.as_deref())?;
+            let cache = open_cache(&cli.cache, Access::Shared)?;
+            let opts = RunOptions {
+                dry_run: true,
+                out_root: None,
+                ui: UiMode::Quiet,
+                ..RunOptions::default()
+            };
+            let rep = exec::run(&plan, &cache, &opts);
+            if *json {
+                println!("{}", serde_json::to_string_pretty(&rep).unwrap_or_default());
+            } else {
+                let w = rep.stages.iter().map(|s| s.name.len()).max().unwrap_or(0);
+                for s in &rep.stages {
+                    let (state, reason) = match s.status {
+                        Status::Cached => (
+                            "cached",
+                            if s.reason.is_empty() {
+                                "up to date".to_string()
+                            } else {
+                                s.reason.clone()
+                            },
+                        ),
+                        Status::WillRun => ("will run", s.reason.clone()),
+                        Status::Failed => ("error", s.error.clone().unwrap_or_default()),
+                        _ => ("blocked", s.reason.clone()),
+                    };
+                    println!("{:<w$}  {:<8}  {}", s.name, state, reason, w = w);
+                }
+                println!(
+                    "{}: {} cached, {} will run",
+                    rep.pipeline,
+                    rep.count(Status::Cached),
+                    rep.count(Status::WillRun)
+                );
+            }
+            Ok(if rep.count(Status::Failed) > 0 {
+                ExitCode::from(EXIT_FAILED)
+            } else {
+                ExitCode::SUCCESS
+            })
+        }
+        Command::Dag {
+            pipeline,
+            format,
+            sets,
+        } => {
+            let plan = load_plan(engine, pipeline, sets, None)?;
+            print!("{}", dag(&plan, *format));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Sweep {
+            pipeline,
+            grids,
+            sets,
+            jobs,
+            out,
+            table,
+            keep_going,
+        } => {
+            let p = engine.load(pipeline, sets)?;
+            let mut extra = Vec::new();
+            for g in grids {
+                let (k, v) = g.split_once('=').ok_or_else(|| {
+                    Failure::Usage(format!(
+                        "error: --grid `{g}`: expected STAGE.PARAM=V1,V2,..."
+                    ))
+                })?;
+                extra.push((k.trim().to_string(), parse_cli_list(v)));
+            }
+            let variants = sweep::grid(&p, &extra);
+            let cache = open_cache(&cli.cache, Access::Shared)?;
+            let opts = RunOptions {
+                jobs: jobs_or_default(*jobs)?,
+                cores: exec::available_cores(),
+                out_root: Some(out.clone()),
+                dry_run: false,
+                ui: UiMode::Quiet,
+                keep_going: *keep_going,
+            };
+            println!("sweep {}: {} variants", p.name, variants.len());
+            let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
+                println!(
+                    "variant {} ({}): {} ran, {} cached, {} failed, {:.2}s",
+                    row.variant.index,
+                    sweep::describe(&row.variant),
+                    row.report.count(Status::Ran),
+                    row.report.count(Status::Cached),
+                    row.report.count(Status::Failed),
+                    row.report.seconds
+                );
+                if let Ok(json) = serde_json::to_vec_pretty(&row.report) {
+                    cache.save_run_report(&row.name, &json);
+                }
+            })?;
+            let prefix = table
+                .clone()
+                .unwrap_or_else(|| out.join(&p.name).join("sweep"));
+            let md = sweep::markdown(&rows);
+            write_file(&prefix.with_extension("md"), md.as_bytes())?;
+            write_file(&prefix.with_extension("csv"), sweep::csv(&rows).as_bytes())?;
+            println!("\n{md}");
+            println!(
+                "table: {} and {}",
+                prefix.with_extension("md").display(),
+                prefix.with_extension("csv").display()
+            );
+            let ok = rows.len() == variants.len() && rows.iter().all(|r| r.report.ok());
+            Ok(if ok {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(EXIT_FAILED)
+            })
+        }
+        Command::Gc { keep, max_size } => {
+            let max_size = match max_size {
+                Some(s) => Some(
+                    cache::parse_size(s)
+                        .map_err(|e| Failure::Usage(format!("error: --max-size {e}")))?,
+                ),
+                None => None,
+            };
+            let keep_keys = if keep.is_empty() {
+                None
+            } else {
+                // Keys the kept pipelines resolve to now (as far as the cache can tell).
+                let mut keys = BTreeSet::new();
+                let cache = open_cache(&cli.cache, Access::Shared)?;
+                for k in keep {
+                    let plan = load_plan(engine, k, &[], None)?;
+                    let opts = RunOptions {
+                        dry_run: true,
+                        out_root: None,
+                        ui: UiMode::Quiet,
+                        ..RunOptions::default()
+                    };
+                    let rep = exec::run(&plan, &cache, &opts);
+                    keys.extend(
+                        rep.stages
+                            .into_iter()
+                            .filter(|s| s.status == Status::Cached)
+                            .map(|s| s.key),
+                    );
+                }
+                drop(cache);
+                Some(keys)
+            };
+            let cache = open_cache(&cli.cache, Access::Exclusive)?;
+            let rep = cache.gc(&GcOptions {
+                keep: keep_keys,
+                max_size,
+            });
+            println!(
+                "gc: kept {} entries ({:.1} MiB), removed {} entries and {} objects ({:.1} MiB), {} stale staging dirs",
+                rep.entries_kept,
+                rep.bytes_kept as f64 / 1048576.0,
+                rep.entries_removed,
+                rep.objects_removed,
+                rep.bytes_freed as f64 / 1048576.0,
+                rep.tmp_removed
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify => {
+            let cache = open_cache(&cli.cache, Access::Exclusive)?;
+            let rep = cache.verify();
+            for o in &rep.corrupted_objects {
+                println!("corrupted object {o} (removed)");
+            }
+            for e in &rep.dropped_entries {
+                println!("dropped entry {e}");
+            }
+            for m in &rep.broken_manifests {
+                println!("broken manifest {m} (removed)");
+            }
+            println!(
+                "verify: {} objects, {} entries checked; {} corrupted objects, {} entries dropped{}",
+                rep.objects_checked,
+                rep.entries_checked,
+                rep.corrupted_objects.len(),
+                rep.dropped_entries.len(),
+                if rep.clean() { "; clean" } else { "" }
+            );
+            Ok(if rep.clean() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(EXIT_FAILED)
+            })
+        }
+        Command::Bench {
+            pipeline,
+            repeat,
+            sets,
+            jobs,
+            output,
+        } => {
+            let plan = load_plan(engine, pipeline, sets, None)?;
+            let opts = RunOptions {
+                jobs: jobs_or_default(*jobs)?,
+                ui: UiMode::Quiet,
+                ..RunOptions::default()
+            };
+            let rep = bench::bench(&plan, *repeat, &opts, &mut |r, s| {
+                println!("run {}/{}: {:.3}s", r + 1, repeat, s);
+            })
+            .map_err(|e| Failure::Failed(format!("error: {e}")))?;
+            let prefix = output
+                .clone()
+                .unwrap_or_else(|| Path::new("out").join(&plan.name).join("bench"));
+            let md = bench::markdown(&rep);
+            write_file(
+                &prefix.with_extension("json"),
+                &serde_json::to_vec_pretty(&rep).unwrap_or_default(),
+            )?;
+            write_file(&prefix.with_extension("md"), md.as_bytes())?;
+            println!("\n{md}");
+            println!(
+                "written: {} and {}",
+                prefix.with_extension("json").display(),
+                prefix.with_extension("md").display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Stages { kind } => {
+            let mut found = false;
+            for s in engine.registry.iter() {
+                if kind.as_deref().map(|k| k != s.kind()).unwrap_or(false) {
+                    continue;
+                }
+                found = true;
+                print!("{}", describe_kind(s.as_ref()));
+            }
+            if !found {
+                return Err(Failure::Usage(format!(
+                    "error: no stage kind `{}`",
+                    kind.clone().unwrap_or_default()
+                )));
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+fn print_summary(rep: &RunReport, dry_run: bool, out: &Path) {
+    if dry_run {
+        println!(
+            "{} (dry run): {} cached, {} will run",
+            rep.pipeline,
+            rep.count(Status::Cached),
+            rep.count(Status::WillRun)
+        );
+        return;
+    }
+    println!(
+        "{}: {} ran, {} cached, {} failed, {} skipped in {:.2}s; outputs in {}",
+        rep.pipeline,
+        rep.count(Status::Ran),
+        rep.count(Status::Cached),
+        rep.count(Status::Failed),
+        rep.count(Status::Skipped),
+        rep.seconds,
+        out.join(&rep.pipeline).display()
+    );
+    for s in rep.stages.iter().filter(|s| s.status == Status::Failed) {
+        eprintln!(
+            "error: stage `{}` ({}) failed: {}",
+            s.name,
+            s.kind,
+            s.error.clone().unwrap_or_default()
+        );
+    }
+}
+
+/// A kind's documentation for `fure stages`.
+pub fn describe_kind(s: &dyn Stage) -> String {
+    use std::fmt::Write as _;
+    let mut o = String::new();
+    let _ = writeln!(o, "{} (version {})", s.kind(), s.version());
+    let _ = writeln!(o, "  {}", s.doc());
+    let specs = s.params();
+    if !specs.is_empty() {
+        let _ = writeln!(o, "  parameters:");
+        for p in &specs {
+            let mut extra = String::new();
+            match &p.default {
+                Some(d) => {
+                    let _ = write!(extra, " = {}", show(d));
+                }
+                None if p.optional => extra.push_str(" (optional)"),
+                None => extra.push_str(" (required)"),
+            }
+            if p.min.is_some() || p.max.is_some() {
+                let _ = write!(
+                    extra,
+                    " in [{}, {}]",
+                    p.min
+                        .map(|x| x.to_string())
+                        .unwrap_or_else(|| "-inf".into()),
+                    p.max.map(|x| x.to_string()).unwrap_or_else(|| "inf".into())
+                );
+            }
+            if !p.choices.is_empty() {
+                let _ = write!(extra, " one of {}", p.choices.join("|"));
+            }
+            let _ = writeln!(o, "    {}: {}{} -- {}", p.name, p.ty.name(), extra, p.doc);
+        }
+    }
+    let defaults = fure_stage_api::Params(
+        specs
+            .iter()
+            .filter_map(|p| p.default.clone().map(|d| (p.name.to_string(), d)))
+            .collect(),
+    );
+    let port = |p: &fure_stage_api::PortSpec| {
+        let what = match p.kind {
+            PortKind::Dir => "directory".to_string(),
+            PortKind::File { ext } if ext.is_empty() => "file".to_string(),
+            PortKind::File { ext } => format!(".{ext}"),
+        };
+        format!(
+            "{} ({what}{}) -- {}",
+            p.name,
+            if p.required { "" } else { ", optional" },
+            p.doc
+        )
+    };
+    let ins = s.inputs(&defaults);
+    if !ins.is_empty() {
+        let _ = writeln!(o, "  inputs:");
+        for p in &ins {
+            let _ = writeln!(o, "    {}", port(p));
+        }
+    }
+    let outs = s.outputs(&defaults);
+    if !outs.is_empty() {
+        let _ = writeln!(o, "  outputs:");
+        for p in &outs {
+            let _ = writeln!(o, "    {}", port(p));
+        }
+    }
+    o.push('\n');
+    o
+}
+
+/// The stage graph as text, Graphviz dot or Mermaid.
+pub fn dag(plan: &Plan, format: DagFormat) -> String {
+    use std::fmt::Write as _;
+    let mut o = String::new();
+    match format {
+        DagFormat::Text => {
+            let _ = writeln!(o, "pipeline {} ({} stages)", plan.name, plan.stages.len());
+            for s in &plan.stages {
+                let _ = writeln!(o, "{} [{}]", s.name, s.kind);
+                for i in &s.inputs {
+                    let _ = writeln!(o, "  {} <- {}", i.port, plan.source_label(&i.source));
+                }
+                let outs: Vec<String> = s.outputs.iter().map(|p| p.file_name()).collect();
+                let _ = writeln!(o, "  -> {}", outs.join(", "));
+            }
+        }
+        DagFormat::Dot => {
+            let _ = writeln!(o, "digraph \"{}\" {{\n  rankdir=LR;", plan.name);
+            for s in &plan.stages {
+                let _ = writeln!(
+                    o,
+                    "  \"{}\" [shape=box, label=\"{}\\n{}\"];",
+                    s.name, s.name, s.kind
+                );
+            }
+            for s in &plan.stages {
+                for i in &s.inputs {
+                    match &i.source {
+                        Source::Upstream { stage, port } => {
+                            let _ = writeln!(
+                                o,
+                                "  \"{}\" -> \"{}\" [label=\"{} -> {}\"];",
+                                plan.stages[*stage].name, s.name, port, i.port
+                            );
+                        }
+                        Source::Path { written, .. } => {
+                            let _ = writeln!(
+                                o,
+                                "  \"file:{written}\" [shape=note, label=\"{written}\"];"
+                            );
+                            let _ = writeln!(
+                                o,
+                                "  \"file:{written}\" -> \"{}\" [label=\"{}\"];",
+                                s.name, i.port
+                            );
+                        }
+                    }
+                }
+            }
+            o.push_str("}\n");
+        }
+        DagFormat::Mermaid => {
+            o.push_str("flowchart LR\n");
+            let id = |n: &str| n.replace('-', "_");
+            for s in &plan.stages {
+                let _ = writeln!(o, "  {}[\"{}<br/>{}\"]", id(&s.name), s.name, s.kind);
+            }
+            let mut files = 0;
+            for s in &plan.stages {
+                for i in &s.inputs {
+                    match &i.source {
+                        Source::Upstream { stage, port } => {
+                            let _ = writeln!(
+                                o,
+                                "  {} -->|{} to {}| {}",
+                                id(&plan.stages[*stage].name),
+                                port,
+                                i.port,
+                                id(&s.name)
+                            );
+                        }
+                        Source::Path { written, .. } => {
+                            files += 1;
+                            let _ = writeln!(
+                                o,
+                                "  file{files}[/\"{written}\"/] -->|{}| {}",
+                                i.port,
+                                id(&s.name)
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+    o
+}

@@ -1,0 +1,945 @@
+//! Running a plan: keys, cache lookups, the scheduler, materialisation and
+//! the run report.
+//!
+//! The scheduler walks the plan in topological order on the calling thread.
+//! A stage whose upstream stages are resolved gets its key (input hashes come
+//! from upstream manifests, or from files through the hint table); a hit is
+//! resolved at once (manifest read, objects checked by size and hint), so a
+//! no-op run reads only manifests. Misses are queued and started on worker
+//! threads, at most `jobs` at a time.
+//!
+//! CPU budget: the engine owns `cores` tokens (default: all cores). A stage
+//! starts only while tokens are free and takes
+//! `max(1, free / min(jobs - running, queued))` of them; it runs inside a
+//! rayon pool of exactly that many threads, so concurrently running stages
+//! together never use more threads than cores. Command stages take one token.
+//!
+//! Early cutoff needs no special case: a downstream key contains the content
+//! hashes of its inputs, so if a rerun upstream stage writes identical bytes
+//! the downstream key is unchanged and it stays cached.
+//!
+//! Failures: a stage that fails (error, panic, missing output) caches
+//! nothing; stages already running finish and are cached; stages not yet
+//! started are skipped; the run exits with status 1.
+//!
+//! Peak memory: command stages report their child's max RSS (`wait4`).
+//! In-process stages report the process's peak RSS over the stage's run
+//! (`VmHWM`, reset through `/proc/self/clear_refs` when no other in-process
+//! stage is running), which is exact with `--jobs 1` and an upper bound with
+//! parallel stages.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::fs;
+use std::os::unix::fs::MetadataExt;
+use std::panic::AssertUnwindSafe;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::mpsc;
+use std::time::Instant;
+
+use fure_stage_api::{PortKind, StageContext};
+use serde::{Deserialize, Serialize};
+
+use crate::cache::{self, Cache, IndexEntry, Manifest, OutputRecord};
+use crate::command;
+use crate::key::Preimage;
+use crate::plan::{Plan, PlannedStage, Source};
+use crate::ui::{StageProgress, Ui, UiMode};
+
+/// The fure version recorded in manifests and reports.
+pub const FURE_VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// How to run a plan.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Stages running at once.
+    pub jobs: usize,
+    /// CPU threads shared by running stages.
+    pub cores: usize,
+    /// Where to materialise outputs (`<out_root>/<pipeline>/<stage>/`); None: nowhere.
+    pub out_root: Option<PathBuf>,
+    /// Only report what would run.
+    pub dry_run: bool,
+    pub ui: UiMode,
+    /// Keep running independent stages after a failure.
+    pub keep_going: bool,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        let cores = available_cores();
+        RunOptions {
+            jobs: cores,
+            cores,
+            out_root: Some(PathBuf::from("out")),
+            dry_run: false,
+            ui: UiMode::Quiet,
+            keep_going: false,
+        }
+    }
+}
+
+/// Number of CPU cores available to this process.
+pub fn available_cores() -> usize {
+    std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1)
+}
+
+/// What happened to a stage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Status {
+    Ran,
+    Cached,
+    Failed,
+    Skipped,
+    /// Dry runs and `status`: would run.
+    WillRun,
+}
+
+/// One output in a report.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct OutputReport {
+    pub path: String,
+    pub blake3: String,
+    pub bytes: u64,
+}
+
+/// One stage in a report.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StageReport {
+    pub name: String,
+    pub kind: String,
+    /// Empty when the key could not be computed (upstream will run or failed).
+    pub key: String,
+    pub status: Status,
+    pub reason: String,
+    pub seconds: f64,
+    pub peak_rss_bytes: u64,
+    pub outputs: BTreeMap<String, OutputReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// The run report (`--report FILE`, and `runs/` in the cache).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunReport {
+    pub pipeline: String,
+    pub fure_version: String,
+    pub seconds: f64,
+    pub stages: Vec<StageReport>,
+}
+
+impl RunReport {
+    pub fn ok(&self) -> bool {
+        self.stages
+            .iter()
+            .all(|s| s.status != Status::Failed && s.status != Status::Skipped)
+    }
+    pub fn count(&self, status: Status) -> usize {
+        self.stages.iter().filter(|s| s.status == status).count()
+    }
+    pub fn stage(&self, name: &str) -> Option<&StageReport> {
+        self.stages.iter().find(|s| s.name == name)
+    }
+}
+
+/// A stage whose key is known.
+struct Keyed {
+    key: String,
+    preimage: Preimage,
+    entry: IndexEntry,
+}
+
+enum State {
+    Pending,
+    Queued,
+    Running,
+    Done(BTreeMap<String, OutputRecord>),
+    /// Failed, skipped, or (dry run) will run: dependents cannot resolve.
+    Blocked,
+}
+
+struct WorkDone {
+    index: usize,
+    result: Result<(Manifest, bool), String>,
+    progress: StageProgress,
+    tokens: usize,
+}
+
+/// Runs (or, with `dry_run`, inspects) a plan against a cache.
+pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
+    let t0 = Instant::now();
+    let ui = Ui::new(opts.ui);
+    if !opts.dry_run {
+        cache.clean_tmp();
+    }
+    let old_index = cache.load_index(&plan.name);
+    let mut new_index = old_index.clone();
+    let n = plan.stages.len();
+    let mut states: Vec<State> = (0..n).map(|_| State::Pending).collect();
+    let mut reports: Vec<Option<StageReport>> = vec![None; n];
+    let mut keyed: Vec<Option<Keyed>> = (0..n).map(|_| None).collect();
+    let mut queue: VecDeque<(usize, String)> = VecDeque::new();
+    let mut run_reasons: Vec<String> = vec![String::new(); n];
+    let jobs = opts.jobs.max(1);
+    let cores = opts.cores.max(1);
+    let inproc_running = AtomicUsize::new(0);
+    let mut failed = false;
+
+    std::thread::scope(|scope| {
+        let (tx, rx) = mpsc::channel::<WorkDone>();
+        let mut running = 0usize;
+        let mut free_tokens = cores;
+        loop {
+            // Resolve every stage whose upstream stages are resolved (one
+            // pass suffices: the plan is in topological order).
+            for i in 0..n {
+                if !matches!(states[i], State::Pending) {
+                    continue;
+                }
+                let st = &plan.stages[i];
+                let mut blocked_by = None;
+                let mut all_done = true;
+                for &u in &st.upstream {
+                    match &states[u] {
+                        State::Done(_) => {}
+                        State::Blocked => {
+                            blocked_by = Some(u);
+                        }
+                        _ => all_done = false,
+                    }
+                }
+                if let Some(u) = blocked_by {
+                    let up = &plan.stages[u].name;
+                    let (status, reason) = match reports[u].as_ref().map(|r| r.status) {
+                        Some(Status::WillRun) => {
+                            let mut why = match old_index.get(&st.name) {
+                                None => vec!["new stage".to_string()],
+                                Some(o) => explain_params(o, &st.kind, st.version, &st.params.0),
+                            };
+                            why.push(format!("input from `{up}`, which will run"));
+                            (Status::WillRun, why.join("; "))
+                        }
+                        Some(Status::Failed) => {
+                            (Status::Skipped, format!("upstream `{up}` failed"))
+                        }
+                        _ => (Status::Skipped, format!("upstream `{up}` did not run")),
+                    };
+                    if status == Status::WillRun {
+                        ui.will_run(&st.name, &reason);
+                    } else {
+                        ui.skipped(&st.name, &reason);
+                    }
+                    reports[i] = Some(report_without_outputs(st, "", status, reason, None));
+                    states[i] = State::Blocked;
+                    continue;
+                }
+                if !all_done {
+                    continue;
+                }
+                let k = match key_stage(plan, i, &states, cache) {
+                    Ok(k) => k,
+                    Err(e) => {
+                        ui.failed(&st.name, &e, None);
+                        reports[i] = Some(report_without_outputs(
+                            st,
+                            "",
+                            Status::Failed,
+                            String::new(),
+                            Some(e),
+                        ));
+                        states[i] = State::Blocked;
+                        failed = true;
+                        continue;
+                    }
+                };
+                let hit = cache.lookup(&k.key);
+                let damage = hit.as_ref().and_then(|m| cache.check_entry(m).err());
+                match (hit, damage) {
+                    (Some(m), None) => {
+                        let reason = cutoff_reason(plan, i, &reports);
+                        ui.cached(&st.name, &k.key, &reason);
+                        let outputs = if opts.dry_run {
+                            output_reports(cache, &m, None)
+                        } else {
+                            materialise_or_warn(cache, opts, plan, st, &m, &ui)
+                        };
+                        reports[i] = Some(StageReport {
+                            name: st.name.clone(),
+                            kind: st.kind.clone(),
+                            key: k.key.clone(),
+                            status: Status::Cached,
+                            reason,
+                            seconds: 0.0,
+                            peak_rss_bytes: m.peak_rss_bytes,
+                            outputs,
+                            error: None,
+                        });
+                        new_index.insert(st.name.clone(), k.entry.clone());
+                        states[i] = State::Done(m.outputs);
+                        keyed[i] = Some(k);
+                    }
+                    (hit, damage) => {
+                        let reason = match damage {
+                            Some(d) if hit.is_some() => {
+                                ui.line(&format!(
+                                    "warning: {}: cached entry {} is damaged ({d}); recomputing",
+                                    st.name,
+                                    cache::short(&k.key)
+                                ));
+                                format!("cached entry damaged: {d}")
+                            }
+                            _ => explain(old_index.get(&st.name), &k.entry),
+                        };
+                        if opts.dry_run {
+                            ui.will_run(&st.name, &reason);
+                            reports[i] = Some(report_without_outputs(
+                                st,
+                                &k.key,
+                                Status::WillRun,
+                                reason,
+                                None,
+                            ));
+                            states[i] = State::Blocked;
+                        } else {
+                            queue.push_back((i, reason));
+                            states[i] = State::Queued;
+                        }
+                        keyed[i] = Some(k);
+                    }
+                }
+            }
+            // Start queued stages.
+            while running < jobs && free_tokens > 0 && !(failed && !opts.keep_going) {
+                let Some((i, reason)) = queue.pop_front() else {
+                    break;
+                };
+                let st = &plan.stages[i];
+                let share = (jobs - running).min(queue.len() + 1).max(1);
+                let tokens = if st.kind == command::KIND {
+                    1
+                } else {
+                    (free_tokens / share).max(1)
+                };
+                free_tokens -= tokens.min(free_tokens);
+                running += 1;
+                states[i] = State::Running;
+                let progress = ui.started(&st.name, &reason);
+                run_reasons[i] = reason;
+                let k = keyed[i].as_ref().expect("queued stages are keyed");
+                let key = k.key.clone();
+                let preimage = k.preimage.clone();
+                let inputs = stage_inputs(plan, i, &states);
+                let tx = tx.clone();
+                let ui_ref = &ui;
+                let inproc = &inproc_running;
+                let pipeline = plan.name.clone();
+                let spawned = std::thread::Builder::new()
+                    .name(format!("fure-stage-{}", st.name))
+                    .spawn_scoped(scope, move || {
+                        let result = execute(
+                            cache, &pipeline, st, &key, preimage, inputs, tokens, &progress,
+                            ui_ref, inproc,
+                        );
+                        let _ = tx.send(WorkDone {
+                            index: i,
+                            result,
+                            progress,
+                            tokens,
+                        });
+                    });
+                if let Err(e) = spawned {
+                    running -= 1;
+                    free_tokens += tokens;
+                    let msg = format!("cannot start a thread: {e}");
+                    ui.failed(&st.name, &msg, None);
+                    reports[i] = Some(report_without_outputs(
+                        st,
+                        "",
+                        Status::Failed,
+                        String::new(),
+                        Some(msg),
+                    ));
+                    states[i] = State::Blocked;
+                    failed = true;
+                }
+            }
+            if running == 0 {
+                if queue.is_empty() {
+                    // The resolution pass is in topological order, so nothing
+                    // is pending any more.
+                    break;
+                }
+                // Not started because of a failure: skip them, then mark
+                // their dependents in one more pass.
+                for (i, reason) in queue.drain(..) {
+                    let st = &plan.stages[i];
+                    let why = format!("not started after a failure ({reason})");
+                    ui.skipped(&st.name, &why);
+                    let key = keyed[i].as_ref().map(|k| k.key.as_str()).unwrap_or("");
+                    reports[i] = Some(report_without_outputs(st, key, Status::Skipped, why, None));
+                    states[i] = State::Blocked;
+                }
+                continue;
+            }
+            let Ok(done) = rx.recv() else { break };
+            running -= 1;
+            free_tokens += done.tokens;
+            let i = done.index;
+            let st = &plan.stages[i];
+            let k = keyed[i].as_ref().expect("ran stages are keyed");
+            match done.result {
+                Ok((m, computed)) => {
+                    let (status, seconds, reason) = if computed {
+                        ui.done(&st.name, m.seconds, done.progress);
+                        (Status::Ran, m.seconds, std::mem::take(&mut run_reasons[i]))
+                    } else {
+                        drop(done.progress);
+                        ui.cached(&st.name, &k.key, "computed by a concurrent run");
+                        (
+                            Status::Cached,
+                            0.0,
+                            "computed by a concurrent run".to_string(),
+                        )
+                    };
+                    let outputs = materialise_or_warn(cache, opts, plan, st, &m, &ui);
+                    reports[i] = Some(StageReport {
+                        name: st.name.clone(),
+                        kind: st.kind.clone(),
+                        key: k.key.clone(),
+                        status,
+                        reason,
+                        seconds,
+                        peak_rss_bytes: m.peak_rss_bytes,
+                        outputs,
+                        error: None,
+                    });
+                    new_index.insert(st.name.clone(), k.entry.clone());
+                    states[i] = State::Done(m.outputs);
+                }
+                Err(e) => {
+                    ui.failed(&st.name, &e, Some(done.progress));
+                    let reason = std::mem::take(&mut run_reasons[i]);
+                    reports[i] = Some(report_without_outputs(
+                        st,
+                        &k.key,
+                        Status::Failed,
+                        reason,
+                        Some(e),
+                    ));
+                    states[i] = State::Blocked;
+                    failed = true;
+                }
+            }
+        }
+    });
+    let stages: Vec<StageReport> = reports
+        .into_iter()
+        .zip(&plan.stages)
+        .map(|(r, st)| {
+            r.unwrap_or_else(|| {
+                report_without_outputs(st, "", Status::Skipped, "not reached".into(), None)
+            })
+        })
+        .collect();
+    if !opts.dry_run {
+        if new_index != old_index {
+            cache.save_index(&plan.name, &new_index);
+        }
+        cache.save_hints();
+    }
+    RunReport {
+        pipeline: plan.name.clone(),
+        fure_version: FURE_VERSION.to_string(),
+        seconds: t0.elapsed().as_secs_f64(),
+        stages,
+    }
+}
+
+fn report_without_outputs(
+    st: &PlannedStage,
+    key: &str,
+    status: Status,
+    reason: String,
+    error: Option<String>,
+) -> StageReport {
+    StageReport {
+        name: st.name.clone(),
+        kind: st.kind.clone(),
+        key: key.to_string(),
+        status,
+        reason,
+        seconds: 0.0,
+        peak_rss_bytes: 0,
+        outputs: BTreeMap::new(),
+        error,
+    }
+}
+
+/// The cached-stage reason: early cutoff when an upstream stage ran.
+fn cutoff_reason(plan: &Plan, i: usize, reports: &[Option<StageReport>]) -> String {
+    let ran: Vec<&str> = plan.stages[i]
+        .upstream
+        .iter()
+        .filter(|&&u| {
+            reports[u]
+                .as_ref()
+                .map(|r| r.status == Status::Ran)
+                .unwrap_or(false)
+        })
+        .map(|&u| plan.stages[u].name.as_str())
+        .collect();
+    if ran.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "early cutoff: upstream {} reran with identical outputs",
+            ran.iter()
+                .map(|s| format!("`{s}`"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
+    }
+}
+
+/// Computes a stage's key from its parameters and the hashes of its inputs.
+fn key_stage(plan: &Plan, i: usize, states: &[State], cache: &Cache) -> Result<Keyed, String> {
+    let st = &plan.stages[i];
+    let mut hashes = BTreeMap::new();
+    let mut inputs = BTreeMap::new();
+    for inp in &st.inputs {
+        let hash = match &inp.source {
+            Source::Upstream { stage, port } => match &states[*stage] {
+                State::Done(outs) => outs.get(port).map(|o| o.blake3.clone()).ok_or_else(|| {
+                    format!(
+                        "upstream `{}` has no output `{port}` in its cache entry",
+                        plan.stages[*stage].name
+                    )
+                })?,
+                _ => return Err("internal: upstream not resolved".into()),
+            },
+            Source::Path { path, written } => {
+                let (h, _, is_dir) = cache.hash_source(path).map_err(|e| {
+                    format!(
+                        "input `{}`: cannot read `{written}` ({}): {e}",
+                        inp.port,
+                        path.display()
+                    )
+                })?;
+                let want_dir = inp.spec.kind == PortKind::Dir;
+                if st.kind != command::KIND && is_dir != want_dir {
+                    return Err(format!(
+                        "input `{}`: `{written}` is a {} but the port expects a {}",
+                        inp.port,
+                        if is_dir { "directory" } else { "file" },
+                        if want_dir { "directory" } else { "file" }
+                    ));
+                }
+                h
+            }
+        };
+        inputs.insert(
+            inp.port.clone(),
+            (plan.source_label(&inp.source), hash.clone()),
+        );
+        hashes.insert(inp.port.clone(), hash);
+    }
+    let preimage = Preimage::new(&st.kind, st.version, &st.params, hashes);
+    let key = preimage.key();
+    Ok(Keyed {
+        entry: IndexEntry {
+            key: key.clone(),
+            kind: st.kind.clone(),
+            version: st.version,
+            params: st.params.0.clone(),
+            inputs,
+        },
+        key,
+        preimage,
+    })
+}
+
+/// Why a stage must run, by comparison with what the index remembers.
+pub fn explain(old: Option<&IndexEntry>, new: &IndexEntry) -> String {
+    let Some(old) = old else {
+        return "new stage".to_string();
+    };
+    let mut why = explain_params(old, &new.kind, new.version, &new.params);
+    for (port, (src, hash)) in &new.inputs {
+        match old.inputs.get(port) {
+            None => why.push(format!("input {port} connected to {src}")),
+            Some((osrc, _)) if osrc != src => {
+                why.push(format!("input {port} now from {src} (was {osrc})"))
+            }
+            Some((_, ohash)) if ohash != hash => why.push(format!("input {port} changed ({src})")),
+            _ => {}
+        }
+    }
+    for port in old.inputs.keys() {
+        if !new.inputs.contains_key(port) {
+            why.push(format!("input {port} disconnected"));
+        }
+    }
+    if why.is_empty() {
+        if old.key == new.key {
+            "no cache entry (removed by gc or verify)".to_string()
+        } else {
+            "key changed (cache schema or engine change)".to_string()
+        }
+    } else {
+        why.join("; ")
+    }
+}
+
+/// Differences of kind, version and parameters.
+fn explain_params(
+    old: &IndexEntry,
+    kind: &str,
+    version: u32,
+    params: &BTreeMap<String, fure_stage_api::Value>,
+) -> Vec<String> {
+    let mut why = Vec::new();
+    if old.kind != kind {
+        why.push(format!("kind changed from `{}` to `{kind}`", old.kind));
+    } else if old.version != version {
+        why.push(format!(
+            "implementation version changed from {} to {version}",
+            old.version
+        ));
+    }
+    for (k, v) in params {
+        match old.params.get(k) {
+            None => why.push(format!("parameter {k} set to {}", crate::plan::show(v))),
+            Some(o) if o != v => why.push(format!(
+                "parameter {k} changed from {} to {}",
+                crate::plan::show(o),
+                crate::plan::show(v)
+            )),
+            _ => {}
+        }
+    }
+    for (k, o) in &old.params {
+        if !params.contains_key(k) {
+            why.push(format!(
+                "parameter {k} unset (was {})",
+                crate::plan::show(o)
+            ));
+        }
+    }
+    why
+}
+
+/// Where a running stage finds an input.
+enum InputPath {
+    Object(OutputRecord),
+    Path(PathBuf),
+}
+
+fn stage_inputs(plan: &Plan, i: usize, states: &[State]) -> Vec<(String, InputPath)> {
+    plan.stages[i]
+        .inputs
+        .iter()
+        .map(|inp| {
+            let p = match &inp.source {
+                Source::Upstream { stage, port } => match &states[*stage] {
+                    State::Done(outs) => InputPath::Object(outs[port].clone()),
+                    _ => InputPath::Path(PathBuf::new()),
+                },
+                Source::Path { path, .. } => InputPath::Path(path.clone()),
+            };
+            (inp.port.clone(), p)
+        })
+        .collect()
+}
+
+fn link_or_copy(src: &Path, dst: &Path) -> std::io::Result<()> {
+    if let Some(p) = dst.parent() {
+        fs::create_dir_all(p)?;
+    }
+    match fs::hard_link(src, dst) {
+        Ok(()) => Ok(()),
+        Err(_) => fs::copy(src, dst).map(|_| ()),
+    }
+}
+
+/// Links an output's objects under `dest` (`dest` is the file or directory itself).
+fn link_output(cache: &Cache, o: &OutputRecord, dest: &Path) -> std::io::Result<()> {
+    if o.dir {
+        fs::create_dir_all(dest)?;
+        for f in &o.files {
+            link_or_copy(&cache.object_path(&f.blake3), &dest.join(&f.path))?;
+        }
+        Ok(())
+    } else {
+        link_or_copy(&cache.object_path(&o.blake3), dest)
+    }
+}
+
+fn peak_rss() -> u64 {
+    fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|x| x.parse::<u64>().ok())
+            })
+        })
+        .map(|kb| kb * 1024)
+        .unwrap_or(0)
+}
+
+/// Computes one stage (worker thread). Ok((manifest, computed_here)).
+#[allow(clippy::too_many_arguments)]
+fn execute(
+    cache: &Cache,
+    pipeline: &str,
+    st: &PlannedStage,
+    key: &str,
+    preimage: Preimage,
+    inputs: Vec<(String, InputPath)>,
+    threads: usize,
+    progress: &StageProgress,
+    ui: &Ui,
+    inproc: &AtomicUsize,
+) -> Result<(Manifest, bool), String> {
+    let _lock = cache
+        .lock_key(key, &|holder| {
+            ui.line(&format!(
+                "wait    {}  (another fure process is computing it: {holder})",
+                st.name
+            ))
+        })
+        .map_err(|e| e.to_string())?;
+    // Another process may have finished it while we waited.
+    if let Some(m) = cache.lookup(key) {
+        if cache.check_entry(&m).is_ok() {
+            return Ok((m, false));
+        }
+    }
+    let staging = cache.staging(key).map_err(|e| e.to_string())?;
+    let in_dir = staging.path.join("in");
+    let out_dir = staging.path.join("out");
+    fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+    let mut ctx_inputs = BTreeMap::new();
+    for (port, p) in inputs {
+        let path = match p {
+            InputPath::Path(p) => p,
+            InputPath::Object(o) => {
+                let dest = in_dir.join(&port).join(&o.file_name);
+                link_output(cache, &o, &dest)
+                    .map_err(|e| format!("preparing input `{port}`: {e}"))?;
+                dest
+            }
+        };
+        ctx_inputs.insert(port, path);
+    }
+    let mut ctx_outputs = BTreeMap::new();
+    for spec in &st.outputs {
+        let p = out_dir.join(spec.file_name());
+        if spec.kind == PortKind::Dir {
+            fs::create_dir_all(&p).map_err(|e| format!("{}: {e}", p.display()))?;
+        }
+        ctx_outputs.insert(spec.name.clone(), p);
+    }
+    let ctx = StageContext {
+        name: &st.name,
+        params: &st.params,
+        inputs: ctx_inputs,
+        outputs: ctx_outputs,
+        progress,
+    };
+    let t = Instant::now();
+    let (result, peak) = if st.kind == command::KIND {
+        match command::run_command(&ctx) {
+            Ok(peak) => (Ok(()), peak),
+            Err(e) => (Err(e.to_string()), 0),
+        }
+    } else {
+        if inproc.fetch_add(1, Ordering::SeqCst) == 0 {
+            let _ = fs::write("/proc/self/clear_refs", "5");
+        }
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .thread_name(|i| format!("fure-stage-pool-{i}"))
+            .build()
+            .map_err(|e| format!("cannot build a thread pool: {e}"))?;
+        let r = pool.install(|| std::panic::catch_unwind(AssertUnwindSafe(|| st.stage.run(&ctx))));
+        inproc.fetch_sub(1, Ordering::SeqCst);
+        let r = match r {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(payload) => Err(format!("panicked: {}", panic_message(&payload))),
+        };
+        (r, peak_rss())
+    };
+    let seconds = t.elapsed().as_secs_f64();
+    result?;
+    let mut outputs = BTreeMap::new();
+    for spec in &st.outputs {
+        let p = &ctx.outputs[&spec.name];
+        let md = fs::metadata(p).map_err(|_| {
+            format!(
+                "did not write its output `{}` ({})",
+                spec.name,
+                spec.file_name()
+            )
+        })?;
+        let dir = spec.kind == PortKind::Dir;
+        if md.is_dir() != dir {
+            return Err(format!(
+                "output `{}` should be a {} but is a {}",
+                spec.name,
+                if dir { "directory" } else { "file" },
+                if md.is_dir() { "directory" } else { "file" }
+            ));
+        }
+        let rec = cache
+            .store_output(p, &spec.file_name(), dir)
+            .map_err(|e| e.to_string())?;
+        outputs.insert(spec.name.clone(), rec);
+    }
+    let m = Manifest {
+        schema: cache::CACHE_SCHEMA,
+        key: key.to_string(),
+        kind: st.kind.clone(),
+        pipeline: pipeline.to_string(),
+        stage: st.name.clone(),
+        preimage,
+        outputs,
+        seconds,
+        peak_rss_bytes: peak,
+        fure_version: FURE_VERSION.to_string(),
+        created_unix: cache::created_now(),
+    };
+    cache.write_manifest(&m).map_err(|e| e.to_string())?;
+    Ok((m, true))
+}
+
+/// The message of a panic payload.
+pub fn panic_message(payload: &Box<dyn std::any::Any + Send>) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        s.to_string()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "(no message)".to_string()
+    }
+}
+
+fn output_reports(
+    cache: &Cache,
+    m: &Manifest,
+    dir: Option<&Path>,
+) -> BTreeMap<String, OutputReport> {
+    m.outputs
+        .iter()
+        .map(|(port, o)| {
+            let path = match dir {
+                Some(d) => d.join(&o.file_name),
+                None if o.dir => PathBuf::new(),
+                None => cache.object_path(&o.blake3),
+            };
+            (
+                port.clone(),
+                OutputReport {
+                    path: path.display().to_string(),
+                    blake3: o.blake3.clone(),
+                    bytes: o.bytes,
+                },
+            )
+        })
+        .collect()
+}
+
+fn materialise_or_warn(
+    cache: &Cache,
+    opts: &RunOptions,
+    plan: &Plan,
+    st: &PlannedStage,
+    m: &Manifest,
+    ui: &Ui,
+) -> BTreeMap<String, OutputReport> {
+    let Some(root) = &opts.out_root else {
+        return output_reports(cache, m, None);
+    };
+    let dir = root.join(&plan.name).join(&st.name);
+    if let Err(e) = materialise(cache, m, &dir) {
+        ui.line(&format!(
+            "warning: {}: cannot materialise outputs in {}: {e}",
+            st.name,
+            dir.display()
+        ));
+    }
+    output_reports(cache, m, Some(&dir))
+}
+
+/// Makes `dir` hold exactly the entry's outputs, as hard links to objects.
+pub fn materialise(cache: &Cache, m: &Manifest, dir: &Path) -> std::io::Result<()> {
+    let mut changed = false;
+    fs::create_dir_all(dir)?;
+    for o in m.outputs.values() {
+        for (hash, _, rel) in o.objects() {
+            let obj = cache.object_path(hash);
+            let target = dir.join(&rel);
+            let same = match (fs::symlink_metadata(&target), fs::metadata(&obj)) {
+                (Ok(t), Ok(ob)) => t.is_file() && t.ino() == ob.ino() && t.dev() == ob.dev(),
+                _ => false,
+            };
+            if same {
+                continue;
+            }
+            changed = true;
+            if let Ok(md) = fs::symlink_metadata(&target) {
+                if md.is_dir() {
+                    cache::remove_tree(&target)?;
+                }
+            }
+            if let Some(p) = target.parent() {
+                if p.is_file() {
+                    fs::remove_file(p)?;
+                }
+                fs::create_dir_all(p)?;
+            }
+            let tmp = target.with_file_name(format!(
+                ".fure-tmp-{}-{}",
+                std::process::id(),
+                target
+                    .file_name()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            ));
+            let _ = fs::remove_file(&tmp);
+            link_or_copy(&obj, &tmp)?;
+            fs::rename(&tmp, &target)?;
+        }
+    }
+    if changed {
+        // Remove what is not an output any more.
+        let keep: std::collections::BTreeSet<String> =
+            m.outputs.values().map(|o| o.file_name.clone()).collect();
+        for e in fs::read_dir(dir)?.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if !keep.contains(&name) {
+                let p = e.path();
+                if p.is_dir() {
+                    cache::remove_tree(&p)?;
+                } else {
+                    fs::remove_file(&p)?;
+                }
+            }
+        }
+        for o in m.outputs.values().filter(|o| o.dir) {
+            let wanted: std::collections::BTreeSet<&str> =
+                o.files.iter().map(|f| f.path.as_str()).collect();
+            for (rel, p) in crate::key::list_dir(&dir.join(&o.file_name))? {
+                if !wanted.contains(rel.as_str()) {
+                    fs::remove_file(p)?;
+                }
+            }
+        }
+    }
+    Ok(())
+}
