@@ -43,6 +43,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     #[allow(unused_mut)]
     let mut stages: Vec<Box<dyn Stage>> = Vec::new();
     // Each stage module adds its stages here, one line each.
+    stages.push(Box::new(outer_surface::OuterSurfaceStage));
     stages.push(Box::new(learn::CodecStrands));
     stages.push(Box::new(learn::DenseStrands));
     stages.push(Box::new(synthetic::SyntheticScene));
