@@ -43,7 +43,13 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     #[allow(unused_mut)]
     let mut stages: Vec<Box<dyn Stage>> = Vec::new();
     // Each stage module adds its stages here, one line each.
+    stages.push(Box::new(evaluate::Evaluate));
+    stages.push(Box::new(basis::StrandBasisStage));
     stages.push(Box::new(outer_surface::OuterSurfaceStage));
+    stages.push(Box::new(demo::DemoNumbers));
+    stages.push(Box::new(demo::DemoSum));
+    stages.push(Box::new(demo::DemoConcat));
+    stages.push(Box::new(demo::DemoSleep));
     stages.push(Box::new(learn::CodecStrands));
     stages.push(Box::new(learn::DenseStrands));
     stages.push(Box::new(synthetic::SyntheticScene));
