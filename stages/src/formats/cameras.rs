@@ -928,6 +928,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::useless_format)]
     fn malformed_files_name_the_field() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("transforms.json");

@@ -108,7 +108,7 @@ macro_rules! probe_ok {
     };
 }
 
-impl<'a> serde::Serializer for &'a mut FiniteProbe {
+impl serde::Serializer for &mut FiniteProbe {
     type Ok = ();
     type Error = ProbeError;
     type SerializeSeq = Self;
@@ -204,7 +204,7 @@ impl<'a> serde::Serializer for &'a mut FiniteProbe {
 
 macro_rules! probe_compound {
     ($trait:ident, $method:ident $(, $key:ident)?) => {
-        impl<'a> serde::ser::$trait for &'a mut FiniteProbe {
+        impl serde::ser::$trait for &mut FiniteProbe {
             type Ok = ();
             type Error = ProbeError;
             fn $method<T: ?Sized + Serialize>(&mut self, $($key: &'static str,)? value: &T) -> Result<(), ProbeError> {
@@ -224,7 +224,7 @@ probe_compound!(SerializeTupleVariant, serialize_field);
 probe_compound!(SerializeStruct, serialize_field, key);
 probe_compound!(SerializeStructVariant, serialize_field, key);
 
-impl<'a> serde::ser::SerializeMap for &'a mut FiniteProbe {
+impl serde::ser::SerializeMap for &mut FiniteProbe {
     type Ok = ();
     type Error = ProbeError;
     fn serialize_key<T: ?Sized + Serialize>(&mut self, key: &T) -> Result<(), ProbeError> {

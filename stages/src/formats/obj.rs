@@ -260,7 +260,7 @@ fn parse(path: &Path, text: &str) -> Result<Mesh, FormatError> {
             }
         }
         for &(first, count, p, line) in &label_runs {
-            if first.checked_add(count).map_or(true, |e| e > nv) || p >= part_names.len().max(1) {
+            if first.checked_add(count).is_none_or(|e| e > nv) || p >= part_names.len().max(1) {
                 return Err(FormatError::at(
                     path,
                     Position::Line(line),

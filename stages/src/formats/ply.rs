@@ -583,7 +583,7 @@ fn assemble(path: &Path, ply: &Ply, fixed: Option<usize>) -> Result<Strands, For
 
     // Strands as vertex index sequences, root first.
     let chains: Vec<Vec<usize>> = if let Some(k) = fixed {
-        if n % k != 0 {
+        if !n.is_multiple_of(k) {
             return Err(FormatError::invalid(
                 path,
                 format!("{n} vertices do not split into strands of {k} points"),
