@@ -492,7 +492,7 @@ fn read_frame(
         (Some(w), Some(h)) => (w, h),
         (w, h) => {
             let img = dir.join(&file_path);
-            let (iw, ih) = image_size_any(&img).map_err(|e| {
+            let (iw, ih) = super::images::image_size(&img).map_err(|e| {
                 FormatError::at(
                     path,
                     field(&join_field(prefix, "w")),
@@ -564,69 +564,6 @@ fn normalise_file_path(dir: &Path, raw: &str) -> String {
         return p;
     }
     format!("{p}.png")
-}
-
-/// Image size from the header: PNG and EXR through [`super::images::image_size`], JPEG here.
-fn image_size_any(path: &Path) -> Result<(u32, u32), FormatError> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
-    if ext == "jpg" || ext == "jpeg" {
-        jpeg_size(path)
-    } else {
-        super::images::image_size(path)
-    }
-}
-
-/// Width and height from a JPEG's SOF marker.
-fn jpeg_size(path: &Path) -> Result<(u32, u32), FormatError> {
-    let bytes = read_bytes(path)?;
-    if bytes.len() < 2 || bytes[0] != 0xFF || bytes[1] != 0xD8 {
-        return Err(FormatError::at(
-            path,
-            Position::Byte(0),
-            "expected the JPEG SOI marker FF D8",
-        ));
-    }
-    let mut i = 2usize;
-    loop {
-        // Skip fill bytes, then read a marker.
-        while i < bytes.len() && bytes[i] == 0xFF && bytes.get(i + 1) == Some(&0xFF) {
-            i += 1;
-        }
-        if i + 4 > bytes.len() || bytes[i] != 0xFF {
-            return Err(FormatError::at(
-                path,
-                Position::Byte(i as u64),
-                "expected a JPEG marker segment before the frame header (truncated file?)",
-            ));
-        }
-        let marker = bytes[i + 1];
-        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
-        let is_sof = (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker);
-        if is_sof {
-            if i + 9 > bytes.len() {
-                return Err(FormatError::at(
-                    path,
-                    Position::Byte(i as u64),
-                    "truncated JPEG frame header",
-                ));
-            }
-            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]) as u32;
-            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]) as u32;
-            return Ok((w, h));
-        }
-        if len < 2 {
-            return Err(FormatError::at(
-                path,
-                Position::Byte(i as u64 + 2),
-                "invalid JPEG segment length",
-            ));
-        }
-        i += 2 + len;
-    }
 }
 
 #[derive(Serialize)]
@@ -1016,12 +953,5 @@ mod tests {
             normalise_file_path(dir.path(), "im/frame.0001.jpeg"),
             "im/frame.0001.jpeg"
         );
-        // A JPEG header is enough for the size.
-        let mut jpg = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x04, 0, 0];
-        jpg.extend_from_slice(&[0xFF, 0xC0, 0x00, 0x11, 8, 0x01, 0xE0, 0x02, 0x80, 3]);
-        std::fs::write(dir.path().join("im/z.jpg"), &jpg).unwrap();
-        assert_eq!(jpeg_size(&dir.path().join("im/z.jpg")).unwrap(), (640, 480));
-        std::fs::write(dir.path().join("im/z.jpg"), &jpg[..6]).unwrap();
-        assert!(jpeg_size(&dir.path().join("im/z.jpg")).is_err());
     }
 }

@@ -1,4 +1,6 @@
-//! Images: PNG (8 and 16 bit, gray / gray+alpha / RGB / RGBA, palettes expanded) and OpenEXR.
+//! Images: PNG (8 and 16 bit, gray / gray+alpha / RGB / RGBA, palettes expanded), OpenEXR, and
+//! JPEG for reading only (real captures converted from COLMAP usually come as JPEG; we never write
+//! lossy files).
 //!
 //! In memory every image is an [`ImageF32`]: row-major, top row first, interleaved channels.
 //!
@@ -30,15 +32,16 @@ use crate::image::ImageF32;
 
 const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
 
-/// Reads an image by file extension (`.png` or `.exr`, case-insensitive).
+/// Reads an image by file extension (`.png`, `.jpg`/`.jpeg` or `.exr`, case-insensitive).
 pub fn read_image(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
     let path = path.as_ref();
     match extension(path).as_str() {
         "png" => read_png(path),
+        "jpg" | "jpeg" => read_jpeg(path),
         "exr" => read_exr(path),
         other => Err(FormatError::invalid(
             path,
-            format!("unsupported image extension `{other}`: expected .png or .exr"),
+            format!("unsupported image extension `{other}`: expected .png, .jpg, .jpeg or .exr"),
         )),
     }
 }
@@ -56,7 +59,8 @@ pub fn write_image(path: impl AsRef<Path>, image: &ImageF32) -> Result<(), Forma
     }
 }
 
-/// Width and height from the image header only (PNG: the IHDR chunk; EXR: the header).
+/// Width and height from the image header only (PNG: the IHDR chunk; JPEG: the frame header;
+/// EXR: the header).
 pub fn image_size(path: impl AsRef<Path>) -> Result<(u32, u32), FormatError> {
     let path = path.as_ref();
     match extension(path).as_str() {
@@ -66,6 +70,7 @@ pub fn image_size(path: impl AsRef<Path>) -> Result<(u32, u32), FormatError> {
             let n = read_up_to(&mut f, &mut head).map_err(|e| FormatError::io(path, e))?;
             png_header(path, &head[..n])
         }
+        "jpg" | "jpeg" => jpeg_size(path),
         "exr" => {
             let meta =
                 ex::MetaData::read_from_file(path, false).map_err(|e| exr_error(path, e, None))?;
@@ -80,6 +85,55 @@ pub fn image_size(path: impl AsRef<Path>) -> Result<(u32, u32), FormatError> {
             path,
             format!("unsupported image extension `{other}`: expected .png or .exr"),
         )),
+    }
+}
+
+/// Width and height from a JPEG's SOF marker.
+fn jpeg_size(path: &Path) -> Result<(u32, u32), FormatError> {
+    let bytes = read_bytes(path)?;
+    if bytes.len() < 2 || bytes[0] != 0xFF || bytes[1] != 0xD8 {
+        return Err(FormatError::at(
+            path,
+            Position::Byte(0),
+            "expected the JPEG SOI marker FF D8",
+        ));
+    }
+    let mut i = 2usize;
+    loop {
+        // Skip fill bytes, then read a marker.
+        while i < bytes.len() && bytes[i] == 0xFF && bytes.get(i + 1) == Some(&0xFF) {
+            i += 1;
+        }
+        if i + 4 > bytes.len() || bytes[i] != 0xFF {
+            return Err(FormatError::at(
+                path,
+                Position::Byte(i as u64),
+                "expected a JPEG marker segment before the frame header (truncated file?)",
+            ));
+        }
+        let marker = bytes[i + 1];
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        let is_sof = (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker);
+        if is_sof {
+            if i + 9 > bytes.len() {
+                return Err(FormatError::at(
+                    path,
+                    Position::Byte(i as u64),
+                    "truncated JPEG frame header",
+                ));
+            }
+            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]) as u32;
+            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]) as u32;
+            return Ok((w, h));
+        }
+        if len < 2 {
+            return Err(FormatError::at(
+                path,
+                Position::Byte(i as u64 + 2),
+                "invalid JPEG segment length",
+            ));
+        }
+        i += 2 + len;
     }
 }
 
@@ -171,6 +225,43 @@ pub fn read_png(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
     Ok(ImageF32 {
         width: w,
         height: h,
+        channels,
+        data,
+    })
+}
+
+/// Reads a JPEG (real captures) into [0, 1] floats: 1 channel for gray, 3 for colour (CMYK is
+/// converted to RGB by the decoder). Read-only: we never write lossy images.
+pub fn read_jpeg(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
+    let path = path.as_ref();
+    let bytes = read_bytes(path)?;
+    if bytes.len() < 2 || bytes[..2] != [0xFF, 0xD8] {
+        return Err(FormatError::at(
+            path,
+            Position::Byte(0),
+            "expected the JPEG start-of-image marker FF D8: not a JPEG file",
+        ));
+    }
+    let mut reader = TrackingReader::new(&bytes);
+    let result = image::codecs::jpeg::JpegDecoder::new(&mut reader).and_then(|mut d| {
+        d.set_limits(image::Limits::no_limits())?;
+        DynamicImage::from_decoder(d)
+    });
+    let img = result.map_err(|e| {
+        FormatError::at(
+            path,
+            Position::Byte(reader.furthest()),
+            format!("JPEG decoding failed near here: {e}"),
+        )
+    })?;
+    let (width, height) = (img.width(), img.height());
+    let (channels, data) = match img {
+        DynamicImage::ImageLuma8(b) => (1, scale8(b.as_raw())),
+        other => (3, scale8(other.to_rgb8().as_raw())),
+    };
+    Ok(ImageF32 {
+        width,
+        height,
         channels,
         data,
     })
@@ -483,6 +574,60 @@ mod tests {
         std::fs::write(&p, b"not an exr").unwrap();
         let e = read_exr(&p).unwrap_err();
         assert!(e.position().is_some(), "{e}");
+    }
+
+    #[test]
+    fn jpeg_header_size() {
+        let dir = tempfile::tempdir().unwrap();
+        // A JPEG header is enough for the size.
+        let mut jpg = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x04, 0, 0];
+        jpg.extend_from_slice(&[0xFF, 0xC0, 0x00, 0x11, 8, 0x01, 0xE0, 0x02, 0x80, 3]);
+        std::fs::write(dir.path().join("z.jpg"), &jpg).unwrap();
+        assert_eq!(jpeg_size(&dir.path().join("z.jpg")).unwrap(), (640, 480));
+        std::fs::write(dir.path().join("z.jpg"), &jpg[..6]).unwrap();
+        assert!(jpeg_size(&dir.path().join("z.jpg")).is_err());
+    }
+
+    #[test]
+    fn jpeg_reads_real_encoder_output() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("photo.JPG");
+        let (w, h) = (40u32, 24u32);
+        let raw: Vec<u8> = (0..w * h)
+            .flat_map(|i| {
+                let (x, y) = (i % w, i / w);
+                [(x * 6) as u8, (y * 10) as u8, 128]
+            })
+            .collect();
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95)
+            .encode(&raw, w, h, image::ExtendedColorType::Rgb8)
+            .unwrap();
+        std::fs::write(&p, &out).unwrap();
+        assert_eq!(image_size(&p).unwrap(), (w, h));
+        let img = read_image(&p).unwrap();
+        assert_eq!((img.width, img.height, img.channels), (w, h, 3));
+        // Lossy, but close: mean absolute error well under 2 levels.
+        let err: f32 = img
+            .data
+            .iter()
+            .zip(&raw)
+            .map(|(a, &b)| (a - b as f32 / 255.0).abs())
+            .sum::<f32>()
+            / raw.len() as f32;
+        assert!(err < 2.0 / 255.0, "{err}");
+        std::fs::write(&p, &out[..out.len() / 2]).unwrap();
+        let e = read_jpeg(&p);
+        // zune-jpeg pads truncated scans; either an error naming the file or a full-size image.
+        match e {
+            Err(e) => assert!(e.to_string().contains("photo.JPG"), "{e}"),
+            Ok(img) => assert_eq!((img.width, img.height), (w, h)),
+        }
+        std::fs::write(&p, b"\x89PNG").unwrap();
+        assert_eq!(
+            read_jpeg(&p).unwrap_err().position(),
+            Some(&Position::Byte(0))
+        );
     }
 
     #[test]
