@@ -630,6 +630,102 @@ mod tests {
         );
     }
 
+    /// A PNG assembled by hand (stored deflate blocks), for layouts our encoder never writes.
+    fn handmade_png(
+        w: u32,
+        h: u32,
+        depth: u8,
+        color: u8,
+        rows: &[u8],
+        plte: Option<&[u8]>,
+    ) -> Vec<u8> {
+        fn crc32(bytes: &[u8]) -> u32 {
+            let mut c = 0xFFFF_FFFFu32;
+            for &b in bytes {
+                c ^= b as u32;
+                for _ in 0..8 {
+                    c = if c & 1 != 0 {
+                        0xEDB8_8320 ^ (c >> 1)
+                    } else {
+                        c >> 1
+                    };
+                }
+            }
+            !c
+        }
+        fn chunk(out: &mut Vec<u8>, kind: &[u8], data: &[u8]) {
+            out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+            let mut body = kind.to_vec();
+            body.extend_from_slice(data);
+            out.extend_from_slice(&body);
+            out.extend_from_slice(&crc32(&body).to_be_bytes());
+        }
+        let mut z = vec![0x78, 0x01, 0x01];
+        z.extend_from_slice(&(rows.len() as u16).to_le_bytes());
+        z.extend_from_slice(&(!(rows.len() as u16)).to_le_bytes());
+        z.extend_from_slice(rows);
+        let (mut a, mut b) = (1u32, 0u32);
+        for &x in rows {
+            a = (a + x as u32) % 65521;
+            b = (b + a) % 65521;
+        }
+        z.extend_from_slice(&((b << 16) | a).to_be_bytes());
+        let mut out = PNG_SIGNATURE.to_vec();
+        let mut ihdr = Vec::new();
+        ihdr.extend_from_slice(&w.to_be_bytes());
+        ihdr.extend_from_slice(&h.to_be_bytes());
+        ihdr.extend_from_slice(&[depth, color, 0, 0, 0]);
+        chunk(&mut out, b"IHDR", &ihdr);
+        if let Some(p) = plte {
+            chunk(&mut out, b"PLTE", p);
+        }
+        chunk(&mut out, b"IDAT", &z);
+        chunk(&mut out, b"IEND", &[]);
+        out
+    }
+
+    #[test]
+    fn one_bit_masks_and_palettes_expand() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.png");
+        // 1-bit gray, 10 x 2: rows 1011001110 and all ones (filter byte 0 first).
+        let rows = [0, 0b1011_0011, 0b1000_0000, 0, 0xFF, 0xC0];
+        std::fs::write(&p, handmade_png(10, 2, 1, 0, &rows, None)).unwrap();
+        let m = read_png(&p).unwrap();
+        assert_eq!((m.width, m.height, m.channels), (10, 2, 1));
+        let expect = [1., 0., 1., 1., 0., 0., 1., 1., 1., 0.];
+        assert_eq!(&m.data[..10], &expect);
+        assert!(m.data[10..].iter().all(|&v| v == 1.0));
+        // 8-bit palette, 3 x 1, indices 2 0 1.
+        let plte = [255, 0, 0, 0, 255, 0, 0, 0, 255];
+        std::fs::write(&p, handmade_png(3, 1, 8, 3, &[0, 2, 0, 1], Some(&plte))).unwrap();
+        let c = read_png(&p).unwrap();
+        assert_eq!(c.channels, 3);
+        assert_eq!(c.data, vec![0., 0., 1., 1., 0., 0., 0., 1., 0.]);
+    }
+
+    #[test]
+    fn exr_half_float_channels_read_as_f32() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("h.exr");
+        let vals: Vec<ex::f16> = (0..6)
+            .map(|i| ex::f16::from_f32(i as f32 * 0.25 - 0.5))
+            .collect();
+        let layer = ex::Layer::new(
+            (3, 2),
+            ex::LayerAttributes::default(),
+            ex::Encoding::default(),
+            ex::AnyChannels::sort(ex::SmallVec::from_vec(vec![ex::AnyChannel::new(
+                "Z",
+                ex::FlatSamples::F16(vals),
+            )])),
+        );
+        ex::Image::from_layer(layer).write().to_file(&p).unwrap();
+        let img = read_exr(&p).unwrap();
+        assert_eq!((img.width, img.height, img.channels), (3, 2, 1));
+        assert_eq!(img.data, vec![-0.5, -0.25, 0.0, 0.25, 0.5, 0.75]);
+    }
+
     #[test]
     fn bad_shapes_refused() {
         let dir = tempfile::tempdir().unwrap();

@@ -278,6 +278,29 @@ mod tests {
     }
 
     #[test]
+    fn f32_values_round_trip_bit_exactly() {
+        // serde_json parses through f64; check that the shortest f32 text survives that for a
+        // spread of bit patterns (all exponents, random mantissas).
+        let mut x = 0x9E37_79B9u32;
+        let mut values = Vec::new();
+        while values.len() < 100_000 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            let v = f32::from_bits(x);
+            if v.is_finite() {
+                values.push(v);
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("f.json");
+        write_json(&p, &values).unwrap();
+        let back: Vec<f32> = read_json(&p).unwrap();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&back), bits(&values));
+    }
+
+    #[test]
     fn non_finite_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("bad.json");
