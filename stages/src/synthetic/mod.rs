@@ -13,14 +13,15 @@
 //!    shading, written for this stage only (it shares no code with `crate::render`).
 //!
 //! What the stage chooses and why (written to `report.json` and the run log):
-//! - Framing: cameras on a sphere around the centre of the animal's bounding box, at the
-//!   distance where the bounding sphere (box half-diagonal plus the longest fur) fills a 40
+//! - Framing: cameras on a sphere around the centre of the skin's bounding box, at the distance
+//!   where the skin's bounding sphere about that centre, grown by the longest fur, fills a 40
 //!   degree field of view. Training views lie on a Fibonacci spiral over elevations -30..70
 //!   degrees; held-out views on rings at -12, 8, 28 and 52 degrees, azimuths offset from the
 //!   spiral. Square images, `fl_x = fl_y`, principal point at the centre.
 //! - Pixel footprint `p` = width of a pixel at the camera distance (scene units). Everything
 //!   that sets the cost of the scene follows from it ("model no more than the scene needs"):
-//!   the skin mesh grid spacing is `p` (at most 0.03 units); the base root density is
+//!   the skin mesh grid spacing is `p` of a provisional framing (from the primitives' boxes,
+//!   slightly looser; at most 0.03 units); the base root density is
 //!   `strands_per_px2 / p_cm^2` (default 1.5 strands per pixel of skin, times each part's
 //!   relative `density`), which gives a few thousand strands at the quick size and tens of
 //!   thousands at 256 px; segments are about `seg_px` pixels long (default 1, at least 2 per
@@ -95,6 +96,8 @@ pub struct Generated {
     pub cameras: CameraSet,
     pub scene: Scene,
     pub pixel_units: f32,
+    /// Skin grid spacing (scene units).
+    pub cell: f32,
     pub supersample: u32,
 }
 
@@ -206,25 +209,37 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
     presets::apply_overrides(&mut preset, &st.parts)?;
     let s_cm = preset.body_length_cm / 2.0;
     let body = Body::from_preset(&preset, s_cm);
-    let (lo, hi) = body_bounds(&body);
     let max_len = preset
         .parts
         .iter()
         .map(|(_, f)| f.length_cm * (1.0 + f.length_jitter))
         .fold(0.0, f32::max)
         / s_cm;
-    let centre = (lo + hi) * 0.5;
-    let radius = (hi - lo).length() * 0.5 + max_len;
     let half = HALF_FOV_DEG.to_radians();
-    let dist = radius / half.sin();
     let res = st.resolution;
-    let pixel_units = 2.0 * dist * half.tan() / res as f32;
-    let cell = pixel_units.min(0.03);
+    // Provisional framing from the primitives' bounds sets the skin grid; the final framing
+    // is the bounding sphere of the skin (about its box centre) plus the longest fur.
+    let (lo, hi) = body_bounds(&body);
+    let r0 = (hi - lo).length() * 0.5 + max_len;
+    let cell = (2.0 * r0 / half.sin() * half.tan() / res as f32).min(0.03);
     let mesh = body.mesh(cell);
     ensure_finite(
         "skin mesh",
         mesh.positions.iter().flat_map(|p| p.to_array()),
     )?;
+    if mesh.triangles.is_empty() {
+        return Err(StageError::failed("the skin mesh came out empty"));
+    }
+    let (mlo, mhi) = mesh.bounds();
+    let centre = (mlo + mhi) * 0.5;
+    let radius = mesh
+        .positions
+        .iter()
+        .map(|p| (*p - centre).length())
+        .fold(0.0, f32::max)
+        + max_len;
+    let dist = radius / half.sin();
+    let pixel_units = 2.0 * dist * half.tan() / res as f32;
     let pixel_cm = pixel_units * s_cm;
     let cfg = FurConfig {
         s_cm,
@@ -290,6 +305,7 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
         cameras: CameraSet { train, test },
         scene,
         pixel_units,
+        cell,
         supersample: st.supersample,
     })
 }
@@ -526,7 +542,7 @@ pub fn run_settings(st: &Settings, ctx: &StageContext<'_>) -> Result<(), StageEr
             "skin mesh: {} vertices, {} triangles (grid {:.4} units)",
             g.mesh.positions.len(),
             g.mesh.triangles.len(),
-            g.pixel_units.min(0.03)
+            g.cell
         ),
         format!(
             "GT strands {n}, segments {segs} ({:.2} per strand), width {:.3} cm",
@@ -553,7 +569,7 @@ pub fn run_settings(st: &Settings, ctx: &StageContext<'_>) -> Result<(), StageEr
         "test_views": written.test.len(),
         "fov_deg": 2.0 * HALF_FOV_DEG,
         "pixel_cm": pixel_cm,
-        "skin": { "vertices": g.mesh.positions.len(), "triangles": g.mesh.triangles.len(), "grid_units": g.pixel_units.min(0.03) },
+        "skin": { "vertices": g.mesh.positions.len(), "triangles": g.mesh.triangles.len(), "grid_units": g.cell },
         "strands": n,
         "segments": segs,
         "segments_per_strand": segs as f64 / n.max(1) as f64,
@@ -564,7 +580,7 @@ pub fn run_settings(st: &Settings, ctx: &StageContext<'_>) -> Result<(), StageEr
             "strands": format!("{} roots per pixel footprint ({:.3} cm)^2 of skin, times each part's relative density", st.strands_per_px2, pixel_cm),
             "segments": format!("segments about {} px ({:.3} cm) long, at least 2 per strand (6 when curly)", st.seg_px, st.seg_px * pixel_cm),
             "width": format!("tubes {} px wide so the fur reads as a coat at {} px", st.width_px, st.resolution),
-            "skin": "surface-nets grid spacing = one pixel footprint (at most 0.03 units)",
+            "skin": "surface-nets grid spacing = one pixel footprint of a provisional, looser framing (at most 0.03 units)",
         },
         "notes": lines,
         "seconds": { "build": t_build, "render": t_render, "total": t0.elapsed().as_secs_f64(), "rays_per_second": rays as f64 / t_render.max(1e-9) },
@@ -764,7 +780,7 @@ mod tests {
     }
 
     #[test]
-    fn every_preset_matches_its_lengths_and_overrides_apply() {
+    fn every_preset_matches_its_part_lengths() {
         for name in PRESETS {
             let mut st = Settings::new(name, "quick");
             st.resolution = 64;
@@ -784,6 +800,10 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn overrides_apply_and_bad_names_error() {
         let mut st = Settings::new("fox", "quick");
         st.resolution = 64;
         let mut torso = BTreeMap::new();

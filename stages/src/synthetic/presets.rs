@@ -753,8 +753,8 @@ pub fn preset(name: &str) -> Result<Preset, StageError> {
             )
         }
         "bison" => {
-            let b = [0.22, 0.13, 0.07];
-            let g = [0.42, 0.28, 0.14];
+            let b = [0.06, 0.035, 0.02];
+            let g = [0.2, 0.11, 0.045];
             (
                 Dims {
                     body_length: 300.0,
