@@ -43,6 +43,8 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     #[allow(unused_mut)]
     let mut stages: Vec<Box<dyn Stage>> = Vec::new();
     // Each stage module adds its stages here, one line each.
+    stages.push(Box::new(parts::PartsStage));
+    stages.push(Box::new(frosting::FrostingStage));
     stages.push(Box::new(evaluate::Evaluate));
     stages.push(Box::new(basis::StrandBasisStage));
     stages.push(Box::new(outer_surface::OuterSurfaceStage));
