@@ -713,9 +713,12 @@ mod tests {
             }
         }
         let t = &scene.parts["torso"];
+        let want = preset.parts[preset.part_index("torso").unwrap()]
+            .1
+            .length_cm;
         assert!(
-            (t.mean_length_cm.unwrap() / 3.9 - 1.0).abs() < 0.03,
-            "{:?}",
+            (t.mean_length_cm.unwrap() / want - 1.0).abs() < 0.03,
+            "{:?} vs {want}",
             t.mean_length_cm
         );
         let strands = formats::hair::read_hair(dir.path().join("strands.hair")).unwrap();
@@ -798,6 +801,22 @@ mod tests {
                         fp.length_cm
                     );
                 }
+            }
+            // Strand-weighted mean length near the paper's table (Artemis, cm).
+            let table = [
+                ("tiger", 3.70f64),
+                ("panda", 5.22),
+                ("fox", 3.80),
+                ("cat", 1.60),
+            ];
+            if let Some((_, want)) = table.iter().find(|(n, _)| n == name) {
+                let s = &g.fur.strands;
+                let mean = (0..s.len()).map(|k| s.length(k) as f64).sum::<f64>() / s.len() as f64
+                    * g.s_cm as f64;
+                assert!(
+                    (mean / want - 1.0).abs() < 0.08,
+                    "{name}: mean strand length {mean:.2} cm vs {want}"
+                );
             }
         }
     }
