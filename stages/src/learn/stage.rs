@@ -895,4 +895,157 @@ mod tests {
             );
         }
     }
+
+    /// Views of the sphere scene rendered from strands whose code is
+    /// `z = (1.2, 0.6, 0)` everywhere (a lean the initial mean does not have).
+    fn write_views(dir: &Path) -> (PathBuf, Vec<Vec3>) {
+        use crate::camera::{Camera, CameraSet};
+        use crate::render;
+        let views = dir.join("views");
+        let r = roots(300);
+        let b = basis();
+        let dec = Decoder::new(&b.mean, &b.components);
+        let mut local = vec![Vec3::ZERO; b.points];
+        dec.decode(&[1.2, 0.6, 0.0], &mut local);
+        let mut pts = Vec::new();
+        let mut starts = vec![0u32];
+        let mut widths = Vec::new();
+        for i in 0..r.len() {
+            if r.length[i] <= 0.0 {
+                continue;
+            }
+            let f = frame(r.tangents[i], r.bitangents[i], r.normals[i]);
+            let mut w = vec![Vec3::ZERO; b.points];
+            crate::learn::placement::place(&local, r.positions[i], f, r.length[i], &mut w);
+            pts.extend(w);
+            starts.push(pts.len() as u32);
+            widths.push(0.03);
+        }
+        let cols = vec![[0.9, 0.6, 0.2]; widths.len()];
+        let mut g = render::strands_to_gaussians(&pts, &starts, &widths, &cols, true).unwrap();
+        let body = super::super::image::body_gaussians(&sphere(1.0, 12, 16), 2000, 0);
+        for i in 0..body.len() {
+            g.push(
+                body.means[i],
+                body.scales[i],
+                body.rotations[i],
+                1.0,
+                Vec3::splat(0.2),
+                false,
+            );
+        }
+        let cam = |k: usize, split: &str| {
+            let a = k as f32 * 1.3 + if split == "test" { 0.5 } else { 0.0 };
+            let eye = Vec3::new(4.0 * a.cos(), 1.0 - 0.5 * k as f32, 4.0 * a.sin());
+            Camera {
+                file_path: format!("{split}/{k:03}.png"),
+                c2w: glam::Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Y).inverse(),
+                fx: 60.0,
+                fy: 60.0,
+                cx: 24.0,
+                cy: 24.0,
+                width: 48,
+                height: 48,
+            }
+        };
+        let set = CameraSet {
+            train: (0..4).map(|k| cam(k, "train")).collect(),
+            test: vec![cam(0, "test")],
+        };
+        formats::cameras::write_views(&views, &set).unwrap();
+        for c in set.train.iter().chain(&set.test) {
+            let (out, _) = render::render(&g, c, &render::RenderSettings::default()).unwrap();
+            let n = (c.width * c.height) as usize;
+            let mut rgba = crate::image::ImageF32::new(c.width, c.height, 4);
+            let mut mask = crate::image::ImageF32::new(c.width, c.height, 1);
+            let mut fur = crate::image::ImageF32::new(c.width, c.height, 1);
+            for p in 0..n {
+                let a = out.alpha.data[p];
+                for k in 0..3 {
+                    rgba.data[4 * p + k] = if a > 1e-6 {
+                        (out.rgb.data[3 * p + k] / a).min(1.0)
+                    } else {
+                        0.0
+                    };
+                }
+                rgba.data[4 * p + 3] = a;
+                mask.data[p] = if a > 0.5 { 1.0 } else { 0.0 };
+                fur.data[p] = if out.fur.data[p] > 0.5 { 1.0 } else { 0.0 };
+            }
+            let stem = c.file_path.trim_end_matches(".png");
+            formats::images::write_png(views.join(&c.file_path), &rgba).unwrap();
+            formats::images::write_png(views.join(format!("{stem}_mask.png")), &mask).unwrap();
+            formats::images::write_png(views.join(format!("{stem}_fur.png")), &fur).unwrap();
+        }
+        let tips = (1..starts.len())
+            .map(|s| pts[starts[s] as usize - 1])
+            .collect();
+        (views, tips)
+    }
+
+    #[test]
+    fn image_losses_drive_the_codec_and_test_views_are_rendered() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let stage = CodecStrands;
+        let mut over = small();
+        over.extend([
+            ("iterations", Value::Int(60)),
+            ("l_chm", Value::Float(0.0)),
+            ("body_gaussians", Value::Int(2000)),
+            ("views_per_iteration", Value::Int(2)),
+        ]);
+        let params = params(&stage, &over);
+        let mut inputs = write_inputs(d.path());
+        inputs.insert("views".into(), views);
+        let out = d.path().join("out");
+        let mut outputs = BTreeMap::new();
+        for port in stage.outputs(&params) {
+            let path = out.join(port.file_name());
+            if port.kind == fure_stage_api::PortKind::Dir {
+                std::fs::create_dir_all(&path).unwrap();
+            }
+            outputs.insert(port.name.clone(), path);
+        }
+        let ctx = StageContext {
+            name: "test",
+            params: &params,
+            inputs,
+            outputs,
+            progress: &NoProgress,
+        };
+        stage.run(&ctx).unwrap();
+        let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
+        assert!(m.final_losses.contains_key("rgb") && m.final_losses.contains_key("sil"));
+        let h = &m.loss_history;
+        let first: f32 = h[..5].iter().sum();
+        let last: f32 = h[h.len() - 5..].iter().sum();
+        assert!(last < 0.8 * first, "image loss {first} -> {last}");
+        assert!(out.join("renders/test/000.png").is_file());
+        // The strands moved toward the unseen GT lean: tip error shrinks.
+        let tip_err = |st: &Strands| -> f32 {
+            (0..st.len())
+                .map(|s| (*st.strand(s).last().unwrap() - gt_tips[s]).length())
+                .sum::<f32>()
+                / st.len() as f32
+        };
+        let fin = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+        let r = roots(300);
+        let b = basis();
+        let mut init_err = 0.0;
+        let mut n = 0;
+        for i in 0..r.len() {
+            if r.length[i] > 0.0 {
+                let f = frame(r.tangents[i], r.bitangents[i], r.normals[i]);
+                let mut w = vec![Vec3::ZERO; b.points];
+                crate::learn::placement::place(&b.mean, r.positions[i], f, r.length[i], &mut w);
+                init_err += (w[b.points - 1] - gt_tips[n]).length();
+                n += 1;
+            }
+        }
+        init_err /= n as f32;
+        let e = tip_err(&fin);
+        assert!(e < 0.6 * init_err, "mean tip error {init_err} -> {e}");
+        assert!(out.join("renders/test/000.exr").is_file());
+    }
 }
