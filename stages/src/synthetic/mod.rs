@@ -73,6 +73,9 @@ use fur::{gauss, mix, FurConfig};
 use presets::{Preset, Shape, PRESETS};
 use trace::Scene;
 
+/// Most GT strands the stage will grow (memory and render time guard).
+pub const MAX_STRANDS: usize = 3_000_000;
+
 /// Half the field of view (degrees).
 const HALF_FOV_DEG: f32 = 20.0;
 
@@ -248,6 +251,31 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
         width: st.width_px * pixel_units,
         seed: st.seed,
     };
+    // Refuse settings that would grow an unaffordable number of strands.
+    let areas = fur::part_areas_cm2(&mesh, s_cm);
+    let mut expected = 0.0f64;
+    let mut biggest = ("", 0.0f64);
+    for ((name, fp), area) in preset.parts.iter().zip(&areas) {
+        if fp.fur {
+            let d = fp
+                .density_per_cm2
+                .unwrap_or(cfg.base_density_per_cm2 * fp.density) as f64;
+            expected += d * area;
+            if d * area > biggest.1 {
+                biggest = (name, d * area);
+            }
+        }
+    }
+    if expected > MAX_STRANDS as f64 {
+        return Err(StageError::param(
+            format!("parts.{}", biggest.0),
+            format!(
+                "these settings would grow about {expected:.0} GT strands (most on `{}`), more than the \
+                 limit of {MAX_STRANDS}; lower the densities, `strands_per_px2` or `resolution`",
+                biggest.0
+            ),
+        ));
+    }
     let fur = fur::grow(&preset, &body, &mesh, &cfg);
     ensure_finite(
         "GT strands",
@@ -842,6 +870,14 @@ mod tests {
             scene_info(&base).parts["torso"].density_per_cm2.unwrap(),
         );
         assert!((d1 / d0 - 2.0).abs() < 0.2, "density {d1} vs {d0}");
+        // Absurd densities are refused before anything is grown.
+        let mut dense = BTreeMap::new();
+        dense.insert("density_per_cm2".to_string(), Value::Float(900.0));
+        let mut st2 = Settings::new("bison", "quick");
+        st2.resolution = 32;
+        st2.parts.insert("torso".to_string(), Value::Table(dense));
+        let e = generate(&st2).err().expect("too many strands").to_string();
+        assert!(e.contains("parts.torso") && e.contains("limit"), "{e}");
         // Unknown part names and keys are rejected by validate, naming what is allowed.
         let mut bad = BTreeMap::new();
         bad.insert("wing".to_string(), Value::Table(BTreeMap::new()));
