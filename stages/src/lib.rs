@@ -56,5 +56,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     stages.push(Box::new(learn::CodecStrands));
     stages.push(Box::new(learn::DenseStrands));
     stages.push(Box::new(synthetic::SyntheticScene));
+    stages.push(Box::new(defur::DefurStage));
+    stages.push(Box::new(defur::baseline::DefurBaselineStage));
     stages
 }
