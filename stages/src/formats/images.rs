@@ -27,7 +27,9 @@ use exr::prelude as ex;
 use exr::prelude::traits::*;
 use image::{DynamicImage, ImageDecoder};
 
-use super::{check_finite, read_bytes, write_bytes, FormatError, Position, TrackingReader};
+use super::{
+    check_finite, extension, read_bytes, write_bytes, FormatError, Position, TrackingReader,
+};
 use crate::image::ImageF32;
 
 const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
@@ -146,13 +148,6 @@ fn read_up_to(r: &mut impl std::io::Read, buf: &mut [u8]) -> std::io::Result<usi
         }
     }
     Ok(n)
-}
-
-fn extension(path: &Path) -> String {
-    path.extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase()
 }
 
 /// Checks the PNG signature and IHDR chunk; returns (width, height).

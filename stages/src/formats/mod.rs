@@ -6,7 +6,7 @@
 //! |-------------|-----------------------------------------|----------------------------|
 //! | [`json`]    | any serde type, pretty JSON             | `T: Serialize/Deserialize` |
 //! | [`cameras`] | a views directory with `transforms*.json` (NeRF / instant-ngp / NeuS2) | [`CameraSet`](crate::camera::CameraSet) |
-//! | [`images`]  | PNG (8/16 bit, gray/GA/RGB/RGBA), OpenEXR (float) | [`ImageF32`](crate::image::ImageF32) |
+//! | [`images`]  | PNG (8/16 bit, gray/GA/RGB/RGBA), OpenEXR (float), JPEG (read only) | [`ImageF32`](crate::image::ImageF32) |
 //! | [`obj`]     | Wavefront OBJ, one group per part       | [`Mesh`](crate::mesh::Mesh) |
 //! | [`hair`]    | Cem Yuksel `.hair`                      | [`Strands`](crate::strands::Strands) |
 //! | [`ply`]     | PLY polylines (vertex + edge elements)  | [`Strands`](crate::strands::Strands) |
@@ -128,6 +128,67 @@ impl FormatError {
     }
 }
 
+impl FormatError {
+    /// The error as a stage input error on `port` (keeps the path; the message keeps the position).
+    pub fn for_input(self, port: &str) -> StageError {
+        match self {
+            FormatError::Io { path, source } => StageError::Io { path, source },
+            FormatError::Malformed {
+                path,
+                position,
+                message,
+            } => StageError::Input {
+                port: port.to_string(),
+                path,
+                message: format!("{position}: {message}"),
+            },
+            FormatError::Invalid { path, message } => StageError::Input {
+                port: port.to_string(),
+                path,
+                message,
+            },
+        }
+    }
+}
+
+/// Reads strands by file extension: `.hair` ([`hair::read_hair`]) or `.ply`
+/// ([`ply::read_ply_strands`]).
+pub fn read_strands(path: impl AsRef<Path>) -> Result<crate::strands::Strands, FormatError> {
+    let path = path.as_ref();
+    match extension(path).as_str() {
+        "hair" => hair::read_hair(path),
+        "ply" => ply::read_ply_strands(path),
+        other => Err(FormatError::invalid(
+            path,
+            format!("unsupported strand file extension `{other}`: expected .hair or .ply"),
+        )),
+    }
+}
+
+/// Writes strands by file extension: `.hair` or `.ply` (binary little endian).
+pub fn write_strands(
+    path: impl AsRef<Path>,
+    strands: &crate::strands::Strands,
+) -> Result<(), FormatError> {
+    let path = path.as_ref();
+    match extension(path).as_str() {
+        "hair" => hair::write_hair(path, strands),
+        "ply" => ply::write_ply_strands(path, strands),
+        other => Err(FormatError::invalid(
+            path,
+            format!("unsupported strand file extension `{other}`: expected .hair or .ply"),
+        )),
+    }
+}
+
+/// Lower-case extension of a path ("" when none).
+pub(crate) fn extension(path: &Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase()
+}
+
 impl From<FormatError> for StageError {
     fn from(e: FormatError) -> Self {
         match e {
@@ -217,4 +278,40 @@ pub(crate) fn check_finite<I: IntoIterator<Item = f32>>(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn strands_dispatch_by_extension_and_errors_convert() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = hair::tests::sample();
+        for name in ["a.hair", "a.PLY"] {
+            let p = dir.path().join(name);
+            write_strands(&p, &s).unwrap();
+            let back = read_strands(&p).unwrap();
+            assert_eq!(back.points, s.points);
+            assert_eq!(back.width, s.width);
+        }
+        let e = read_strands(dir.path().join("a.abc")).unwrap_err();
+        assert!(e.to_string().contains("a.abc"));
+        std::fs::write(dir.path().join("b.ply"), "ply\nformat ascii 2.0\n").unwrap();
+        let e = read_strands(dir.path().join("b.ply")).unwrap_err();
+        let msg = e.to_string();
+        match e.for_input("strands") {
+            StageError::Input {
+                port,
+                path,
+                message,
+            } => {
+                assert_eq!(port, "strands");
+                assert!(path.ends_with("b.ply"));
+                assert!(message.contains("line 2"), "{message}");
+                assert!(msg.contains(&message), "{msg} / {message}");
+            }
+            other => panic!("{other}"),
+        }
+    }
 }

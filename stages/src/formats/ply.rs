@@ -918,6 +918,10 @@ mod tests {
             }
             assert_eq!(std::fs::read(&p).unwrap(), bytes);
         }
+        // An empty set round-trips too.
+        let p = dir.path().join("empty.ply");
+        write_ply_strands(&p, &Strands::new()).unwrap();
+        assert_eq!(read_ply_strands(&p).unwrap(), Strands::new());
     }
 
     #[test]
