@@ -82,6 +82,17 @@ fn camera(size: u32) -> Camera {
     }
 }
 
+/// CPU time (user + system, all threads) of this process in milliseconds,
+/// from /proc/self/stat (clock ticks, usually 10 ms); None elsewhere.
+fn cpu_ms() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name; utime and stime are 14 and 15.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks * 10.0)
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
@@ -94,6 +105,8 @@ struct Record {
     evaluations: u64,
     forward_ms: f64,
     forward_backward_ms: f64,
+    /// Mean CPU time of one forward + backward (all threads).
+    cpu_ms: Option<f64>,
 }
 
 fn bench(size: u32, segments: usize) -> Record {
@@ -121,6 +134,7 @@ fn bench(size: u32, segments: usize) -> Record {
     let reps = if segments >= 1_000_000 { 3 } else { 5 };
     let mut fwd = Vec::new();
     let mut both = Vec::new();
+    let cpu0 = cpu_ms();
     for _ in 0..reps {
         let t0 = Instant::now();
         let (o, st2) = render(&g, &cam, &s).expect("render");
@@ -131,7 +145,9 @@ fn bench(size: u32, segments: usize) -> Record {
         fwd.push((t1 - t0).as_secs_f64() * 1e3);
         both.push((t2 - t0).as_secs_f64() * 1e3);
     }
+    let cpu = cpu0.zip(cpu_ms()).map(|(a, b)| (b - a) / reps as f64);
     Record {
+        cpu_ms: cpu,
         size,
         segments: g.len(),
         instances: st.instance_count(),
@@ -143,12 +159,13 @@ fn bench(size: u32, segments: usize) -> Record {
 
 fn print(r: &Record) {
     println!(
-        "{:>4}^2 {:>8} segs  {:>9} inst  fwd {:>9.1} ms  fwd+bwd {:>9.1} ms  {:>7.1} M Gaussian-px evals/s (fwd)",
+        "{:>4}^2 {:>8} segs  {:>9} inst  fwd {:>8.1} ms  fwd+bwd {:>8.1} ms (cpu {:>8.1} ms)  {:>6.1} M Gaussian-px evals/s (fwd)",
         r.size,
         r.segments,
         r.instances,
         r.forward_ms,
         r.forward_backward_ms,
+        r.cpu_ms.unwrap_or(f64::NAN),
         r.evaluations as f64 / (r.forward_ms * 1e-3) / 1e6
     );
 }
@@ -189,6 +206,7 @@ fn main() {
                 "evaluations": r.evaluations,
                 "forward_ms": r.forward_ms,
                 "forward_backward_ms": r.forward_backward_ms,
+                "forward_backward_cpu_ms": r.cpu_ms,
                 "evaluations_per_s": r.evaluations as f64 / (r.forward_ms * 1e-3),
             })
         })

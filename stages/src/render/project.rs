@@ -102,6 +102,8 @@ pub struct Splat {
     /// Whether the RGB channel c was clamped at 0 (no gradient).
     pub rgb_clamped: [bool; 3],
     pub visible: bool,
+    /// First and last pixel row of the support (filled by the rasteriser).
+    pub rows: (i32, i32),
 }
 
 /// Normalised quaternion and rotation matrix columns (x, y, z, w order).

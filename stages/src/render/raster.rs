@@ -80,8 +80,33 @@ pub struct OutputGrads {
     pub fur: Option<ImageF32>,
 }
 
+/// `ceil` for values clamped to +-1e6 (inline; libm's ceilf is a call
+/// without SSE4.1).
+#[inline(always)]
+fn ceil_i(x: f32) -> i32 {
+    let x = x.clamp(-1.0e6, 1.0e6);
+    let i = x as i32;
+    if (i as f32) < x {
+        i + 1
+    } else {
+        i
+    }
+}
+
+/// `floor` for values clamped to +-1e6.
+#[inline(always)]
+fn floor_i(x: f32) -> i32 {
+    let x = x.clamp(-1.0e6, 1.0e6);
+    let i = x as i32;
+    if (i as f32) > x {
+        i - 1
+    } else {
+        i
+    }
+}
+
 /// Integer pixel interval of row `y` covered by the support ellipse (unclamped).
-#[inline]
+#[inline(always)]
 fn row_span(sp: &Splat, y: i32) -> Option<(i32, i32)> {
     let [ca, cb, cc] = sp.conic;
     let dy = y as f32 + 0.5 - sp.mean.y;
@@ -90,34 +115,48 @@ fn row_span(sp: &Splat, y: i32) -> Option<(i32, i32)> {
         return None;
     }
     let sq = disc.sqrt();
-    let x0 = sp.mean.x + (-cb * dy - sq) / ca;
-    let x1 = sp.mean.x + (-cb * dy + sq) / ca;
-    let lo = (x0 - 0.5).ceil();
-    let hi = (x1 - 0.5).floor();
-    if !(lo <= hi) {
-        return None;
-    }
-    Some((lo.max(-1.0e6) as i32, hi.min(1.0e6) as i32))
+    let inv = 1.0 / ca;
+    let x0 = sp.mean.x + (-cb * dy - sq) * inv;
+    let x1 = sp.mean.x + (-cb * dy + sq) * inv;
+    let lo = ceil_i(x0 - 0.5);
+    let hi = floor_i(x1 - 0.5);
+    (lo <= hi).then_some((lo, hi))
 }
 
 /// Pixel rows covered by the support (unclamped).
-#[inline]
+#[inline(always)]
 fn row_range(sp: &Splat) -> (i32, i32) {
     let ey = (sp.k2 * sp.cov[2]).sqrt();
-    let lo = (sp.mean.y - ey - 0.5).ceil().max(-1.0e6) as i32;
-    let hi = (sp.mean.y + ey - 0.5).floor().min(1.0e6) as i32;
-    (lo, hi)
+    (ceil_i(sp.mean.y - ey - 0.5), floor_i(sp.mean.y + ey - 0.5))
 }
 
-/// Calls `f(tile_x, tile_y)` for every tile the support touches (exact for the ellipse).
+/// Pixel columns covered by the support (unclamped).
+#[inline(always)]
+fn col_range(sp: &Splat) -> (i32, i32) {
+    let ex = (sp.k2 * sp.cov[0]).sqrt();
+    (ceil_i(sp.mean.x - ex - 0.5), floor_i(sp.mean.x + ex - 0.5))
+}
+
+/// Calls `f(tile_x, tile_y)` for every tile the support touches (exact for
+/// the ellipse: per band of tile rows, the union of the row intervals).
 #[inline]
 fn for_each_tile(sp: &Splat, w: u32, h: u32, mut f: impl FnMut(u32, u32)) {
-    let (r0, r1) = row_range(sp);
+    let (r0, r1) = sp.rows;
     let (r0, r1) = (r0.max(0), r1.min(h as i32 - 1));
-    if r0 > r1 {
+    let (c0, c1) = col_range(sp);
+    let (c0, c1) = (c0.max(0), c1.min(w as i32 - 1));
+    if r0 > r1 || c0 > c1 {
         return;
     }
     let t = TILE as i32;
+    // Fast path: the bounding box lies in one tile (most strand segments).
+    if r0 / t == r1 / t && c0 / t == c1 / t {
+        // The ellipse may still miss the image part of the box; check rows.
+        if (r0..=r1).any(|y| row_span(sp, y).is_some_and(|(a, b)| a.max(c0) <= b.min(c1))) {
+            f((c0 / t) as u32, (r0 / t) as u32);
+        }
+        return;
+    }
     let mut band = r0 / t;
     let (mut lo, mut hi) = (i32::MAX, i32::MIN);
     let flush = |band: i32, lo: i32, hi: i32, f: &mut dyn FnMut(u32, u32)| {
@@ -135,7 +174,7 @@ fn for_each_tile(sp: &Splat, w: u32, h: u32, mut f: impl FnMut(u32, u32)) {
             hi = i32::MIN;
         }
         if let Some((a, b)) = row_span(sp, y) {
-            let (a, b) = (a.max(0), b.min(w as i32 - 1));
+            let (a, b) = (a.max(c0), b.min(c1));
             if a <= b {
                 lo = lo.min(a);
                 hi = hi.max(b);
@@ -220,6 +259,9 @@ pub fn render(
                     &cd,
                     s,
                 );
+                if sp.visible {
+                    sp.rows = row_range(sp);
+                }
             }
         });
     // 2. Global depth order: key (depth bits, index) is unique, so the order is total.
@@ -233,46 +275,36 @@ pub fn render(
     // 3. Tiles per splat (in depth order), then a stable counting sort by tile.
     let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
     let n_tiles = (tx * ty) as usize;
-    let counts: Vec<u32> = order
+    // One pass per chunk of the depth order: tile ids and per-splat counts.
+    let chunks: Vec<(Vec<u32>, Vec<u32>)> = order
         .par_chunks(CHUNK)
-        .flat_map_iter(|ch| {
-            ch.iter()
-                .map(|&k| {
-                    let mut c = 0u32;
-                    for_each_tile(&splats[(k & 0xffff_ffff) as usize], w, h, |_, _| c += 1);
-                    c
-                })
-                .collect::<Vec<_>>()
+        .map(|ch| {
+            let mut ids = Vec::with_capacity(ch.len() * 2);
+            let mut counts = Vec::with_capacity(ch.len());
+            for &k in ch {
+                let before = ids.len();
+                for_each_tile(&splats[(k & 0xffff_ffff) as usize], w, h, |x, y| {
+                    ids.push(y * tx + x)
+                });
+                counts.push((ids.len() - before) as u32);
+            }
+            (ids, counts)
         })
         .collect();
+    let total: usize = chunks.iter().map(|c| c.0.len()).sum();
     let mut offsets = Vec::with_capacity(order.len() + 1);
-    let mut total = 0usize;
     offsets.push(0usize);
-    for &c in &counts {
-        total += c as usize;
-        offsets.push(total);
-    }
-    let mut inst_tile = vec![0u32; total];
-    {
-        let mut slices = Vec::new();
-        let mut rest: &mut [u32] = &mut inst_tile;
-        for c in 0..order.len().div_ceil(CHUNK) {
-            let a = offsets[c * CHUNK];
-            let b = offsets[((c + 1) * CHUNK).min(order.len())];
-            let (head, tail) = rest.split_at_mut(b - a);
-            slices.push(head);
-            rest = tail;
+    for (_, counts) in &chunks {
+        for &c in counts {
+            let last = *offsets.last().unwrap_or(&0);
+            offsets.push(last + c as usize);
         }
-        slices.into_par_iter().enumerate().for_each(|(c, out)| {
-            let mut j = 0;
-            for &k in &order[c * CHUNK..((c + 1) * CHUNK).min(order.len())] {
-                for_each_tile(&splats[(k & 0xffff_ffff) as usize], w, h, |x, y| {
-                    out[j] = y * tx + x;
-                    j += 1;
-                });
-            }
-        });
     }
+    let mut inst_tile = Vec::with_capacity(total);
+    for (ids, _) in &chunks {
+        inst_tile.extend_from_slice(ids);
+    }
+    drop(chunks);
     let mut tile_count = vec![0u32; n_tiles + 1];
     for &t in &inst_tile {
         tile_count[t as usize + 1] += 1;
@@ -314,9 +346,14 @@ pub fn render(
             let mut n_done = 0usize;
             let mut evals = 0u64;
             let (a, b) = tile_ranges[t];
-            for (k, &gi) in instances[a as usize..b as usize].iter().enumerate() {
-                let sp = &splats[gi as usize];
-                let (r0, r1) = row_range(sp);
+            // Gather the tile's splats first: independent loads overlap their
+            // cache misses, and the loop below then reads sequentially.
+            let recs: Vec<Splat> = instances[a as usize..b as usize]
+                .iter()
+                .map(|&gi| splats[gi as usize])
+                .collect();
+            for (k, sp) in recs.iter().enumerate() {
+                let (r0, r1) = sp.rows;
                 for y in r0.max(y0)..=r1.min(y1 - 1) {
                     let Some((c0, c1)) = row_span(sp, y) else {
                         continue;
@@ -485,12 +522,15 @@ pub fn backward(
                 }
             }
             let (a, _) = st.tile_ranges[t];
-            let list = &st.instances[a as usize..a as usize + out.len()];
-            for k in (0..list.len()).rev() {
-                let sp = &st.splats[list[k] as usize];
+            let recs: Vec<Splat> = st.instances[a as usize..a as usize + out.len()]
+                .iter()
+                .map(|&gi| st.splats[gi as usize])
+                .collect();
+            for k in (0..recs.len()).rev() {
+                let sp = &recs[k];
                 let [ca, cb, cc] = sp.conic;
                 let mut gr = SplatGrad::default();
-                let (r0, r1) = row_range(sp);
+                let (r0, r1) = sp.rows;
                 for y in r0.max(y0)..=r1.min(y1 - 1) {
                     let Some((c0, c1)) = row_span(sp, y) else {
                         continue;
@@ -503,12 +543,12 @@ pub fn backward(
                         let Some((alpha, gauss, dx, dy, clamped)) = eval(sp, x, y, s) else {
                             continue;
                         };
-                        let one_m = 1.0 - alpha;
-                        let ti = tr[p] / one_m;
+                        let inv_one_m = 1.0 / (1.0 - alpha);
+                        let ti = tr[p] * inv_one_m;
                         let wgt = alpha * ti;
                         let mut dalpha = 0.0f32;
                         for c in 0..NF {
-                            dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] / one_m);
+                            dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] * inv_one_m);
                             gr.feat[c] += gp[p][c] * wgt;
                             sacc[p][c] += sp.feat[c] * wgt;
                         }
