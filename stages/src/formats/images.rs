@@ -187,8 +187,9 @@ pub fn read_png(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
     png_header(path, &bytes)?;
     let mut reader = TrackingReader::new(&bytes);
     let result = image::codecs::png::PngDecoder::new(&mut reader).and_then(|mut d| {
-        // Generous limits: our images are at most a few thousand pixels wide.
-        d.set_limits(image::Limits::no_limits())?;
+        // The decoder's default allocation cap (512 MiB) turns a corrupt header claiming a huge
+        // image into an error instead of an out-of-memory abort; real views are far smaller.
+        d.set_limits(image::Limits::default())?;
         DynamicImage::from_decoder(d)
     });
     let img = result.map_err(|e| {
@@ -239,7 +240,7 @@ pub fn read_jpeg(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
     }
     let mut reader = TrackingReader::new(&bytes);
     let result = image::codecs::jpeg::JpegDecoder::new(&mut reader).and_then(|mut d| {
-        d.set_limits(image::Limits::no_limits())?;
+        d.set_limits(image::Limits::default())?;
         DynamicImage::from_decoder(d)
     });
     let img = result.map_err(|e| {

@@ -350,12 +350,18 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Ply, FormatError> {
     let wanted = |e: &Element, p: &Property| {
         (e.name == "vertex" || e.name == "edge") && matches!(p.kind, PropKind::Scalar(_))
     };
+    // Reserve what the file can hold at most (every row takes at least one byte per property), so
+    // a header claiming billions of rows cannot make us allocate before the data says otherwise.
+    let cap = |e: &Element| {
+        e.count
+            .min(bytes.len().saturating_sub(pos) / e.props.len().max(1))
+    };
     let mut values: Vec<Vec<Option<Vec<f64>>>> = elements
         .iter()
         .map(|e| {
             e.props
                 .iter()
-                .map(|p| wanted(e, p).then(|| Vec::with_capacity(e.count.min(bytes.len()))))
+                .map(|p| wanted(e, p).then(|| Vec::with_capacity(cap(e))))
                 .collect()
         })
         .collect();
