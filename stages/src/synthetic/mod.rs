@@ -44,6 +44,14 @@
 //!   vertex labels), `mean_thickness_cm` (mean over the part's strands of the height of the
 //!   strand's highest point above its root's tangent plane: the fur-layer thickness a shell
 //!   fitted around the fur would see).
+//! - Overrides: `[stages.NAME.parts.<part>]` with `length_cm` (mean strand length),
+//!   `length_jitter` (lengths uniform in `mean * [1 - j, 1 + j]`), `density` (relative to the
+//!   footprint-derived base density), `density_per_cm2` (absolute, replaces the footprint rule
+//!   for that part), `direction` (`[x, y, z]` in the animal frame: +x tail to nose, +y up, +z the
+//!   animal's left; replaces the flow field on that part's primitives), `lift_deg`, `curl`,
+//!   `clump`, `gravity` and `color` (linear RGB). Non-fur parts (eyes, nose, pads; the bison's
+//!   horns and hooves) take only `color`. Unknown parts or keys fail in `validate` with the list
+//!   of what is allowed; settings that would grow more than [`MAX_STRANDS`] strands fail too.
 //! - Determinism: every random stream is a seeded ChaCha8 (or a SplitMix64 hash of the seed for
 //!   per-pixel jitter); parallel loops collect in index order. The only non-deterministic bytes
 //!   are the timings under `seconds` in `report.json`.
