@@ -1049,6 +1049,71 @@ mod tests {
             .contains("file ends inside element `edge`"));
     }
 
+    /// Imports our PLY into Blender (headless) when a `blender` executable is on the PATH, and
+    /// checks that every strand arrives as one loose-edge chain that converts to one curve spline.
+    /// Skipped (with a note) when Blender is absent; set FURE_SKIP_BLENDER=1 to skip it anyway.
+    #[test]
+    fn blender_imports_strand_ply_when_available() {
+        if std::env::var_os("FURE_SKIP_BLENDER").is_some() {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let s = labelled();
+        let ply = dir.path().join("s.ply");
+        write_ply_strands(&ply, &s).unwrap();
+        let script = dir.path().join("check.py");
+        std::fs::write(
+            &script,
+            format!(
+                "import bpy\n\
+                 for o in list(bpy.data.objects): bpy.data.objects.remove(o, do_unlink=True)\n\
+                 bpy.ops.import_mesh.ply(filepath={:?})\n\
+                 o = bpy.context.selected_objects[0]\n\
+                 n = (len(o.data.vertices), len(o.data.edges), len(o.data.polygons))\n\
+                 bpy.context.view_layer.objects.active = o\n\
+                 bpy.ops.object.convert(target='CURVE')\n\
+                 c = bpy.context.view_layer.objects.active\n\
+                 print('FURE_RESULT', *n, len(c.data.splines), sum(len(sp.points) for sp in c.data.splines))\n",
+                ply.to_str().unwrap()
+            ),
+        )
+        .unwrap();
+        let out = std::process::Command::new("blender")
+            .args(["-b", "--factory-startup", "--python"])
+            .arg(&script)
+            .output();
+        let Ok(out) = out else {
+            eprintln!("blender not found: skipping the Blender import check");
+            return;
+        };
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let line = stdout
+            .lines()
+            .find(|l| l.starts_with("FURE_RESULT"))
+            .unwrap_or_else(|| {
+                panic!(
+                    "no result from Blender:\n{stdout}\n{}",
+                    String::from_utf8_lossy(&out.stderr)
+                )
+            });
+        let nums: Vec<usize> = line
+            .split_whitespace()
+            .skip(1)
+            .map(|t| t.parse().unwrap())
+            .collect();
+        assert_eq!(
+            nums,
+            vec![
+                s.points.len(),
+                s.segment_count(),
+                0,
+                s.len(),
+                s.points.len()
+            ],
+            "vertices, edges, faces, splines, spline points"
+        );
+    }
+
     #[test]
     fn bad_strand_sets_are_refused() {
         let dir = tempfile::tempdir().unwrap();
