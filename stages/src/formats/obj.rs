@@ -746,6 +746,50 @@ mod tests {
         assert!(read_obj(&p).is_err());
     }
 
+    /// Imports our OBJ into Blender (headless) when `blender` is on the PATH: the vertex count is
+    /// kept and the groups become vertex groups named after the parts. Skipped without Blender or
+    /// with FURE_SKIP_BLENDER=1.
+    #[test]
+    fn blender_imports_groups_when_available() {
+        if std::env::var_os("FURE_SKIP_BLENDER").is_some() {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let m = cube();
+        let obj = dir.path().join("m.obj");
+        write_obj(&obj, &m).unwrap();
+        let script = dir.path().join("check.py");
+        std::fs::write(
+            &script,
+            format!(
+                "import bpy\n\
+                 for o in list(bpy.data.objects): bpy.data.objects.remove(o, do_unlink=True)\n\
+                 bpy.ops.wm.obj_import(filepath={:?}, import_vertex_groups=True)\n\
+                 o = bpy.context.selected_objects[0]\n\
+                 print('FURE_RESULT', len(o.data.vertices), len(o.data.polygons), *[g.name for g in o.vertex_groups])\n",
+                obj.to_str().unwrap()
+            ),
+        )
+        .unwrap();
+        let Ok(out) = std::process::Command::new("blender")
+            .args(["-b", "--factory-startup", "--python"])
+            .arg(&script)
+            .output()
+        else {
+            eprintln!("blender not found: skipping the Blender import check");
+            return;
+        };
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let line = stdout
+            .lines()
+            .find(|l| l.starts_with("FURE_RESULT"))
+            .unwrap_or_else(|| panic!("no result from Blender:\n{stdout}"));
+        let words: Vec<&str> = line.split_whitespace().skip(1).collect();
+        let expect_n = [m.positions.len().to_string(), m.triangles.len().to_string()];
+        assert_eq!(&words[..2], &expect_n);
+        assert_eq!(&words[2..], &["belly", "back"]);
+    }
+
     #[test]
     fn unwritable_meshes_are_refused() {
         let dir = tempfile::tempdir().unwrap();
