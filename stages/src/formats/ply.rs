@@ -26,6 +26,11 @@
 //! per-polyline element that tools understand). Colours are floats, not the usual `uchar`, so the
 //! round trip is exact; Blender's importer accepts float colours.
 //!
+//! Checked with Debian's Blender 3.4.1 (`blender -b --factory-startup`, test
+//! `blender_imports_strand_ply_when_available`, which runs when `blender` is on the PATH): our binary
+//! and ASCII files import through `import_mesh.ply` as loose edges (one vertex per point, one edge
+//! per segment, no faces) and `object.convert(target='CURVE')` gives one spline per strand.
+//!
 //! Reading accepts any PLY 1.0 file in `ascii`, `binary_little_endian` or `binary_big_endian`
 //! with any scalar types and any extra elements or properties (skipped, lists included):
 //!
