@@ -701,6 +701,15 @@ mod tests {
         let m = read_obj(&p).unwrap();
         assert_eq!(m.part_names, vec!["paw".to_string(), "default".to_string()]);
         assert_eq!(m.part, vec![1, 1, 1, 0]);
+        // Windows line endings and a polygon with a trailing comment.
+        std::fs::write(
+            &p,
+            "g a\r\nv 0 0 0\r\nv 1 0 0\r\nv 0 1 0\r\nv 1 1 0\r\nf 1 2 4 3 # quad\r\n",
+        )
+        .unwrap();
+        let m = read_obj(&p).unwrap();
+        assert_eq!(m.triangles, vec![[0, 1, 3], [0, 3, 2]]);
+        assert_eq!(m.part_names, vec!["a".to_string()]);
         // No groups at all: unlabelled, computed normals along +z.
         std::fs::write(&p, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
         let m = read_obj(&p).unwrap();

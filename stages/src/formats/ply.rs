@@ -959,6 +959,38 @@ mod tests {
     }
 
     #[test]
+    fn big_endian_and_crlf_headers_read() {
+        let mut b =
+            b"ply\r\nformat binary_big_endian 1.0\r\nelement vertex 3\r\nproperty float x\r\n\
+property float y\r\nproperty float z\r\nproperty ushort red\r\nproperty ushort green\r\n\
+property ushort blue\r\nproperty short strand\r\nend_header\r\n"
+                .to_vec();
+        for (i, v) in [[0.5f32, 1.0, 2.0], [0.5, 1.0, 3.0], [7.0, 7.0, 7.0]]
+            .iter()
+            .enumerate()
+        {
+            for x in v {
+                b.extend_from_slice(&x.to_be_bytes());
+            }
+            for c in [65535u16, 0, 13107] {
+                b.extend_from_slice(&c.to_be_bytes());
+            }
+            b.extend_from_slice(&((i / 2) as i16).to_be_bytes());
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("be.ply");
+        std::fs::write(&p, &b).unwrap();
+        let s = read_ply_strands(&p).unwrap();
+        assert_eq!(s.len(), 2);
+        assert_eq!(
+            s.strand(0),
+            &[Vec3::new(0.5, 1.0, 2.0), Vec3::new(0.5, 1.0, 3.0)]
+        );
+        assert_eq!(s.strand(1), &[Vec3::splat(7.0)]);
+        assert_eq!(s.color[1], [1.0, 0.0, 0.2]);
+    }
+
+    #[test]
     fn loops_and_branches_are_errors() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("l.ply");
