@@ -125,6 +125,38 @@ pub struct WidthResult {
     pub crossed: Vec<bool>,
 }
 
+/// A [`PointIndex`] over `points` nudged by a deterministic jitter of about
+/// 1e-5 of their extent. `PointIndex` (kiddo 4's immutable k-d tree) panics
+/// when more than 32 points share one exact coordinate, which flat regions of
+/// a mesh (a planar wall of the visual hull, say) produce; the nudge is far
+/// below any length this stage measures, and distances are recomputed from
+/// the true points by the callers that need them.
+pub(crate) fn robust_index(points: &[Vec3]) -> Result<PointIndex, StageError> {
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for p in points {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    let amp = 1e-5 * (hi - lo).length().max(1e-12);
+    let nudged: Vec<Vec3> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let mut x = (i as u32)
+                .wrapping_mul(2_654_435_761)
+                .wrapping_add(0x9e37_79b9);
+            let mut next = || {
+                x ^= x << 13;
+                x ^= x >> 17;
+                x ^= x << 5;
+                (x % 65_536) as f32 / 65_536.0 - 0.5
+            };
+            *p + amp * Vec3::new(next(), next(), next())
+        })
+        .collect();
+    Ok(PointIndex::new(&nudged)?)
+}
+
 /// Density field of a Gaussian set: `min(1, sum_knn opacity exp(-0.5 d^T Sigma^-1 d))`.
 pub struct DensityField {
     index: PointIndex,
@@ -142,7 +174,7 @@ impl DensityField {
             return Err(StageError::failed("no Gaussians to measure widths with"));
         }
         g.validate()?;
-        let index = PointIndex::new(&g.means)?;
+        let index = robust_index(&g.means)?;
         let (cov, inv_cov): (Vec<Mat3>, Vec<Mat3>) = g
             .scales
             .iter()
@@ -256,7 +288,7 @@ pub fn shell_widths(
     let crossed: Vec<bool> = raw.iter().map(|r| r.1.is_some()).collect();
     let (mut outer, mut inner) = (vec![0.0f32; raw.len()], vec![0.0f32; raw.len()]);
     if s.smooth_k > 1 {
-        let vindex = PointIndex::new(positions)?;
+        let vindex = robust_index(positions)?;
         let smoothed: Vec<(f32, f32)> = positions
             .par_iter()
             .map(|&p| {
@@ -1065,6 +1097,19 @@ impl Stage for FrostingStage {
 mod tests {
     use super::*;
 
+    fn jitter(i: i32, j: i32, k: i32, amp: f32) -> Vec3 {
+        let mut x = (i as u32).wrapping_mul(73856093)
+            ^ (j as u32).wrapping_mul(19349663)
+            ^ (k as u32).wrapping_mul(83492791);
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            (x % 10_000) as f32 / 10_000.0 - 0.5
+        };
+        amp * Vec3::new(next(), next(), next())
+    }
+
     /// Isotropic Gaussians on a regular lattice filling z in [z0, z1] over |x|,|y| <= half.
     fn slab(z0: f32, z1: f32, half: f32, h: f32, sigma: f32, opacity: f32, g: &mut Gaussians) {
         let nz = ((z1 - z0) / h).round() as i32;
@@ -1072,7 +1117,10 @@ mod tests {
         for k in 0..=nz {
             for j in -nxy..=nxy {
                 for i in -nxy..=nxy {
-                    let p = Vec3::new(i as f32 * h, j as f32 * h, z0 + k as f32 * h);
+                    // A tiny deterministic jitter: exact lattices (many equal coordinates)
+                    // trip the k-d tree used by PointIndex.
+                    let p = Vec3::new(i as f32 * h, j as f32 * h, z0 + k as f32 * h)
+                        + jitter(i, j, k, 1e-3 * h);
                     g.push(
                         p,
                         Vec3::splat(sigma),
@@ -1219,14 +1267,16 @@ mod tests {
     #[test]
     fn no_density_gives_the_minimum_width_and_smoothing_averages() {
         let mut g = Gaussians::default();
-        g.push(
-            Vec3::new(100.0, 0.0, 0.0),
-            Vec3::splat(0.01),
-            Quat::IDENTITY,
-            1.0,
-            Vec3::ONE,
-            false,
-        );
+        for k in 0..20 {
+            g.push(
+                Vec3::new(100.0, 0.0, 0.0) + jitter(k, 1, 2, 1.0),
+                Vec3::splat(0.01),
+                Quat::IDENTITY,
+                1.0,
+                Vec3::ONE,
+                false,
+            );
+        }
         let field = DensityField::new(&g, 16).unwrap();
         let r = shell_widths(
             &field,
