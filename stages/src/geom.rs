@@ -2,14 +2,12 @@
 //!
 //! [`MeshQuery`] wraps parry3d's BVH-accelerated triangle mesh (ray casts,
 //! closest points, inside tests through pseudo-normals, which need a closed,
-//! consistently oriented mesh). [`PointIndex`] wraps kiddo's immutable k-d
-//! tree for nearest-neighbour and radius queries. Both are built once and
+//! consistently oriented mesh). [`PointIndex`] is a small k-d tree for
+//! nearest-neighbour and radius queries. Both are built once and
 //! queried from many threads; results are deterministic (ties resolve the same
 //! way for the same input order).
 
 use glam::Vec3;
-use kiddo::immutable::float::kdtree::ImmutableKdTree;
-use kiddo::SquaredEuclidean;
 use parry3d::math::{Isometry, Point, Vector};
 use parry3d::query::{PointQuery, PointQueryWithLocation, Ray, RayCast};
 use parry3d::shape::{TriMesh, TriMeshFlags};
@@ -97,9 +95,30 @@ impl MeshQuery {
 }
 
 /// Nearest-neighbour and radius queries on a fixed point set.
+///
+/// A hand-written, implicit k-d tree (points permuted into leaves of at most
+/// [`LEAF`] points, split at the median of the widest axis). Written here
+/// rather than taken from kiddo because kiddo 4's trees panic when more than a
+/// bucket's worth of points share a coordinate, which regular grids and
+/// duplicated vertices produce all the time.
 pub struct PointIndex {
-    tree: ImmutableKdTree<f32, u32, 3, 32>,
-    len: usize,
+    points: Vec<Vec3>,
+    /// Point indices, permuted so that every node owns a contiguous range.
+    order: Vec<u32>,
+    nodes: Vec<Node>,
+}
+
+const LEAF: usize = 16;
+
+#[derive(Clone, Copy)]
+struct Node {
+    lo: Vec3,
+    hi: Vec3,
+    start: u32,
+    end: u32,
+    /// Children indices, `u32::MAX` for leaves.
+    left: u32,
+    right: u32,
 }
 
 impl PointIndex {
@@ -110,50 +129,152 @@ impl PointIndex {
         if let Some(i) = points.iter().position(|p| !p.is_finite()) {
             return Err(GeomError::NonFinite(i));
         }
-        let pts: Vec<[f32; 3]> = points.iter().map(|p| p.to_array()).collect();
-        Ok(PointIndex {
-            tree: ImmutableKdTree::new_from_slice(&pts),
-            len: points.len(),
-        })
+        let mut idx = PointIndex {
+            points: points.to_vec(),
+            order: (0..points.len() as u32).collect(),
+            nodes: Vec::with_capacity(2 * points.len() / LEAF + 1),
+        };
+        idx.build(0, points.len());
+        Ok(idx)
+    }
+
+    fn build(&mut self, start: usize, end: usize) -> u32 {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for &i in &self.order[start..end] {
+            lo = lo.min(self.points[i as usize]);
+            hi = hi.max(self.points[i as usize]);
+        }
+        let id = self.nodes.len() as u32;
+        self.nodes.push(Node {
+            lo,
+            hi,
+            start: start as u32,
+            end: end as u32,
+            left: u32::MAX,
+            right: u32::MAX,
+        });
+        if end - start > LEAF {
+            let ext = hi - lo;
+            let axis = if ext.x >= ext.y && ext.x >= ext.z {
+                0
+            } else if ext.y >= ext.z {
+                1
+            } else {
+                2
+            };
+            let mid = (start + end) / 2;
+            let pts = &self.points;
+            // Index as tie-break: equal coordinates still split, deterministically.
+            self.order[start..end].select_nth_unstable_by(mid - start, |&a, &b| {
+                pts[a as usize][axis]
+                    .total_cmp(&pts[b as usize][axis])
+                    .then(a.cmp(&b))
+            });
+            let left = self.build(start, mid);
+            let right = self.build(mid, end);
+            self.nodes[id as usize].left = left;
+            self.nodes[id as usize].right = right;
+        }
+        id
     }
 
     pub fn len(&self) -> usize {
-        self.len
+        self.points.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.len == 0
+        self.points.is_empty()
     }
 
     /// The nearest point's index and distance.
     pub fn nearest(&self, p: Vec3) -> (usize, f32) {
-        let n = self.tree.nearest_one::<SquaredEuclidean>(&p.to_array());
-        (n.item as usize, n.distance.sqrt())
+        self.nearest_n(p, 1)[0]
     }
 
     /// Up to `n` nearest points, closest first, as (index, distance).
     pub fn nearest_n(&self, p: Vec3, n: usize) -> Vec<(usize, f32)> {
-        let mut v: Vec<(usize, f32)> = self
-            .tree
-            .nearest_n::<SquaredEuclidean>(&p.to_array(), n.min(self.len))
-            .into_iter()
-            .map(|x| (x.item as usize, x.distance.sqrt()))
-            .collect();
-        sort_by_distance(&mut v);
-        v
+        let n = n.min(self.len());
+        if n == 0 {
+            return Vec::new();
+        }
+        // Best candidates so far as (squared distance, index), sorted ascending.
+        let mut best: Vec<(f32, u32)> = Vec::with_capacity(n + 1);
+        let mut stack = vec![0u32];
+        while let Some(id) = stack.pop() {
+            let node = self.nodes[id as usize];
+            let d2 = box_distance2(p, node.lo, node.hi);
+            if best.len() == n && d2 > best[n - 1].0 {
+                continue;
+            }
+            if node.left == u32::MAX {
+                for &i in &self.order[node.start as usize..node.end as usize] {
+                    let c = (self.points[i as usize].distance_squared(p), i);
+                    if best.len() == n && !less(c, best[n - 1]) {
+                        continue;
+                    }
+                    let at = best.partition_point(|&b| less(b, c));
+                    best.insert(at, c);
+                    best.truncate(n);
+                }
+            } else {
+                // Visit the nearer child first (pushed last).
+                let (l, r) = (
+                    self.nodes[node.left as usize],
+                    self.nodes[node.right as usize],
+                );
+                if box_distance2(p, l.lo, l.hi) <= box_distance2(p, r.lo, r.hi) {
+                    stack.push(node.right);
+                    stack.push(node.left);
+                } else {
+                    stack.push(node.left);
+                    stack.push(node.right);
+                }
+            }
+        }
+        best.into_iter()
+            .map(|(d2, i)| (i as usize, d2.sqrt()))
+            .collect()
     }
 
     /// All points within distance `r`, closest first, as (index, distance).
     pub fn within(&self, p: Vec3, r: f32) -> Vec<(usize, f32)> {
-        let mut v: Vec<(usize, f32)> = self
-            .tree
-            .within_unsorted::<SquaredEuclidean>(&p.to_array(), r * r)
-            .into_iter()
-            .map(|x| (x.item as usize, x.distance.sqrt()))
-            .collect();
-        sort_by_distance(&mut v);
-        v
+        let r2 = r * r;
+        let mut out = Vec::new();
+        let mut stack = vec![0u32];
+        while let Some(id) = stack.pop() {
+            let node = self.nodes[id as usize];
+            if box_distance2(p, node.lo, node.hi) > r2 {
+                continue;
+            }
+            if node.left == u32::MAX {
+                for &i in &self.order[node.start as usize..node.end as usize] {
+                    let d2 = self.points[i as usize].distance_squared(p);
+                    if d2 <= r2 {
+                        out.push((i as usize, d2.sqrt()));
+                    }
+                }
+            } else {
+                stack.push(node.left);
+                stack.push(node.right);
+            }
+        }
+        sort_by_distance(&mut out);
+        out
     }
+}
+
+/// Total order on (squared distance, index).
+#[inline]
+fn less(a: (f32, u32), b: (f32, u32)) -> bool {
+    a.0 < b.0 || (a.0 == b.0 && a.1 < b.1)
+}
+
+/// Squared distance from `p` to the box [lo, hi] (0 inside).
+#[inline]
+fn box_distance2(p: Vec3, lo: Vec3, hi: Vec3) -> f32 {
+    let d = (lo - p).max(p - hi).max(Vec3::ZERO);
+    d.length_squared()
 }
 
 /// Distance order with index as tie-break, so results never depend on traversal order.
@@ -254,6 +375,25 @@ mod tests {
             idx.within(q, r).len(),
             brute.iter().filter(|x| x.1 <= r).count()
         );
+    }
+
+    #[test]
+    fn many_equal_coordinates_do_not_panic() {
+        // A lattice plus exact duplicates: every coordinate is shared by hundreds of points.
+        let mut pts = Vec::new();
+        for i in 0..20 {
+            for j in 0..20 {
+                pts.push(Vec3::new(i as f32, j as f32, 0.0));
+                pts.push(Vec3::new(i as f32, j as f32, 0.0));
+            }
+        }
+        let idx = PointIndex::new(&pts).unwrap();
+        let near = idx.nearest_n(Vec3::new(3.1, 4.0, 0.0), 2);
+        assert_eq!(
+            near.iter().map(|x| x.0 / 2).collect::<Vec<_>>(),
+            vec![3 * 20 + 4; 2]
+        );
+        assert_eq!(idx.within(Vec3::new(3.0, 4.0, 0.0), 1.01).len(), 10);
     }
 
     #[test]
