@@ -58,5 +58,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     stages.push(Box::new(synthetic::SyntheticScene));
     stages.push(Box::new(defur::DefurStage));
     stages.push(Box::new(defur::baseline::DefurBaselineStage));
+    stages.push(Box::new(lengths::LengthsStage));
+    stages.push(Box::new(roots::RootsStage));
     stages
 }

@@ -1,1 +1,800 @@
-//! (in progress)
+//! `roots`: strand roots on `M_root` with parts, lengths, widths, the shell
+//! feature `rho` and a local frame (method.md section 6; the appendix's
+//! "Strand width and root sampling" and "Orientation").
+//!
+//! **Sampling** (deterministic, evenly spread). Each triangle belongs to the
+//! part most of its vertices have (ties: its first vertex's), like the OBJ
+//! writer's groups. A triangle of part `p` expects `density_p * area_cm2`
+//! roots (area converted with `s_cm^2`); non-fur parts expect none. When
+//! the total exceeds `max_roots` every expectation is scaled down by the
+//! same factor (the relative part densities stay). Counts come from
+//! systematic sampling of the cumulative expectation in triangle order
+//! (one seeded offset), so every triangle gets its expectation rounded up
+//! or down and the total is exact; inside a triangle the `k` roots follow a
+//! seeded R2 low-discrepancy sequence folded onto the triangle. No
+//! rejection, no randomness beyond the `seed`.
+//!
+//! **Attributes.** Position and normal are barycentric interpolations of
+//! `M_root`'s vertices and vertex normals. Length and width are the part's
+//! `l_p` and `W_p` in scene units from the `lengths` table. `rho` is the
+//! shell width of the nearest shell vertex to each `M_root` vertex,
+//! interpolated barycentrically and divided by the global 97.5th
+//! percentile of shell widths (the defurring reliability threshold),
+//! clipped to [0, 1].
+//!
+//! **Frames.** The tangent field is the smoothest face-based degree-2
+//! power field (as the Directional library computes it): per face a local
+//! frame (first edge, normal x first edge), the field stored as the complex
+//! number `z_f = e^{2 i phi_f}`, energy `sum over interior edges |z_g -
+//! r_fg z_f|^2` with `r_fg` the change of frame across the shared edge
+//! (squared, for the degree 2), one constraint `z = 1` on face 0 (its first
+//! edge's direction) and, for meshes with several pieces, on the first face
+//! of each other piece. The remaining unknowns solve the Hermitian
+//! positive-definite system with complex conjugate gradients (f64,
+//! relative residual 1e-10). Directions `phi = arg(z) / 2` are normalised,
+//! their signs aligned by breadth-first traversal from the constrained
+//! faces (neighbours flipped to agree with the face they were reached
+//! from). At a root: the area-weighted mean of the aligned face
+//! directions around each corner vertex, interpolated barycentrically,
+//! projected onto the root's tangent plane; where that cancels (sign seams)
+//! the root's own face direction is used. `T` is normalised, `N` is the
+//! root normal, `B = N x T`.
+//!
+//! **Storage.** JSON (`fure_stages::rootset::Roots` through
+//! `formats::json`): about 0.3 kB per root pretty-printed, so ~30 MB and
+//! well under a second each way for 100k roots, and readable by every
+//! other stage and by users.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::Instant;
+
+use fure_stage_api::{ensure_finite, ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::defur::thickness::{percentile, raw_widths};
+use crate::defur::{number_table, protected_parts, read_mesh, DEFAULT_PROTECTED};
+use crate::formats::json::{read_json, write_json};
+use crate::geom::PointIndex;
+use crate::lengths::LengthTable;
+use crate::mesh::Mesh;
+use crate::rootset::Roots;
+use crate::shell::ShellWidths;
+
+/// Part of each triangle: the majority of its vertices' parts, ties to the first vertex's.
+pub fn triangle_parts(mesh: &Mesh) -> Vec<u16> {
+    mesh.triangles
+        .iter()
+        .map(|t| {
+            let p = t.map(|i| mesh.part.get(i as usize).copied().unwrap_or(0));
+            if p[1] == p[2] && p[0] != p[1] {
+                p[1]
+            } else {
+                p[0]
+            }
+        })
+        .collect()
+}
+
+fn tri_area(mesh: &Mesh, t: &[u32; 3]) -> f32 {
+    let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+    0.5 * (b - a).cross(c - a).length()
+}
+
+/// One sampled root: triangle and barycentric coordinates (of vertices 1, 2).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    pub triangle: u32,
+    pub u: f32,
+    pub v: f32,
+}
+
+/// Systematic, stratified sampling of `expected[t]` roots per triangle.
+pub fn sample_triangles(expected: &[f64], seed: u64) -> Vec<Sample> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let offset: f64 = rng.gen();
+    let (s1, s2): (f64, f64) = (rng.gen(), rng.gen());
+    // The R2 sequence's generators (plastic number).
+    let g = 1.324_717_957_244_746_f64;
+    let (a1, a2) = (1.0 / g, 1.0 / (g * g));
+    let mut out = Vec::new();
+    let mut cum = 0.0f64;
+    for (t, &e) in expected.iter().enumerate() {
+        let before = (cum + offset).floor();
+        cum += e.max(0.0);
+        let k = ((cum + offset).floor() - before) as usize;
+        // A per-triangle start so neighbouring triangles do not repeat the same pattern.
+        let tshift = (t as f64 * 0.618_033_988_749_895).fract();
+        for i in 0..k {
+            let n = (i + 1) as f64;
+            let mut x = (s1 + tshift + n * a1).fract();
+            let mut y = (s2 + tshift * 0.5 + n * a2).fract();
+            if x + y > 1.0 {
+                x = 1.0 - x;
+                y = 1.0 - y;
+            }
+            out.push(Sample {
+                triangle: t as u32,
+                u: x as f32,
+                v: y as f32,
+            });
+        }
+    }
+    out
+}
+
+/// Result of the tangent-field solve.
+#[derive(Debug, Clone)]
+pub struct TangentField {
+    /// Unit face directions, signs aligned.
+    pub faces: Vec<Vec3>,
+    pub cg_iterations: usize,
+    pub relative_residual: f64,
+    pub constrained_faces: usize,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct C64 {
+    re: f64,
+    im: f64,
+}
+
+impl C64 {
+    fn mul(self, o: C64) -> C64 {
+        C64 {
+            re: self.re * o.re - self.im * o.im,
+            im: self.re * o.im + self.im * o.re,
+        }
+    }
+    fn conj(self) -> C64 {
+        C64 {
+            re: self.re,
+            im: -self.im,
+        }
+    }
+    fn from_angle(a: f64) -> C64 {
+        C64 {
+            re: a.cos(),
+            im: a.sin(),
+        }
+    }
+}
+
+fn face_frame(mesh: &Mesh, t: &[u32; 3]) -> (Vec3, Vec3, Vec3) {
+    let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+    let n = (b - a).cross(c - a).try_normalize().unwrap_or(Vec3::Z);
+    let e1 = (b - a - n * n.dot(b - a))
+        .try_normalize()
+        .unwrap_or_else(|| n.any_orthonormal_vector());
+    let e2 = n.cross(e1);
+    (e1, e2, n)
+}
+
+/// Face adjacency through manifold edges: per face, (neighbour, shared edge vertices).
+fn face_adjacency(mesh: &Mesh) -> Vec<Vec<(u32, [u32; 2])>> {
+    let mut edges: Vec<([u32; 2], u32)> = Vec::with_capacity(mesh.triangles.len() * 3);
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            edges.push(([a.min(b), a.max(b)], f as u32));
+        }
+    }
+    edges.sort_unstable();
+    let mut adj = vec![Vec::new(); mesh.triangles.len()];
+    let mut i = 0;
+    while i < edges.len() {
+        let mut j = i + 1;
+        while j < edges.len() && edges[j].0 == edges[i].0 {
+            j += 1;
+        }
+        if j - i == 2 {
+            let (e, f, g) = (edges[i].0, edges[i].1, edges[i + 1].1);
+            if f != g {
+                adj[f as usize].push((g, e));
+                adj[g as usize].push((f, e));
+            }
+        }
+        i = j;
+    }
+    adj
+}
+
+/// The smoothest degree-2 face field with one constraint per connected piece.
+pub fn tangent_field(mesh: &Mesh, max_iterations: usize) -> TangentField {
+    let nf = mesh.triangles.len();
+    let frames: Vec<(Vec3, Vec3, Vec3)> =
+        mesh.triangles.iter().map(|t| face_frame(mesh, t)).collect();
+    let adj = face_adjacency(mesh);
+    // Transport r_{g->f} for each adjacency entry of f: z_f ~ r z_g.
+    let angle = |f: usize, e: Vec3| -> f64 {
+        let (e1, e2, _) = frames[f];
+        (e.dot(e2) as f64).atan2(e.dot(e1) as f64)
+    };
+    let trans: Vec<Vec<(u32, C64)>> = (0..nf)
+        .map(|f| {
+            adj[f]
+                .iter()
+                .map(|&(g, [a, b])| {
+                    let e = mesh.positions[b as usize] - mesh.positions[a as usize];
+                    let (tf, tg) = (angle(f, e), angle(g as usize, e));
+                    (g, C64::from_angle(2.0 * (tf - tg)))
+                })
+                .collect()
+        })
+        .collect();
+    // Pieces and their constrained first faces.
+    let mut piece = vec![u32::MAX; nf];
+    let mut roots = Vec::new();
+    for s in 0..nf {
+        if piece[s] != u32::MAX {
+            continue;
+        }
+        roots.push(s);
+        piece[s] = s as u32;
+        let mut q = VecDeque::from([s]);
+        while let Some(f) = q.pop_front() {
+            for &(g, _) in &adj[f] {
+                if piece[g as usize] == u32::MAX {
+                    piece[g as usize] = s as u32;
+                    q.push_back(g as usize);
+                }
+            }
+        }
+    }
+    let mut fixed = vec![false; nf];
+    let mut z = vec![C64::default(); nf];
+    for &r in &roots {
+        fixed[r] = true;
+        z[r] = C64 { re: 1.0, im: 0.0 };
+    }
+    // A z over free faces: (Az)_f = deg_f z_f - sum r_{g->f} z_g (fixed z_g moved to the right side).
+    let apply = |x: &[C64], out: &mut [C64], include_fixed: bool| {
+        for f in 0..nf {
+            if fixed[f] {
+                out[f] = C64::default();
+                continue;
+            }
+            let mut acc = C64 {
+                re: trans[f].len() as f64 * x[f].re,
+                im: trans[f].len() as f64 * x[f].im,
+            };
+            for &(g, r) in &trans[f] {
+                if fixed[g as usize] != include_fixed {
+                    continue;
+                }
+                let v = r.mul(x[g as usize]);
+                acc.re -= v.re;
+                acc.im -= v.im;
+            }
+            out[f] = acc;
+        }
+    };
+    let dot = |a: &[C64], b: &[C64]| -> C64 {
+        // <a, b> = sum conj(a) b
+        let mut s = C64::default();
+        for (x, y) in a.iter().zip(b) {
+            let v = x.conj().mul(*y);
+            s.re += v.re;
+            s.im += v.im;
+        }
+        s
+    };
+    // Right side: b_f = sum over fixed neighbours r z_g.
+    let mut bvec = vec![C64::default(); nf];
+    for f in 0..nf {
+        if fixed[f] {
+            continue;
+        }
+        for &(g, r) in &trans[f] {
+            if fixed[g as usize] {
+                let v = r.mul(z[g as usize]);
+                bvec[f].re += v.re;
+                bvec[f].im += v.im;
+            }
+        }
+    }
+    // Conjugate gradients from x = 0 on the free unknowns (fixed entries held at 0 in x).
+    let mut x = vec![C64::default(); nf];
+    let mut r = bvec.clone();
+    let mut p = r.clone();
+    let mut ap = vec![C64::default(); nf];
+    let bnorm = dot(&bvec, &bvec).re.sqrt();
+    let mut rr = dot(&r, &r).re;
+    let mut it = 0;
+    let tol = 1e-10 * bnorm.max(f64::MIN_POSITIVE);
+    // Faces with no neighbours and not fixed have a zero row: skip them via deg = 0 (they stay 0).
+    while it < max_iterations && rr.sqrt() > tol {
+        apply(&p, &mut ap, false);
+        let pap = dot(&p, &ap).re;
+        if !(pap > 0.0) {
+            break;
+        }
+        let alpha = rr / pap;
+        for f in 0..nf {
+            x[f].re += alpha * p[f].re;
+            x[f].im += alpha * p[f].im;
+            r[f].re -= alpha * ap[f].re;
+            r[f].im -= alpha * ap[f].im;
+        }
+        let rr_new = dot(&r, &r).re;
+        let beta = rr_new / rr;
+        for f in 0..nf {
+            p[f].re = r[f].re + beta * p[f].re;
+            p[f].im = r[f].im + beta * p[f].im;
+        }
+        rr = rr_new;
+        it += 1;
+    }
+    let _ = &apply;
+    for f in 0..nf {
+        if !fixed[f] {
+            z[f] = x[f];
+        }
+    }
+    // Directions and breadth-first sign alignment.
+    let mut dirs: Vec<Vec3> = (0..nf)
+        .map(|f| {
+            let (e1, e2, _) = frames[f];
+            let phi = 0.5 * z[f].im.atan2(z[f].re);
+            (e1 * phi.cos() as f32 + e2 * phi.sin() as f32).normalize_or(e1)
+        })
+        .collect();
+    let mut seen = vec![false; nf];
+    for &s in &roots {
+        seen[s] = true;
+        let mut q = VecDeque::from([s]);
+        while let Some(f) = q.pop_front() {
+            for &(g, _) in &adj[f] {
+                let g = g as usize;
+                if !seen[g] {
+                    seen[g] = true;
+                    if dirs[g].dot(dirs[f]) < 0.0 {
+                        dirs[g] = -dirs[g];
+                    }
+                    q.push_back(g);
+                }
+            }
+        }
+    }
+    TangentField {
+        faces: dirs,
+        cg_iterations: it,
+        relative_residual: rr.sqrt() / bnorm.max(f64::MIN_POSITIVE),
+        constrained_faces: roots.len(),
+    }
+}
+
+/// Per-part root counts and areas, for metrics.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PartRoots {
+    pub roots: usize,
+    pub area_cm2: f64,
+    pub density_per_cm2: f64,
+}
+
+/// Inputs of [`build_roots`] besides the mesh.
+pub struct RootSettings {
+    pub s_cm: f32,
+    /// Per part index: roots per cm^2 (0 for non-fur).
+    pub density: Vec<f32>,
+    /// Per part index: length and width in scene units.
+    pub length: Vec<f32>,
+    pub width: Vec<f32>,
+    pub max_roots: usize,
+    pub seed: u64,
+    pub cg_iterations: usize,
+}
+
+/// Everything [`build_roots`] reports besides the roots.
+#[derive(Debug, Clone, Serialize)]
+pub struct RootReport {
+    pub total: usize,
+    pub density_scale: f64,
+    pub parts: BTreeMap<String, PartRoots>,
+    pub cg_iterations: usize,
+    pub cg_relative_residual: f64,
+    pub constrained_faces: usize,
+    pub face_direction_fallbacks: usize,
+}
+
+/// Samples roots and their frames on `mesh`; `vertex_rho` is per vertex in [0, 1].
+pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots, RootReport) {
+    let tparts = triangle_parts(mesh);
+    let s2 = (s.s_cm as f64).powi(2);
+    let mut expected: Vec<f64> = mesh
+        .triangles
+        .iter()
+        .zip(&tparts)
+        .map(|(t, &p)| {
+            s.density.get(p as usize).copied().unwrap_or(0.0) as f64 * tri_area(mesh, t) as f64 * s2
+        })
+        .collect();
+    let total: f64 = expected.iter().sum();
+    let scale = if total > s.max_roots as f64 && total > 0.0 {
+        s.max_roots as f64 / total
+    } else {
+        1.0
+    };
+    for e in expected.iter_mut() {
+        *e *= scale;
+    }
+    let samples = sample_triangles(&expected, s.seed);
+    let field = tangent_field(mesh, s.cg_iterations);
+    // Per-vertex area-weighted sum of aligned face directions.
+    let mut vdir = vec![Vec3::ZERO; mesh.positions.len()];
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        let a = tri_area(mesh, t);
+        for &i in t {
+            vdir[i as usize] += field.faces[f] * a;
+        }
+    }
+    let normals = if mesh.normals.len() == mesh.positions.len() {
+        mesh.normals.clone()
+    } else {
+        let mut m = mesh.clone();
+        m.recompute_normals();
+        m.normals
+    };
+    let mut roots = Roots {
+        part_names: mesh.part_names.clone(),
+        s_cm: s.s_cm,
+        ..Roots::default()
+    };
+    let mut fallbacks = 0usize;
+    for smp in &samples {
+        let f = smp.triangle as usize;
+        let t = mesh.triangles[f];
+        let w = [1.0 - smp.u - smp.v, smp.u, smp.v];
+        let mut pos = Vec3::ZERO;
+        let mut nrm = Vec3::ZERO;
+        let mut tan = Vec3::ZERO;
+        let mut rho = 0.0;
+        for k in 0..3 {
+            let i = t[k] as usize;
+            pos += mesh.positions[i] * w[k];
+            nrm += normals[i] * w[k];
+            tan += vdir[i] * w[k];
+            rho += vertex_rho.get(i).copied().unwrap_or(0.0) * w[k];
+        }
+        let (_, _, fnrm) = face_frame(mesh, &t);
+        let n = nrm.try_normalize().unwrap_or(fnrm);
+        let project = |v: Vec3| (v - n * n.dot(v)).try_normalize();
+        let face_dir = field.faces[f];
+        let tangent = match project(tan) {
+            Some(tv) if tan.length() > 1e-3 * vdir_scale(&vdir, &t) => tv,
+            _ => {
+                fallbacks += 1;
+                project(face_dir).unwrap_or_else(|| n.any_orthonormal_vector())
+            }
+        };
+        let p = tparts[f];
+        roots.positions.push(pos);
+        roots.normals.push(n);
+        roots.tangents.push(tangent);
+        roots.bitangents.push(n.cross(tangent));
+        roots.part.push(p);
+        roots
+            .length
+            .push(s.length.get(p as usize).copied().unwrap_or(0.0));
+        roots
+            .width
+            .push(s.width.get(p as usize).copied().unwrap_or(0.0));
+        roots.rho.push(rho.clamp(0.0, 1.0));
+    }
+    let mut parts: BTreeMap<String, PartRoots> = BTreeMap::new();
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        let name = mesh
+            .part_names
+            .get(tparts[f] as usize)
+            .cloned()
+            .unwrap_or_default();
+        parts.entry(name).or_default().area_cm2 += tri_area(mesh, t) as f64 * s2;
+    }
+    for &p in &roots.part {
+        let name = mesh.part_names.get(p as usize).cloned().unwrap_or_default();
+        parts.entry(name).or_default().roots += 1;
+    }
+    for v in parts.values_mut() {
+        v.density_per_cm2 = if v.area_cm2 > 0.0 {
+            v.roots as f64 / v.area_cm2
+        } else {
+            0.0
+        };
+    }
+    let report = RootReport {
+        total: roots.len(),
+        density_scale: scale,
+        parts,
+        cg_iterations: field.cg_iterations,
+        cg_relative_residual: field.relative_residual,
+        constrained_faces: field.constrained_faces,
+        face_direction_fallbacks: fallbacks,
+    };
+    (roots, report)
+}
+
+fn vdir_scale(vdir: &[Vec3], t: &[u32; 3]) -> f32 {
+    t.iter()
+        .map(|&i| vdir[i as usize].length())
+        .fold(0.0, f32::max)
+}
+
+/// The `roots` stage.
+pub struct RootsStage;
+
+impl Stage for RootsStage {
+    fn kind(&self) -> &'static str {
+        "roots"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "Strand roots on M_root: per-part densities (deterministic stratified sampling), part length and \
+         width, normalised shell width rho, and frames from a smooth degree-2 tangent field (one constraint, \
+         BFS sign alignment)."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        vec![
+            ParamSpec::table("density", "per-part roots per cm^2 (fur parts not listed use default_density; non-fur parts get none)"),
+            ParamSpec::float("default_density", 4.0, "roots per cm^2 of fur parts not in `density`").min(0.0),
+            ParamSpec::int("max_roots", 100_000, "cap on the number of roots (all densities scaled down together)").range(1.0, 1e8),
+            ParamSpec::int("seed", 0, "sampling seed").min(0.0),
+            ParamSpec::int("cg_iterations", 20_000, "iteration cap of the tangent-field solve").range(1.0, 1e7),
+            ParamSpec::str_list("protected_parts", DEFAULT_PROTECTED, "non-fur part names (no roots), case-insensitive"),
+        ]
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![
+            PortSpec::file(
+                "root_mesh",
+                "obj",
+                "M_root with part groups (stage `defur`)",
+            ),
+            PortSpec::file(
+                "lengths",
+                "json",
+                "per-part lengths and widths (stage `lengths`)",
+            ),
+            PortSpec::file("shell", "json", "Frosting shell widths, for rho"),
+        ]
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![
+            PortSpec::file("roots", "json", "the roots (fure_stages::rootset::Roots)"),
+            PortSpec::file(
+                "metrics",
+                "json",
+                "counts and densities per part, tangent-field solve figures",
+            ),
+        ]
+    }
+    fn validate(&self, params: &Params) -> Result<(), StageError> {
+        number_table(params, "density")?;
+        Ok(())
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        let p = ctx.params;
+        let t0 = Instant::now();
+        let mesh = read_mesh(ctx, "root_mesh")?;
+        if mesh.part.len() != mesh.positions.len() {
+            return Err(StageError::input(
+                "root_mesh",
+                ctx.input("root_mesh")?,
+                "part labels do not match the vertices",
+            ));
+        }
+        let lengths_path = ctx.input("lengths")?;
+        let table: LengthTable = read_json(lengths_path)?;
+        if !(table.s_cm.is_finite() && table.s_cm > 0.0) {
+            return Err(StageError::input(
+                "lengths",
+                lengths_path,
+                format!("s_cm = {} is not positive", table.s_cm),
+            ));
+        }
+        let shell_path = ctx.input("shell")?;
+        let shell: ShellWidths = read_json(shell_path)?;
+        if shell.positions.is_empty() || shell.widths.len() != shell.positions.len() {
+            return Err(StageError::input(
+                "shell",
+                shell_path,
+                "need one width per shell position (and at least one)",
+            ));
+        }
+        let names = p.str_list("protected_parts")?;
+        let prot = protected_parts(&mesh.part_names, &names);
+        let densities = number_table(p, "density")?;
+        let default_density = p.f32("default_density")?;
+        let mut density = Vec::new();
+        let mut length = Vec::new();
+        let mut width = Vec::new();
+        for (i, name) in mesh.part_names.iter().enumerate() {
+            let entry = table.parts.get(name).ok_or_else(|| {
+                StageError::input(
+                    "lengths",
+                    lengths_path,
+                    format!(
+                        "no entry for part `{name}` of the root mesh (parts listed: {})",
+                        table.parts.keys().cloned().collect::<Vec<_>>().join(", ")
+                    ),
+                )
+            })?;
+            let fur = entry.fur && !prot[i] && entry.length > 0.0;
+            density.push(if fur {
+                densities.get(name).copied().unwrap_or(default_density)
+            } else {
+                0.0
+            });
+            length.push(if fur { entry.length } else { 0.0 });
+            width.push(if fur { entry.width } else { 0.0 });
+        }
+        let unknown: Vec<&String> = densities
+            .keys()
+            .filter(|k| !mesh.part_names.contains(k))
+            .collect();
+        if !unknown.is_empty() {
+            ctx.progress
+                .note(&format!("density: no part named {unknown:?} in the mesh"));
+        }
+        // rho per vertex.
+        let index = PointIndex::new(&shell.positions)
+            .map_err(|e| StageError::input("shell", shell_path, e))?;
+        let w = raw_widths(&shell, &index, &mesh.positions);
+        let norm = percentile(&shell.widths, 97.5).unwrap_or(0.0);
+        let vertex_rho: Vec<f32> = w
+            .iter()
+            .map(|&x| {
+                if norm > 0.0 {
+                    (x / norm).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        ctx.progress
+            .message("sampling roots and solving the tangent field");
+        let (roots, report) = build_roots(
+            &mesh,
+            &vertex_rho,
+            &RootSettings {
+                s_cm: table.s_cm,
+                density,
+                length,
+                width,
+                max_roots: p.usize("max_roots")?,
+                seed: p.u64("seed")?,
+                cg_iterations: p.usize("cg_iterations")?,
+            },
+        );
+        ensure_finite(
+            "roots",
+            roots
+                .positions
+                .iter()
+                .chain(&roots.normals)
+                .chain(&roots.tangents)
+                .chain(&roots.bitangents)
+                .flat_map(|v| v.to_array())
+                .chain(roots.length.iter().copied())
+                .chain(roots.rho.iter().copied()),
+        )?;
+        if roots.is_empty() {
+            ctx.progress
+                .note("no roots: every part has zero density or zero length");
+        }
+        ctx.progress.note(&format!(
+            "{} roots; tangent field: {} CG iterations, residual {:.2e}",
+            report.total, report.cg_iterations, report.cg_relative_residual
+        ));
+        write_json(ctx.output("roots")?, &roots)?;
+        let mut m = serde_json::to_value(&report).map_err(StageError::failed)?;
+        if let Some(o) = m.as_object_mut() {
+            o.insert("seconds".into(), t0.elapsed().as_secs_f64().into());
+            o.insert("rho_normaliser".into(), norm.into());
+        }
+        write_json(ctx.output("metrics")?, &m)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::defur::tests::icosphere;
+
+    #[test]
+    fn sampling_is_exact_stratified_and_deterministic() {
+        let expected = vec![0.3, 1.7, 0.0, 2.5, 0.5];
+        let a = sample_triangles(&expected, 3);
+        assert_eq!(a, sample_triangles(&expected, 3));
+        assert_eq!(a.len(), 5); // total 5.0
+        for t in 0..5u32 {
+            let k = a.iter().filter(|s| s.triangle == t).count() as f64;
+            assert!((k - expected[t as usize]).abs() < 1.0, "triangle {t}: {k}");
+        }
+        assert!(a
+            .iter()
+            .all(|s| s.u >= 0.0 && s.v >= 0.0 && s.u + s.v <= 1.0));
+        assert_ne!(a, sample_triangles(&expected, 4));
+    }
+
+    #[test]
+    fn roots_have_orthonormal_frames_and_follow_densities() {
+        let mesh = icosphere(10.0, 3, 0.8); // part 1 ("eyes") is a cap
+        let rho = vec![0.5; mesh.positions.len()];
+        let s = RootSettings {
+            s_cm: 1.0,
+            density: vec![2.0, 0.0],
+            length: vec![3.0, 0.0],
+            width: vec![0.05, 0.0],
+            max_roots: 1_000_000,
+            seed: 1,
+            cg_iterations: 20_000,
+        };
+        let (roots, rep) = build_roots(&mesh, &rho, &s);
+        let area = rep.parts["torso"].area_cm2;
+        assert!(
+            ((roots.len() as f64) - 2.0 * area).abs() <= 1.0,
+            "{} vs {}",
+            roots.len(),
+            2.0 * area
+        );
+        assert!(rep.cg_relative_residual < 1e-6, "{rep:?}");
+        for i in 0..roots.len() {
+            assert_eq!(roots.part[i], 0, "no roots on the protected cap");
+            let (t, b, n) = (roots.tangents[i], roots.bitangents[i], roots.normals[i]);
+            assert!((t.length() - 1.0).abs() < 1e-4 && (n.length() - 1.0).abs() < 1e-4);
+            assert!(t.dot(n).abs() < 1e-4 && (b - n.cross(t)).length() < 1e-5);
+            assert!((roots.positions[i].length() - 10.0).abs() < 0.2);
+            assert_eq!(roots.length[i], 3.0);
+        }
+        // Capped totals.
+        let (capped, rep) = build_roots(
+            &mesh,
+            &rho,
+            &RootSettings {
+                max_roots: 100,
+                ..s
+            },
+        );
+        assert_eq!(capped.len(), 100);
+        assert!(rep.density_scale < 1.0);
+    }
+
+    #[test]
+    fn tangent_field_is_smooth_on_a_flat_patch() {
+        // On a flat grid the smoothest field with one constraint is constant.
+        let n = 8;
+        let mut positions = Vec::new();
+        for j in 0..=n {
+            for i in 0..=n {
+                positions.push(Vec3::new(i as f32, j as f32, 0.0));
+            }
+        }
+        let mut triangles = Vec::new();
+        for j in 0..n as u32 {
+            for i in 0..n as u32 {
+                let a = j * (n as u32 + 1) + i;
+                let (b, c, d) = (a + 1, a + n as u32 + 1, a + n as u32 + 2);
+                triangles.push([a, b, d]);
+                triangles.push([a, d, c]);
+            }
+        }
+        let mesh = Mesh {
+            part: vec![0; positions.len()],
+            positions,
+            triangles,
+            ..Mesh::default()
+        };
+        let field = tangent_field(&mesh, 10_000);
+        let d0 = field.faces[0];
+        // Face 0's constraint is its first edge, +x.
+        assert!((d0 - Vec3::X).length() < 1e-5, "{d0}");
+        for d in &field.faces {
+            assert!(d.dot(d0) > 0.9999, "{d}");
+        }
+    }
+}

@@ -1020,4 +1020,4 @@ impl Stage for DefurStage {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
