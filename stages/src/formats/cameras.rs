@@ -35,6 +35,9 @@
 //! Foreground masks live next to the images as `<stem>_mask.png` ([`mask_path`]); captures that
 //! keep the mask in the image's alpha channel work too ([`read_view`]).
 //!
+//! Written `file_path`s keep their extension, as instant-ngp, nerfstudio and NeuS2 expect (the
+//! original NeRF code's Blender loader, which appends `.png` itself, would not read them).
+//!
 //! Writing puts intrinsics at the top level when every camera of a file shares them (and then also
 //! `camera_angle_x`/`camera_angle_y`, which Blender-NeRF-style loaders require), otherwise in every
 //! frame. Both `transforms.json` and `transforms_test.json` are always written (an empty `frames`
