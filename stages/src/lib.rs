@@ -43,6 +43,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     #[allow(unused_mut)]
     let mut stages: Vec<Box<dyn Stage>> = Vec::new();
     // Each stage module adds its stages here, one line each.
+    stages.push(Box::new(charts::SpeedAccuracy));
     stages.push(Box::new(orientation::OrientationMaps));
     stages.push(Box::new(parts::PartsStage));
     stages.push(Box::new(frosting::FrostingStage));
