@@ -322,27 +322,54 @@ impl ImageLosses {
     }
 }
 
-/// Reads the orientation angle and confidence maps of a view.
+/// Reads the orientation angle and confidence maps of a view:
+/// `<image path without extension>_orient.exr` and `_conf.exr` (the
+/// `orientation_maps` stage's naming). Maps computed on a downscaled image
+/// (an integer factor) are upsampled by pixel replication to the view's size.
 fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
-    let name = Path::new(&cam.file_path)
-        .file_stem()
-        .map(|s| s.to_string_lossy().to_string())
-        .unwrap_or_default();
-    let o = formats::images::read_exr(dir.join(format!("{name}_orient.exr")))?;
-    let c = formats::images::read_exr(dir.join(format!("{name}_conf.exr")))?;
-    let (o, mut c) = (first_channel(o), first_channel(c));
-    if (o.width, o.height) != (cam.width, cam.height)
-        || (c.width, c.height) != (cam.width, cam.height)
-    {
+    let rel = &cam.file_path;
+    let stem = match Path::new(rel).extension() {
+        Some(ext) => &rel[..rel.len() - ext.len() - 1],
+        None => rel.as_str(),
+    };
+    let opath = dir.join(format!("{stem}_orient.exr"));
+    let o = first_channel(formats::images::read_exr(&opath)?);
+    let c = first_channel(formats::images::read_exr(
+        dir.join(format!("{stem}_conf.exr")),
+    )?);
+    let (w, h) = (cam.width, cam.height);
+    let fits = |m: &ImageF32| {
+        m.width > 0
+            && m.height > 0
+            && w % m.width == 0
+            && h % m.height == 0
+            && w / m.width == h / m.height
+    };
+    if !fits(&o) || (c.width, c.height) != (o.width, o.height) {
         return Err(StageError::input(
             "orientation",
-            dir,
+            &opath,
             format!(
-                "maps of {name} are {}x{} / {}x{}, the camera is {}x{}",
-                o.width, o.height, c.width, c.height, cam.width, cam.height
+                "maps are {}x{} (orientation) and {}x{} (confidence); the camera is {w}x{h}, \
+                 expected equal sizes that divide it by an integer factor",
+                o.width, o.height, c.width, c.height
             ),
         ));
     }
+    let up = |m: ImageF32| -> ImageF32 {
+        let f = w / m.width;
+        if f == 1 {
+            return m;
+        }
+        let mut out = ImageF32::new(w, h, 1);
+        for y in 0..h {
+            for x in 0..w {
+                out.data[(y * w + x) as usize] = m.data[((y / f) * m.width + x / f) as usize];
+            }
+        }
+        out
+    };
+    let (o, mut c) = (up(o), up(c));
     normalise_confidence(&mut c);
     Ok((o, c))
 }
