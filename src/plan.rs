@@ -103,6 +103,22 @@ pub struct Plan {
     pub stages: Vec<PlannedStage>,
 }
 
+impl std::fmt::Debug for Plan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Plan")
+            .field("name", &self.name)
+            .field(
+                "stages",
+                &self
+                    .stages
+                    .iter()
+                    .map(|s| (&s.name, &s.kind))
+                    .collect::<Vec<_>>(),
+            )
+            .finish()
+    }
+}
+
 impl Plan {
     pub fn index_of(&self, name: &str) -> Option<usize> {
         self.stages.iter().position(|s| s.name == name)

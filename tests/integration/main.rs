@@ -1,0 +1,4 @@
+//! The one integration-test binary of fure: each area adds a module here.
+//! Tests drive the built `fure` binary on temporary directories.
+
+mod engine;
