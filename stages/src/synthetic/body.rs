@@ -92,6 +92,16 @@ fn smin(a: f32, b: f32, k: f32) -> f32 {
 }
 
 impl Prim {
+    /// A lower bound of [`Prim::sdf`] from the bounding sphere (scaled like a squashed shape).
+    #[inline]
+    fn lower_bound(&self, p: Vec3) -> f32 {
+        let l = (p - self.centre).length() - self.bound;
+        match self.squash {
+            Some((_, f, _)) if l > 0.0 => l * f.min(1.0),
+            _ => l,
+        }
+    }
+
     pub fn sdf(&self, p: Vec3) -> f32 {
         let (q, scale) = match self.squash {
             Some((axis, f, c)) => {
@@ -157,11 +167,19 @@ impl Body {
     }
 
     /// Signed distance (negative inside).
+    ///
+    /// A primitive whose bounding-sphere lower bound is at least `d + blend` (with `d` the union
+    /// so far) is skipped: there its smooth-min term is exactly zero, so skipping changes nothing.
     pub fn sdf(&self, p: Vec3) -> f32 {
-        let mut d = f32::INFINITY;
-        for (i, pr) in self.prims.iter().enumerate() {
-            let di = pr.sdf(p);
-            d = if i == 0 { di } else { smin(d, di, pr.blend) };
+        let Some(first) = self.prims.first() else {
+            return f32::INFINITY;
+        };
+        let mut d = first.sdf(p);
+        for pr in &self.prims[1..] {
+            if pr.lower_bound(p) >= d + pr.blend.max(0.0) {
+                continue;
+            }
+            d = smin(d, pr.sdf(p), pr.blend);
         }
         d
     }
@@ -185,6 +203,9 @@ impl Body {
     pub fn label(&self, p: Vec3) -> u16 {
         let mut best = (f32::INFINITY, 0u16);
         for pr in &self.prims {
+            if pr.lower_bound(p) >= best.0 {
+                continue;
+            }
             let d = pr.sdf(p);
             if d < best.0 {
                 best = (d, pr.part);
