@@ -47,7 +47,9 @@
 //!   `20 log10(1 / sqrt(MSE))`); identical images give infinity (the stage clamps to 100 dB).
 //! - SSIM: Wang et al. with an 11x11 Gaussian window (sigma 1.5, normalised), `C1 = 0.01^2`,
 //!   `C2 = 0.03^2`, per channel, averaged over the "valid" window positions (no padding) and channels.
-//! - The stage composites RGBA images over `background` (default black) and compares RGB; rendered view
+//! - The stage composites RGBA images over `background` (default black, the learning stages' render
+//!   background) and compares RGB; ground-truth views are read with `formats::cameras::read_view` (colour
+//!   plus the mask from `_mask.png` or alpha, which is composited the same way); rendered view
 //!   `i` (the sorted PNG files of `renders/test/`, or of `renders/` when it has no `test/` folder) is
 //!   compared with held-out camera `i` of `views/transforms_test.json`. PSNR and SSIM are means over views.
 //!   LPIPS is not computed: it needs pretrained network weights that cannot be fetched here.
@@ -761,8 +763,18 @@ fn image_metrics(
     let mut ss = Vec::new();
     for (f, cam) in files.iter().zip(&cams.test) {
         let r = to_rgb(&crate::formats::images::read_png(f)?, bg);
-        let gpath = views.join(&cam.file_path);
-        let g = to_rgb(&crate::formats::images::read_png(&gpath)?, bg);
+        let gv = crate::formats::cameras::read_view(views, cam)?;
+        let g = match &gv.mask {
+            Some(m) => {
+                let mut rgba = ImageF32::new(gv.rgb.width, gv.rgb.height, 4);
+                for i in 0..(gv.rgb.width * gv.rgb.height) as usize {
+                    rgba.data[i * 4..i * 4 + 3].copy_from_slice(&gv.rgb.data[i * 3..i * 3 + 3]);
+                    rgba.data[i * 4 + 3] = m.data[i];
+                }
+                to_rgb(&rgba, bg)
+            }
+            None => to_rgb(&gv.rgb, bg),
+        };
         let p = psnr(&r, &g).map_err(|e| StageError::input("renders", f, e))?;
         ps.push(p.min(PSNR_CAP_DB) as f64);
         ss.push(ssim(&r, &g).map_err(|e| StageError::input("renders", f, e))? as f64);
@@ -1224,5 +1236,161 @@ mod tests {
         im.data.copy_from_slice(&[1.0, 0.0, 0.0, 0.25]);
         let rgb = to_rgb(&im, [0.0, 0.0, 1.0]);
         assert_eq!(rgb.data, vec![0.25, 0.0, 0.75]);
+    }
+
+    /// Runs a stage with default parameters on `inputs`, writing into `out`.
+    pub(crate) fn run_stage(
+        st: &dyn Stage,
+        inputs: &[(&str, PathBuf)],
+        out: &Path,
+    ) -> Result<BTreeMap<String, PathBuf>, StageError> {
+        let mut params = Params::default();
+        for spec in st.params() {
+            if let Some(d) = spec.default.clone() {
+                params.0.insert(spec.name.to_string(), d);
+            }
+        }
+        std::fs::create_dir_all(out).unwrap();
+        let outputs: BTreeMap<String, PathBuf> = st
+            .outputs(&params)
+            .iter()
+            .map(|p| {
+                let path = out.join(p.file_name());
+                if p.kind == fure_stage_api::PortKind::Dir {
+                    std::fs::create_dir_all(&path).unwrap();
+                }
+                (p.name.clone(), path)
+            })
+            .collect();
+        let ctx = StageContext {
+            name: "test",
+            params: &params,
+            inputs: inputs
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.clone()))
+                .collect(),
+            outputs: outputs.clone(),
+            progress: &fure_stage_api::NoProgress,
+        };
+        st.run(&ctx)?;
+        Ok(outputs)
+    }
+
+    #[test]
+    fn stage_writes_the_issue_keys() {
+        use crate::camera::{Camera, CameraSet};
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        // Scene units of 1 cm / 100 -> s_cm = 100.
+        let mut gt = patch(5, 0.7, 3.0, 5, Vec3::ZERO);
+        for p in gt.points.iter_mut() {
+            *p /= 100.0;
+        }
+        crate::formats::hair::write_hair(root.join("gt.hair"), &gt).unwrap();
+        crate::formats::ply::write_ply_strands(root.join("pred.ply"), &gt).unwrap();
+        let scene = serde_json::json!({"s_cm": 100.0, "eyes": [[0,0,0],[1,0,0]], "parts": {}});
+        std::fs::write(root.join("scene.json"), scene.to_string()).unwrap();
+        std::fs::write(
+            root.join("train.json"),
+            r#"{"train_seconds": 12.5, "optimised_parameters": 1000, "method": "codec"}"#,
+        )
+        .unwrap();
+        // Two held-out views: the first rendered exactly, the second with a 0.1 offset.
+        let cam = |i: usize| Camera {
+            file_path: format!("test/r_{i:03}.png"),
+            c2w: glam::Mat4::IDENTITY,
+            fx: 20.0,
+            fy: 20.0,
+            cx: 12.0,
+            cy: 12.0,
+            width: 24,
+            height: 24,
+        };
+        let views = root.join("views");
+        crate::formats::cameras::write_views(
+            &views,
+            &CameraSet {
+                train: vec![],
+                test: vec![cam(0), cam(1)],
+            },
+        )
+        .unwrap();
+        let renders = root.join("renders");
+        for i in 0..2 {
+            let mut g = noise_image(24, 24, 4, i as u64);
+            g.data.chunks_mut(4).for_each(|p| p[3] = 1.0);
+            crate::formats::images::write_png(views.join(format!("test/r_{i:03}.png")), &g)
+                .unwrap();
+            if i == 1 {
+                g.data
+                    .chunks_mut(4)
+                    .for_each(|p| p[0] = (p[0] + 0.1).min(1.0));
+            }
+            crate::formats::images::write_png(renders.join(format!("test/{i:03}.png")), &g)
+                .unwrap();
+        }
+        let outs = run_stage(
+            &Evaluate,
+            &[
+                ("strands", root.join("pred.ply")),
+                ("gt_strands", root.join("gt.hair")),
+                ("gt_scene", root.join("scene.json")),
+                ("renders", renders.clone()),
+                ("views", views.clone()),
+                ("train_report", root.join("train.json")),
+            ],
+            &root.join("out"),
+        )
+        .unwrap();
+        let m: serde_json::Value = crate::formats::json::read_json(&outs["metrics"]).unwrap();
+        for k in ["2cm_20deg", "3cm_30deg", "4cm_40deg"] {
+            for key in ["prf", "prf_signed"] {
+                let e = &m[key][k];
+                assert_eq!(e["fscore"].as_f64(), Some(100.0), "{key} {k}: {m}");
+                assert_eq!(e["precision"].as_f64(), Some(100.0));
+                assert_eq!(e["recall"].as_f64(), Some(100.0));
+            }
+        }
+        assert!((m["mean_length_cm"].as_f64().unwrap() - 3.0).abs() < 1e-3);
+        assert!(m["std_length_cm"].as_f64().unwrap() < 1e-3);
+        // View 0 identical (capped at 100 dB), view 1 offset in one channel (about 25 dB): mean.
+        let psnr_v = m["psnr"].as_f64().unwrap();
+        assert!(psnr_v > 55.0 && psnr_v < 70.0, "{psnr_v}");
+        let ssim_v = m["ssim"].as_f64().unwrap();
+        assert!(ssim_v > 0.5 && ssim_v < 1.0, "{ssim_v}");
+        assert_eq!(m["train_seconds"].as_f64(), Some(12.5));
+        assert_eq!(m["optimised_parameters"].as_u64(), Some(1000));
+        assert_eq!(m["views_evaluated"].as_u64(), Some(2));
+
+        // A missing render is a clear error naming both counts.
+        std::fs::remove_file(renders.join("test/001.png")).unwrap();
+        let e = run_stage(
+            &Evaluate,
+            &[
+                ("strands", root.join("pred.ply")),
+                ("gt_strands", root.join("gt.hair")),
+                ("gt_scene", root.join("scene.json")),
+                ("renders", renders),
+                ("views", views),
+            ],
+            &root.join("out2"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("1 rendered views but 2 held-out cameras"), "{e}");
+        // Garbage strands name the file.
+        std::fs::write(root.join("bad.hair"), b"nonsense").unwrap();
+        let e = run_stage(
+            &Evaluate,
+            &[
+                ("strands", root.join("bad.hair")),
+                ("gt_strands", root.join("gt.hair")),
+                ("gt_scene", root.join("scene.json")),
+            ],
+            &root.join("out3"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("bad.hair"), "{e}");
     }
 }
