@@ -40,17 +40,20 @@
 //! 4. **Tiles** ([`raster`]): the support of a Gaussian is the ellipse
 //!    `d^T Sigma2^-1 d <= k^2`, `k^2 = min(extent_sigmas^2, 2 ln(opacity /
 //!    alpha_min))` (exactly where its alpha can reach `alpha_min`). Visible
-//!    Gaussians are sorted globally by (depth, index) -- a total order, so
-//!    ties cannot make the result depend on the sort algorithm or thread
-//!    count -- then binned into 16x16 tiles with a stable counting sort, so
-//!    every tile list is depth-sorted. Only tiles the ellipse actually
-//!    touches are listed (exact row-interval test, not just the bounding box).
-//! 5. **Compositing**: per tile (one rayon task each, fixed work), Gaussians
-//!    front to back; for each only the pixels inside its ellipse are visited
-//!    (row intervals solved analytically). `alpha = min(alpha_max, o
+//!    splats are sorted globally by (depth, index) -- a total order, so ties
+//!    cannot make the result depend on the sort algorithm or thread count --
+//!    then binned into 16x16 tiles with a stable counting sort, so every
+//!    tile list is depth-sorted. Only tiles the ellipse
+//!    actually touches are listed (per band of 16 rows, the union of the
+//!    exact row intervals, not just the bounding box).
+//! 5. **Compositing**: per tile (one rayon task each, fixed work), the
+//!    tile's splats are gathered into a local array, then processed front to
+//!    back; for each only the pixels inside its ellipse are visited (row
+//!    intervals solved from the conic). `alpha = min(alpha_max, o
 //!    exp(-0.5 d^T Sigma2^-1 d))`, skipped below `alpha_min`; a pixel stops
-//!    (the Gaussian that would take transmittance below `transmittance_min` is
-//!    not blended, as in 3DGS).
+//!    when its transmittance would drop below `transmittance_min` (that
+//!    Gaussian is not blended, as in 3DGS). Where alpha is clamped the
+//!    gradient w.r.t. opacity and shape is zero (as in 3DGS).
 //!
 //! # Outputs ([`RenderOutput`])
 //!
@@ -90,6 +93,32 @@
 //!
 //! Also here: [`losses`] (L1 + D-SSIM, silhouette, orientation, fur mask, each
 //! with its gradient) and [`adam`] (Adam with per-group learning rates).
+//!
+//! # Usage
+//!
+//! ```ignore
+//! let g = strands_to_gaussians(&s.points, &s.starts, &s.width, &s.color, true)?;
+//! let (out, state) = render(&g, &camera, &RenderSettings::default())?;
+//! let (loss, d_rgb) = losses::l1_dssim(&out.rgb, &target, None, 0.2)?;
+//! let dl = OutputGrads { rgb: Some(d_rgb), ..Default::default() };
+//! let grads = backward(&g, &camera, &RenderSettings::default(), &state, &dl)?;
+//! let sg = strands_backward(&s.points, &s.starts, &s.width, &grads)?; // d/dpoints
+//! ```
+//!
+//! # Choices where the paper and issue are vague
+//!
+//! - Thin strand sigma = `0.5 x width` ([`THIN_SIGMA_PER_WIDTH`]); strand
+//!   opacity 1 ([`STRAND_OPACITY`]; with the 0.99 clamp the centre of an
+//!   opaque strand has no opacity/shape gradient, its edges do).
+//! - Parameters are taken activated (sigmas, opacity in [0, 1]); SH colours
+//!   use the 3DGS constants and the 0.5 offset, clamped at 0.
+//! - Depth is blended, not normalised; orientation is the doubled-angle
+//!   covariance feature described above (the Gaussian Haircut code projects
+//!   the 3D direction and normalises after blending; the covariance form gives
+//!   the same angle for a thin strand and has no singularity).
+//! - Everything is f32; the finite-difference tests evaluate losses in f64.
+//! - [`render`] and [`backward`] return `Result` (bad lengths, NaN inputs,
+//!   bad cameras or settings are errors naming the array and index).
 
 pub mod adam;
 pub mod debug;
