@@ -755,12 +755,14 @@ pub fn read_zip(bytes: &[u8], path: &Path) -> Result<Vec<(String, Vec<u8>)>, Bas
                     })?;
                 dec
             }
-            m => return Err(file_err(
-                path,
-                format!(
+            m => {
+                return Err(file_err(
+                    path,
+                    format!(
                     "entry `{name}`: compression method {m}, expected 0 (stored) or 8 (deflate)"
                 ),
-            )),
+                ))
+            }
         };
         if data.len() as u64 != usize_ {
             return Err(file_err(
@@ -1554,5 +1556,27 @@ mod tests {
         assert_eq!(c.points, 21, "{c:?}");
         assert!((c.footprint.unwrap() - 0.01).abs() < 1e-6);
         assert_eq!(choose_points(None, Some(&cams)).points, 24);
+    }
+
+    #[test]
+    fn stage_writes_a_basis_that_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let outs = crate::evaluate::tests::run_stage(&StrandBasisStage, &[], &out).unwrap();
+        let b: StrandBasis = crate::formats::json::read_json(&outs["basis"]).unwrap();
+        b.validate("read back").unwrap();
+        assert_eq!(b.points, 24);
+        let m: serde_json::Value = crate::formats::json::read_json(&outs["metrics"]).unwrap();
+        assert_eq!(m["k"].as_u64(), Some(b.k() as u64));
+        assert!(m["heldout_rms_error_unit_length"].as_f64().unwrap() < 0.02);
+        assert!(m["points_rule"].as_str().unwrap().contains("default"));
+        // Same inputs, same bytes.
+        let outs2 =
+            crate::evaluate::tests::run_stage(&StrandBasisStage, &[], &dir.path().join("o2"))
+                .unwrap();
+        assert_eq!(
+            std::fs::read(&outs["basis"]).unwrap(),
+            std::fs::read(&outs2["basis"]).unwrap()
+        );
     }
 }

@@ -1007,7 +1007,7 @@ fn ensure_finite_points(what: &str, s: &Strands) -> Result<(), StageError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A patch of straight strands on a grid in the xy plane growing along +z, in cm (s_cm = 1).

@@ -604,4 +604,44 @@ mod tests {
         assert_eq!((d.width, d.height), (2, 1));
         assert_eq!(d.data, vec![2.5, 4.5]);
     }
+
+    #[test]
+    fn stage_on_an_image_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let imgs = dir.path().join("imgs");
+        std::fs::create_dir_all(&imgs).unwrap();
+        // b.png: stripes at 45 degrees with an alpha mask covering the left half; a.png: RGB stripes.
+        let mut rgba = ImageF32::new(32, 24, 4);
+        let s = stripes(32, 24, 45f32.to_radians(), 4.35);
+        for y in 0..24 {
+            for x in 0..32 {
+                let v = s.pixel(x, y)[0];
+                let a = if x < 16 { 1.0 } else { 0.0 };
+                rgba.pixel_mut(x, y).copy_from_slice(&[v, v, v, a]);
+            }
+        }
+        crate::formats::images::write_png(imgs.join("b.png"), &rgba).unwrap();
+        crate::formats::images::write_png(imgs.join("a.png"), &stripes(32, 24, 0.3, 4.35)).unwrap();
+        crate::formats::images::write_png(imgs.join("a_mask.png"), &ImageF32::new(32, 24, 1))
+            .unwrap();
+        let out = dir.path().join("out");
+        let outs =
+            crate::evaluate::tests::run_stage(&OrientationMaps, &[("images", imgs.clone())], &out)
+                .unwrap();
+        let maps = &outs["maps"];
+        let idx: MapIndex = crate::formats::json::read_json(maps.join("index.json")).unwrap();
+        let names: Vec<&str> = idx.maps.iter().map(|m| m.image.as_str()).collect();
+        assert_eq!(names, vec!["a.png", "b.png"]);
+        let o = crate::formats::images::read_exr(maps.join(&idx.maps[1].orient)).unwrap();
+        let c = crate::formats::images::read_exr(maps.join(&idx.maps[1].conf)).unwrap();
+        assert_eq!((o.width, o.height, o.channels), (32, 24, 1));
+        assert!(circ_deg(o.pixel(8, 12)[0], 45f32.to_radians()) <= 1.01);
+        assert!(c.pixel(8, 12)[0] > 0.0);
+        assert_eq!(c.pixel(24, 12)[0], 0.0, "outside the alpha mask");
+        // Neither or both inputs: a clear error.
+        let e = crate::evaluate::tests::run_stage(&OrientationMaps, &[], &dir.path().join("o2"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("exactly one"), "{e}");
+    }
 }
