@@ -805,7 +805,7 @@ mod tests {
     #[test]
     fn reports_every_problem_with_locations() {
         let e = plan_str(
-            "[stages.a]\nkind=\"k\"\nx=\"big\"\nzz=1\nmode=\"c\"\n[stages.b]\nkind=\"nope\"\n[stages.c]\nkind=\"k\"\ninputs={src=\"a.missing\", bad=\"a.out\"}\n",
+            "[stages.a]\nkind=\"k\"\nx=\"big\"\nzz=1\nmode=\"c\"\n[stages.b]\nkind=\"nope\"\n[stages.c]\nkind=\"k\"\ninputs={src=\"d.missing\", bad=\"a.out\"}\n[stages.d]\nkind=\"k\"\n",
         )
         .unwrap_err();
         let s = e.to_string();
