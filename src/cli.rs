@@ -242,7 +242,9 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             plain,
             keep_going,
         } => {
+            let t0 = std::time::Instant::now();
             let plan = load_plan(engine, pipeline, sets, until.as_deref())?;
+            let t_plan = t0.elapsed();
             let cache = open_cache(&cli.cache, Access::Shared)?;
             let opts = RunOptions {
                 jobs: jobs_or_default(*jobs)?,
@@ -265,6 +267,14 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                 write_file(path, &json)?;
             }
             print_summary(&rep, *dry_run, out);
+            if std::env::var_os("FURE_TIMING").is_some() {
+                eprintln!(
+                    "timing: load+plan {:.1} ms, run {:.1} ms, total {:.1} ms",
+                    t_plan.as_secs_f64() * 1e3,
+                    rep.seconds * 1e3,
+                    t0.elapsed().as_secs_f64() * 1e3
+                );
+            }
             Ok(if rep.ok() {
                 ExitCode::SUCCESS
             } else {
