@@ -24,6 +24,8 @@
 //!   below [`ORIENTATION_EPS`] the orientation is undefined and the
 //!   gradient is zero.
 
+#![allow(clippy::needless_range_loop)]
+
 use super::RenderError;
 use crate::image::ImageF32;
 
@@ -237,7 +239,7 @@ pub fn l1_dssim(
     }
     let (l, mut g) = l1(img, target, mask)?;
     let (s, gs) = ssim(img, target, mask)?;
-    let any = mask.map_or(true, |m| m.data.iter().any(|&v| v > 0.0));
+    let any = mask.is_none_or(|m| m.data.iter().any(|&v| v > 0.0));
     for (a, b) in g.data.iter_mut().zip(&gs.data) {
         *a = (1.0 - lambda) * *a - lambda * b;
     }

@@ -120,6 +120,9 @@
 //! - [`render`] and [`backward`] return `Result` (bad lengths, NaN inputs,
 //!   bad cameras or settings are errors naming the array and index).
 
+// `!(x > y)` is deliberate: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod adam;
 pub mod debug;
 pub mod gaussians;

@@ -6,6 +6,9 @@
 //! `t1`), `Sigma2 = T Sigma3 T^T + low_pass I = [[a, b], [b, c]]`, conic
 //! `(A, B, C) = (c, -b, a) / (a c - b^2)`.
 
+// `!(x > y)` is deliberate: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 use glam::{Mat3, Quat, Vec2, Vec3};
 
 use super::{RenderSettings, SH_C0, SH_C1};

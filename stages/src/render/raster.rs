@@ -9,6 +9,9 @@
 //! records are summed per Gaussian in instance (tile-major) order, so the
 //! result does not depend on the thread count.
 
+// `!(x > y)` is deliberate: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 

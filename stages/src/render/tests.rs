@@ -1,5 +1,7 @@
 //! Finite-difference and behaviour tests of the renderer.
 
+#![allow(clippy::needless_range_loop)]
+
 use glam::{Mat4, Quat, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -638,4 +640,57 @@ fn compositing_is_front_to_back_whatever_the_input_order() {
     // The peak sits at the projected mean.
     let (uv, _) = cam.project(Vec3::new(0.0, 0.0, 0.5));
     assert!((uv.x - 16.0).abs() < 1e-4 && (uv.y - 16.0).abs() < 1e-4);
+}
+
+#[test]
+fn bad_settings_cameras_and_gradient_images_are_errors() {
+    let cam = test_camera(16, Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO);
+    let mut g = Gaussians::default();
+    g.push(
+        Vec3::ZERO,
+        Vec3::splat(0.2),
+        Quat::IDENTITY,
+        0.5,
+        Vec3::ONE,
+        false,
+    );
+    for s in [
+        RenderSettings {
+            alpha_max: 1.0,
+            ..Default::default()
+        },
+        RenderSettings {
+            sh_degree: 2,
+            ..Default::default()
+        },
+        RenderSettings {
+            near: 0.0,
+            ..Default::default()
+        },
+    ] {
+        assert!(matches!(
+            render(&g, &cam, &s),
+            Err(RenderError::Settings(_))
+        ));
+    }
+    let mut bad_cam = cam.clone();
+    bad_cam.fx = 0.0;
+    assert!(matches!(
+        render(&g, &bad_cam, &RenderSettings::default()),
+        Err(RenderError::Camera(_))
+    ));
+    let s = RenderSettings::default();
+    let (_, st) = render(&g, &cam, &s).unwrap();
+    let dl = OutputGrads {
+        rgb: Some(ImageF32::new(16, 16, 1)),
+        ..Default::default()
+    };
+    let e = backward(&g, &cam, &s, &st, &dl).unwrap_err();
+    assert!(e.to_string().contains("rgb gradient"), "{e}");
+    let mut g2 = g.clone();
+    g2.push(Vec3::ONE, Vec3::ONE, Quat::IDENTITY, 0.5, Vec3::ONE, false);
+    assert!(backward(&g2, &cam, &s, &st, &OutputGrads::default()).is_err());
+    // No output gradient: all parameter gradients are exactly zero.
+    let gr = backward(&g, &cam, &s, &st, &OutputGrads::default()).unwrap();
+    assert!(grads_bits(&gr).iter().all(|&b| f32::from_bits(b) == 0.0));
 }
