@@ -398,6 +398,8 @@ pub struct FitSettings {
     pub lr_opacity: f32,
     pub lr_color: f32,
     pub init_depth_frac: f32,
+    /// Initial normal scale / tangential scale.
+    pub init_flatness: f32,
     pub lambda_dssim: f32,
     pub silhouette_weight: f32,
     pub prune_opacity: f32,
@@ -475,21 +477,24 @@ fn sample_surface(mesh: &Mesh, n: usize, rng: &mut ChaCha8Rng) -> Vec<(Vec3, Vec
 }
 
 /// Initial Gaussians in a band under the mesh (see the module doc).
-pub fn init_gaussians(mesh: &Mesh, n: usize, depth: f32, rgb: Vec3, seed: u64) -> Gaussians {
+pub fn init_gaussians(
+    mesh: &Mesh,
+    n: usize,
+    depth: f32,
+    flatness: f32,
+    rgb: Vec3,
+    seed: u64,
+) -> Gaussians {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let samples = sample_surface(mesh, n, &mut rng);
     let spacing = (mesh.area() / n.max(1) as f32).sqrt().max(1e-6);
     let mut g = Gaussians::default();
     for (p, nn) in samples {
         let u: f32 = rng.gen();
-        g.push(
-            p - u * depth * nn,
-            Vec3::splat(spacing),
-            Quat::IDENTITY,
-            0.5,
-            rgb,
-            true,
-        );
+        // Surface-aligned discs: local z along the normal, thin by `flatness`.
+        let rot = Quat::from_rotation_arc(Vec3::Z, nn);
+        let scale = Vec3::new(spacing, spacing, (flatness * spacing).max(1e-6));
+        g.push(p - u * depth * nn, scale, rot, 0.5, rgb, true);
     }
     g
 }
@@ -537,7 +542,14 @@ pub fn fit_gaussians(
     } else {
         Vec3::splat(0.5)
     };
-    let mut g = init_gaussians(mesh, s.gaussians, s.init_depth_frac * d, mean_rgb, s.seed);
+    let mut g = init_gaussians(
+        mesh,
+        s.gaussians,
+        s.init_depth_frac * d,
+        s.init_flatness,
+        mean_rgb,
+        s.seed,
+    );
     let n = g.len();
     let settings = RenderSettings::default();
     let mut adam = Adam::new(0.9, 0.999, 1e-15);
@@ -786,8 +798,77 @@ struct Metrics {
     fit: Option<FitReport>,
     widths: WidthStats,
     part_median_width: BTreeMap<String, f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    gt: Option<GtComparison>,
     seconds_widths: f64,
     seconds: f64,
+}
+
+/// Per-part shell widths against the synthetic ground truth (optional `gt_scene`).
+#[derive(Serialize)]
+struct GtComparison {
+    /// part -> (median width in cm, GT mean fur thickness in cm), fur parts only.
+    parts: BTreeMap<String, [f32; 2]>,
+    /// Pearson correlation of the two over fur parts.
+    pearson: f32,
+    /// Spearman rank correlation over fur parts.
+    spearman: f32,
+}
+
+fn pearson(a: &[f32], b: &[f32]) -> f32 {
+    let n = a.len().max(1) as f32;
+    let (ma, mb) = (a.iter().sum::<f32>() / n, b.iter().sum::<f32>() / n);
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        sab += (x - ma) * (y - mb);
+        saa += (x - ma) * (x - ma);
+        sbb += (y - mb) * (y - mb);
+    }
+    if saa <= 0.0 || sbb <= 0.0 {
+        0.0
+    } else {
+        sab / (saa * sbb).sqrt()
+    }
+}
+
+fn ranks(v: &[f32]) -> Vec<f32> {
+    let mut idx: Vec<usize> = (0..v.len()).collect();
+    idx.sort_by(|&i, &j| v[i].total_cmp(&v[j]).then(i.cmp(&j)));
+    let mut r = vec![0.0; v.len()];
+    let mut k = 0;
+    while k < idx.len() {
+        let mut e = k;
+        while e + 1 < idx.len() && v[idx[e + 1]] == v[idx[k]] {
+            e += 1;
+        }
+        for &i in &idx[k..=e] {
+            r[i] = (k + e) as f32 / 2.0;
+        }
+        k = e + 1;
+    }
+    r
+}
+
+fn gt_comparison(
+    scene: &crate::scene::SceneInfo,
+    medians: &BTreeMap<String, f32>,
+) -> Option<GtComparison> {
+    let mut parts = BTreeMap::new();
+    for (name, info) in &scene.parts {
+        if let (true, Some(t), Some(w)) = (info.fur, info.mean_thickness_cm, medians.get(name)) {
+            parts.insert(name.clone(), [w * scene.s_cm, t]);
+        }
+    }
+    if parts.len() < 2 {
+        return None;
+    }
+    let a: Vec<f32> = parts.values().map(|v| v[0]).collect();
+    let b: Vec<f32> = parts.values().map(|v| v[1]).collect();
+    Some(GtComparison {
+        pearson: pearson(&a, &b),
+        spearman: pearson(&ranks(&a), &ranks(&b)),
+        parts,
+    })
 }
 
 fn width_settings(p: &Params, d: f32) -> Result<WidthSettings, StageError> {
@@ -825,6 +906,7 @@ fn fit_settings(p: &Params) -> Result<FitSettings, StageError> {
         lr_opacity: p.f32("lr_opacity")?,
         lr_color: p.f32("lr_color")?,
         init_depth_frac: p.f32("init_depth_frac")?,
+        init_flatness: p.f32("init_flatness")?,
         lambda_dssim: p.f32("lambda_dssim")?,
         silhouette_weight: p.f32("silhouette_weight")?,
         prune_opacity: p.f32("prune_opacity")?,
@@ -897,6 +979,7 @@ impl Stage for FrostingStage {
             ParamSpec::float("lr_opacity", 0.05, "Adam rate of the logit-opacities").range(0.0, 10.0),
             ParamSpec::float("lr_color", 0.01, "Adam rate of the SH band-0 colours").range(0.0, 10.0),
             ParamSpec::float("init_depth_frac", 0.02, "depth of the initial band under M_outer, fraction of D").range(0.0, 1.0),
+            ParamSpec::float("init_flatness", 0.2, "initial Gaussians are surface-aligned discs: normal scale / tangential scale").range(0.01, 1.0),
             ParamSpec::float("lambda_dssim", 0.2, "D-SSIM weight of the photometric loss").range(0.0, 1.0),
             ParamSpec::float("silhouette_weight", 0.5, "weight of |alpha - mask|").range(0.0, 100.0),
             ParamSpec::float("prune_opacity", 0.005, "Gaussians below this opacity after fitting are dropped").range(0.0, 1.0),
@@ -930,6 +1013,12 @@ impl Stage for FrostingStage {
                 "imported_mesh",
                 "obj",
                 "the mesh the imported widths belong to",
+            )
+            .optional(),
+            PortSpec::file(
+                "gt_scene",
+                "json",
+                "synthetic scene.json: per-part widths vs GT fur thickness in metrics (optional)",
             )
             .optional(),
         ]
@@ -1075,16 +1164,25 @@ impl Stage for FrostingStage {
                 .count() as f32
                 / n,
         };
+        let part_median_width: BTreeMap<String, f32> = by_part
+            .iter()
+            .map(|(k, v)| (k.clone(), percentile(v, 0.5)))
+            .collect();
+        let gt = match ctx.input_opt("gt_scene") {
+            Some(p) => {
+                let sc: crate::scene::SceneInfo = crate::formats::json::read_json(p)?;
+                gt_comparison(&sc, &part_median_width)
+            }
+            None => None,
+        };
         let metrics = Metrics {
             source,
             vertices: mesh.positions.len(),
             diagonal: d,
             fit,
             widths: stats,
-            part_median_width: by_part
-                .iter()
-                .map(|(k, v)| (k.clone(), percentile(v, 0.5)))
-                .collect(),
+            part_median_width,
+            gt,
             seconds_widths,
             seconds: t0.elapsed().as_secs_f64(),
         };
@@ -1417,6 +1515,7 @@ mod tests {
             lr_opacity: 0.05,
             lr_color: 0.01,
             init_depth_frac: 0.02,
+            init_flatness: 0.2,
             lambda_dssim: 0.2,
             silhouette_weight: 0.5,
             prune_opacity: 0.005,
