@@ -54,7 +54,7 @@ fn common_params(iterations: i64) -> Vec<ParamSpec> {
             "Weight of L_ori (image-space orientation vs the Gabor maps, confidence-weighted).",
         )
         .min(0.0),
-        ParamSpec::float("l_chm", 2.0, "Weight of L_chm (strand tips toward M_outer).").min(0.0),
+        ParamSpec::float("l_chm", 0.1, "Weight of L_chm (strand tips toward M_outer).").min(0.0),
         ParamSpec::float("l_sdf", 1.0, "Weight of L_sdf (penetration of M_root).").min(0.0),
         ParamSpec::float("l_mask", 0.1, "Weight of L_mask (rendered vs given fur mask).").min(0.0),
         ParamSpec::float(
@@ -153,7 +153,7 @@ impl Stage for CodecStrands {
     fn params(&self) -> Vec<ParamSpec> {
         let mut p = common_params(300);
         p.extend([
-            ParamSpec::float("lr_encoder", 2e-3, "Adam learning rate of the encoder.").min(0.0),
+            ParamSpec::float("lr_encoder", 5e-4, "Adam learning rate of the encoder.").min(0.0),
             ParamSpec::float(
                 "lr_decoder",
                 1e-4,
@@ -994,6 +994,7 @@ mod tests {
             ("l_chm", Value::Float(0.0)),
             ("body_gaussians", Value::Int(2000)),
             ("views_per_iteration", Value::Int(2)),
+            ("lr_encoder", Value::Float(2e-3)),
         ]);
         let params = params(&stage, &over);
         let mut inputs = write_inputs(d.path());
