@@ -338,7 +338,7 @@ impl Body {
         // Quads around sign-changing edges.
         let mut triangles: Vec<[u32; 3]> = Vec::new();
         let mut emit = |c: [u32; 4], outward: Vec3, positions: &[Vec3]| {
-            if c.iter().any(|v| *v == u32::MAX) {
+            if c.contains(&u32::MAX) {
                 return;
             }
             let p = c.map(|v| positions[v as usize]);

@@ -101,9 +101,7 @@ impl Bvh {
         let mut stack = [0u32; 96];
         let mut sp = 0usize;
         let mut idx = 0u32;
-        if self.nodes[0].bb.hit(o, inv, tmax).is_none() {
-            return None;
-        }
+        self.nodes[0].bb.hit(o, inv, tmax)?;
         loop {
             let n = &self.nodes[idx as usize];
             if n.count > 0 {

@@ -50,6 +50,9 @@ pub struct FurConfig {
     pub seed: u64,
 }
 
+/// One grown strand: points, root, part, colour, height above the root's tangent plane.
+type Grown = (Vec<Vec3>, Vec3, u16, [f32; 3], f32);
+
 /// Per-part statistics of the generated fur.
 #[derive(Debug, Clone, Default)]
 pub struct PartStats {
@@ -260,7 +263,7 @@ pub fn grow(preset: &Preset, body: &Body, mesh: &Mesh, cfg: &FurConfig) -> Fur {
             }
         })
         .collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(mix(cfg.seed ^ 0x5eed_0f_f00d));
+    let mut rng = ChaCha8Rng::seed_from_u64(mix(cfg.seed ^ 0x005e_ed0f_f00d));
     let mut roots: Vec<(Vec3, u16)> = Vec::new();
     for t in &mesh.triangles {
         let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
@@ -296,7 +299,7 @@ pub fn grow(preset: &Preset, body: &Body, mesh: &Mesh, cfg: &FurConfig) -> Fur {
             roots.push((a * w[0] + b * w[1] + c * w[2], part));
         }
     }
-    let grown: Vec<(Vec<Vec3>, Vec3, u16, [f32; 3], f32)> = roots
+    let grown: Vec<Grown> = roots
         .par_iter()
         .enumerate()
         .map(|(i, &(p0, part))| grow_one(preset, body, cfg, i, p0, part))
@@ -339,14 +342,7 @@ pub fn grow(preset: &Preset, body: &Body, mesh: &Mesh, cfg: &FurConfig) -> Fur {
     }
 }
 
-fn grow_one(
-    preset: &Preset,
-    body: &Body,
-    cfg: &FurConfig,
-    i: usize,
-    p0: Vec3,
-    part: u16,
-) -> (Vec<Vec3>, Vec3, u16, [f32; 3], f32) {
+fn grow_one(preset: &Preset, body: &Body, cfg: &FurConfig, i: usize, p0: Vec3, part: u16) -> Grown {
     let (name, fp) = &preset.parts[part as usize];
     let mut rng = ChaCha8Rng::seed_from_u64(mix(cfg.seed ^ mix(i as u64 + 1)));
     // Snap the root onto the implicit surface.

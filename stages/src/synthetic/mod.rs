@@ -351,7 +351,7 @@ fn jittered(c: &Camera, st: &Settings, s_cm: f32, view: u64) -> Camera {
     if st.jitter_deg <= 0.0 && st.jitter_cm <= 0.0 {
         return c.clone();
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(mix(st.seed ^ 0x0a17_7e7 ^ mix(view)));
+    let mut rng = ChaCha8Rng::seed_from_u64(mix(st.seed ^ 0x00a1_77e7 ^ mix(view)));
     let axis = Vec3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng))
         .try_normalize()
         .unwrap_or(Vec3::Y);

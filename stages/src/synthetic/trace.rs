@@ -239,12 +239,11 @@ impl Scene {
             if n.dot(e) < 0.0 {
                 n = -n;
             }
-            let mut col = [0.0f32; 3];
-            for ch in 0..3 {
-                col[ch] = self.vcolor[idx[0]][ch] * w[0]
+            let col: [f32; 3] = std::array::from_fn(|ch| {
+                self.vcolor[idx[0]][ch] * w[0]
                     + self.vcolor[idx[1]][ch] * w[1]
-                    + self.vcolor[idx[2]][ch] * w[2];
-            }
+                    + self.vcolor[idx[2]][ch] * w[2]
+            });
             let shiny = self.shiny[idx[0]] || self.shiny[idx[1]] || self.shiny[idx[2]];
             let mut diff = AMBIENT;
             let mut spec = 0.0;
