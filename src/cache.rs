@@ -775,6 +775,16 @@ impl Cache {
                 let _ = fs::remove_file(e.path());
             }
         }
+        // Forget hints for files that are gone.
+        {
+            let mut h = self.hints.lock().unwrap_or_else(|e| e.into_inner());
+            let before = h.map.len();
+            h.map.retain(|path, _| Path::new(path).exists());
+            if h.map.len() != before {
+                h.dirty = true;
+            }
+        }
+        self.save_hints();
         rep.entries_kept = live.len();
         rep
     }

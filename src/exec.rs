@@ -943,3 +943,49 @@ pub fn materialise(cache: &Cache, m: &Manifest, dir: &Path) -> std::io::Result<(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fure_stage_api::Value;
+
+    fn entry(version: u32, x: f64, hash: &str) -> IndexEntry {
+        IndexEntry {
+            key: format!("{version}{x}{hash}"),
+            kind: "k".into(),
+            version,
+            params: BTreeMap::from([("x".to_string(), Value::Float(x))]),
+            inputs: BTreeMap::from([("src".to_string(), ("a.out".to_string(), hash.to_string()))]),
+        }
+    }
+
+    #[test]
+    fn explains_each_kind_of_change() {
+        let old = entry(1, 1.0, "h");
+        assert_eq!(explain(None, &old), "new stage");
+        assert_eq!(
+            explain(Some(&old), &entry(2, 1.0, "h")),
+            "implementation version changed from 1 to 2"
+        );
+        assert_eq!(
+            explain(Some(&old), &entry(1, 2.5, "h")),
+            "parameter x changed from 1.0 to 2.5"
+        );
+        assert_eq!(
+            explain(Some(&old), &entry(1, 1.0, "h2")),
+            "input src changed (a.out)"
+        );
+        assert_eq!(
+            explain(Some(&old), &old),
+            "no cache entry (removed by gc or verify)"
+        );
+        let mut moved = old.clone();
+        moved
+            .inputs
+            .insert("src".into(), ("b.out".into(), "h".into()));
+        assert_eq!(
+            explain(Some(&old), &moved),
+            "input src now from b.out (was a.out)"
+        );
+    }
+}
