@@ -327,7 +327,6 @@ pub fn tangent_field(mesh: &Mesh, max_iterations: usize) -> TangentField {
         rr = rr_new;
         it += 1;
     }
-    let _ = &apply;
     for f in 0..nf {
         if !fixed[f] {
             z[f] = x[f];

@@ -222,3 +222,59 @@ fn weighted_percentiles() {
     let (m, _) = weighted_mean_p95(&[1.0, 2.0, 3.0], &[1.0, 1.0, 2.0], &[true, true, false]);
     assert!((m - 1.5).abs() < 1e-9);
 }
+
+/// Diagnostic (ignored): defurs a pipeline's outer mesh with an *oracle*
+/// shell whose widths are the true outer-to-skin distances, to separate the
+/// defurring's own error from the Frosting cue's. Run with
+/// `FURE_ORACLE_DIR=<out>/<pipeline> cargo test -p fure-stages --lib oracle -- --ignored --nocapture`
+/// (expects `parts/mesh.obj`, `scene/skin.obj`, `scene/scene.json`).
+#[test]
+#[ignore]
+fn oracle_shell_on_a_pipeline_output() {
+    use crate::formats::json::read_json;
+    use crate::formats::obj::read_obj;
+    let Ok(dir) = std::env::var("FURE_ORACLE_DIR") else {
+        eprintln!("FURE_ORACLE_DIR not set: skipped");
+        return;
+    };
+    let dir = std::path::Path::new(&dir);
+    let outer = read_obj(dir.join("parts/mesh.obj")).unwrap();
+    let skin_mesh = read_obj(dir.join("scene/skin.obj")).unwrap();
+    let scene: SceneInfo = read_json(dir.join("scene/scene.json")).unwrap();
+    let skin = MeshQuery::new(&skin_mesh).unwrap();
+    let normals = vertex_normals(&outer);
+    let shell = ShellWidths {
+        positions: outer.positions.clone(),
+        normals: normals.clone(),
+        widths: distances_to(&skin, &outer),
+    };
+    let prot = protected_parts(&outer.part_names, &protected_default());
+    let res = defur(
+        &outer,
+        &shell,
+        &prot,
+        &BTreeMap::new(),
+        &DefurSettings::default(),
+    )
+    .unwrap();
+    let gt = GtComparison {
+        skin,
+        s_cm: scene.s_cm as f64,
+        thickness_cm: gt_mean_thickness_cm(&skin_mesh, &scene).unwrap(),
+        thickness_source: "scene",
+    };
+    let r = gt.measure(&res.root, &prot);
+    let o = gt.measure(&outer, &prot);
+    eprintln!(
+        "oracle shell: GT thickness {:.3} cm; outer->skin mean {:.3} cm ({:.1}%), root->skin mean {:.3} cm ({:.1}%), p95 {:.3} cm; solve {:.2} s {:?}; post-check {:?}",
+        gt.thickness_cm,
+        o.mean_cm,
+        100.0 * o.mean_frac,
+        r.mean_cm,
+        100.0 * r.mean_frac,
+        r.p95_cm,
+        res.seconds_solve,
+        res.solver.termination,
+        res.postcheck
+    );
+}
