@@ -586,6 +586,7 @@ fn note_unknown_parts(
     }
 }
 
+#[cfg(test)]
 fn protected_default() -> Vec<String> {
     DEFAULT_PROTECTED.iter().map(|s| s.to_string()).collect()
 }
