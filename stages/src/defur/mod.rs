@@ -85,23 +85,8 @@ use objective::{DefurProblem, ProblemInput};
 use postcheck::{PostCheckReport, PostCheckSettings};
 use thickness::{BoundSettings, PartCalibration, SupportSettings};
 
-/// Default protected (non-fur) part names, matched case-insensitively.
-pub const DEFAULT_PROTECTED: &[&str] = &[
-    "eyes",
-    "eye",
-    "eye_l",
-    "eye_r",
-    "left_eye",
-    "right_eye",
-    "nose",
-    "nose_tip",
-    "pads",
-    "paw_pads",
-    "horns",
-    "horn",
-    "hooves",
-    "hoof",
-];
+/// Default protected (non-fur) part names: one list, owned by `parts`.
+pub use crate::parts::DEFAULT_PROTECTED;
 
 /// Errors of the defurring library functions.
 #[derive(Debug, thiserror::Error)]
