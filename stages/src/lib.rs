@@ -42,24 +42,24 @@ use fure_stage_api::Stage;
 pub fn registry() -> Vec<Box<dyn Stage>> {
     #[allow(unused_mut)]
     let mut stages: Vec<Box<dyn Stage>> = Vec::new();
-    // Each stage module adds its stages here, one line each.
-    stages.push(Box::new(charts::SpeedAccuracy));
-    stages.push(Box::new(orientation::OrientationMaps));
-    stages.push(Box::new(parts::PartsStage));
-    stages.push(Box::new(frosting::FrostingStage));
-    stages.push(Box::new(evaluate::Evaluate));
+    // One line per stage kind, alphabetical by module.
     stages.push(Box::new(basis::StrandBasisStage));
-    stages.push(Box::new(outer_surface::OuterSurfaceStage));
-    stages.push(Box::new(demo::DemoNumbers));
-    stages.push(Box::new(demo::DemoSum));
-    stages.push(Box::new(demo::DemoConcat));
-    stages.push(Box::new(demo::DemoSleep));
-    stages.push(Box::new(learn::CodecStrands));
-    stages.push(Box::new(learn::DenseStrands));
-    stages.push(Box::new(synthetic::SyntheticScene));
+    stages.push(Box::new(charts::SpeedAccuracy));
     stages.push(Box::new(defur::DefurStage));
     stages.push(Box::new(defur::baseline::DefurBaselineStage));
+    stages.push(Box::new(demo::DemoConcat));
+    stages.push(Box::new(demo::DemoNumbers));
+    stages.push(Box::new(demo::DemoSleep));
+    stages.push(Box::new(demo::DemoSum));
+    stages.push(Box::new(evaluate::Evaluate));
+    stages.push(Box::new(frosting::FrostingStage));
+    stages.push(Box::new(learn::CodecStrands));
+    stages.push(Box::new(learn::DenseStrands));
     stages.push(Box::new(lengths::LengthsStage));
+    stages.push(Box::new(orientation::OrientationMaps));
+    stages.push(Box::new(outer_surface::OuterSurfaceStage));
+    stages.push(Box::new(parts::PartsStage));
     stages.push(Box::new(roots::RootsStage));
+    stages.push(Box::new(synthetic::SyntheticScene));
     stages
 }
