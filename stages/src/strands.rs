@@ -46,7 +46,10 @@ impl Strands {
     }
     /// Arc length of strand `s`.
     pub fn length(&self, s: usize) -> f32 {
-        self.strand(s).windows(2).map(|w| (w[1] - w[0]).length()).sum()
+        self.strand(s)
+            .windows(2)
+            .map(|w| (w[1] - w[0]).length())
+            .sum()
     }
     /// Total number of segments.
     pub fn segment_count(&self) -> usize {

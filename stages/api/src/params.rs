@@ -152,7 +152,12 @@ impl ParamSpec {
         Self::new(name, ParamType::Bool, Some(Value::Bool(default)), doc)
     }
     pub fn string(name: &'static str, default: &str, doc: &'static str) -> Self {
-        Self::new(name, ParamType::Str, Some(Value::Str(default.to_string())), doc)
+        Self::new(
+            name,
+            ParamType::Str,
+            Some(Value::Str(default.to_string())),
+            doc,
+        )
     }
     pub fn float_list(name: &'static str, default: &[f64], doc: &'static str) -> Self {
         let v = Value::List(default.iter().map(|x| Value::Float(*x)).collect());
@@ -164,7 +169,12 @@ impl ParamSpec {
     }
     /// A table parameter, empty by default.
     pub fn table(name: &'static str, doc: &'static str) -> Self {
-        Self::new(name, ParamType::Table, Some(Value::Table(BTreeMap::new())), doc)
+        Self::new(
+            name,
+            ParamType::Table,
+            Some(Value::Table(BTreeMap::new())),
+            doc,
+        )
     }
     /// A parameter the pipeline must set.
     pub fn required(mut self) -> Self {
@@ -194,7 +204,6 @@ impl ParamSpec {
     }
 }
 
-
 /// Parameters of one stage instance: defaults filled in, types checked by the engine.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Params(pub BTreeMap<String, Value>);
@@ -209,7 +218,10 @@ impl Params {
             .ok_or_else(|| StageError::param(name, "is not set"))
     }
     fn wrong(name: &str, expected: &str, v: &Value) -> StageError {
-        StageError::param(name, format!("expected {expected}, found {}", v.type_name()))
+        StageError::param(
+            name,
+            format!("expected {expected}, found {}", v.type_name()),
+        )
     }
     pub fn f64(&self, name: &str) -> Result<f64, StageError> {
         let v = self.need(name)?;
@@ -217,7 +229,10 @@ impl Params {
         if x.is_finite() {
             Ok(x)
         } else {
-            Err(StageError::param(name, format!("expected a finite number, found {x}")))
+            Err(StageError::param(
+                name,
+                format!("expected a finite number, found {x}"),
+            ))
         }
     }
     pub fn f32(&self, name: &str) -> Result<f32, StageError> {
@@ -235,8 +250,9 @@ impl Params {
     }
     pub fn usize(&self, name: &str) -> Result<usize, StageError> {
         let x = self.i64(name)?;
-        usize::try_from(x)
-            .map_err(|_| StageError::param(name, format!("expected a non-negative integer, found {x}")))
+        usize::try_from(x).map_err(|_| {
+            StageError::param(name, format!("expected a non-negative integer, found {x}"))
+        })
     }
     pub fn u64(&self, name: &str) -> Result<u64, StageError> {
         self.usize(name).map(|x| x as u64)
@@ -251,7 +267,9 @@ impl Params {
     }
     pub fn f64_list(&self, name: &str) -> Result<Vec<f64>, StageError> {
         let v = self.need(name)?;
-        let l = v.as_list().ok_or_else(|| Self::wrong(name, "an array of numbers", v))?;
+        let l = v
+            .as_list()
+            .ok_or_else(|| Self::wrong(name, "an array of numbers", v))?;
         l.iter()
             .map(|x| {
                 x.as_f64()
@@ -262,7 +280,9 @@ impl Params {
     }
     pub fn str_list(&self, name: &str) -> Result<Vec<String>, StageError> {
         let v = self.need(name)?;
-        let l = v.as_list().ok_or_else(|| Self::wrong(name, "an array of strings", v))?;
+        let l = v
+            .as_list()
+            .ok_or_else(|| Self::wrong(name, "an array of strings", v))?;
         l.iter()
             .map(|x| {
                 x.as_str()
