@@ -132,38 +132,6 @@ pub struct WidthResult {
     pub crossed: Vec<bool>,
 }
 
-/// A [`PointIndex`] over `points` nudged by a deterministic jitter of about
-/// 1e-5 of their extent. `PointIndex` (kiddo 4's immutable k-d tree) panics
-/// when more than 32 points share one exact coordinate, which flat regions of
-/// a mesh (a planar wall of the visual hull, say) produce; the nudge is far
-/// below any length this stage measures, and distances are recomputed from
-/// the true points by the callers that need them.
-pub(crate) fn robust_index(points: &[Vec3]) -> Result<PointIndex, StageError> {
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for p in points {
-        lo = lo.min(*p);
-        hi = hi.max(*p);
-    }
-    let amp = 1e-5 * (hi - lo).length().max(1e-12);
-    let nudged: Vec<Vec3> = points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let mut x = (i as u32)
-                .wrapping_mul(2_654_435_761)
-                .wrapping_add(0x9e37_79b9);
-            let mut next = || {
-                x ^= x << 13;
-                x ^= x >> 17;
-                x ^= x << 5;
-                (x % 65_536) as f32 / 65_536.0 - 0.5
-            };
-            *p + amp * Vec3::new(next(), next(), next())
-        })
-        .collect();
-    Ok(PointIndex::new(&nudged)?)
-}
-
 /// Density field of a Gaussian set: `min(1, sum_knn opacity exp(-0.5 d^T Sigma^-1 d))`.
 pub struct DensityField {
     index: PointIndex,
@@ -181,7 +149,7 @@ impl DensityField {
             return Err(StageError::failed("no Gaussians to measure widths with"));
         }
         g.validate()?;
-        let index = robust_index(&g.means)?;
+        let index = PointIndex::new(&g.means)?;
         let (cov, inv_cov): (Vec<Mat3>, Vec<Mat3>) = g
             .scales
             .iter()
@@ -295,7 +263,7 @@ pub fn shell_widths(
     let crossed: Vec<bool> = raw.iter().map(|r| r.1.is_some()).collect();
     let (mut outer, mut inner) = (vec![0.0f32; raw.len()], vec![0.0f32; raw.len()]);
     if s.smooth_k > 1 {
-        let vindex = robust_index(positions)?;
+        let vindex = PointIndex::new(positions)?;
         let smoothed: Vec<(f32, f32)> = positions
             .par_iter()
             .map(|&p| {

@@ -40,6 +40,7 @@ use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageErro
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::geom::PointIndex;
 use crate::mesh::Mesh;
 use crate::scene::SceneInfo;
 
@@ -79,7 +80,7 @@ pub fn transfer_nearest(mesh: &mut Mesh, source: &Mesh) -> Result<TransferReport
             "the labelled mesh has no part groups: expected an OBJ with one `g <part>` group per part",
         ));
     }
-    let index = crate::frosting::robust_index(&source.positions)?;
+    let index = PointIndex::new(&source.positions)?;
     let found: Vec<(u16, f32)> = mesh
         .positions
         .par_iter()
