@@ -890,14 +890,7 @@ fn fit_settings(p: &Params) -> Result<FitSettings, StageError> {
 
 /// Reads the training views as fitting targets (RGB composited on black with the mask).
 fn read_train_views(dir: &std::path::Path) -> Result<Vec<TrainView>, StageError> {
-    let set = crate::formats::cameras::read_views(dir)?;
-    if set.train.is_empty() {
-        return Err(StageError::input(
-            "views",
-            dir,
-            "transforms.json lists no training frames",
-        ));
-    }
+    let set = crate::formats::cameras::read_training_views(dir)?;
     let out: Vec<Result<TrainView, StageError>> = set
         .train
         .par_iter()

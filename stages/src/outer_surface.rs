@@ -1038,14 +1038,7 @@ pub fn read_mask_views(
     dir: &Path,
     threshold: f32,
 ) -> Result<(Vec<Camera>, Vec<MaskView>), StageError> {
-    let set = crate::formats::cameras::read_views(dir)?;
-    if set.train.is_empty() {
-        return Err(StageError::input(
-            "views",
-            dir,
-            "transforms.json lists no training frames",
-        ));
-    }
+    let set = crate::formats::cameras::read_training_views(dir)?;
     let views: Vec<Result<MaskView, StageError>> = set
         .train
         .par_iter()

@@ -156,12 +156,7 @@ impl Stage for DefurBaselineStage {
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
         number_table(params, "thickness_cm")?;
-        if let Some(s) = params.f64_opt("s_cm")? {
-            if !(s > 0.0) {
-                return Err(StageError::param("s_cm", "must be positive"));
-            }
-        }
-        Ok(())
+        super::validate_s_cm(params)
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;

@@ -515,6 +515,14 @@ pub fn read_scale(port: &str, path: &Path) -> Result<f32, StageError> {
     Ok(f.s_cm)
 }
 
+/// Checks the optional `s_cm` parameter shared by `defur` and `defur_baseline`.
+pub(crate) fn validate_s_cm(params: &Params) -> Result<(), StageError> {
+    match params.f64_opt("s_cm")? {
+        Some(s) if s <= 0.0 => Err(StageError::param("s_cm", "must be positive")),
+        _ => Ok(()),
+    }
+}
+
 /// `s_cm` from the `scale` input or the `s_cm` parameter (input wins), if any.
 pub fn scale_from(ctx: &StageContext<'_>) -> Result<Option<f32>, StageError> {
     if let Some(p) = ctx.input_opt("scale") {
@@ -786,12 +794,7 @@ impl Stage for DefurStage {
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
         number_table(params, "reference_thickness_cm")?;
-        if let Some(s) = params.f64_opt("s_cm")? {
-            if !(s > 0.0) {
-                return Err(StageError::param("s_cm", "must be positive"));
-            }
-        }
-        Ok(())
+        validate_s_cm(params)
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;

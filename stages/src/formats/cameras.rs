@@ -57,6 +57,20 @@ use crate::image::ImageF32;
 /// Image extensions probed for extension-less `file_path`s, in order.
 const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];
 
+/// [`read_views`] for stages that fit to the training views: a capture without
+/// training frames is an error naming the `views` input.
+pub fn read_training_views(dir: &Path) -> Result<CameraSet, fure_stage_api::StageError> {
+    let set = read_views(dir)?;
+    if set.train.is_empty() {
+        return Err(fure_stage_api::StageError::input(
+            "views",
+            dir,
+            "transforms.json lists no training frames",
+        ));
+    }
+    Ok(set)
+}
+
 /// Reads a views directory (see the module doc for which files count).
 pub fn read_views(dir: impl AsRef<Path>) -> Result<CameraSet, FormatError> {
     let dir = dir.as_ref();
