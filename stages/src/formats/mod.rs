@@ -45,6 +45,9 @@ pub mod obj;
 pub mod ply;
 pub mod scalars;
 
+#[cfg(test)]
+mod fuzz;
+
 /// Where in a file a problem was found.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Position {
