@@ -24,6 +24,7 @@ pub mod render;
 // Stages.
 pub mod basis;
 pub mod charts;
+pub mod corrupt;
 pub mod defur;
 pub mod demo;
 pub mod evaluate;
@@ -34,6 +35,7 @@ pub mod orientation;
 pub mod outer_surface;
 pub mod parts;
 pub mod roots;
+pub mod stability;
 pub mod synthetic;
 
 use fure_stage_api::Stage;
@@ -45,6 +47,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     // One line per stage kind, alphabetical by module.
     stages.push(Box::new(basis::StrandBasisStage));
     stages.push(Box::new(charts::SpeedAccuracy));
+    stages.push(Box::new(corrupt::CorruptViews));
     stages.push(Box::new(defur::DefurStage));
     stages.push(Box::new(defur::baseline::DefurBaselineStage));
     stages.push(Box::new(demo::DemoConcat));
@@ -60,6 +63,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     stages.push(Box::new(outer_surface::OuterSurfaceStage));
     stages.push(Box::new(parts::PartsStage));
     stages.push(Box::new(roots::RootsStage));
+    stages.push(Box::new(stability::StabilityReport));
     stages.push(Box::new(synthetic::SyntheticScene));
     stages
 }
