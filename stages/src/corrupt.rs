@@ -654,3 +654,358 @@ impl Stage for CorruptViews {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// A camera at `eye` looking at `target` (OpenGL axes: -z forward, +y up).
+    fn look(eye: Vec3, target: Vec3, i: usize, dir: &str) -> Camera {
+        let c2w = Mat4::look_at_rh(eye, target, Vec3::Y).inverse();
+        Camera {
+            file_path: format!("{dir}/{i:03}.png"),
+            c2w,
+            fx: 20.0,
+            fy: 20.0,
+            cx: 12.0,
+            cy: 12.0,
+            width: 24,
+            height: 24,
+        }
+    }
+
+    const PIVOT: Vec3 = Vec3::new(0.1, 0.2, -0.15);
+
+    /// A small capture like the synthetic stage's: `n` training and 2 held-out views of 24 x 24 px,
+    /// RGBA images (mid grey inside a 12 x 12 square with alpha 1, alpha 0 outside), masks, fur
+    /// masks and depth EXRs, all cameras looking at `PIVOT`.
+    fn capture(dir: &Path, n: usize) -> crate::camera::CameraSet {
+        let mk = |i: usize, k: usize, el: f32, d: &str| {
+            let az = i as f32 * std::f32::consts::TAU / k as f32;
+            let eye = PIVOT + 3.0 * Vec3::new(el.cos() * az.cos(), el.sin(), el.cos() * az.sin());
+            look(eye, PIVOT, i, d)
+        };
+        let set = crate::camera::CameraSet {
+            train: (0..n)
+                .map(|i| mk(i, n, -0.4 + 0.9 * i as f32 / n as f32, "train"))
+                .collect(),
+            test: (0..2).map(|i| mk(i, 2, 0.2, "test")).collect(),
+        };
+        cameras::write_views(dir, &set).unwrap();
+        for (k, c) in set.train.iter().chain(&set.test).enumerate() {
+            let mut img = ImageF32::new(24, 24, 4);
+            let mut mask = ImageF32::new(24, 24, 1);
+            for y in 0..24 {
+                for x in 0..24 {
+                    let inside = (6..18).contains(&x) && (6..18).contains(&y);
+                    let px = img.pixel_mut(x, y);
+                    px[0] = 0.5;
+                    px[1] = 0.25 + 0.01 * k as f32;
+                    px[2] = 0.75;
+                    px[3] = if inside { 1.0 } else { 0.0 };
+                    mask.data[(y * 24 + x) as usize] = if inside { 1.0 } else { 0.0 };
+                }
+            }
+            let stem = stem_of(&c.file_path).to_string();
+            formats::images::write_png(dir.join(&c.file_path), &img).unwrap();
+            formats::images::write_png(dir.join(format!("{stem}_mask.png")), &mask).unwrap();
+            formats::images::write_png(dir.join(format!("{stem}_fur.png")), &mask).unwrap();
+            formats::images::write_exr(dir.join(format!("{stem}_depth.exr")), &mask).unwrap();
+        }
+        set
+    }
+
+    fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+        list_files(dir)
+            .unwrap()
+            .into_iter()
+            .map(|f| {
+                let b = std::fs::read(dir.join(&f)).unwrap();
+                (f, b)
+            })
+            .collect()
+    }
+
+    fn run(cfg: &Corruption) -> (tempfile::TempDir, tempfile::TempDir, CorruptionReport) {
+        let a = tempfile::tempdir().unwrap();
+        let b = tempfile::tempdir().unwrap();
+        capture(a.path(), 12);
+        let r = corrupt_dir(a.path(), b.path(), cfg).unwrap();
+        (a, b, r)
+    }
+
+    #[test]
+    fn all_off_is_byte_identical() {
+        for views in [0, 12] {
+            let cfg = Corruption {
+                views,
+                seed: 7,
+                ..Default::default()
+            };
+            let (a, b, r) = run(&cfg);
+            let (ta, tb) = (tree(a.path()), tree(b.path()));
+            assert!(ta.len() > 50, "{} files", ta.len());
+            assert_eq!(ta, tb, "views = {views}");
+            assert_eq!(r.files_rewritten, 0);
+        }
+    }
+
+    #[test]
+    fn test_frames_and_untouched_files_pass_through() {
+        let cfg = Corruption {
+            noise_sigma: 0.05,
+            jitter_deg: 1.0,
+            views: 6,
+            mask_morph_px: -2,
+            seed: 3,
+        };
+        let (a, b, _) = run(&cfg);
+        let (ta, tb) = (tree(a.path()), tree(b.path()));
+        assert_eq!(ta["transforms_test.json"], tb["transforms_test.json"]);
+        for (f, bytes) in &ta {
+            if f.starts_with("test/") {
+                assert_eq!(Some(bytes), tb.get(f), "{f}");
+            }
+        }
+        // Kept training frames: fur masks and depth unchanged; image, mask and cameras changed.
+        assert_eq!(ta["train/002_fur.png"], tb["train/002_fur.png"]);
+        assert_eq!(ta["train/002_depth.exr"], tb["train/002_depth.exr"]);
+        assert_ne!(ta["train/002.png"], tb["train/002.png"]);
+        assert_ne!(ta["train/002_mask.png"], tb["train/002_mask.png"]);
+        assert_ne!(ta["transforms.json"], tb["transforms.json"]);
+        let set = cameras::read_views(b.path()).unwrap();
+        assert_eq!(set.test, cameras::read_views(a.path()).unwrap().test);
+    }
+
+    #[test]
+    fn view_count_and_spread() {
+        assert_eq!(
+            kept_indices(36, 18).unwrap(),
+            (0..18).map(|i| 2 * i).collect::<Vec<_>>()
+        );
+        assert_eq!(
+            kept_indices(36, 9).unwrap(),
+            (0..9).map(|i| 4 * i).collect::<Vec<_>>()
+        );
+        assert_eq!(
+            kept_indices(36, 6).unwrap(),
+            (0..6).map(|i| 6 * i).collect::<Vec<_>>()
+        );
+        let seven = kept_indices(36, 7).unwrap();
+        assert_eq!(seven.len(), 7);
+        let gaps: Vec<usize> = seven.windows(2).map(|w| w[1] - w[0]).collect();
+        assert!(gaps.iter().all(|g| (5..=6).contains(g)), "{gaps:?}");
+        assert_eq!(kept_indices(5, 0).unwrap().len(), 5);
+        assert!(kept_indices(5, 6).unwrap_err().contains("only 5"));
+
+        let cfg = Corruption {
+            views: 4,
+            ..Default::default()
+        };
+        let (a, b, r) = run(&cfg);
+        assert_eq!((r.training_views_in, r.training_views_out), (12, 4));
+        let orig = cameras::read_views(a.path()).unwrap();
+        let set = cameras::read_views(b.path()).unwrap();
+        let want: Vec<Camera> = [0, 3, 6, 9]
+            .iter()
+            .map(|&i| orig.train[i].clone())
+            .collect();
+        assert_eq!(set.train, want);
+        // Dropped frames' files are gone, kept ones are byte copies.
+        let (ta, tb) = (tree(a.path()), tree(b.path()));
+        assert!(!tb.contains_key("train/001.png") && !tb.contains_key("train/001_mask.png"));
+        assert!(!tb.contains_key("train/001_depth.exr"));
+        assert_eq!(ta["train/003.png"], tb["train/003.png"]);
+        assert_eq!(tb.len(), ta.len() - 8 * 4);
+        // Too many views: a parameter error.
+        let c = tempfile::tempdir().unwrap();
+        let e = corrupt_dir(
+            a.path(),
+            c.path(),
+            &Corruption {
+                views: 13,
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        assert!(matches!(e, StageError::Param { .. }), "{e}");
+    }
+
+    #[test]
+    fn noise_statistics() {
+        let cfg = Corruption {
+            noise_sigma: 0.05,
+            ..Default::default()
+        };
+        let (a, b, r) = run(&cfg);
+        let set = cameras::read_views(a.path()).unwrap();
+        let (mut d, mut outside_changed) = (Vec::new(), 0);
+        for c in &set.train {
+            let x = formats::images::read_png(a.path().join(&c.file_path)).unwrap();
+            let y = formats::images::read_png(b.path().join(&c.file_path)).unwrap();
+            for (px, py) in x.data.chunks(4).zip(y.data.chunks(4)) {
+                assert_eq!(px[3], py[3], "alpha is never changed");
+                if px[3] > 0.0 {
+                    d.extend((0..3).map(|k| (py[k] - px[k]) as f64));
+                } else if px[..3] != py[..3] {
+                    outside_changed += 1;
+                }
+            }
+        }
+        assert_eq!(outside_changed, 0, "no noise where alpha = 0");
+        // 12 views x 144 pixels x 3 channels; values far from 0 and 1, so clamping is rare.
+        let n = d.len() as f64;
+        assert_eq!(d.len(), 12 * 144 * 3);
+        let mean = d.iter().sum::<f64>() / n;
+        let std = (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n).sqrt();
+        assert!(mean.abs() < 3.0 * 0.05 / n.sqrt() + 0.002, "mean {mean}");
+        assert!((std - 0.05).abs() < 0.003, "std {std}");
+        let m = r.noise_std_measured.unwrap();
+        assert!((m - 0.05).abs() < 0.003, "{m}");
+        // Same seed, same bytes; another seed, other noise.
+        let (_, b2, _) = run(&cfg);
+        assert_eq!(tree(b.path()), tree(b2.path()));
+        let (_, b3, _) = run(&Corruption { seed: 1, ..cfg });
+        assert_ne!(
+            tree(b.path())["train/000.png"],
+            tree(b3.path())["train/000.png"]
+        );
+    }
+
+    #[test]
+    fn jitter_angle_is_exact_and_orbits_the_centre() {
+        for deg in [0.5f32, 2.0, 10.0] {
+            let cfg = Corruption {
+                jitter_deg: deg,
+                seed: 11,
+                ..Default::default()
+            };
+            let (a, b, r) = run(&cfg);
+            let pivot = Vec3::from_array(r.pivot.unwrap().map(|x| x as f32));
+            assert!((pivot - PIVOT).length() < 1e-4, "{pivot}");
+            let orig = cameras::read_views(a.path()).unwrap();
+            let new = cameras::read_views(b.path()).unwrap();
+            assert_eq!(orig.train.len(), new.train.len());
+            let mut axes = Vec::new();
+            for (o, n) in orig.train.iter().zip(&new.train) {
+                let ang = rotation_between(&o.c2w, &n.c2w).to_degrees();
+                assert!((ang - deg as f64).abs() < 2e-3, "{ang} vs {deg}");
+                // The centre keeps its distance to the pivot and the pivot its pixel.
+                let (d0, d1) = ((o.center() - PIVOT).length(), (n.center() - PIVOT).length());
+                assert!((d0 - d1).abs() < 1e-4);
+                let (u0, _) = o.project(PIVOT);
+                let (u1, _) = n.project(PIVOT);
+                assert!((u0 - u1).length() < 1e-3, "{u0} {u1}");
+                // Another point moves.
+                let p = PIVOT + Vec3::new(0.5, 0.3, -0.4);
+                assert!((o.project(p).0 - n.project(p).0).length() > 1e-3);
+                let q = glam::DQuat::from_mat3(
+                    &(glam::DMat3::from_mat4(o.c2w.as_dmat4()).transpose()
+                        * glam::DMat3::from_mat4(n.c2w.as_dmat4())),
+                );
+                axes.push(q.xyz().normalize());
+            }
+            // Random axes: not all the same.
+            assert!(axes.windows(2).any(|w| w[0].dot(w[1]).abs() < 0.9));
+            assert!(r.rotation_deg.iter().all(|a| (a - deg as f64).abs() < 2e-3));
+        }
+    }
+
+    #[test]
+    fn erosion_and_dilation_on_a_synthetic_mask() {
+        // A 9 x 9 square at (10..19) in a 30 x 30 image.
+        let mut m = ImageF32::new(30, 30, 1);
+        for y in 10..19 {
+            for x in 10..19 {
+                m.data[y * 30 + x] = 1.0;
+            }
+        }
+        let area = |i: &ImageF32| i.data.iter().filter(|v| **v >= 0.5).count();
+        let at = |i: &ImageF32, x: usize, y: usize| i.data[y * 30 + x] >= 0.5;
+        assert_eq!(morph_mask(&m, 0).data, m.data);
+        // Erosion by a disc of radius 2: a 5 x 5 square remains.
+        let e = morph_mask(&m, -2);
+        assert_eq!(area(&e), 25);
+        assert!(at(&e, 12, 12) && !at(&e, 11, 12) && at(&e, 16, 16) && !at(&e, 17, 16));
+        // Dilation by a disc of radius 2: 13 x 13 minus the four corners the disc misses
+        // (offsets (2, 2), (2, 1), (1, 2) are outside the disc: 3 pixels per corner).
+        let d = morph_mask(&m, 2);
+        assert_eq!(area(&d), 13 * 13 - 4 * 3);
+        assert!(at(&d, 8, 14) && !at(&d, 7, 14) && at(&d, 9, 9) && !at(&d, 8, 8));
+        // Radius 1 dilation is the 4-neighbourhood (a plus): 11 x 11 minus 4 corners.
+        assert_eq!(area(&morph_mask(&m, 1)), 121 - 4);
+        // The border counts as background.
+        let full = ImageF32 {
+            width: 30,
+            height: 30,
+            channels: 1,
+            data: vec![1.0; 900],
+        };
+        assert_eq!(area(&morph_mask(&full, -1)), 28 * 28);
+
+        // Through the stage: masks of kept training views shrink, 12 x 12 -> 8 x 8.
+        let (_, b, r) = run(&Corruption {
+            mask_morph_px: -2,
+            ..Default::default()
+        });
+        let mk = formats::images::read_png(b.path().join("train/000_mask.png")).unwrap();
+        assert_eq!(mk.data.iter().filter(|v| **v >= 0.5).count(), 64);
+        assert!((r.mask_area_ratio.unwrap() - 64.0 / 144.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn parameters_are_validated() {
+        let stage = CorruptViews;
+        let mut p = Params::default();
+        for s in stage.params() {
+            p.0.insert(s.name.to_string(), s.default.clone().unwrap());
+        }
+        assert!(stage.validate(&p).is_ok());
+        for (name, v) in [
+            ("noise_sigma", fure_stage_api::Value::Float(-0.1)),
+            ("jitter_deg", fure_stage_api::Value::Float(f64::NAN)),
+            ("views", fure_stage_api::Value::Int(-1)),
+            ("seed", fure_stage_api::Value::Int(-3)),
+        ] {
+            let mut q = p.clone();
+            q.0.insert(name.to_string(), v);
+            let e = stage.validate(&q).unwrap_err();
+            assert!(e.to_string().contains(name), "{e}");
+        }
+    }
+
+    #[test]
+    fn bad_input_names_the_file() {
+        let a = tempfile::tempdir().unwrap();
+        let b = tempfile::tempdir().unwrap();
+        let e = corrupt_dir(a.path(), b.path(), &Corruption::default()).unwrap_err();
+        assert!(e.to_string().contains("transforms.json"), "{e}");
+        capture(a.path(), 3);
+        std::fs::write(a.path().join("train/001.png"), b"\x89PNG truncated").unwrap();
+        let e = corrupt_dir(
+            a.path(),
+            b.path(),
+            &Corruption {
+                noise_sigma: 0.1,
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("001.png"), "{e}");
+        // Jitter with a single camera: no centre to orbit.
+        let c = tempfile::tempdir().unwrap();
+        let d = tempfile::tempdir().unwrap();
+        capture(c.path(), 1);
+        let e = corrupt_dir(
+            c.path(),
+            d.path(),
+            &Corruption {
+                jitter_deg: 1.0,
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("object centre"), "{e}");
+    }
+}
