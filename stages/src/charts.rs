@@ -153,7 +153,7 @@ fn method_color(m: &str) -> RGBColor {
 }
 
 /// Axis numbers without a needless ".0" (0.01, 0.5, 10, 2500).
-fn fmt_num(x: f64) -> String {
+pub(crate) fn fmt_num(x: f64) -> String {
     if x >= 1.0 {
         format!("{x:.0}")
     } else {
@@ -162,7 +162,7 @@ fn fmt_num(x: f64) -> String {
     }
 }
 
-fn chart_err<E: std::fmt::Debug>(e: E) -> String {
+pub(crate) fn chart_err<E: std::fmt::Debug>(e: E) -> String {
     format!("chart drawing failed: {e:?}")
 }
 
@@ -297,7 +297,7 @@ pub fn draw_params_chart<DB: DrawingBackend>(
 }
 
 /// Renders a chart to PNG bytes on disk through an RGB buffer.
-fn write_png_chart(
+pub(crate) fn write_png_chart(
     path: &Path,
     size: (u32, u32),
     draw: impl Fn(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), String>,
@@ -319,7 +319,7 @@ fn write_png_chart(
 }
 
 /// Renders a chart to an SVG file.
-fn write_svg_chart(
+pub(crate) fn write_svg_chart(
     path: &Path,
     size: (u32, u32),
     draw: impl Fn(&DrawingArea<SVGBackend<'_>, Shift>) -> Result<(), String>,
