@@ -1,7 +1,10 @@
 //! The `fure` command line.
 //!
 //! Exit codes: 0 success; 1 a stage failed (or `verify` found damage);
-//! 2 a bad pipeline or bad usage. Every command takes `--cache DIR` (or the
+//! 2 a bad pipeline or bad usage. `sweep` exits 0 when every variant got a
+//! status, failed variants included (they are results, in the table and the
+//! record), and 1 only when an aggregate stage fails or a file cannot be
+//! written. Every command takes `--cache DIR` (or the
 //! `FURE_CACHE` environment variable; default `cache/` in the current
 //! directory).
 
@@ -82,12 +85,17 @@ pub enum Command {
         #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
         sets: Vec<String>,
     },
-    /// Run every variant of a parameter grid ([sweep] table and --grid).
+    /// Run every variant of a parameter grid ([sweep], [sweep.each], --grid, --each), then
+    /// the [aggregate.NAME] stages on the sweep record.
     Sweep {
         pipeline: PathBuf,
-        /// A grid axis: STAGE.PARAM=V1,V2,... (or a TOML array).
+        /// A crossed axis: STAGE.PARAM=V1,V2,... (or a TOML array); replaces a
+        /// [sweep] or [sweep.each] axis's values.
         #[arg(long = "grid", value_name = "STAGE.PARAM=V1,V2,...")]
         grids: Vec<String>,
+        /// A one-at-a-time axis (like [sweep.each]): STAGE.PARAM=V1,V2,...
+        #[arg(long = "each", value_name = "STAGE.PARAM=V1,V2,...")]
+        eaches: Vec<String>,
         #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
         sets: Vec<String>,
         #[arg(long, short)]
@@ -97,8 +105,6 @@ pub enum Command {
         /// Table path prefix (writes PREFIX.md and PREFIX.csv); default `<out>/<pipeline>/sweep`.
         #[arg(long)]
         table: Option<PathBuf>,
-        #[arg(long)]
-        keep_going: bool,
     },
     /// Remove cache entries and objects.
     Gc {
@@ -341,23 +347,31 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
         Command::Sweep {
             pipeline,
             grids,
+            eaches,
             sets,
             jobs,
             out,
             table,
-            keep_going,
         } => {
             let p = engine.load(pipeline, sets)?;
-            let mut extra = Vec::new();
-            for g in grids {
-                let (k, v) = g.split_once('=').ok_or_else(|| {
-                    Failure::Usage(format!(
-                        "error: --grid `{g}`: expected STAGE.PARAM=V1,V2,..."
-                    ))
-                })?;
-                extra.push((k.trim().to_string(), parse_cli_list(v)));
-            }
-            let variants = sweep::grid(&p, &extra);
+            let axis_list = |opt: &str, list: &[String]| -> Result<Vec<_>, Failure> {
+                list.iter()
+                    .map(|g| {
+                        let (k, v) = g.split_once('=').ok_or_else(|| {
+                            Failure::Usage(format!(
+                                "error: {opt} `{g}`: expected STAGE.PARAM=V1,V2,..."
+                            ))
+                        })?;
+                        Ok((k.trim().to_string(), parse_cli_list(v)))
+                    })
+                    .collect()
+            };
+            let axes = sweep::Axes::new(
+                &p,
+                &axis_list("--grid", grids)?,
+                &axis_list("--each", eaches)?,
+            );
+            let variants = axes.variants();
             let cache = open_cache(&cli.cache, Access::Shared)?;
             let opts = RunOptions {
                 jobs: jobs_or_default(*jobs)?,
@@ -365,18 +379,24 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                 out_root: Some(out.clone()),
                 dry_run: false,
                 ui: UiMode::Quiet,
-                keep_going: *keep_going,
+                keep_going: true,
             };
             println!("sweep {}: {} variants", p.name, variants.len());
             let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
                 println!(
-                    "variant {} ({}): {} ran, {} cached, {} failed, {:.2}s",
+                    "variant {} ({}): {} ran, {} cached, {} failed, {:.2}s: {}{}",
                     row.variant.index,
                     sweep::describe(&row.variant),
                     row.report.count(Status::Ran),
                     row.report.count(Status::Cached),
                     row.report.count(Status::Failed),
-                    row.report.seconds
+                    row.report.seconds,
+                    row.status.as_str(),
+                    if row.reason.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" ({})", row.reason)
+                    }
                 );
                 if let Ok(json) = serde_json::to_vec_pretty(&row.report) {
                     cache.save_run_report(&row.name, &json);
@@ -394,12 +414,64 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                 prefix.with_extension("md").display(),
                 prefix.with_extension("csv").display()
             );
-            let ok = rows.len() == variants.len() && rows.iter().all(|r| r.report.ok());
-            Ok(if ok {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::from(EXIT_FAILED)
-            })
+            let record_path = out.join(&p.name).join("sweep.json");
+            let record = sweep::record(&p.name, &axes, &rows);
+            sweep::write_if_changed(&record_path, &sweep::record_bytes(&record))
+                .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+            println!("record: {}", record_path.display());
+            let failed = rows
+                .iter()
+                .filter(|r| r.status == sweep::VariantStatus::Failed)
+                .count();
+            let degraded = rows
+                .iter()
+                .filter(|r| r.status == sweep::VariantStatus::Degraded)
+                .count();
+            println!(
+                "{failed} of {} variants failed, {degraded} degraded",
+                rows.len()
+            );
+            // Aggregates read the record through an absolute path (it is not
+            // part of any key: only its content is).
+            let abs = std::path::absolute(&record_path)
+                .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+            let mut code = ExitCode::SUCCESS;
+            if let Some(rep) = sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
+                if let Ok(json) = serde_json::to_vec_pretty(&rep) {
+                    cache.save_run_report(&rep.pipeline, &json);
+                }
+                for s in &rep.stages {
+                    println!(
+                        "aggregate {}: {}{}",
+                        s.name,
+                        match s.status {
+                            Status::Ran => "ran",
+                            Status::Cached => "cached",
+                            Status::Failed => "failed",
+                            _ => "skipped",
+                        },
+                        match s.status {
+                            Status::Ran | Status::Cached => format!(
+                                "; outputs in {}",
+                                out.join(&p.name).join(&s.name).display()
+                            ),
+                            _ => String::new(),
+                        }
+                    );
+                }
+                if !rep.ok() {
+                    for s in rep.stages.iter().filter(|s| s.status == Status::Failed) {
+                        eprintln!(
+                            "error: aggregate stage `{}` ({}) failed: {}",
+                            s.name,
+                            s.kind,
+                            s.error.clone().unwrap_or_default()
+                        );
+                    }
+                    code = ExitCode::from(EXIT_FAILED);
+                }
+            }
+            Ok(code)
         }
         Command::Gc { keep, max_size } => {
             let max_size = match max_size {

@@ -12,8 +12,12 @@
 //! kind = "..."                   # required unless inherited
 //! inputs = { port = "OTHER.port", other = "data/file.png" }
 //! param = 1.5                    # every other key is a parameter
-//! [sweep]
+//! [sweep]                       # crossed axes (cartesian product)
 //! "NAME.param" = [1.0, 2.0]
+//! [sweep.each]                  # axes varied one at a time (see `crate::sweep`)
+//! "NAME.other" = [0.0, 0.1, 0.2]
+//! [aggregate.report]            # stages run by `fure sweep` on the sweep record
+//! kind = "..."                  # kind and parameters only: no `inputs`
 //! ```
 //!
 //! Parsing is purely syntactic: it keeps every value with the file, line and
@@ -26,7 +30,10 @@
 //!
 //! `extends` merges field by field: the child's `kind` replaces the parent's,
 //! its parameters and inputs replace the parent's one by one, its `[sweep]`
-//! entries replace the parent's by key, and the pipeline name is the child's
+//! and `[sweep.each]` entries replace the parent's by key (a key moves to the
+//! child's kind of axis; a replaced `each` key keeps its position, new ones
+//! come after the parent's), its `[aggregate.NAME]` tables merge like stages,
+//! and the pipeline name is the child's
 //! (its `[pipeline] name`, or its file stem), so an ablation writes its outputs
 //! next to, not over, the original's.
 
@@ -159,8 +166,14 @@ pub struct Pipeline {
     pub file: PathBuf,
     /// Stages in declaration order (parents' stages first).
     pub stages: Vec<StageDecl>,
-    /// `"STAGE.PARAM"` -> values to sweep over.
+    /// `"STAGE.PARAM"` -> values to sweep over, crossed (`[sweep]`).
     pub sweep: BTreeMap<String, (Vec<Value>, Loc)>,
+    /// `"STAGE.PARAM"` -> values varied one at a time (`[sweep.each]`), in
+    /// declaration order (parents' keys first).
+    pub sweep_each: Vec<(String, Vec<Value>, Loc)>,
+    /// `[aggregate.NAME]` stages, run by `fure sweep` on the sweep record
+    /// (`kind` and parameters only; their one input is bound by the engine).
+    pub aggregates: Vec<StageDecl>,
 }
 
 impl Pipeline {
@@ -191,6 +204,8 @@ impl Pipeline {
             file: PathBuf::from(file_label),
             stages: raw.stages,
             sweep: raw.sweep,
+            sweep_each: raw.sweep_each,
+            aggregates: raw.aggregates,
         })
     }
 
@@ -286,6 +301,8 @@ struct RawFile {
     extends: Option<(String, Loc)>,
     stages: Vec<StageDecl>,
     sweep: BTreeMap<String, (Vec<Value>, Loc)>,
+    sweep_each: Vec<(String, Vec<Value>, Loc)>,
+    aggregates: Vec<StageDecl>,
 }
 
 fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineErrors> {
@@ -317,6 +334,8 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
             file: path.to_path_buf(),
             stages: Vec::new(),
             sweep: BTreeMap::new(),
+            sweep_each: Vec::new(),
+            aggregates: Vec::new(),
         },
         Some((parent, loc)) => {
             let parent_path = base.join(parent);
@@ -353,7 +372,22 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
             }
         }
     }
-    pipeline.sweep.extend(raw.sweep);
+    merge_sweep(&mut pipeline, raw.sweep, raw.sweep_each);
+    for child in raw.aggregates {
+        match pipeline
+            .aggregates
+            .iter_mut()
+            .find(|s| s.name == child.name)
+        {
+            None => pipeline.aggregates.push(child),
+            Some(parent) => {
+                if child.kind.is_some() {
+                    parent.kind = child.kind;
+                }
+                parent.params.extend(child.params);
+            }
+        }
+    }
     Ok(pipeline)
 }
 
@@ -447,6 +481,8 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
         extends: None,
         stages: Vec::new(),
         sweep: BTreeMap::new(),
+        sweep_each: Vec::new(),
+        aggregates: Vec::new(),
     };
     for (key, item) in root.iter() {
         let loc = cx.key_loc(root, key);
@@ -503,22 +539,62 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
                 Some(t) => {
                     for (k, v) in t.iter() {
                         let kloc = cx.key_loc(t, k);
-                        if k.split_once('.').is_none() {
-                            errors.push(PipelineError::at(
-                                &kloc,
-                                format!("sweep key `{k}`: expected \"STAGE.PARAM\""),
-                            ));
+                        if k == "each" {
+                            if let Some(each) = v.as_table_like() {
+                                for (k, v) in each.iter() {
+                                    let kloc = cx.key_loc(each, k);
+                                    if let Some(l) = sweep_axis(&cx, "sweep.each", k, v, &kloc, &mut errors) {
+                                        if out.sweep.contains_key(k) {
+                                            errors.push(PipelineError::at(
+                                                &kloc,
+                                                format!("sweep key `{k}` is both crossed (`[sweep]`) and varied one at a time (`[sweep.each]`); keep one"),
+                                            ));
+                                        } else {
+                                            out.sweep_each.push((k.to_string(), l, kloc));
+                                        }
+                                    }
+                                }
+                            } else {
+                                errors.push(PipelineError::at(
+                                    &kloc,
+                                    "`sweep.each` must be a table of \"STAGE.PARAM\" = [values]",
+                                ));
+                            }
                             continue;
                         }
-                        match item_to_value(v, &kloc, &lines) {
-                            Ok(Value::List(l)) if !l.is_empty() => {
+                        if let Some(l) = sweep_axis(&cx, "sweep", k, v, &kloc, &mut errors) {
+                            if out.sweep_each.iter().any(|(e, _, _)| e == k) {
+                                errors.push(PipelineError::at(
+                                    &kloc,
+                                    format!("sweep key `{k}` is both crossed (`[sweep]`) and varied one at a time (`[sweep.each]`); keep one"),
+                                ));
+                            } else {
                                 out.sweep.insert(k.to_string(), (l, kloc));
                             }
-                            Ok(_) => errors.push(PipelineError::at(
-                                &cx.item_loc(v),
-                                format!("sweep `{k}`: expected a non-empty array of values"),
-                            )),
-                            Err(e) => errors.push(e),
+                        }
+                    }
+                }
+            },
+            "aggregate" => match item.as_table_like() {
+                None => errors.push(PipelineError::at(&loc, "`aggregate` must be a table of tables")),
+                Some(t) => {
+                    for (name, st) in t.iter() {
+                        match parse_stage(&cx, t, name, st) {
+                            Ok(s) => {
+                                // The one input is bound by the engine (see `crate::sweep`).
+                                if let Some(inp) = s.inputs.values().next() {
+                                    errors.push(PipelineError::at(
+                                        &inp.loc,
+                                        format!("aggregate `{name}`: no `inputs` expected (its one input port is bound to the sweep record by the engine)"),
+                                    ));
+                                } else {
+                                    out.aggregates.push(s);
+                                }
+                            }
+                            Err(e) => errors.extend(e.into_iter().map(|mut e| {
+                                e.message = e.message.replace("`stages.", "`aggregate.");
+                                e
+                            })),
                         }
                     }
                 }
@@ -526,7 +602,7 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
             other => errors.push(PipelineError::at(
                 &loc,
                 format!(
-                    "unknown field `{other}` (expected `extends`, `[pipeline]`, `[stages.NAME]` or `[sweep]`)"
+                    "unknown field `{other}` (expected `extends`, `[pipeline]`, `[stages.NAME]`, `[sweep]` or `[aggregate.NAME]`)"
                 ),
             )),
         }
@@ -535,6 +611,59 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
         Ok(out)
     } else {
         Err(PipelineErrors(errors))
+    }
+}
+
+/// One sweep axis `"STAGE.PARAM" = [values]` (of `[sweep]` or `[sweep.each]`).
+fn sweep_axis(
+    cx: &Ctx<'_>,
+    table: &str,
+    k: &str,
+    v: &Item,
+    kloc: &Loc,
+    errors: &mut Vec<PipelineError>,
+) -> Option<Vec<Value>> {
+    if k.split_once('.').is_none() {
+        errors.push(PipelineError::at(
+            kloc,
+            format!("{table} key `{k}`: expected \"STAGE.PARAM\""),
+        ));
+        return None;
+    }
+    match item_to_value(v, kloc, cx.lines) {
+        Ok(Value::List(l)) if !l.is_empty() => Some(l),
+        Ok(_) => {
+            errors.push(PipelineError::at(
+                &cx.item_loc(v),
+                format!("{table} `{k}`: expected a non-empty array of values"),
+            ));
+            None
+        }
+        Err(e) => {
+            errors.push(e);
+            None
+        }
+    }
+}
+
+/// `extends` merging of the sweep axes: a child's key replaces the parent's
+/// values and takes the child's kind of axis (crossed or one at a time); a
+/// replaced `[sweep.each]` key keeps its position, new ones are appended.
+fn merge_sweep(
+    pipeline: &mut Pipeline,
+    crossed: BTreeMap<String, (Vec<Value>, Loc)>,
+    each: Vec<(String, Vec<Value>, Loc)>,
+) {
+    for (k, v) in crossed {
+        pipeline.sweep_each.retain(|(e, _, _)| e != &k);
+        pipeline.sweep.insert(k, v);
+    }
+    for (k, v, l) in each {
+        pipeline.sweep.remove(&k);
+        match pipeline.sweep_each.iter_mut().find(|(e, _, _)| e == &k) {
+            Some(slot) => *slot = (k, v, l),
+            None => pipeline.sweep_each.push((k, v, l)),
+        }
     }
 }
 
