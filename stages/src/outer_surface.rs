@@ -57,6 +57,21 @@
 //! component), each component is flipped so its signed volume is positive
 //! (outward normals for closed surfaces), and normals are recomputed. Nothing
 //! else changes: vertex order, positions and part groups are kept.
+//!
+//! What is repaired and what is refused ([`import_closed_mesh`], shared with
+//! the `parts` stage). M_outer must be a closed surface: the defurring solve
+//! and the shell tests ask whether points are inside it, and signed volumes
+//! and outward normals mean nothing for an open or branching surface. So:
+//! - edges shared by more than two triangles (non-manifold "fins") and edges
+//!   of a single triangle (holes) are errors naming a vertex pair (1-based, as
+//!   in the OBJ `f` lines) and the count: guessing how to close a hole or cut a
+//!   fin would silently change the envelope the fur is measured against;
+//! - an inside-out mesh (negative signed volume) and triangles wound against
+//!   their neighbours are fixed (flipped), because the intent is unambiguous,
+//!   and each fix is a line in `metrics.json` `warnings` and in the run log;
+//! - triangles that name a vertex twice (zero area) are dropped, with a warning;
+//! - a vertex where two sheets touch (a closed, edge-manifold mesh whose
+//!   triangles around a vertex form more than one fan) is kept with a warning.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -94,9 +109,9 @@ pub enum HullError {
     },
     #[error("min_views_outside = {k} but there are only {views} views")]
     TooFewViews { k: usize, views: usize },
-    #[error("the cameras do not see a common region containing the masked object: check the cameras (poses, intrinsics) and masks")]
+    #[error("no camera sees the object: the visual hull is empty (the viewing cones through the masks' foreground share no region); check the camera poses and intrinsics, and the masks")]
     NoCommonRegion,
-    #[error("the masks carve away everything: check cameras/masks")]
+    #[error("no camera sees the object: the visual hull is empty (every voxel is outside the foreground of some view); check the camera poses and intrinsics, and the masks")]
     EmptyHull,
     #[error("surface extraction produced a non-manifold mesh: {0}")]
     NonManifold(String),
@@ -1012,10 +1027,84 @@ pub fn orient_outward(mesh: &mut Mesh) -> usize {
     flipped
 }
 
+/// What [`import_closed_mesh`] changed.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ImportReport {
+    /// Triangles whose winding was reversed.
+    pub triangles_flipped: usize,
+    /// Signed volume before any fix (negative: the file was inside-out).
+    pub volume_before: f32,
+    /// One line per fix, for `metrics.json` and the run log.
+    pub warnings: Vec<String>,
+}
+
+/// Checks and orients a user's closed mesh (see "Imported mesh" in the module
+/// doc): fails with a sentence naming the defect when it is not a closed
+/// edge-manifold surface, flips inside-out or inconsistently wound triangles,
+/// drops degenerate triangles, and recomputes the normals.
+pub fn import_closed_mesh(mesh: &mut Mesh) -> Result<ImportReport, String> {
+    if mesh.triangles.is_empty() {
+        return Err(
+            "the mesh has no triangles: expected a closed triangle mesh (`f` lines)".into(),
+        );
+    }
+    let mut warnings = Vec::new();
+    let topo = mesh.topology();
+    if topo.out_of_range_triangles > 0 {
+        return Err(topo.problems().join("; "));
+    }
+    if topo.degenerate_triangles > 0 {
+        mesh.triangles
+            .retain(|t| t[0] != t[1] && t[1] != t[2] && t[0] != t[2]);
+        warnings.push(format!(
+            "dropped {} degenerate triangles that name a vertex twice",
+            topo.degenerate_triangles
+        ));
+        if mesh.triangles.is_empty() {
+            return Err(
+                "every triangle names a vertex twice: expected a closed triangle mesh".into(),
+            );
+        }
+    }
+    let topo = mesh.topology();
+    if !topo.is_closed_manifold() {
+        return Err(topo.problems().join("; "));
+    }
+    let volume_before = signed_volume(mesh);
+    let nt = mesh.triangles.len();
+    let flipped = orient_outward(mesh);
+    if volume_before < 0.0 && flipped == nt {
+        warnings.push(format!(
+            "the mesh was inside-out (signed volume {volume_before:.6} < 0): all {nt} triangles were flipped to face outward"
+        ));
+    } else if flipped > 0 {
+        warnings.push(format!(
+            "{flipped} of {nt} triangles were flipped so that every piece is wound consistently and faces outward (signed volume before: {volume_before:.6})"
+        ));
+    }
+    if let Err(e) = check_closed_manifold(mesh) {
+        warnings.push(format!("kept as is: {e}"));
+    }
+    Ok(ImportReport {
+        triangles_flipped: flipped,
+        volume_before,
+        warnings,
+    })
+}
+
+/// The file that lists the training cameras of a views directory (for messages).
+fn train_file(dir: &Path) -> std::path::PathBuf {
+    ["transforms.json", "transforms_train.json"]
+        .iter()
+        .map(|n| dir.join(n))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| dir.join("transforms.json"))
+}
+
 /// The `outer_surface` stage.
 pub struct OuterSurfaceStage;
 
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 fn settings(p: &Params) -> Result<HullSettings, StageError> {
     Ok(HullSettings {
@@ -1056,8 +1145,11 @@ pub fn read_mask_views(
                 )
             })?;
             let data = mask.data.iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
+            // Name the file the mask came from: `<stem>_mask.png`, or the image (alpha).
+            let mpath = crate::formats::cameras::mask_path(dir, cam);
+            let file = if mpath.is_file() { mpath } else { crate::formats::cameras::image_path(dir, cam) };
             MaskView::new(i, cam, data, mask.width, mask.height, threshold)
-                .map_err(|e| StageError::input("views", dir, e))
+                .map_err(|e| StageError::input("views", &file, e))
         })
         .collect();
     let views = views.into_iter().collect::<Result<Vec<_>, _>>()?;
@@ -1074,6 +1166,8 @@ struct Metrics {
     volume: f32,
     diagonal: f32,
     triangles_flipped: usize,
+    /// What was repaired in an imported mesh (empty for a visual hull).
+    warnings: Vec<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     hull: Option<HullReport>,
     seconds: f64,
@@ -1147,6 +1241,10 @@ impl Stage for OuterSurfaceStage {
                     HullError::EmptyMask { .. } | HullError::MaskSize { .. } => {
                         StageError::input("views", dir, e)
                     }
+                    // Cameras that look away, or masks that disagree: name the cameras' file.
+                    HullError::NoCommonRegion | HullError::EmptyHull => {
+                        StageError::input("views", &train_file(dir), e)
+                    }
                     other => StageError::failed(other),
                 })?;
                 ctx.progress.note(&format!(
@@ -1163,35 +1261,31 @@ impl Stage for OuterSurfaceStage {
                     volume: signed_volume(&mesh),
                     diagonal: mesh.diagonal(),
                     triangles_flipped: 0,
+                    warnings: Vec::new(),
                     hull: Some(rep),
                     seconds: 0.0,
                 };
                 (mesh, m)
             }
             (None, Some(path)) => {
-                let mut mesh = crate::formats::obj::read_obj(path)?;
-                if mesh.triangles.is_empty() {
-                    return Err(StageError::input("mesh", path, "the mesh has no triangles"));
+                let mut mesh =
+                    crate::formats::obj::read_obj(path).map_err(|e| e.for_input("mesh"))?;
+                let rep = import_closed_mesh(&mut mesh)
+                    .map_err(|e| StageError::input("mesh", path, e))?;
+                for w in &rep.warnings {
+                    ctx.progress.note(&format!("imported mesh: {w}"));
                 }
-                let flipped = orient_outward(&mut mesh);
-                let watertight = match check_closed_manifold(&mesh) {
-                    Ok(()) => true,
-                    Err(e) => {
-                        ctx.progress.note(&format!(
-                            "imported mesh is not closed/manifold ({e}); kept as is"
-                        ));
-                        false
-                    }
-                };
+                let flipped = rep.triangles_flipped;
                 let m = Metrics {
                     source: "imported",
-                    watertight,
+                    watertight: true,
                     vertices: mesh.positions.len(),
                     triangles: mesh.triangles.len(),
                     area: mesh.area(),
                     volume: signed_volume(&mesh),
                     diagonal: mesh.diagonal(),
                     triangles_flipped: flipped,
+                    warnings: rep.warnings,
                     hull: None,
                     seconds: 0.0,
                 };
@@ -1499,5 +1593,89 @@ mod tests {
         for (p, n) in bad.positions.iter().zip(&bad.normals) {
             assert!((*p - Vec3::splat(0.5)).dot(*n) > 0.0);
         }
+    }
+
+    fn unit_cube() -> Mesh {
+        let p = [
+            [0., 0., 0.],
+            [1., 0., 0.],
+            [1., 1., 0.],
+            [0., 1., 0.],
+            [0., 0., 1.],
+            [1., 0., 1.],
+            [1., 1., 1.],
+            [0., 1., 1.],
+        ]
+        .map(Vec3::from_array)
+        .to_vec();
+        Mesh {
+            positions: p,
+            triangles: vec![
+                [0, 2, 1],
+                [0, 3, 2],
+                [4, 5, 6],
+                [4, 6, 7],
+                [0, 1, 5],
+                [0, 5, 4],
+                [1, 2, 6],
+                [1, 6, 5],
+                [2, 3, 7],
+                [2, 7, 6],
+                [3, 0, 4],
+                [3, 4, 7],
+            ],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn import_flips_inside_out_with_a_warning_and_refuses_holes_and_fins() {
+        // Inside-out: every triangle reversed.
+        let mut m = unit_cube();
+        for t in &mut m.triangles {
+            t.swap(1, 2);
+        }
+        let rep = import_closed_mesh(&mut m).unwrap();
+        assert_eq!(rep.triangles_flipped, 12);
+        assert!(rep.volume_before < 0.0);
+        assert_eq!(rep.warnings.len(), 1);
+        assert!(rep.warnings[0].contains("inside-out"), "{:?}", rep.warnings);
+        assert!((signed_volume(&m) - 1.0).abs() < 1e-5);
+        // A correct cube imports without warnings.
+        let mut ok = unit_cube();
+        let rep = import_closed_mesh(&mut ok).unwrap();
+        assert!(rep.warnings.is_empty() && rep.triangles_flipped == 0);
+        // A hole.
+        let mut open = unit_cube();
+        open.triangles.remove(3);
+        let e = import_closed_mesh(&mut open).unwrap_err();
+        assert!(
+            e.contains("not watertight") && e.contains("3 boundary edges"),
+            "{e}"
+        );
+        // A fin on edge 0-1 (vertices 1 and 2 in OBJ numbering).
+        let mut fin = unit_cube();
+        fin.positions.push(Vec3::new(0.5, -1.0, 0.0));
+        fin.triangles.push([0, 1, 8]);
+        fin.triangles.push([1, 0, 8]);
+        let e = import_closed_mesh(&mut fin).unwrap_err();
+        assert!(
+            e.contains("non-manifold") && e.contains("vertices 1 and 2"),
+            "{e}"
+        );
+        // Degenerate triangles are dropped with a warning.
+        let mut deg = unit_cube();
+        deg.triangles.push([5, 5, 6]);
+        let rep = import_closed_mesh(&mut deg).unwrap();
+        assert_eq!(deg.triangles.len(), 12);
+        assert!(rep.warnings[0].contains("degenerate"), "{:?}", rep.warnings);
+        // No triangles at all.
+        let mut empty = Mesh {
+            positions: vec![Vec3::ZERO],
+            ..Default::default()
+        };
+        assert!(import_closed_mesh(&mut empty)
+            .unwrap_err()
+            .contains("no triangles"));
     }
 }
