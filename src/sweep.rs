@@ -38,11 +38,17 @@
 //! stage skips only its dependents, independent branches still run) and every
 //! variant ends with a [`VariantStatus`]:
 //! - `failed`: some stage failed; reason `"<stage>: <first line of its
-//!   error>"` for the first failed stage in plan order, plus `" (+N more)"`;
+//!   error>"` for the first failed stage in plan order, plus `" (+N more)"`
+//!   (a first line ending in `:`, like a command's `...; stderr tail:`, takes
+//!   the next line along);
 //! - `degraded`: no failure, but some stage's `metrics.json` has a non-empty
 //!   top-level `warnings` array; reason `"<stage>: <warning>; ..."` (stages
 //!   in plan order; non-string elements are shown as compact JSON);
 //! - `ok`: neither (empty reason).
+//!
+//! Paths into the cache's staging directories (named after the process id)
+//! are shown as `<staging>` in reasons and warnings, so that a variant that
+//! fails the same way gives the same record on every run.
 //!
 //! # Tables and the record
 //!
@@ -370,7 +376,12 @@ fn make_row(v: &Variant, plan: &Plan, report: RunReport, cache: &Cache) -> Row {
             }
         }
     }
-    let (status, reason, failed_stage) = classify(&report, &warnings);
+    let (status, mut reason, failed_stage) = classify(&report, &warnings);
+    let staging = staging_prefixes(cache);
+    reason = scrub(&reason, &staging);
+    for w in &mut warnings {
+        *w = scrub(w, &staging);
+    }
     Row {
         variant: v.clone(),
         name: plan.name.clone(),
@@ -382,6 +393,42 @@ fn make_row(v: &Variant, plan: &Plan, report: RunReport, cache: &Cache) -> Row {
         failed_stage,
         warnings,
     }
+}
+
+/// The staging-directory prefixes of a cache (`<root>/tmp/`, as given and canonical).
+fn staging_prefixes(cache: &Cache) -> Vec<String> {
+    let mut v = vec![format!("{}/", cache.root().join("tmp").display())];
+    if let Ok(c) = cache.root().canonicalize() {
+        v.push(format!("{}/", c.join("tmp").display()));
+    }
+    if let Ok(a) = std::path::absolute(cache.root()) {
+        v.push(format!("{}/", a.join("tmp").display()));
+    }
+    // Longest first, so an absolute prefix is not cut by a relative one.
+    v.sort_by_key(|p| std::cmp::Reverse(p.len()));
+    v.dedup();
+    v
+}
+
+/// Replaces `<prefix><staging dir name>` by `<staging>`: staging directories
+/// are named after the process id, which would make a failed variant's reason
+/// (and so the record) differ from run to run.
+fn scrub(text: &str, prefixes: &[String]) -> String {
+    let mut out = text.to_string();
+    for p in prefixes {
+        let mut done = String::new();
+        let mut rest = out.as_str();
+        while let Some(i) = rest.find(p.as_str()) {
+            done.push_str(&rest[..i]);
+            done.push_str("<staging>");
+            let after = &rest[i + p.len()..];
+            let end = after.find('/').unwrap_or(after.len());
+            rest = &after[end..];
+        }
+        done.push_str(rest);
+        out = done;
+    }
+    out
 }
 
 /// Newlines and tabs as spaces, trimmed.
@@ -397,15 +444,21 @@ fn classify(report: &RunReport, warnings: &[String]) -> (VariantStatus, String, 
         .filter(|s| s.status == Status::Failed)
         .collect();
     if let Some(first) = failed.first() {
-        let msg = first
+        let mut lines = first
             .error
             .as_deref()
             .unwrap_or("")
             .lines()
             .map(str::trim)
-            .find(|l| !l.is_empty())
-            .unwrap_or("failed")
-            .to_string();
+            .filter(|l| !l.is_empty());
+        let mut msg = lines.next().unwrap_or("failed").to_string();
+        // A first line that announces what follows ("...; stderr tail:")
+        // takes the next line too.
+        if msg.ends_with(':') {
+            if let Some(next) = lines.next() {
+                msg = format!("{msg} {next}");
+            }
+        }
         let mut reason = format!("{}: {msg}", first.name);
         if failed.len() > 1 {
             let _ = write!(reason, " (+{} more)", failed.len() - 1);
@@ -945,12 +998,29 @@ mod tests {
         let (s, why, first) = classify(&r, &["a: w".into()]);
         assert_eq!(s, VariantStatus::Failed);
         assert_eq!(why, "b: empty hull (+1 more)");
+        let r2 = rep(vec![stage(
+            "c",
+            Status::Failed,
+            Some("`x` exited; stderr tail:\nboom\nz"),
+        )]);
+        assert_eq!(classify(&r2, &[]).1, "c: `x` exited; stderr tail: boom");
         assert_eq!(first.as_deref(), Some("b"));
         let r = rep(vec![stage("a", Status::Cached, None)]);
         let (s, why, _) = classify(&r, &["a: w1".into(), "a: w2".into()]);
         assert_eq!((s, why.as_str()), (VariantStatus::Degraded, "a: w1; a: w2"));
         let (s, why, _) = classify(&r, &[]);
         assert_eq!((s, why.as_str()), (VariantStatus::Ok, ""));
+    }
+
+    #[test]
+    fn staging_paths_are_scrubbed() {
+        let pre = vec!["/c/tmp/".to_string(), "c/tmp/".to_string()];
+        assert_eq!(
+            scrub("cannot read /c/tmp/123-0-abc/in/x.png: gone", &pre),
+            "cannot read <staging>/in/x.png: gone"
+        );
+        assert_eq!(scrub("a c/tmp/9-1-k/out b", &pre), "a <staging>/out b");
+        assert_eq!(scrub("no path here", &pre), "no path here");
     }
 
     #[test]

@@ -2,3 +2,4 @@
 //! Tests drive the built `fure` binary on temporary directories.
 
 mod engine;
+mod sweep;

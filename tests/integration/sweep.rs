@@ -1,0 +1,399 @@
+//! Sweeps through the `fure` binary: one-at-a-time axes, variant status and
+//! reasons, the sweep record and aggregate stages. Demo and `command` (`sh`)
+//! stages only, on temporary directories.
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/engine")
+        .join(name)
+}
+
+struct Project {
+    dir: tempfile::TempDir,
+}
+
+impl Project {
+    fn new() -> Project {
+        Project {
+            dir: tempfile::tempdir().expect("temp dir"),
+        }
+    }
+    fn path(&self, rel: &str) -> PathBuf {
+        self.dir.path().join(rel)
+    }
+    fn write(&self, rel: &str, text: &str) {
+        std::fs::write(self.path(rel), text).unwrap();
+    }
+    fn read(&self, rel: &str) -> String {
+        std::fs::read_to_string(self.path(rel)).unwrap_or_else(|e| panic!("{rel}: {e}"))
+    }
+    fn fure(&self, args: &[&str]) -> Sweep {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_fure"))
+            .args(args)
+            .current_dir(self.dir.path())
+            .env("FURE_CACHE", self.path("cache"))
+            .output()
+            .expect("run fure");
+        Sweep { out }
+    }
+}
+
+struct Sweep {
+    out: Output,
+}
+
+impl Sweep {
+    fn code(&self) -> i32 {
+        self.out.status.code().unwrap_or(-1)
+    }
+    fn stdout(&self) -> String {
+        String::from_utf8_lossy(&self.out.stdout).into_owned()
+    }
+    fn all(&self) -> String {
+        format!(
+            "stdout:\n{}\nstderr:\n{}",
+            self.stdout(),
+            String::from_utf8_lossy(&self.out.stderr)
+        )
+    }
+    /// The per-variant line printed for variant `i`.
+    fn line(&self, i: usize) -> String {
+        let head = format!("variant {i} (");
+        self.stdout()
+            .lines()
+            .find(|l| l.starts_with(&head))
+            .unwrap_or_else(|| panic!("no line for variant {i}:\n{}", self.all()))
+            .to_string()
+    }
+}
+
+fn json(text: &str) -> serde_json::Value {
+    serde_json::from_str(text).expect("valid JSON")
+}
+
+#[test]
+fn each_axes_statuses_record_and_aggregate() {
+    let p = Project::new();
+    std::fs::copy(data("sweep_each.toml"), p.path("sw.toml")).unwrap();
+    let s = p.fure(&["sweep", "sw.toml", "--jobs", "1"]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    let text = s.stdout();
+    // 2 crossed points x (base + 2 more powers + 2 more modes).
+    assert!(text.contains("sweep sw: 10 variants"), "{text}");
+    assert!(
+        text.contains("2 of 10 variants failed, 2 degraded"),
+        "{text}"
+    );
+
+    // Upstream `gen` is computed once per crossed point, hit by the others.
+    assert!(
+        s.line(0).contains("4 ran, 0 cached, 0 failed"),
+        "{}",
+        s.line(0)
+    );
+    assert!(s.line(1).contains("1 ran, 3 cached"), "{}", s.line(1));
+    // power 3 is `other`'s key: a hit.
+    assert!(s.line(2).contains("0 ran, 4 cached"), "{}", s.line(2));
+    assert!(
+        s.line(3).contains("0 ran, 3 cached, 1 failed"),
+        "{}",
+        s.line(3)
+    );
+    assert!(
+        s.line(4).contains("1 ran, 3 cached, 0 failed"),
+        "{}",
+        s.line(4)
+    );
+    assert!(s.line(5).contains("4 ran, 0 cached"), "{}", s.line(5));
+
+    let record_text = p.read("out/sw/sweep.json");
+    let r = json(&record_text);
+    assert_eq!(r["pipeline"], "sw");
+    assert_eq!(r["crossed"]["gen.scale"], json("[1.0, 2.0]"));
+    assert_eq!(r["each"]["sq.power"], json("[1.0, 2.0, 3.0]"));
+    assert_eq!(r["each_order"], json(r#"["sq.power", "check.env"]"#));
+    let v = r["variants"].as_array().unwrap();
+    assert_eq!(v.len(), 10);
+    // Order and settings: every swept key in every variant, held ones included.
+    let expect = [
+        (1.0, 1.0, "ok", None),
+        (1.0, 2.0, "ok", Some("sq.power")),
+        (1.0, 3.0, "ok", Some("sq.power")),
+        (1.0, 1.0, "fail", Some("check.env")),
+        (1.0, 1.0, "warn", Some("check.env")),
+        (2.0, 1.0, "ok", None),
+    ];
+    for (i, (scale, power, mode, varied)) in expect.iter().enumerate() {
+        let st = &v[i]["settings"];
+        assert_eq!(v[i]["index"], i, "{}", v[i]);
+        assert_eq!(v[i]["name"], format!("sw@v{i}"));
+        assert_eq!(st.as_object().unwrap().len(), 3, "{st}");
+        assert_eq!(st["gen.scale"].as_f64(), Some(*scale), "{st}");
+        assert_eq!(st["sq.power"].as_f64(), Some(*power), "{st}");
+        assert_eq!(st["check.env"]["MODE"], *mode, "{st}");
+        assert_eq!(v[i]["varied"].as_str(), *varied, "{}", v[i]);
+    }
+    // Statuses and reasons.
+    for i in [0, 1, 2, 5] {
+        assert_eq!(v[i]["status"], "ok", "{}", v[i]);
+        assert_eq!(v[i]["reason"], "");
+        assert!(v[i]["failed_stage"].is_null());
+    }
+    for i in [3, 8] {
+        assert_eq!(v[i]["status"], "failed", "{}", v[i]);
+        assert_eq!(v[i]["failed_stage"], "check");
+        let why = v[i]["reason"].as_str().unwrap();
+        assert!(why.starts_with("check: "), "{why}");
+        assert!(why.contains("exited with status 3"), "{why}");
+        assert!(why.contains("boom: bad mode"), "{why}");
+        // The other branches of the failed variant still ran (or hit).
+        assert!(v[i]["metrics"]["other.mean"].is_number(), "{}", v[i]);
+        assert!(v[i]["metrics"]["sq.mean"].is_number(), "{}", v[i]);
+    }
+    for i in [4, 9] {
+        assert_eq!(v[i]["status"], "degraded", "{}", v[i]);
+        assert_eq!(v[i]["reason"], "check: x");
+        assert_eq!(v[i]["warnings"], json(r#"["check: x"]"#));
+    }
+    assert!(s
+        .line(3)
+        .ends_with(&format!("failed ({})", v[3]["reason"].as_str().unwrap())));
+    assert!(s.line(4).ends_with("degraded (check: x)"), "{}", s.line(4));
+    // Metrics: numbers of every metrics.json, timings left out.
+    let m = &v[0]["metrics"];
+    assert_eq!(m["check.score"].as_f64(), Some(2.0), "{m}");
+    assert!(m.get("check.wall_seconds").is_none(), "{m}");
+    assert!(m.get("check.fit_time").is_none(), "{m}");
+    assert_ne!(v[0]["metrics"]["sq.mean"], v[1]["metrics"]["sq.mean"]);
+    // No absolute path anywhere in the record.
+    assert!(
+        !record_text.contains(p.dir.path().to_str().unwrap()),
+        "{record_text}"
+    );
+
+    // Tables carry status and reason.
+    let csv = p.read("out/sw/sweep.csv");
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let col = |h: &str| header.iter().position(|x| *x == h).unwrap();
+    let row3 = csv.lines().nth(4).unwrap();
+    assert!(row3.contains(",failed,"), "{row3}");
+    assert!(col("status") + 1 == col("reason"), "{csv}");
+    assert!(p
+        .read("out/sw/sweep.md")
+        .contains("| degraded | check: x |"));
+
+    // The aggregate ran once on the record.
+    assert!(text.contains("aggregate summary: ran"), "{text}");
+    assert_eq!(p.read("out/sw/summary/failed.txt").trim(), "2");
+    assert_eq!(p.read("out/sw/summary/seen.json"), record_text);
+
+    // A second sweep: the same record, byte for byte, and the aggregate is a hit.
+    let s2 = p.fure(&["sweep", "sw.toml", "--jobs", "1"]);
+    assert_eq!(s2.code(), 0, "{}", s2.all());
+    assert_eq!(p.read("out/sw/sweep.json"), record_text);
+    assert!(
+        s2.stdout().contains("aggregate summary: cached"),
+        "{}",
+        s2.all()
+    );
+    // Only the failing stage runs again.
+    assert!(s2.line(0).contains("0 ran, 4 cached"), "{}", s2.line(0));
+    assert!(
+        s2.line(3).contains("0 ran, 3 cached, 1 failed"),
+        "{}",
+        s2.line(3)
+    );
+
+    // --grid replaces an each axis's values; --each adds one.
+    let s3 = p.fure(&[
+        "sweep",
+        "sw.toml",
+        "--grid",
+        "sq.power=1,2",
+        "--each",
+        "other.power=3,4",
+        "--table",
+        "t3",
+    ]);
+    assert_eq!(s3.code(), 0, "{}", s3.all());
+    assert!(
+        s3.stdout().contains("sweep sw: 10 variants"),
+        "{}",
+        s3.all()
+    );
+    assert!(s3.line(4).contains("other.power=4"), "{}", s3.line(4));
+    assert!(
+        s3.stdout().contains("aggregate summary: ran"),
+        "{}",
+        s3.all()
+    );
+}
+
+#[test]
+fn a_failed_variant_keeps_going_and_later_variants_run() {
+    let p = Project::new();
+    p.write(
+        "k.toml",
+        r#"
+[stages.bad]
+kind = "command"
+cmd = ["sh", "-c", "if [ \"$MODE\" = fail ]; then echo 'no convergence' >&2; exit 1; fi; echo 1 > out.txt"]
+env = { MODE = "ok" }
+outs = ["out.txt"]
+
+[stages.after]
+kind = "demo_sum"
+inputs = { numbers = "bad.out.txt" }
+
+[stages.late]
+kind = "demo_numbers"
+count = 5
+
+[sweep.each]
+"bad.env" = [{ MODE = "fail" }, { MODE = "ok" }]
+"#,
+    );
+    let s = p.fure(&["sweep", "k.toml", "--jobs", "1"]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    // `bad` fails first; `late` (independent, declared after it) still runs; `after` is skipped.
+    assert!(
+        s.line(0).contains("1 ran, 0 cached, 1 failed"),
+        "{}",
+        s.line(0)
+    );
+    assert!(s.line(0).contains("failed (bad: "), "{}", s.line(0));
+    assert!(p.path("out/k@v0/late/numbers.txt").exists());
+    assert!(!p.path("out/k@v0/after").exists());
+    // The next variant ran to the end.
+    assert!(
+        s.line(1).contains("2 ran, 1 cached, 0 failed"),
+        "{}",
+        s.line(1)
+    );
+    assert!(s.line(1).ends_with(": ok"), "{}", s.line(1));
+    assert!(s.stdout().contains("1 of 2 variants failed"), "{}", s.all());
+    let r = json(&p.read("out/k/sweep.json"));
+    assert_eq!(r["variants"][0]["status"], "failed");
+    assert_eq!(r["variants"][1]["status"], "ok");
+    assert_eq!(r["each"]["bad.env"][0]["MODE"], "fail");
+    assert!(r["crossed"].as_object().unwrap().is_empty());
+}
+
+#[test]
+fn aggregate_errors_are_located_and_nothing_runs() {
+    let p = Project::new();
+    let base = r#"
+[stages.gen]
+kind = "demo_numbers"
+count = 5
+
+[sweep]
+"gen.seed" = [1, 2]
+"#;
+    let cases = [
+        // kind with a .txt input port
+        (
+            "[aggregate.r]\nkind = \"demo_sum\"\n",
+            "a.toml:10:8: error: aggregate `r`: kind `demo_sum` must declare exactly one input port, a `.json` file",
+        ),
+        // a parameter checked like any stage's
+        (
+            "[aggregate.r]\nkind = \"command\"\ncmd = [\"true\"]\nouts = []\n",
+            "stage `r` (kind `command`): parameter `outs`",
+        ),
+        // no inputs, no deps
+        (
+            "[aggregate.r]\nkind = \"command\"\ncmd = [\"true\"]\nouts = [\"x\"]\ninputs = { a = \"gen.numbers\" }\n",
+            "a.toml:13:",
+        ),
+        (
+            "[aggregate.r]\nkind = \"command\"\ncmd = [\"true\"]\nouts = [\"x\"]\ndeps = [\"gen.numbers\"]\n",
+            "a.toml:13:1: error: aggregate `r` (kind `command`): `deps` is set by the engine",
+        ),
+        // the name of a stage
+        (
+            "[aggregate.gen]\nkind = \"command\"\ncmd = [\"true\"]\nouts = [\"x\"]\n",
+            "a.toml:9:12: error: aggregate `gen` has the name of a stage",
+        ),
+        (
+            "[aggregate.r]\nkind = \"nope\"\n",
+            "a.toml:10:8: error: stage `r`: unknown kind `nope`",
+        ),
+    ];
+    for (agg, want) in cases {
+        p.write("a.toml", &format!("{base}\n{agg}"));
+        let s = p.fure(&["sweep", "a.toml"]);
+        assert_eq!(s.code(), 2, "{agg}\n{}", s.all());
+        assert!(s.all().contains(want), "{agg}\nwant {want}\n{}", s.all());
+        assert!(!p.path("out/a@v0").exists(), "nothing runs: {}", s.all());
+    }
+    // A failing aggregate is a failed stage: exit 1, after every variant ran.
+    p.write(
+        "a.toml",
+        &format!(
+            "{base}\n[aggregate.r]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"echo no >&2; exit 4\"]\nouts = [\"x\"]\n"
+        ),
+    );
+    let s = p.fure(&["sweep", "a.toml"]);
+    assert_eq!(s.code(), 1, "{}", s.all());
+    assert!(s.stdout().contains("0 of 2 variants failed"), "{}", s.all());
+    assert!(
+        s.all().contains("aggregate stage `r` (command) failed"),
+        "{}",
+        s.all()
+    );
+}
+
+#[test]
+fn each_axes_merge_through_extends() {
+    let p = Project::new();
+    p.write(
+        "parent.toml",
+        r#"
+[stages.gen]
+kind = "demo_numbers"
+count = 5
+[stages.sum]
+kind = "demo_sum"
+inputs = { numbers = "gen.numbers" }
+[sweep]
+"gen.count" = [5, 6]
+[sweep.each]
+"gen.seed" = [1, 2]
+"sum.power" = [1.0, 2.0]
+[aggregate.r]
+kind = "command"
+cmd = ["sh", "-c", "cp {deps.sweep} r.json"]
+outs = ["r.json"]
+"#,
+    );
+    p.write(
+        "child.toml",
+        r#"
+extends = "parent.toml"
+[sweep]
+"gen.seed" = [3]
+[sweep.each]
+"gen.count" = [5, 7, 8]
+"sum.power" = [1.0, 3.0, 4.0]
+[aggregate.r]
+cmd = ["sh", "-c", "cp {deps.sweep} r.json # child"]
+"#,
+    );
+    let s = p.fure(&["sweep", "child.toml"]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    // gen.seed crossed (1 value); each: sum.power (kept position), gen.count (moved) -> 1 + 2 + 2.
+    assert!(
+        s.stdout().contains("sweep child: 5 variants"),
+        "{}",
+        s.all()
+    );
+    let r = json(&p.read("out/child/r/r.json"));
+    assert_eq!(r["each_order"], json(r#"["sum.power", "gen.count"]"#));
+    assert_eq!(r["crossed"], json(r#"{"gen.seed": [3]}"#));
+    assert_eq!(r["variants"][1]["varied"], "sum.power");
+    assert_eq!(r["variants"][4]["settings"]["gen.count"], 8);
+}
