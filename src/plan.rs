@@ -529,19 +529,20 @@ pub fn check_value(spec: &fure_stage_api::ParamSpec, v: &Value) -> Result<Value,
             show(v)
         ));
     }
-    let bounds = |x: f64| -> Result<(), String> {
-        if let Some(m) = spec.min {
-            if x < m {
-                return Err(format!("{x} is below the minimum {m}"));
-            }
-        }
-        if let Some(m) = spec.max {
-            if x > m {
-                return Err(format!("{x} is above the maximum {m}"));
-            }
-        }
-        Ok(())
-    };
+    let bounds = |x: f64| spec.check_bounds(x);
+    // No parameter accepts NaN or infinities, wherever they sit (a table's
+    // per-part overrides included): TOML can write `nan` and `inf`.
+    if let Some(at) = non_finite_at(v, String::new()) {
+        return Err(format!(
+            "{}expected finite numbers only, found {} (TOML `nan`/`inf` are not accepted)",
+            if at.is_empty() {
+                String::new()
+            } else {
+                format!("`{at}`: ")
+            },
+            show(&first_non_finite(v))
+        ));
+    }
     Ok(match (spec.ty, v) {
         (ParamType::Float, _) => {
             let x = v.as_f64().unwrap_or(f64::NAN);
@@ -575,6 +576,46 @@ pub fn check_value(spec: &fure_stage_api::ParamSpec, v: &Value) -> Result<Value,
         }
         _ => v.clone(),
     })
+}
+
+/// Where the first NaN or infinite float sits inside `v` (`""` for `v` itself,
+/// `a.b[2]` inside tables and arrays), or `None` when every float is finite.
+fn non_finite_at(v: &Value, at: String) -> Option<String> {
+    match v {
+        Value::Float(f) if !f.is_finite() => Some(at),
+        Value::List(l) => l
+            .iter()
+            .enumerate()
+            .find_map(|(i, x)| non_finite_at(x, format!("{at}[{i}]"))),
+        Value::Table(t) => t.iter().find_map(|(k, x)| {
+            non_finite_at(
+                x,
+                if at.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{at}.{k}")
+                },
+            )
+        }),
+        _ => None,
+    }
+}
+
+/// The first non-finite float inside `v` (for the message), `v` itself otherwise.
+fn first_non_finite(v: &Value) -> Value {
+    match v {
+        Value::List(l) => l
+            .iter()
+            .find(|x| non_finite_at(x, String::new()).is_some())
+            .map(first_non_finite)
+            .unwrap_or_else(|| v.clone()),
+        Value::Table(t) => t
+            .values()
+            .find(|x| non_finite_at(x, String::new()).is_some())
+            .map(first_non_finite)
+            .unwrap_or_else(|| v.clone()),
+        _ => v.clone(),
+    }
 }
 
 /// A value as TOML-ish text, for messages.
@@ -770,6 +811,10 @@ mod tests {
             vec![
                 ParamSpec::float("x", 1.0, "x").range(0.0, 10.0),
                 ParamSpec::string("mode", "a", "m").choices(&["a", "b"]),
+                ParamSpec::float("sigma", 1.0, "s").positive(),
+                ParamSpec::int("n", 1, "n").min(1.0),
+                ParamSpec::float_list("l", &[1.0], "l"),
+                ParamSpec::table("parts", "per-part overrides"),
             ]
         }
         fn inputs(&self, _: &Params) -> Vec<PortSpec> {
@@ -826,6 +871,32 @@ mod tests {
         );
         assert!(s.contains("has no output `missing`"), "{s}");
         assert!(s.contains("has no input port `bad`"), "{s}");
+    }
+
+    #[test]
+    fn non_finite_zero_and_negative_values_are_located() {
+        let e = plan_str(
+            "[stages.a]\nkind=\"k\"\nx=nan\nsigma=0\nn=-3\nl=[1.0, inf]\n\
+             [stages.a.parts.torso]\nlength_cm=-nan\n[stages.b]\nkind=\"k\"\nsigma=-inf\nx=+inf\n",
+        )
+        .unwrap_err();
+        let s = e.to_string();
+        for want in [
+            "p.toml:3:1: error: stage `a`: parameter `x`: expected finite numbers only, found NaN",
+            "p.toml:4:1: error: stage `a`: parameter `sigma`: 0 is not allowed: expected a number greater than 0",
+            "p.toml:5:1: error: stage `a`: parameter `n`: -3 is below the minimum 1",
+            "p.toml:6:1: error: stage `a`: parameter `l`: `[1]`: expected finite numbers only, found inf",
+            "parameter `parts`: `torso.length_cm`: expected finite numbers only, found NaN",
+            "p.toml:11:1: error: stage `b`: parameter `sigma`: expected finite numbers only, found -inf",
+            "p.toml:12:1: error: stage `b`: parameter `x`: expected finite numbers only, found inf",
+        ] {
+            assert!(s.contains(want), "missing `{want}` in:\n{s}");
+        }
+        // Within bounds and finite: accepted.
+        plan_str(
+            "[stages.a]\nkind=\"k\"\nsigma=1e-9\nn=1\n[stages.a.parts.torso]\nlength_cm=2.0\n",
+        )
+        .unwrap();
     }
 
     #[test]

@@ -32,6 +32,15 @@
 //! `metrics.json` reports per-part vertex counts and the transfer distance
 //! (mean / 95th percentile / max, also relative to the mesh diagonal) so a
 //! badly aligned label source shows up.
+//!
+//! **Bad input.** The labelled `mesh` is M_outer for the stages after this
+//! one, so it gets the same checks as an imported mesh in `outer_surface`
+//! ([`crate::outer_surface::import_closed_mesh`]): holes and edges shared by
+//! more than two triangles are errors, an inside-out mesh is flipped and the
+//! fix is listed in `metrics.json` `warnings`. A mesh on which every vertex
+//! ends up in a protected part has no fur to reconstruct: that is an error
+//! here, at the first stage that can tell, naming the parts and the
+//! `protected` parameter, rather than an empty root set three stages later.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -195,6 +204,8 @@ struct Metrics {
     transfer_mean_frac: Option<f32>,
     #[serde(skip_serializing_if = "Option::is_none")]
     transfer_p95_frac: Option<f32>,
+    /// What was repaired in the input mesh (inside-out flipped, ...).
+    warnings: Vec<String>,
 }
 
 impl Stage for PartsStage {
@@ -202,7 +213,7 @@ impl Stage for PartsStage {
         "parts"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "Per-vertex part labels for a mesh (e.g. M_outer), transferred by nearest vertex from a labelled \
@@ -256,13 +267,18 @@ impl Stage for PartsStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let mesh_path = ctx.input("mesh")?;
-        let mut mesh = crate::formats::obj::read_obj(mesh_path)?;
+        let mut mesh = crate::formats::obj::read_obj(mesh_path).map_err(|e| e.for_input("mesh"))?;
         if mesh.positions.is_empty() {
             return Err(StageError::input(
                 "mesh",
                 mesh_path,
                 "the mesh has no vertices",
             ));
+        }
+        let import = crate::outer_surface::import_closed_mesh(&mut mesh)
+            .map_err(|e| StageError::input("mesh", mesh_path, e))?;
+        for w in &import.warnings {
+            ctx.progress.note(&format!("mesh: {w}"));
         }
         let (source, transfer) = match (ctx.input_opt("labels"), ctx.input_opt("vertex_labels")) {
             (Some(_), Some(_)) => {
@@ -274,7 +290,7 @@ impl Stage for PartsStage {
                 ))
             }
             (Some(path), None) => {
-                let src = crate::formats::obj::read_obj(path)?;
+                let src = crate::formats::obj::read_obj(path).map_err(|e| e.for_input("labels"))?;
                 let rep = transfer_nearest(&mut mesh, &src).map_err(|e| StageError::input("labels", path, e))?;
                 ("nearest_vertex", Some(rep))
             }
@@ -297,10 +313,30 @@ impl Stage for PartsStage {
                 *counts.entry(n.clone()).or_insert(0) += 1;
             }
         }
-        let protected_vertices = protected
+        let protected_vertices: usize = protected
             .iter()
             .map(|n| counts.get(n).copied().unwrap_or(0))
             .sum();
+        if protected_vertices >= mesh.positions.len() {
+            let labelled: Vec<&str> = counts
+                .iter()
+                .filter(|(_, c)| **c > 0)
+                .map(|(n, _)| n.as_str())
+                .collect();
+            let (port, path) = match (ctx.input_opt("labels"), ctx.input_opt("vertex_labels")) {
+                (Some(p), _) => ("labels", p),
+                (_, Some(p)) => ("vertex_labels", p),
+                _ => ("mesh", mesh_path),
+            };
+            return Err(StageError::input(
+                port,
+                path,
+                format!(
+                    "the mesh has no fur parts: every vertex is in a protected part ({}), so there is no fur to reconstruct; expected at least one part that is not in the `protected` parameter (nor `fur = false` in scene.json)",
+                    labelled.join(", ")
+                ),
+            ));
+        }
         let unknown: Vec<&String> = wanted
             .iter()
             .filter(|w| !mesh.part_names.iter().any(|n| n.eq_ignore_ascii_case(w)))
@@ -326,10 +362,18 @@ impl Stage for PartsStage {
             transfer_mean_frac: transfer.as_ref().map(|t| t.mean_distance / diag),
             transfer_p95_frac: transfer.as_ref().map(|t| t.p95_distance / diag),
             transfer,
+            warnings: import.warnings,
         };
         if mesh.normals.len() != mesh.positions.len() {
             mesh.recompute_normals();
         }
+        fure_stage_api::ensure_finite(
+            "labelled mesh positions and normals",
+            mesh.positions
+                .iter()
+                .chain(&mesh.normals)
+                .flat_map(|p| p.to_array()),
+        )?;
         crate::formats::obj::write_obj(ctx.output("mesh")?, &mesh)?;
         crate::formats::json::write_json(ctx.output("protected")?, &protected)?;
         crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;

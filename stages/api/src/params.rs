@@ -122,6 +122,8 @@ pub struct ParamSpec {
     /// Inclusive numeric bounds, checked by the engine (also for each element of a FloatList).
     pub min: Option<f64>,
     pub max: Option<f64>,
+    /// The lower bound excludes `min` itself (set by [`ParamSpec::positive`]: values must be > min).
+    pub min_exclusive: bool,
     /// Allowed strings for `Str` parameters (empty: any).
     pub choices: &'static [&'static str],
     /// May be left unset even though there is no default.
@@ -137,6 +139,7 @@ impl ParamSpec {
             default,
             min: None,
             max: None,
+            min_exclusive: false,
             choices: &[],
             optional: false,
             doc,
@@ -189,7 +192,36 @@ impl ParamSpec {
     }
     pub fn min(mut self, min: f64) -> Self {
         self.min = Some(min);
+        self.min_exclusive = false;
         self
+    }
+    /// Values must be strictly greater than zero (a length, a scale, a standard deviation).
+    pub fn positive(mut self) -> Self {
+        self.min = Some(0.0);
+        self.min_exclusive = true;
+        self
+    }
+    /// Whether `x` satisfies the bounds; the message says which bound it breaks.
+    pub fn check_bounds(&self, x: f64) -> Result<(), String> {
+        if x.is_nan() {
+            return Err("expected a number, found NaN".to_string());
+        }
+        if let Some(m) = self.min {
+            if self.min_exclusive && x <= m {
+                return Err(format!(
+                    "{x} is not allowed: expected a number greater than {m}"
+                ));
+            }
+            if x < m {
+                return Err(format!("{x} is below the minimum {m}"));
+            }
+        }
+        if let Some(m) = self.max {
+            if x > m {
+                return Err(format!("{x} is above the maximum {m}"));
+            }
+        }
+        Ok(())
     }
     pub fn max(mut self, max: f64) -> Self {
         self.max = Some(max);
