@@ -953,7 +953,7 @@ impl Stage for FrostingStage {
             ParamSpec::float("prune_opacity", 0.005, "Gaussians below this opacity after fitting are dropped").range(0.0, 1.0),
             ParamSpec::string("sigma_n", "gaussians", "sampling unit: gaussians (Frosting: mean normal std of the sigma_k nearest), fixed (sigma_n_frac D) or max of both")
                 .choices(&["gaussians", "fixed", "max"]),
-            ParamSpec::float("sigma_n_frac", 0.01, "fixed sigma_n as a fraction of D (for sigma_n = fixed or max)").range(0.0, 1.0),
+            ParamSpec::float("sigma_n_frac", 0.01, "fixed sigma_n as a fraction of D (for sigma_n = fixed or max)").range(0.0, 1.0).positive(),
             ParamSpec::int("sigma_k", 4, "Gaussians averaged for sigma_n").range(1.0, 256.0),
             ParamSpec::float("range_sigmas", 3.0, "samples span +-range_sigmas sigma_n").range(0.01, 100.0),
             ParamSpec::int("samples", 21, "samples along each normal").range(2.0, 10_000.0),

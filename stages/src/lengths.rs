@@ -260,12 +260,14 @@ impl Stage for LengthsStage {
                 "s_cm",
                 ParamType::Float,
                 "explicit centimetres per scene unit (wins over the eyes)",
-            ),
+            )
+            .positive(),
             ParamSpec::optional(
                 "eye_separation_cm",
                 ParamType::Float,
                 "assumed eye separation in cm (overrides the scene file's)",
-            ),
+            )
+            .positive(),
             ParamSpec::table(
                 "multiplier",
                 "per-part multipliers m_p (defaults: 2.5 body, 2.0 head/muzzle/ears/paws)",
@@ -275,7 +277,7 @@ impl Stage for LengthsStage {
                 2.5,
                 "m_p of fur parts not in the defaults or the table",
             )
-            .min(0.0),
+            .positive(),
             ParamSpec::table(
                 "reference_length_cm",
                 "per-part reference lengths in cm for V2",

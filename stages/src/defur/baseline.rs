@@ -118,7 +118,8 @@ impl Stage for DefurBaselineStage {
                 "s_cm",
                 ParamType::Float,
                 "centimetres per scene unit, when no `scale` input is connected",
-            ),
+            )
+            .positive(),
             ParamSpec::str_list(
                 "protected_parts",
                 DEFAULT_PROTECTED,

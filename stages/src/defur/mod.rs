@@ -725,7 +725,7 @@ impl Stage for DefurStage {
             ParamSpec::float("bound_max_frac", d.bound_max_frac as f64, "u_i <= this x D").range(0.0, 1.0),
             ParamSpec::float("bound_miss_frac", d.bound_miss_frac as f64, "hit distance assumed when the inward ray hits nothing, fraction of D").range(0.0, 10.0),
             ParamSpec::table("reference_thickness_cm", "per-part reference thickness h_p in cm (missing parts use W75; an explicit 0 stays 0); needs s_cm"),
-            ParamSpec::optional("s_cm", ParamType::Float, "centimetres per scene unit, when no `scale` input is connected"),
+            ParamSpec::optional("s_cm", ParamType::Float, "centimetres per scene unit, when no `scale` input is connected").positive(),
             ParamSpec::str_list("protected_parts", DEFAULT_PROTECTED, "non-fur part names kept fixed (case-insensitive)"),
             ParamSpec::int("max_iterations", d.solver.max_iterations as i64, "solver iteration limit").range(0.0, 1e7),
             ParamSpec::float("ftol", d.solver.ftol, "relative reduction tolerance").min(0.0),

@@ -76,7 +76,8 @@ fn common_params(iterations: i64) -> Vec<ParamSpec> {
             "fixed_length_cm",
             ParamType::Float,
             "Length for length_mode = fixed (default: the mean over fur parts of their mean length).",
-        ),
+        )
+        .positive(),
         ParamSpec::int("sdf_resolution", 48, "Nodes along the largest side of the distance grids.")
             .range(8.0, 256.0),
         ParamSpec::int(
