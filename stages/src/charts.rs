@@ -36,7 +36,9 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::evaluate::{strand_prf_limited, threshold_key, Prf, PAPER_THRESHOLDS};
+use crate::evaluate::{
+    match_cell, strand_prf_sets, threshold_key, OrientedSet, Prf, PAPER_THRESHOLDS,
+};
 use crate::strands::Strands;
 
 /// The bundled font (DejaVu Sans, Bitstream Vera licence).
@@ -494,6 +496,9 @@ impl Stage for SpeedAccuracy {
                 "holds no strands",
             ));
         }
+        // The ground truth's oriented points and grid, built once for every snapshot.
+        let cell = match_cell(&PAPER_THRESHOLDS);
+        let gt_set = OrientedSet::new(&gt, scene.s_cm, spacing, cell);
         let mut scored: Vec<Vec<ScoredSnapshot>> = Vec::new();
         let lists: Vec<(&str, PathBuf, Vec<Snapshot>)> = ["codec", "dense"]
             .iter()
@@ -507,15 +512,8 @@ impl Stage for SpeedAccuracy {
                 ctx.progress
                     .message(&format!("scoring {method} {}", s.file));
                 let strands: Strands = crate::evaluate::read_strands_any(&dir.join(&s.file))?;
-                let prf = strand_prf_limited(
-                    &strands,
-                    &gt,
-                    scene.s_cm,
-                    spacing,
-                    &PAPER_THRESHOLDS,
-                    false,
-                    max_q,
-                );
+                let pred = OrientedSet::new(&strands, scene.s_cm, spacing, cell);
+                let (prf, _) = strand_prf_sets(&pred, &gt_set, &PAPER_THRESHOLDS, max_q);
                 fure_stage_api::ensure_finite(
                     "snapshot scores",
                     prf.iter().flat_map(|x| [x.precision, x.recall, x.fscore]),

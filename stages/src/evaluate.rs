@@ -17,8 +17,12 @@
 //!    predicted points; recall is the same with the roles swapped; `F = 2PR / (P + R)`, 0 when `P + R = 0`.
 //!    All three are reported in percent.
 //! 4. Ball queries use a uniform grid (cell = the smallest threshold distance, enlarged if the grid would
-//!    be huge) visited ring by ring from the query's cell, stopping as soon as every threshold has a match.
-//!    Every query is independent and the counts are integers, so the result does not depend on threads.
+//!    be huge) visited ring by ring from the query's cell, skipping cells whose box is beyond the search
+//!    radius, stopping as soon as every threshold has a match, and shrinking the radius to the largest
+//!    distance of the thresholds still unmatched (all exact: a test compares with brute force). Unsigned
+//!    and signed counts come from one pass. The ground-truth side ([`OrientedSet`]) can be built once
+//!    and reused against many predictions. Every query is independent and the counts are integers, so
+//!    the result does not depend on threads.
 //!    `max_queries` (0 = all) evaluates a deterministic evenly-strided subset of the query points of each
 //!    side when the sets are huge (the reference side is always complete): precision and recall are
 //!    fractions, so this is an unbiased estimate; the stage records the numbers actually used.
@@ -251,9 +255,18 @@ impl BallGrid {
         ((c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0]) as usize
     }
 
-    /// Calls `f(index)` for every stored point in cells of Chebyshev ring `ring` around `p`'s cell,
-    /// in a fixed order. Returns false once `f` returns false (stop).
-    fn visit_ring(&self, p: Vec3, ring: i64, f: &mut dyn FnMut(u32) -> bool) -> bool {
+    /// Squared distance from `p` to the box of cell `c`.
+    fn box_distance2(&self, p: Vec3, c: [i64; 3]) -> f32 {
+        let lo = self.origin + Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32) * self.cell;
+        let hi = lo + Vec3::splat(self.cell);
+        let d = (lo - p).max(p - hi).max(Vec3::ZERO);
+        d.length_squared()
+    }
+
+    /// Calls `f(index)` for every stored point in cells of Chebyshev ring `ring` around `p`'s cell
+    /// whose box lies within `radius` of `p`, in a fixed order. Returns false once `f` returns
+    /// false (stop).
+    fn visit_ring(&self, p: Vec3, ring: i64, radius: f32, f: &mut dyn FnMut(u32) -> bool) -> bool {
         let c = self.cell_of(p);
         for dz in -ring..=ring {
             for dy in -ring..=ring {
@@ -263,6 +276,9 @@ impl BallGrid {
                     }
                     let q = [c[0] + dx, c[1] + dy, c[2] + dz];
                     if (0..3).any(|k| q[k] < 0 || q[k] >= self.dims[k]) {
+                        continue;
+                    }
+                    if self.box_distance2(p, q) > radius * radius {
                         continue;
                     }
                     let ci = self.cell_index(q);
@@ -278,32 +294,95 @@ impl BallGrid {
         true
     }
 
-    /// Calls `f(index)` for candidate points (a superset of those within `radius`), nearest cells
-    /// first; stops when `f` returns false.
+    /// Calls `f(index)` for candidate points (a superset of those within `radius`: the points of
+    /// every cell whose box is within `radius`), nearest cell rings first; stops when `f` returns
+    /// false. A point at distance `r` lies at most `ceil(r / cell)` rings from the query's cell
+    /// (the query's own cell clamped to the grid, which only brings it closer).
     pub fn for_candidates(&self, p: Vec3, radius: f32, f: &mut dyn FnMut(u32) -> bool) {
-        let rings = (radius / self.cell).ceil().max(0.0) as i64 + 1;
+        let rings = (radius / self.cell).ceil().max(0.0) as i64;
         for ring in 0..=rings {
-            if !self.visit_ring(p, ring, f) {
+            if !self.visit_ring(p, ring, radius, f) {
                 return;
             }
         }
     }
 }
 
-/// For each query point, whether a reference point matches it at each threshold
-/// (`thr`: (distance, cos angle)), as counts per threshold.
-fn match_counts(
-    q_pts: &[Vec3],
-    q_dirs: &[Vec3],
-    r_pts: &[Vec3],
-    r_dirs: &[Vec3],
-    thr: &[(f32, f32)],
+/// One side of the strand matching: the oriented points of a strand set (centimetres, resampled) and
+/// a ball-query grid over them, built once and reusable against any number of other sets (the
+/// `speed_accuracy` stage scores every snapshot against one ground-truth set).
+///
+/// The reference side is also stored in grid-cell order (`cell_points`: point and direction side by
+/// side), so scanning a cell reads contiguous memory instead of gathering by index; this changes no
+/// count (matching only asks whether some point matches) and made the stage several times faster.
+pub struct OrientedSet {
+    /// In strand order (queries; `max_queries` strides over this order).
+    pub pts: Vec<Vec3>,
+    pub dirs: Vec<Vec3>,
+    grid: BallGrid,
+    /// `(point, direction)` in the grid's cell order.
+    cell_points: Vec<(Vec3, Vec3)>,
+}
+
+impl OrientedSet {
+    /// Oriented points of `strands` ([`oriented_points`]) with a grid of cell `cell_cm`.
+    pub fn new(strands: &Strands, s_cm: f32, spacing_cm: f32, cell_cm: f32) -> Self {
+        let (pts, dirs) = oriented_points(strands, s_cm, spacing_cm);
+        let grid = BallGrid::new(&pts, cell_cm.max(1e-6));
+        let cell_points = grid
+            .order
+            .iter()
+            .map(|&i| (pts[i as usize], dirs[i as usize]))
+            .collect();
+        OrientedSet {
+            pts,
+            dirs,
+            grid,
+            cell_points,
+        }
+    }
+    pub fn len(&self) -> usize {
+        self.pts.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.pts.is_empty()
+    }
+}
+
+/// The grid cell used for matching at `thresholds`: the smallest threshold distance.
+pub fn match_cell(thresholds: &[(f32, f32)]) -> f32 {
+    thresholds
+        .iter()
+        .map(|t| t.0)
+        .fold(f32::MAX, f32::min)
+        .max(1e-6)
+}
+
+/// One matching rule: distance (and its square), cosine of the angle, signed or not.
+#[derive(Debug, Clone, Copy)]
+struct Rule {
+    d: f32,
+    d2: f32,
+    cos: f32,
     signed: bool,
+}
+
+/// For each query point of `q`, whether a point of `r` matches it under each rule, as counts per
+/// rule, and the number of queries evaluated.
+///
+/// Exact ball queries with two prunings that cannot change a count: grid cells whose box lies
+/// farther than the search radius are skipped, and the search radius shrinks to the largest
+/// distance of the rules still unmatched (a query matched at 4 cm / 40 deg only needs to look
+/// within 3 cm for the stricter rules). A query stops as soon as every rule is matched.
+fn match_counts(
+    q: &OrientedSet,
+    r: &OrientedSet,
+    rules: &[Rule],
     max_queries: usize,
 ) -> (Vec<u64>, usize) {
-    let n = q_pts.len();
-    if n == 0 || thr.is_empty() {
-        return (vec![0; thr.len()], n);
+    let n = q.len();
+    if n == 0 || rules.is_empty() {
+        return (vec![0; rules.len()], n);
     }
     let stride = if max_queries > 0 && n > max_queries {
         n.div_ceil(max_queries)
@@ -311,35 +390,72 @@ fn match_counts(
         1
     };
     let queries: Vec<usize> = (0..n).step_by(stride).collect();
-    let dmin = thr.iter().map(|t| t.0).fold(f32::MAX, f32::min);
-    let dmax = thr.iter().map(|t| t.0).fold(0.0f32, f32::max);
-    let grid = BallGrid::new(r_pts, dmin.max(1e-6));
-    let chunk = 4096;
+    let grid = &r.grid;
+    let chunk = 2048;
     let partial: Vec<Vec<u64>> = queries
         .par_chunks(chunk)
         .map(|qs| {
-            let mut counts = vec![0u64; thr.len()];
-            let mut hit = vec![false; thr.len()];
+            let mut counts = vec![0u64; rules.len()];
+            let mut hit = vec![false; rules.len()];
             for &qi in qs {
-                let (p, d) = (q_pts[qi], q_dirs[qi]);
+                let (p, d) = (q.pts[qi], q.dirs[qi]);
                 hit.iter_mut().for_each(|h| *h = false);
-                let mut left = thr.len();
-                grid.for_candidates(p, dmax, &mut |ri| {
-                    let ri = ri as usize;
-                    let dist2 = (r_pts[ri] - p).length_squared();
-                    if dist2 > dmax * dmax {
-                        return true;
-                    }
-                    let dot = d.dot(r_dirs[ri]);
-                    let dot = if signed { dot } else { dot.abs() };
-                    for (k, &(td, tc)) in thr.iter().enumerate() {
-                        if !hit[k] && dist2 <= td * td && dot >= tc {
-                            hit[k] = true;
-                            left -= 1;
+                let mut left = rules.len();
+                let mut radius = rules.iter().map(|x| x.d).fold(0.0f32, f32::max);
+                let c = grid.cell_of(p);
+                let mut ring = 0i64;
+                'rings: while (ring as f32 - 1.0) * grid.cell <= radius {
+                    for dz in -ring..=ring {
+                        for dy in -ring..=ring {
+                            for dx in -ring..=ring {
+                                if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
+                                    continue;
+                                }
+                                let cq = [c[0] + dx, c[1] + dy, c[2] + dz];
+                                if (0..3).any(|k| cq[k] < 0 || cq[k] >= grid.dims[k]) {
+                                    continue;
+                                }
+                                if grid.box_distance2(p, cq) > radius * radius {
+                                    continue;
+                                }
+                                let ci = grid.cell_index(cq);
+                                let (a, b) =
+                                    (grid.starts[ci] as usize, grid.starts[ci + 1] as usize);
+                                for &(rp, rd) in &r.cell_points[a..b] {
+                                    let dist2 = (rp - p).length_squared();
+                                    if dist2 > radius * radius {
+                                        continue;
+                                    }
+                                    let dot = d.dot(rd);
+                                    let mut changed = false;
+                                    for (k, rule) in rules.iter().enumerate() {
+                                        if hit[k] || dist2 > rule.d2 {
+                                            continue;
+                                        }
+                                        let v = if rule.signed { dot } else { dot.abs() };
+                                        if v >= rule.cos {
+                                            hit[k] = true;
+                                            left -= 1;
+                                            changed = true;
+                                        }
+                                    }
+                                    if changed {
+                                        if left == 0 {
+                                            break 'rings;
+                                        }
+                                        radius = rules
+                                            .iter()
+                                            .zip(&hit)
+                                            .filter(|(_, h)| !**h)
+                                            .map(|(x, _)| x.d)
+                                            .fold(0.0f32, f32::max);
+                                    }
+                                }
+                            }
                         }
                     }
-                    left > 0
-                });
+                    ring += 1;
+                }
                 for (c, h) in counts.iter_mut().zip(&hit) {
                     *c += *h as u64;
                 }
@@ -347,7 +463,7 @@ fn match_counts(
             counts
         })
         .collect();
-    let mut counts = vec![0u64; thr.len()];
+    let mut counts = vec![0u64; rules.len()];
     for p in partial {
         for (c, x) in counts.iter_mut().zip(p) {
             *c += x;
@@ -356,37 +472,13 @@ fn match_counts(
     (counts, queries.len())
 }
 
-/// Strand precision / recall / F-score (percent) of `pred` against `gt` at each `(cm, degrees)`
-/// threshold, with the rule in the module doc. `s_cm` converts scene units to cm.
-pub fn strand_prf(
-    pred: &Strands,
-    gt: &Strands,
-    s_cm: f32,
-    spacing_cm: f32,
+fn prf_from_counts(
     thresholds: &[(f32, f32)],
-    signed: bool,
+    tp_p: &[u64],
+    np: usize,
+    tp_r: &[u64],
+    nr: usize,
 ) -> Vec<Prf> {
-    strand_prf_limited(pred, gt, s_cm, spacing_cm, thresholds, signed, 0)
-}
-
-/// [`strand_prf`] evaluating at most `max_queries` evenly strided query points per side (0 = all).
-pub fn strand_prf_limited(
-    pred: &Strands,
-    gt: &Strands,
-    s_cm: f32,
-    spacing_cm: f32,
-    thresholds: &[(f32, f32)],
-    signed: bool,
-    max_queries: usize,
-) -> Vec<Prf> {
-    let (pp, pd) = oriented_points(pred, s_cm, spacing_cm);
-    let (gp, gd) = oriented_points(gt, s_cm, spacing_cm);
-    let thr: Vec<(f32, f32)> = thresholds
-        .iter()
-        .map(|&(d, a)| (d, a.to_radians().cos()))
-        .collect();
-    let (tp_p, np) = match_counts(&pp, &pd, &gp, &gd, &thr, signed, max_queries);
-    let (tp_r, nr) = match_counts(&gp, &gd, &pp, &pd, &thr, signed, max_queries);
     thresholds
         .iter()
         .enumerate()
@@ -415,6 +507,69 @@ pub fn strand_prf_limited(
             }
         })
         .collect()
+}
+
+/// Unsigned and signed precision / recall / F-score (percent) of `pred` against `gt` at each
+/// `(cm, degrees)` threshold, in one pass over each side (sets built with a cell of at most the
+/// smallest threshold distance; any cell gives the same counts, only the speed differs).
+pub fn strand_prf_sets(
+    pred: &OrientedSet,
+    gt: &OrientedSet,
+    thresholds: &[(f32, f32)],
+    max_queries: usize,
+) -> (Vec<Prf>, Vec<Prf>) {
+    let mut rules = Vec::with_capacity(2 * thresholds.len());
+    for signed in [false, true] {
+        for &(d, a) in thresholds {
+            rules.push(Rule {
+                d,
+                d2: d * d,
+                cos: a.to_radians().cos(),
+                signed,
+            });
+        }
+    }
+    let (tp_p, np) = match_counts(pred, gt, &rules, max_queries);
+    let (tp_r, nr) = match_counts(gt, pred, &rules, max_queries);
+    let k = thresholds.len();
+    (
+        prf_from_counts(thresholds, &tp_p[..k], np, &tp_r[..k], nr),
+        prf_from_counts(thresholds, &tp_p[k..], np, &tp_r[k..], nr),
+    )
+}
+
+/// Strand precision / recall / F-score (percent) of `pred` against `gt` at each `(cm, degrees)`
+/// threshold, with the rule in the module doc. `s_cm` converts scene units to cm.
+pub fn strand_prf(
+    pred: &Strands,
+    gt: &Strands,
+    s_cm: f32,
+    spacing_cm: f32,
+    thresholds: &[(f32, f32)],
+    signed: bool,
+) -> Vec<Prf> {
+    strand_prf_limited(pred, gt, s_cm, spacing_cm, thresholds, signed, 0)
+}
+
+/// [`strand_prf`] evaluating at most `max_queries` evenly strided query points per side (0 = all).
+pub fn strand_prf_limited(
+    pred: &Strands,
+    gt: &Strands,
+    s_cm: f32,
+    spacing_cm: f32,
+    thresholds: &[(f32, f32)],
+    signed: bool,
+    max_queries: usize,
+) -> Vec<Prf> {
+    let cell = match_cell(thresholds);
+    let p = OrientedSet::new(pred, s_cm, spacing_cm, cell);
+    let g = OrientedSet::new(gt, s_cm, spacing_cm, cell);
+    let (u, s) = strand_prf_sets(&p, &g, thresholds, max_queries);
+    if signed {
+        s
+    } else {
+        u
+    }
 }
 
 /// The unsupervised strand-geometry metrics (definitions in the module doc).
@@ -913,12 +1068,13 @@ impl Stage for Evaluate {
             ));
         }
         ctx.progress.set_total(4);
-        ctx.progress.message("precision / recall (unsigned)");
-        let prf = strand_prf_limited(&pred, &gt, s_cm, spacing, &thr, false, max_q);
-        ctx.progress.advance(1);
-        ctx.progress.message("precision / recall (signed)");
-        let prf_signed = strand_prf_limited(&pred, &gt, s_cm, spacing, &thr, true, max_q);
-        ctx.progress.advance(1);
+        ctx.progress
+            .message("precision / recall (unsigned and signed)");
+        let cell = match_cell(&thr);
+        let pred_set = OrientedSet::new(&pred, s_cm, spacing, cell);
+        let gt_set = OrientedSet::new(&gt, s_cm, spacing, cell);
+        let (prf, prf_signed) = strand_prf_sets(&pred_set, &gt_set, &thr, max_q);
+        ctx.progress.advance(2);
         ctx.progress.message("geometry metrics");
         let geo = geometry_metrics(&pred, s_cm, spacing, neighbour);
         let geo_gt = geometry_metrics(&gt, s_cm, spacing, neighbour);
@@ -957,8 +1113,7 @@ impl Stage for Evaluate {
         finite.extend(psnr_v.into_iter().chain(ssim_v));
         fure_stage_api::ensure_finite("evaluation metrics", finite)?;
 
-        let np = oriented_points(&pred, s_cm, spacing).0.len();
-        let ng = oriented_points(&gt, s_cm, spacing).0.len();
+        let (np, ng) = (pred_set.len(), gt_set.len());
         let out = serde_json::json!({
             "prf": prf_map(&prf),
             "prf_signed": prf_map(&prf_signed),
@@ -1038,6 +1193,70 @@ pub(crate) mod tests {
         assert_eq!(r[6], p[2]);
         for w in r.windows(2) {
             assert!(((w[1] - w[0]).length() - 0.5).abs() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn grid_matching_equals_brute_force() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut random_set = |n: usize| {
+            let mut s = Strands::new();
+            for _ in 0..n {
+                let root = Vec3::new(rng.gen(), rng.gen(), rng.gen()) * 12.0;
+                let d = Vec3::new(rng.gen(), rng.gen(), rng.gen()) - Vec3::splat(0.5);
+                let d = d.normalize_or_zero() * (1.0 + 3.0 * rng.gen::<f32>());
+                let bend = Vec3::new(rng.gen(), rng.gen(), rng.gen()) - Vec3::splat(0.5);
+                let p: Vec<Vec3> = (0..5)
+                    .map(|k| {
+                        let t = k as f32 / 4.0;
+                        root + d * t + bend * t * t
+                    })
+                    .collect();
+                s.push(&p, 0, 0.01, [0.5; 3]);
+            }
+            s
+        };
+        let a = random_set(300);
+        let b = random_set(250);
+        let thr = PAPER_THRESHOLDS;
+        // Brute force with the rule of the module doc.
+        let brute = |q: &Strands, r: &Strands, signed: bool| -> Vec<f64> {
+            let (qp, qd) = oriented_points(q, 1.0, 0.5);
+            let (rp, rd) = oriented_points(r, 1.0, 0.5);
+            thr.iter()
+                .map(|&(d, ang)| {
+                    let c = ang.to_radians().cos();
+                    let hits = (0..qp.len())
+                        .filter(|&i| {
+                            (0..rp.len()).any(|j| {
+                                let dot = qd[i].dot(rd[j]);
+                                let dot = if signed { dot } else { dot.abs() };
+                                (rp[j] - qp[i]).length_squared() <= d * d && dot >= c
+                            })
+                        })
+                        .count();
+                    100.0 * hits as f64 / qp.len() as f64
+                })
+                .collect()
+        };
+        for cell in [0.3f32, 2.0, 5.0] {
+            let (u, s) = strand_prf_sets(
+                &OrientedSet::new(&a, 1.0, 0.5, cell),
+                &OrientedSet::new(&b, 1.0, 0.5, cell),
+                &thr,
+                0,
+            );
+            for (res, signed) in [(&u, false), (&s, true)] {
+                let p = brute(&a, &b, signed);
+                let r = brute(&b, &a, signed);
+                for k in 0..3 {
+                    assert!((res[k].precision as f64 - p[k]).abs() < 1e-3, "cell {cell}");
+                    assert!((res[k].recall as f64 - r[k]).abs() < 1e-3, "cell {cell}");
+                }
+            }
+            // Some but not all points match: the test can fail.
+            assert!(u[1].precision > 5.0 && u[1].precision < 95.0, "{:?}", u[1]);
         }
     }
 

@@ -52,6 +52,11 @@ impl Decoder {
         Vec3::new(self.params[o], self.params[o + 1], self.params[o + 2])
     }
 
+    /// The mean strand (the decoding of `z = 0`).
+    pub fn mean(&self) -> Vec<Vec3> {
+        (0..self.points).map(|j| self.at(0, j)).collect()
+    }
+
     /// Decodes `z` (`K` values) into `out` (`L` points).
     pub fn decode(&self, z: &[f32], out: &mut [Vec3]) {
         for (j, o) in out.iter_mut().enumerate().take(self.points) {

@@ -58,11 +58,19 @@ fn common_params(iterations: i64) -> Vec<ParamSpec> {
         ParamSpec::float("l_sdf", 1.0, "Weight of L_sdf (penetration of M_root).").min(0.0),
         ParamSpec::float("l_mask", 0.1, "Weight of L_mask (rendered vs given fur mask).").min(0.0),
         ParamSpec::float(
-            "snapshot_seconds",
-            5.0,
-            "Training wall-clock seconds between recorded snapshots (0 = final only).",
+            "snapshot_first_seconds",
+            0.5,
+            "Training wall-clock time of the first recorded snapshot after the initial one; later \
+             ones follow geometrically (0 = only the initial and final strands).",
         )
         .min(0.0),
+        ParamSpec::float(
+            "snapshot_growth",
+            1.25,
+            "Ratio between consecutive snapshot times (times read off the snapshots are upper \
+             bounds within this factor).",
+        )
+        .range(1.01, 100.0),
         ParamSpec::int("seed", 0, "Seed of initialisation and subset sampling.").min(0.0),
         ParamSpec::string(
             "length_mode",
@@ -143,7 +151,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -191,7 +199,7 @@ impl Stage for DenseStrands {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
@@ -204,7 +212,7 @@ impl Stage for DenseStrands {
             ParamSpec::float(
                 "lr_points",
                 0.01,
-                "Adam learning rate of the points, in mean strand lengths per step.",
+                "Adam learning rate of the points, in strand lengths per step.",
             )
             .min(0.0),
         );
@@ -570,7 +578,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         !dense && p.bool("finetune_decoder")?,
     ));
     let mut model = if dense {
-        Model::Dense(Dense::from_strands(&codec.all_points(&s.prep), l))
+        Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len()))
     } else {
         codec
     };
@@ -586,7 +594,8 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         rates,
         w_chm: p.f32("l_chm")?,
         w_sdf: p.f32("l_sdf")?,
-        snapshot_seconds: p.f64("snapshot_seconds")?,
+        snapshot_first: p.f64("snapshot_first_seconds")?,
+        snapshot_growth: p.f64("snapshot_growth")?,
     };
 
     // Image losses when views are connected.
