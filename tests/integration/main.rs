@@ -3,3 +3,4 @@
 
 mod engine;
 mod sweep;
+mod bad_input;

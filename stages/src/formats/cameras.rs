@@ -138,7 +138,19 @@ pub struct ViewImages {
 pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, FormatError> {
     let dir = dir.as_ref();
     let path = image_path(dir, camera);
-    let img = super::images::read_image(&path)?;
+    let img = super::images::read_image(&path).map_err(|e| match e {
+        // Say where the name came from: a frame of the views' camera file.
+        FormatError::Io { path, source } if source.kind() == std::io::ErrorKind::NotFound => {
+            FormatError::invalid(
+                &path,
+                format!(
+                    "missing image: a frame of the transforms file lists `file_path` = `{}`, but there is no such file ({source})",
+                    camera.file_path
+                ),
+            )
+        }
+        other => other,
+    })?;
     if (img.width, img.height) != (camera.width, camera.height) {
         return Err(FormatError::invalid(
             &path,

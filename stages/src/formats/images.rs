@@ -16,7 +16,11 @@
 //! (gray); a single channel of any name (`Z`, `depth`, ...) reads as one channel. Samples of any
 //! EXR sample type are converted to f32. Writing stores f32 samples, named `Y` / `Y A` / `R G B` /
 //! `R G B A` for 1 / 2 / 3 / 4 channels, ZIP-compressed (lossless), single-threaded so the bytes
-//! never depend on the thread count.
+//! never depend on the thread count. EXR can store NaN and infinities, but no stage means to
+//! (depth backgrounds, renders and orientation maps are finite by construction), so writing
+//! refuses them like the PNG writer: a NaN in an output is a bug upstream, reported at the write
+//! instead of flowing into the next stage. Reading accepts them (a user's file may hold them; the
+//! stages that read images treat non-finite samples themselves).
 //!
 //! Decoder errors rarely say where they happened; both readers decode from memory through a reader
 //! that tracks the furthest byte consumed, and report that offset with the decoder's message.
@@ -426,6 +430,7 @@ fn channel_order(names: &[String]) -> Option<Vec<usize>> {
 pub fn write_exr(path: impl AsRef<Path>, image: &ImageF32) -> Result<(), FormatError> {
     let path = path.as_ref();
     check_shape(path, image)?;
+    check_finite(path, "sample", image.data.iter().copied())?;
     let names: &[&str] = match image.channels {
         1 => &["Y"],
         2 => &["Y", "A"],
@@ -737,5 +742,20 @@ mod tests {
             data: vec![0.0; 5],
         };
         assert!(write_png(&p, &img5).is_err());
+    }
+
+    #[test]
+    fn non_finite_samples_are_refused_by_both_writers() {
+        let dir = tempfile::tempdir().unwrap();
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let mut img = pattern(3, 2, 1);
+            img.data[4] = bad;
+            for name in ["x.png", "x.exr"] {
+                let p = dir.path().join(name);
+                let e = write_image(&p, &img).unwrap_err().to_string();
+                assert!(e.contains(name) && e.contains("index 4"), "{e}");
+                assert!(!p.exists(), "{name} written despite {bad}");
+            }
+        }
     }
 }
