@@ -9,7 +9,8 @@
 //! `variants`, each with its `settings`, `varied` (the `each` key it varies, `null` for the base
 //! point of a group), the engine's `status` (`ok` / `degraded` / `failed`), `reason`,
 //! `failed_stage`, `warnings` and `metrics` (every number of every stage's `metrics.json`, flattened
-//! as `stage.key.subkey`). Missing or mistyped keys are errors naming the key (`variants[3].status`);
+//! as `stage.key.subkey`), and `each_order` (the declaration order of the `each` keys, which the
+//! sorted object loses; axes are charted and tabulated in that order). Missing or mistyped keys are errors naming the key (`variants[3].status`);
 //! `crossed`, `reason`, `failed_stage`, `warnings`, `varied`, `index` and `name` may be absent.
 //!
 //! # Methods and status
@@ -196,7 +197,40 @@ impl SweepRecord {
             }
         };
         let crossed = axes(path, root, "crossed", false)?;
-        let each = axes(path, root, "each", true)?;
+        let mut each = axes(path, root, "each", true)?;
+        // `each_order` (when present) restores the declaration order the sorted object loses.
+        match root.get("each_order") {
+            None | Some(Json::Null) => {}
+            Some(Json::Array(order)) => {
+                let mut sorted = Vec::with_capacity(each.len());
+                for (j, k) in order.iter().enumerate() {
+                    let k = k.as_str().ok_or_else(|| {
+                        bad(
+                            path,
+                            &format!("each_order[{j}]"),
+                            "expected a key of `each`",
+                        )
+                    })?;
+                    let pos = each.iter().position(|(e, _)| e == k).ok_or_else(|| {
+                        bad(
+                            path,
+                            &format!("each_order[{j}]"),
+                            format!("`{k}` is not a key of `each`"),
+                        )
+                    })?;
+                    sorted.push(each.remove(pos));
+                }
+                sorted.append(&mut each);
+                each = sorted;
+            }
+            Some(o) => {
+                return Err(bad(
+                    path,
+                    "each_order",
+                    format!("expected an array of keys, found {}", json_kind(o)),
+                ))
+            }
+        }
         let list = match root.get("variants") {
             Some(Json::Array(a)) => a,
             None => {
@@ -1277,6 +1311,7 @@ mod tests {
             "pipeline": "stability",
             "crossed": {"scene.preset": ["tiger", "bison"]},
             "each": {"corrupt.noise_sigma": [0.0, 0.05, 0.1], "corrupt.views": [0, 6]},
+            "each_order": ["corrupt.views", "corrupt.noise_sigma"],
             "variants": [
                 v(0, "tiger", 0.0, 0, n.clone(), "ok", "", n.clone(), json!([]), m(Some(60.0), Some(50.0), Some(40.0), Some(0.5))),
                 v(1, "tiger", 0.05, 0, noise.clone(), "ok", "", n.clone(), json!([]), m(Some(55.0), Some(45.0), Some(38.0), Some(0.6))),
@@ -1303,6 +1338,12 @@ mod tests {
     #[test]
     fn statuses_follow_the_rules() {
         let rec = parse(&record()).unwrap();
+        let keys: Vec<&str> = rec.each.iter().map(|(k, _)| k.as_str()).collect();
+        assert_eq!(
+            keys,
+            ["corrupt.views", "corrupt.noise_sigma"],
+            "each_order kept"
+        );
         let cfg = ReportConfig::default();
         let rows = assess(&rec, &cfg);
         assert_eq!(rows.len(), 8 * 3);
