@@ -1068,33 +1068,180 @@ mod fuzz {
         })
     }
 
-    /// A pipeline of real stage kinds with arbitrary values for their real parameters.
+    /// A value of the parameter's own type, at or near its bounds (or wild when it
+    /// has none), so that it passes the type and bound checks and reaches the
+    /// stage's `validate`, `inputs` and `outputs`.
+    fn typed_value(spec: &fure_stage_api::ParamSpec, r: u64) -> String {
+        use fure_stage_api::ParamType as T;
+        let pick = |n: usize, k: u64| (r.rotate_left(k as u32 * 13) % n as u64) as usize;
+        let lo = spec.min.unwrap_or(-1e30);
+        let hi = spec.max.unwrap_or(1e30);
+        let float = |k: u64| -> String {
+            let cands = [
+                lo,
+                hi,
+                0.0,
+                1e-12,
+                0.5,
+                1.0,
+                3.7,
+                1e6,
+                -2.0,
+                f64::MIN_POSITIVE,
+            ];
+            let x = cands[pick(cands.len(), k)].clamp(lo, hi);
+            let x = if spec.min_exclusive && x <= lo {
+                lo + 1e-9
+            } else {
+                x
+            };
+            format!("{x:?}")
+        };
+        let int = |k: u64| -> String {
+            let cands = [lo, hi, 0.0, 1.0, 2.0, 3.0, 7.0, 100.0, 65536.0, 1e9, 9.2e18];
+            let x = cands[pick(cands.len(), k)]
+                .clamp(lo.max(-9.2e18), hi.min(9.2e18))
+                .round();
+            format!("{}", x as i64)
+        };
+        const WORDS: &[&str] = &[
+            "", "x", "tiger", "fixed", "quick", "torso", "eyes", "a.b", "../..", "/", "é", " ",
+        ];
+        let string = |k: u64| -> String {
+            if !spec.choices.is_empty() && pick(4, k) > 0 {
+                format!("{:?}", spec.choices[pick(spec.choices.len(), k + 1)])
+            } else {
+                format!("{:?}", WORDS[pick(WORDS.len(), k + 2)])
+            }
+        };
+        match spec.ty {
+            T::Bool => (r % 2 == 0).to_string(),
+            T::Int => int(1),
+            T::Float => float(1),
+            T::Str => string(1),
+            T::FloatList => {
+                let n = pick(5, 3);
+                format!(
+                    "[{}]",
+                    (0..n)
+                        .map(|k| float(k as u64 + 4))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            }
+            T::StrList => {
+                let n = pick(4, 3);
+                format!(
+                    "[{}]",
+                    (0..n)
+                        .map(|k| string(k as u64 + 4))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            }
+            T::Table => {
+                // Per-part overrides: part names, then fields of several types.
+                const KEYS: &[&str] = &[
+                    "torso",
+                    "head",
+                    "tail",
+                    "eyes",
+                    "nope",
+                    "length_cm",
+                    "density",
+                    "color",
+                    "curl",
+                    "clump",
+                    "gravity",
+                    "direction",
+                    "lift_deg",
+                    "length_jitter",
+                    "density_per_cm2",
+                    "multiplier",
+                    "thickness_cm",
+                ];
+                const VALS: &[&str] = &[
+                    "0",
+                    "-1",
+                    "0.0",
+                    "1e30",
+                    "-1e30",
+                    "0.5",
+                    "2",
+                    "\"x\"",
+                    "true",
+                    "[]",
+                    "[0.1, 0.2, 0.3]",
+                    "[1, 2]",
+                    "[\"a\"]",
+                    "{}",
+                    "9223372036854775807",
+                ];
+                let parts = pick(3, 5);
+                let mut t = Vec::new();
+                for p in 0..parts {
+                    let fields = pick(4, 6 + p as u64);
+                    let body: Vec<String> = (0..fields)
+                        .map(|f| {
+                            let k = KEYS[pick(KEYS.len(), 7 + p as u64 * 5 + f as u64)];
+                            let v = VALS[pick(VALS.len(), 9 + p as u64 * 7 + f as u64)];
+                            format!("{k} = {v}")
+                        })
+                        .collect();
+                    let key = KEYS[pick(KEYS.len(), 11 + p as u64)];
+                    if pick(3, 12 + p as u64) == 0 {
+                        t.push(format!("{key} = {}", VALS[pick(VALS.len(), 13 + p as u64)]));
+                    } else {
+                        t.push(format!("{key} = {{ {} }}", body.join(", ")));
+                    }
+                }
+                // Duplicate keys are a TOML error: keep the first of each.
+                let mut seen = std::collections::BTreeSet::new();
+                t.retain(|kv| seen.insert(kv.split(" = ").next().unwrap_or("").to_string()));
+                format!("{{ {} }}", t.join(", "))
+            }
+        }
+    }
+
+    /// A pipeline of real stage kinds with values for their real parameters:
+    /// mostly of the right type near the bounds, sometimes anything at all.
     fn generated_pipeline() -> impl Strategy<Value = String> {
-        let kinds: Vec<(&'static str, Vec<&'static str>)> = registry()
-            .iter()
-            .map(|s| (s.kind(), s.params().iter().map(|p| p.name).collect()))
-            .collect();
+        let kinds: Vec<(&'static str, Vec<fure_stage_api::ParamSpec>)> =
+            registry().iter().map(|s| (s.kind(), s.params())).collect();
         let n = kinds.len();
         proptest::collection::vec(
             (
                 0..n,
-                proptest::collection::vec((any::<prop::sample::Index>(), toml_value()), 0..6),
+                proptest::collection::vec(
+                    (
+                        any::<prop::sample::Index>(),
+                        toml_value(),
+                        any::<u64>(),
+                        0u8..4,
+                    ),
+                    0..8,
+                ),
             ),
             1..4,
         )
         .prop_map(move |stages| {
             let mut out = String::new();
             for (i, (k, params)) in stages.iter().enumerate() {
-                let (kind, names) = &kinds[*k];
+                let (kind, specs) = &kinds[*k];
                 out.push_str(&format!("[stages.s{i}]\nkind = \"{kind}\"\n"));
                 let mut seen = std::collections::BTreeSet::new();
-                for (idx, v) in params {
-                    if names.is_empty() {
+                for (idx, wild, r, mode) in params {
+                    if specs.is_empty() {
                         break;
                     }
-                    let name = names[idx.index(names.len())];
-                    if seen.insert(name) {
-                        out.push_str(&format!("{name} = {v}\n"));
+                    let spec = &specs[idx.index(specs.len())];
+                    if seen.insert(spec.name) {
+                        let v = if *mode == 0 {
+                            wild.clone()
+                        } else {
+                            typed_value(spec, *r)
+                        };
+                        out.push_str(&format!("{} = {v}\n", spec.name));
                     }
                 }
                 if i > 0 {
@@ -1103,6 +1250,43 @@ mod fuzz {
             }
             out
         })
+    }
+
+    /// The generator is not vacuous: a fair share of its pipelines get past the
+    /// parameter checks and `validate` of every stage (they plan, or fail only on
+    /// inputs and ports, which are checked after `validate`).
+    #[test]
+    fn generated_pipelines_reach_validate() {
+        use proptest::strategy::ValueTree;
+        let mut runner = proptest::test_runner::TestRunner::deterministic();
+        let strat = generated_pipeline();
+        let (mut past, total) = (0, 300);
+        for _ in 0..total {
+            let text = strat.new_tree(&mut runner).unwrap().current();
+            let p = Pipeline::parse_str(&text, "f.toml", Path::new("/nonexistent")).unwrap();
+            match plan(&p, registry()) {
+                Ok(_) => past += 1,
+                Err(e) => {
+                    let late = [
+                        "missing input",
+                        "has no input port",
+                        "neither an output",
+                        "has no output",
+                        "expects a",
+                    ];
+                    if e.0
+                        .iter()
+                        .all(|x| late.iter().any(|l| x.message.contains(l)))
+                    {
+                        past += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            past * 5 >= total,
+            "only {past} of {total} generated pipelines reached validate"
+        );
     }
 
     #[test]
