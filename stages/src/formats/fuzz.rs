@@ -504,18 +504,23 @@ fn arbitrary_bytes() -> impl Strategy<Value = Vec<u8>> {
     proptest::collection::vec(any::<u8>(), 0..1024)
 }
 
-/// A fresh scratch directory for one proptest (cases reuse it; each case overwrites the file).
-fn workdir() -> (tempfile::TempDir, PathBuf) {
-    let d = scratch();
-    let p = d.path().to_path_buf();
-    (d, p)
+thread_local! {
+    /// One scratch directory per test thread, reused by every case of the target
+    /// running on that thread (creating a directory per case made the runs
+    /// I/O-bound). Targets run on separate threads, so they never share files.
+    static WORKDIR: tempfile::TempDir = scratch();
+}
+
+/// The scratch directory of this thread.
+fn workdir() -> PathBuf {
+    WORKDIR.with(|d| d.path().to_path_buf())
 }
 
 #[test]
 fn seeds_read_back() {
     // The mutation targets start from valid files: make sure they are.
     let s = seeds();
-    let (_d, dir) = workdir();
+    let dir = workdir();
     for (name, bytes) in [("m.obj", &s.obj)] {
         let p = dir.join(name);
         write(&p, bytes);
@@ -559,31 +564,31 @@ proptest! {
 
     #[test]
     fn fuzz_obj_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_obj(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_obj_tokens(bytes in vocabulary_text(OBJ_WORDS)) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_obj(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_obj_mutations(m in mutations()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_obj(&dir, &apply(seeds().obj.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_ply_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_ply(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_ply_tokens(bytes in vocabulary_text(PLY_WORDS)) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_ply(&dir, &bytes)?;
     }
 
@@ -591,55 +596,55 @@ proptest! {
     fn fuzz_ply_mutations(m in mutations(), ascii in any::<bool>()) {
         let s = seeds();
         let seed = if ascii { &s.ply_ascii } else { &s.ply_bin };
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_ply(&dir, &apply(seed.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_hair_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_hair(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_hair_mutations(m in mutations()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_hair(&dir, &apply(seeds().hair.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_scalars_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_scalars(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_scalars_mutations(m in mutations()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_scalars(&dir, &apply(seeds().scalars.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_transforms_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_transforms(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_transforms_tokens(bytes in vocabulary_text(JSON_WORDS)) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_transforms(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_transforms_mutations(m in mutations()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_transforms(&dir, &apply(seeds().transforms.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_png_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_png(&dir, &bytes)?;
     }
 
@@ -647,25 +652,25 @@ proptest! {
     fn fuzz_png_mutations(m in mutations(), gray in any::<bool>()) {
         let s = seeds();
         let seed = if gray { &s.png_gray } else { &s.png8 };
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_png(&dir, &apply(seed.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_exr_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_exr(&dir, &bytes)?;
     }
 
     #[test]
     fn fuzz_exr_mutations(m in mutations()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         run_exr(&dir, &apply(seeds().exr.clone(), &m))?;
     }
 
     #[test]
     fn fuzz_jpeg_bytes(bytes in arbitrary_bytes()) {
-        let (_d, dir) = workdir();
+        let dir = workdir();
         // A JPEG start-of-image marker first, so the decoder gets past the magic.
         let mut b = vec![0xFF, 0xD8, 0xFF];
         b.extend_from_slice(&bytes);
