@@ -105,9 +105,20 @@ pub enum SigmaMode {
     Max,
 }
 
+/// How a vertex's width is read from its two level crossings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WidthReading {
+    /// Gaussian Frosting: `|outer - inner|`, the extent of the level set.
+    Frosting,
+    /// `max(0, -inner)`: from M_outer down to the innermost crossing (the
+    /// level set's extent plus how far it lies under a visual-hull M_outer).
+    InnerDepth,
+}
+
 /// Settings of the width definition.
 #[derive(Debug, Clone)]
 pub struct WidthSettings {
+    pub reading: WidthReading,
     pub samples: usize,
     pub knn: usize,
     pub level: f32,
@@ -130,6 +141,11 @@ pub struct WidthResult {
     pub inner: Vec<f32>,
     pub sigma_n: Vec<f32>,
     pub crossed: Vec<bool>,
+    /// Vertices whose outermost sample is already at or above the level
+    /// (the outer offset sits at the window's end: the window is too short).
+    pub saturated_outer: usize,
+    /// Likewise for the innermost sample.
+    pub saturated_inner: usize,
 }
 
 /// Density field of a Gaussian set: `min(1, sum_knn opacity exp(-0.5 d^T Sigma^-1 d))`.
@@ -261,6 +277,16 @@ pub fn shell_widths(
         })
         .collect();
     let crossed: Vec<bool> = raw.iter().map(|r| r.1.is_some()).collect();
+    let at_end = |r: &(f32, Option<(f32, f32)>), outer: bool| -> bool {
+        let rr = s.range_sigmas * r.0;
+        match r.1 {
+            Some((o, _)) if outer => o >= rr * (1.0 - 1e-6),
+            Some((_, i)) => i <= -rr * (1.0 - 1e-6),
+            None => false,
+        }
+    };
+    let saturated_outer = raw.iter().filter(|r| at_end(r, true)).count();
+    let saturated_inner = raw.iter().filter(|r| at_end(r, false)).count();
     let (mut outer, mut inner) = (vec![0.0f32; raw.len()], vec![0.0f32; raw.len()]);
     if s.smooth_k > 1 {
         let vindex = PointIndex::new(positions)?;
@@ -297,7 +323,13 @@ pub fn shell_widths(
     let widths: Vec<f32> = outer
         .iter()
         .zip(&inner)
-        .map(|(o, i)| (o - i).abs().max(s.min_width))
+        .map(|(o, i)| {
+            match s.reading {
+                WidthReading::Frosting => (o - i).abs(),
+                WidthReading::InnerDepth => (-i).max(0.0),
+            }
+            .max(s.min_width)
+        })
         .collect();
     ensure_finite("shell widths", widths.iter().copied())?;
     Ok(WidthResult {
@@ -306,6 +338,8 @@ pub fn shell_widths(
         inner,
         sigma_n: raw.iter().map(|r| r.0).collect(),
         crossed,
+        saturated_outer,
+        saturated_inner,
     })
 }
 
@@ -378,6 +412,9 @@ pub struct FitSettings {
     pub lambda_dssim: f32,
     pub silhouette_weight: f32,
     pub prune_opacity: f32,
+    /// Gaussians whose total blending weight over all training views (in
+    /// pixels) is below this are dropped after the fit (0: keep all).
+    pub prune_visibility: f32,
 }
 
 /// One training view: camera, target RGB (composited on black) and mask.
@@ -394,6 +431,7 @@ pub struct FitReport {
     pub gaussians_kept: usize,
     pub pruned_unseen: usize,
     pub pruned_transparent: usize,
+    pub pruned_invisible: usize,
     pub iterations: usize,
     pub loss_first: f32,
     pub loss_last: f32,
@@ -487,6 +525,36 @@ fn psnr(a: &ImageF32, b: &ImageF32) -> f32 {
     } else {
         (10.0 * (1.0 / mse).log10()) as f32
     }
+}
+
+/// Total blending weight `sum_views sum_pixels alpha_i T_i` of every
+/// Gaussian (in pixels): how much of the training images it makes. Read off
+/// the colour gradient of an all-ones RGB loss with every colour set to the
+/// unclamped grey 0.5 (weights do not depend on colour).
+pub fn visibility(g: &Gaussians, cams: &[&Camera]) -> Result<Vec<f32>, StageError> {
+    let mut grey = g.clone();
+    for c in &mut grey.sh {
+        *c = [Vec3::ZERO; 4];
+    }
+    let settings = RenderSettings::default();
+    let mut v = vec![0.0f32; g.len()];
+    for cam in cams {
+        let (out, state) = render::render(&grey, cam, &settings)?;
+        let ones = ImageF32 {
+            data: vec![1.0; out.rgb.data.len()],
+            ..out.rgb.clone()
+        };
+        let dl = OutputGrads {
+            rgb: Some(ones),
+            ..Default::default()
+        };
+        let gr = render::backward(&grey, cam, &settings, &state, &dl)?;
+        for (vi, c) in v.iter_mut().zip(&gr.sh) {
+            *vi += (c[0].x + c[0].y + c[0].z).abs() / (3.0 * render::SH_C0);
+        }
+    }
+    ensure_finite("Gaussian visibility", v.iter().copied())?;
+    Ok(v)
 }
 
 /// Fits unconstrained Gaussians to the training views (see the module doc).
@@ -635,11 +703,22 @@ pub fn fit_gaussians(
     let tail = recent.len().min(views.len()).max(1);
     report.loss_last = recent.iter().rev().take(tail).sum::<f32>() / tail as f32;
     // Prune.
+    let seen: Vec<f32> = if s.prune_visibility > 0.0 {
+        let cams: Vec<&Camera> = views.iter().map(|v| &v.camera).collect();
+        visibility(&g, &cams)?
+    } else {
+        vec![f32::INFINITY; n]
+    };
     let keep: Vec<usize> = (0..n)
-        .filter(|&i| touched[i] > 0.0 && g.opacities[i] >= s.prune_opacity)
+        .filter(|&i| {
+            touched[i] > 0.0 && g.opacities[i] >= s.prune_opacity && seen[i] >= s.prune_visibility
+        })
         .collect();
     report.pruned_unseen = touched.iter().filter(|&&t| t <= 0.0).count();
-    report.pruned_transparent = n - keep.len() - report.pruned_unseen;
+    report.pruned_transparent = (0..n)
+        .filter(|&i| touched[i] > 0.0 && g.opacities[i] < s.prune_opacity)
+        .count();
+    report.pruned_invisible = n - keep.len() - report.pruned_unseen - report.pruned_transparent;
     let pick = |g: &Gaussians| Gaussians {
         means: keep.iter().map(|&i| g.means[i]).collect(),
         scales: keep.iter().map(|&i| g.scales[i]).collect(),
@@ -761,7 +840,23 @@ struct WidthStats {
     max: f32,
     mean_frac_d: f32,
     crossed_fraction: f32,
+    /// Vertices whose window starts (ends) inside the level set.
+    saturated_outer_fraction: f32,
+    saturated_inner_fraction: f32,
     at_min_fraction: f32,
+}
+
+/// The `offsets` output: per-vertex crossings behind the widths.
+#[derive(Debug, Clone, Default, Serialize, serde::Deserialize)]
+pub struct Offsets {
+    /// Outer (first) crossing along the normal, positive outward, smoothed.
+    pub outer: Vec<f32>,
+    /// Inner (last) crossing, smoothed.
+    pub inner: Vec<f32>,
+    /// The sampling unit sigma_n per vertex.
+    pub sigma_n: Vec<f32>,
+    pub saturated_outer_fraction: f32,
+    pub saturated_inner_fraction: f32,
 }
 
 #[derive(Serialize)]
@@ -848,6 +943,16 @@ fn gt_comparison(
 
 fn width_settings(p: &Params, d: f32) -> Result<WidthSettings, StageError> {
     Ok(WidthSettings {
+        reading: match p.str("width_reading")? {
+            "frosting" => WidthReading::Frosting,
+            "inner_depth" => WidthReading::InnerDepth,
+            other => {
+                return Err(StageError::param(
+                    "width_reading",
+                    format!("unknown reading `{other}`: expected frosting or inner_depth"),
+                ))
+            }
+        },
         samples: p.usize("samples")?,
         knn: p.usize("knn")?,
         level: p.f32("level")?,
@@ -885,6 +990,7 @@ fn fit_settings(p: &Params) -> Result<FitSettings, StageError> {
         lambda_dssim: p.f32("lambda_dssim")?,
         silhouette_weight: p.f32("silhouette_weight")?,
         prune_opacity: p.f32("prune_opacity")?,
+        prune_visibility: p.f32("prune_visibility")?,
     })
 }
 
@@ -927,7 +1033,7 @@ impl Stage for FrostingStage {
         "frosting"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "Gaussian Frosting shell widths on M_outer: fit unconstrained 3D Gaussians (initialised in a band \
@@ -951,6 +1057,7 @@ impl Stage for FrostingStage {
             ParamSpec::float("lambda_dssim", 0.2, "D-SSIM weight of the photometric loss").range(0.0, 1.0),
             ParamSpec::float("silhouette_weight", 0.5, "weight of |alpha - mask|").range(0.0, 100.0),
             ParamSpec::float("prune_opacity", 0.005, "Gaussians below this opacity after fitting are dropped").range(0.0, 1.0),
+            ParamSpec::float("prune_visibility", 0.0, "Gaussians contributing less blending weight than this (pixels, summed over the training views) are dropped after fitting (0: off)").range(0.0, 1e6),
             ParamSpec::string("sigma_n", "gaussians", "sampling unit: gaussians (Frosting: mean normal std of the sigma_k nearest), fixed (sigma_n_frac D) or max of both")
                 .choices(&["gaussians", "fixed", "max"]),
             ParamSpec::float("sigma_n_frac", 0.01, "fixed sigma_n as a fraction of D (for sigma_n = fixed or max)").range(0.0, 1.0).positive(),
@@ -960,6 +1067,8 @@ impl Stage for FrostingStage {
             ParamSpec::int("knn", 16, "nearest Gaussians summed for the density").range(1.0, 1024.0),
             ParamSpec::float("level", 0.01, "density level of the shell boundary").range(1e-6, 1.0),
             ParamSpec::float("min_width_frac", 0.001, "minimum width as a fraction of D").range(0.0, 1.0),
+            ParamSpec::string("width_reading", "frosting", "frosting: |outer - inner| (Gaussian Frosting); inner_depth: from M_outer down to the innermost crossing")
+                .choices(&["frosting", "inner_depth"]),
             ParamSpec::int("smooth_k", 4, "offsets averaged over this many nearest vertices (1 = none)").range(1.0, 1024.0),
         ]
     }
@@ -1004,6 +1113,11 @@ impl Stage for FrostingStage {
                 "shell thickness as colour (blue thin .. red thick, 0 to the 95th percentile)",
             ),
             PortSpec::file(
+                "offsets",
+                "json",
+                "per vertex: outer and inner crossing offsets along the normal (positive outward), sigma_n; empty arrays for imported widths",
+            ),
+            PortSpec::file(
                 "metrics",
                 "json",
                 "fit loss, training PSNR, Gaussian counts, width statistics, seconds",
@@ -1030,7 +1144,7 @@ impl Stage for FrostingStage {
             Some(dir) => Some((dir, crate::formats::cameras::read_views(dir)?)),
             None => None,
         };
-        let (widths, fit, crossed, seconds_widths, source) = match (
+        let (widths, fit, crossed, seconds_widths, source, offsets) = match (
             ctx.input_opt("imported_widths"),
             ctx.input_opt("imported_mesh"),
         ) {
@@ -1055,6 +1169,7 @@ impl Stage for FrostingStage {
                     vec![true; n],
                     t.elapsed().as_secs_f64(),
                     "imported",
+                    Offsets::default(),
                 )
             }
             (Some(_), None) | (None, Some(_)) => {
@@ -1086,12 +1201,21 @@ impl Stage for FrostingStage {
                 let t = std::time::Instant::now();
                 let field = DensityField::new(&g, ws.knn)?;
                 let r = shell_widths(&field, &mesh.positions, &mesh.normals, &ws)?;
+                let n = r.widths.len().max(1) as f32;
+                let offsets = Offsets {
+                    outer: r.outer,
+                    inner: r.inner,
+                    sigma_n: r.sigma_n,
+                    saturated_outer_fraction: r.saturated_outer as f32 / n,
+                    saturated_inner_fraction: r.saturated_inner as f32 / n,
+                };
                 (
                     r.widths,
                     Some(rep),
                     r.crossed,
                     t.elapsed().as_secs_f64(),
                     "fit",
+                    offsets,
                 )
             }
         };
@@ -1102,6 +1226,7 @@ impl Stage for FrostingStage {
             widths: widths.clone(),
         };
         crate::formats::json::write_json(ctx.output("shell")?, &shell)?;
+        crate::formats::json::write_json(ctx.output("offsets")?, &offsets)?;
         let cam = match views.as_ref().and_then(|(_, set)| set.train.first()) {
             Some(c) => c.clone(),
             None => default_camera(&mesh),
@@ -1126,6 +1251,8 @@ impl Stage for FrostingStage {
             max: widths.iter().copied().fold(0.0, f32::max),
             mean_frac_d: widths.iter().sum::<f32>() / n / d.max(1e-12),
             crossed_fraction: crossed.iter().filter(|c| **c).count() as f32 / n,
+            saturated_outer_fraction: offsets.saturated_outer_fraction,
+            saturated_inner_fraction: offsets.saturated_inner_fraction,
             at_min_fraction: widths
                 .iter()
                 .filter(|w| **w <= ws.min_width * 1.0001)
@@ -1226,6 +1353,7 @@ mod tests {
 
     fn settings(mode: SigmaMode, floor: f32) -> WidthSettings {
         WidthSettings {
+            reading: WidthReading::Frosting,
             samples: 21,
             knn: 16,
             level: 0.01,
@@ -1413,6 +1541,106 @@ mod tests {
     }
 
     #[test]
+    fn inner_depth_reads_from_the_vertex_down_to_the_inner_crossing() {
+        let mut g = Gaussians::default();
+        slab(-0.3, 0.0, 0.6, 0.05, 0.03, 0.3, &mut g);
+        let field = DensityField::new(&g, 16).unwrap();
+        // One vertex 0.2 above the layer (a visual hull outside the fur), one inside it.
+        let pos = vec![Vec3::new(0.0, 0.0, 0.2), Vec3::new(0.1, 0.0, -0.1)];
+        let nrm = vec![Vec3::Z; 2];
+        let base = WidthSettings {
+            samples: 401,
+            smooth_k: 1,
+            ..settings(SigmaMode::Fixed, 0.25)
+        };
+        let f = shell_widths(&field, &pos, &nrm, &base).unwrap();
+        let d = shell_widths(
+            &field,
+            &pos,
+            &nrm,
+            &WidthSettings {
+                reading: WidthReading::InnerDepth,
+                ..base.clone()
+            },
+        )
+        .unwrap();
+        assert_eq!(f.saturated_inner + f.saturated_outer, 0);
+        for k in 0..2 {
+            assert_eq!((f.outer[k], f.inner[k]), (d.outer[k], d.inner[k]));
+            assert!((d.widths[k] - (-f.inner[k]).max(base.min_width)).abs() < 1e-6);
+        }
+        // Above the layer: the gap down to the outer crossing is added to Frosting's width.
+        assert!(f.outer[0] < -0.05, "outer {}", f.outer[0]);
+        assert!(
+            (d.widths[0] - (f.widths[0] - f.outer[0])).abs() < 1e-4,
+            "{} vs {} - {}",
+            d.widths[0],
+            f.widths[0],
+            f.outer[0]
+        );
+        assert!(
+            (d.widths[0] - 0.5).abs() < 0.15,
+            "inner depth {}",
+            d.widths[0]
+        );
+        // Inside the layer the outer crossing is above the vertex: inner depth < width.
+        assert!(f.outer[1] > 0.0 && d.widths[1] < f.widths[1]);
+    }
+
+    #[test]
+    fn visibility_is_zero_behind_an_opaque_gaussian() {
+        let eye = Vec3::new(0.0, 0.0, 3.0);
+        let cam = Camera {
+            file_path: "v.png".into(),
+            c2w: Mat4::from_cols(
+                Vec3::X.extend(0.0),
+                Vec3::Y.extend(0.0),
+                Vec3::Z.extend(0.0),
+                eye.extend(1.0),
+            ),
+            fx: 40.0,
+            fy: 40.0,
+            cx: 16.0,
+            cy: 16.0,
+            width: 32,
+            height: 32,
+        };
+        let mut g = Gaussians::default();
+        let big = Vec3::new(0.4, 0.4, 0.05);
+        let small = Vec3::splat(0.05);
+        // Front: large and opaque. Behind it: small. Beside it: small, in plain view.
+        g.push(
+            Vec3::ZERO,
+            big,
+            Quat::IDENTITY,
+            0.99,
+            Vec3::splat(0.0),
+            false,
+        );
+        g.push(
+            Vec3::new(0.0, 0.0, -0.5),
+            small,
+            Quat::IDENTITY,
+            0.9,
+            Vec3::splat(0.0),
+            false,
+        );
+        g.push(
+            Vec3::new(1.0, 0.0, 0.0),
+            small,
+            Quat::IDENTITY,
+            0.9,
+            Vec3::splat(0.0),
+            false,
+        );
+        let v = visibility(&g, &[&cam]).unwrap();
+        assert!(v[0] > 1.0, "{v:?}");
+        assert!(v[2] > 0.1, "{v:?}");
+        // One Gaussian passes at least 1 - alpha_max (1 %) of the light.
+        assert!(v[1] < 0.05 * v[2], "{v:?}");
+    }
+
+    #[test]
     fn fit_recovers_a_sphere_silhouette() {
         // A small end-to-end fit: an analytic opaque sphere seen by 6 cameras, 32x32 px.
         let mut mesh = Mesh::default();
@@ -1487,6 +1715,7 @@ mod tests {
             lambda_dssim: 0.2,
             silhouette_weight: 0.5,
             prune_opacity: 0.005,
+            prune_visibility: 0.0,
         };
         let (g, rep) = fit_gaussians(&mesh, &views, &s, &fure_stage_api::NoProgress).unwrap();
         assert!(rep.loss_last < rep.loss_first, "{rep:?}");

@@ -135,6 +135,9 @@ impl From<DefurError> for StageError {
 pub struct DefurSettings {
     pub eta: f64,
     pub lambda: f64,
+    /// Objective length units per scene unit (1: scene units, the paper
+    /// read literally; `s_cm`: centimetres). See the module doc.
+    pub unit_scale: f64,
     pub cross_part_weight: f64,
     /// Acceptance distance, fraction of D (0.03).
     pub support_radius_frac: f32,
@@ -157,6 +160,7 @@ impl Default for DefurSettings {
         DefurSettings {
             eta: 0.25,
             lambda: 8.0,
+            unit_scale: 1.0,
             cross_part_weight: 0.15,
             support_radius_frac: 0.03,
             support_sigma_frac: 0.01,
@@ -367,7 +371,10 @@ pub fn defur(
         upper: &upper,
         protected: &protected,
         eta: s.eta,
-        lambda: s.lambda,
+        // Measuring every length in `unit_scale` units multiplies the data
+        // terms by unit_scale^2 and the smoothness term by unit_scale: the
+        // same minimiser as scene units with lambda / unit_scale.
+        lambda: s.lambda / s.unit_scale.max(f64::MIN_POSITIVE),
         cross_part_weight: s.cross_part_weight,
         scale: scale as f64,
     });
@@ -715,6 +722,8 @@ impl Stage for DefurStage {
         vec![
             ParamSpec::float("eta", d.eta, "weight of the part guidance term").min(0.0),
             ParamSpec::float("lambda", d.lambda, "weight of the edge smoothness term").min(0.0),
+            ParamSpec::string("units", "scene", "length unit of the objective (its minimiser depends on it): scene (the paper read literally) or cm (needs s_cm)")
+                .choices(&["scene", "cm"]),
             ParamSpec::float("cross_part_weight", d.cross_part_weight, "smoothness weight factor across parts").range(0.0, 1.0),
             ParamSpec::float("support_radius_frac", d.support_radius_frac as f64, "correspondence acceptance distance, fraction of D").range(0.0, 1.0),
             ParamSpec::float("support_sigma_frac", d.support_sigma_frac as f64, "Gaussian distance scale of correspondence weights, fraction of D").range(1e-6, 1.0),
@@ -801,6 +810,7 @@ impl Stage for DefurStage {
         let settings = DefurSettings {
             eta: p.f64("eta")?,
             lambda: p.f64("lambda")?,
+            unit_scale: 1.0,
             cross_part_weight: p.f64("cross_part_weight")?,
             support_radius_frac: p.f32("support_radius_frac")?,
             support_sigma_frac: p.f32("support_sigma_frac")?,
@@ -840,6 +850,16 @@ impl Stage for DefurStage {
             &outer,
         );
         let s_cm = scale_from(ctx)?;
+        let mut settings = settings;
+        if p.str("units")? == "cm" {
+            let s = s_cm.ok_or_else(|| {
+                StageError::param(
+                    "units",
+                    "units = \"cm\" needs the metric scale: connect the `scale` input (the lengths stage) or set `s_cm`",
+                )
+            })?;
+            settings.unit_scale = s as f64;
+        }
         let reference_h: BTreeMap<String, f32> = if refs_cm.is_empty() {
             BTreeMap::new()
         } else {
@@ -936,6 +956,7 @@ impl Stage for DefurStage {
                 (mean(&r.d, &fur) * s as f64).into(),
             );
         }
+        put(&mut m, "units", p.str("units")?.into());
         put(&mut m, "seconds_solve", r.seconds_solve.into());
         put(&mut m, "seconds_total", seconds_total.into());
         put(
