@@ -130,6 +130,11 @@ pub struct WidthSettings {
     /// Absolute minimum width.
     pub min_width: f32,
     pub smooth_k: usize,
+    /// Per-vertex cap of the inward half of the window (empty: none). The
+    /// stage sets it to half the inward ray-hit distance through M_outer
+    /// (`medial_clamp`): density beyond the medial surface of a thin part
+    /// belongs to its other side.
+    pub inner_limit: Vec<f32>,
 }
 
 /// Per-vertex results of the width definition. Offsets are signed along the
@@ -255,11 +260,20 @@ pub fn shell_widths(
     if positions.is_empty() {
         return Ok(WidthResult::default());
     }
+    if !s.inner_limit.is_empty() && s.inner_limit.len() != positions.len() {
+        return Err(StageError::failed(format!(
+            "{} vertices but {} inner limits",
+            positions.len(),
+            s.inner_limit.len()
+        )));
+    }
     let ns = s.samples.max(2);
-    let raw: Vec<(f32, Option<(f32, f32)>)> = positions
+    // (sigma_n, inward range, crossings)
+    let raw: Vec<(f32, f32, Option<(f32, f32)>)> = positions
         .par_iter()
         .zip(normals.par_iter())
-        .map(|(&x, &n)| {
+        .enumerate()
+        .map(|(k, (&x, &n))| {
             let n = n.try_normalize().unwrap_or(Vec3::Z);
             let sg = field.sigma_along(x, n, s.sigma_k);
             let sigma = match s.sigma_mode {
@@ -269,19 +283,23 @@ pub fn shell_widths(
             }
             .max(1e-9);
             let r = s.range_sigmas * sigma;
+            let ri = match s.inner_limit.get(k) {
+                Some(&lim) if lim.is_finite() => r.min(lim.max(0.0)),
+                _ => r,
+            };
             let t: Vec<f32> = (0..ns)
-                .map(|j| r - 2.0 * r * j as f32 / (ns - 1) as f32)
+                .map(|j| r - (r + ri) * j as f32 / (ns - 1) as f32)
                 .collect();
             let d: Vec<f32> = t.iter().map(|&tj| field.density(x + tj * n)).collect();
-            (sigma, crossings(&t, &d, s.level))
+            (sigma, ri, crossings(&t, &d, s.level))
         })
         .collect();
-    let crossed: Vec<bool> = raw.iter().map(|r| r.1.is_some()).collect();
-    let at_end = |r: &(f32, Option<(f32, f32)>), outer: bool| -> bool {
-        let rr = s.range_sigmas * r.0;
-        match r.1 {
-            Some((o, _)) if outer => o >= rr * (1.0 - 1e-6),
-            Some((_, i)) => i <= -rr * (1.0 - 1e-6),
+    let crossed: Vec<bool> = raw.iter().map(|r| r.2.is_some()).collect();
+    let at_end = |r: &(f32, f32, Option<(f32, f32)>), outer: bool| -> bool {
+        let (ro, ri) = (s.range_sigmas * r.0, r.1);
+        match r.2 {
+            Some((o, _)) if outer => o >= ro * (1.0 - 1e-6),
+            Some((_, i)) => i <= -ri * (1.0 - 1e-6),
             None => false,
         }
     };
@@ -295,7 +313,7 @@ pub fn shell_widths(
             .map(|&p| {
                 let (mut so, mut si, mut c) = (0.0f32, 0.0f32, 0u32);
                 for (j, _) in vindex.nearest_n(p, s.smooth_k) {
-                    if let Some((o, i)) = raw[j].1 {
+                    if let Some((o, i)) = raw[j].2 {
                         so += o;
                         si += i;
                         c += 1;
@@ -314,7 +332,7 @@ pub fn shell_widths(
         }
     } else {
         for (k, r) in raw.iter().enumerate() {
-            if let Some((o, i)) = r.1 {
+            if let Some((o, i)) = r.2 {
                 outer[k] = o;
                 inner[k] = i;
             }
@@ -341,6 +359,25 @@ pub fn shell_widths(
         saturated_outer,
         saturated_inner,
     })
+}
+
+/// Half the distance from each vertex along its inward normal to the next
+/// surface of `mesh` (infinite on a miss): the depth of the medial surface.
+pub fn medial_limits(mesh: &Mesh) -> Result<Vec<f32>, StageError> {
+    let q = MeshQuery::new(mesh)?;
+    let eps = 1e-5 * mesh.diagonal().max(1e-12);
+    let out: Vec<f32> = mesh
+        .positions
+        .par_iter()
+        .zip(mesh.normals.par_iter())
+        .map(|(&p, &n)| {
+            let n = n.try_normalize().unwrap_or(Vec3::Z);
+            q.ray_hit(p - eps * n, -n, f32::INFINITY)
+                .map(|t| 0.5 * (t + eps))
+                .unwrap_or(f32::INFINITY)
+        })
+        .collect();
+    Ok(out)
 }
 
 /// Barycentric coordinates of `p` (assumed on or near the triangle) in (a, b, c).
@@ -972,6 +1009,7 @@ fn width_settings(p: &Params, d: f32) -> Result<WidthSettings, StageError> {
         sigma_floor: p.f32("sigma_n_frac")? * d,
         min_width: p.f32("min_width_frac")? * d,
         smooth_k: p.usize("smooth_k")?,
+        inner_limit: Vec::new(),
     })
 }
 
@@ -1069,6 +1107,7 @@ impl Stage for FrostingStage {
             ParamSpec::float("min_width_frac", 0.001, "minimum width as a fraction of D").range(0.0, 1.0),
             ParamSpec::string("width_reading", "frosting", "frosting: |outer - inner| (Gaussian Frosting); inner_depth: from M_outer down to the innermost crossing")
                 .choices(&["frosting", "inner_depth"]),
+            ParamSpec::bool("medial_clamp", false, "cap the inward window at half the inward ray-hit distance through M_outer (thin parts: ears, muzzle)"),
             ParamSpec::int("smooth_k", 4, "offsets averaged over this many nearest vertices (1 = none)").range(1.0, 1024.0),
         ]
     }
@@ -1200,6 +1239,10 @@ impl Stage for FrostingStage {
                 ctx.progress.message("measuring shell widths");
                 let t = std::time::Instant::now();
                 let field = DensityField::new(&g, ws.knn)?;
+                let mut ws = ws.clone();
+                if ctx.params.bool("medial_clamp")? {
+                    ws.inner_limit = medial_limits(&mesh)?;
+                }
                 let r = shell_widths(&field, &mesh.positions, &mesh.normals, &ws)?;
                 let n = r.widths.len().max(1) as f32;
                 let offsets = Offsets {
@@ -1363,6 +1406,7 @@ mod tests {
             sigma_floor: floor,
             min_width: 0.001,
             smooth_k: 4,
+            inner_limit: Vec::new(),
         }
     }
 
@@ -1585,6 +1629,51 @@ mod tests {
         );
         // Inside the layer the outer crossing is above the vertex: inner depth < width.
         assert!(f.outer[1] > 0.0 && d.widths[1] < f.widths[1]);
+    }
+
+    #[test]
+    fn medial_clamp_stops_the_window_halfway_through_a_thin_part() {
+        // Half the inward chord of a sphere through its centre is its radius.
+        let r = 0.7;
+        let sphere = crate::defur::tests::icosphere(r, 3, 2.0);
+        let lim = medial_limits(&sphere).unwrap();
+        assert!(lim.iter().all(|l| (l - r).abs() < 0.02 * r), "{lim:?}");
+        // A layer 0.3 thick read from its top: a cap at 0.1 saturates the inner end there.
+        let mut g = Gaussians::default();
+        slab(-0.3, 0.0, 0.6, 0.05, 0.03, 0.3, &mut g);
+        let field = DensityField::new(&g, 16).unwrap();
+        let pos = vec![Vec3::ZERO, Vec3::new(0.1, 0.0, 0.0)];
+        let nrm = vec![Vec3::Z; 2];
+        let base = WidthSettings {
+            samples: 201,
+            smooth_k: 1,
+            ..settings(SigmaMode::Fixed, 0.25)
+        };
+        let free = shell_widths(&field, &pos, &nrm, &base).unwrap();
+        let capped = shell_widths(
+            &field,
+            &pos,
+            &nrm,
+            &WidthSettings {
+                inner_limit: vec![0.1, f32::INFINITY],
+                ..base.clone()
+            },
+        )
+        .unwrap();
+        assert!(free.inner[0] < -0.3, "{}", free.inner[0]);
+        assert!((capped.inner[0] + 0.1).abs() < 1e-5, "{}", capped.inner[0]);
+        assert_eq!(capped.saturated_inner, 1);
+        assert_eq!(capped.inner[1], free.inner[1]);
+        // The outer end is unchanged (up to the different sample spacing).
+        for k in 0..2 {
+            assert!((capped.outer[k] - free.outer[k]).abs() < 0.005, "{k}");
+        }
+        // A wrong-length limit is an error, not a panic.
+        let bad = WidthSettings {
+            inner_limit: vec![0.1],
+            ..base
+        };
+        assert!(shell_widths(&field, &pos, &nrm, &bad).is_err());
     }
 
     #[test]
