@@ -56,9 +56,10 @@ use std::path::Path;
 use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
 use plotters::coord::Shift;
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 use serde_json::{json, Map, Value as Json};
 
-use crate::charts::{chart_err, fmt_num, write_png_chart, write_svg_chart};
+use crate::charts::{chart_err, write_png_chart, write_svg_chart};
 
 /// The engine's verdict on a variant.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -520,12 +521,18 @@ pub fn assess(rec: &SweepRecord, cfg: &ReportConfig) -> Vec<Row> {
             let status = match f[1] {
                 None => {
                     if v.status == EngineStatus::Failed {
-                        let stage = v
-                            .failed_stage
-                            .as_deref()
-                            .map(|s| format!("stage `{s}` failed: "))
-                            .unwrap_or_default();
-                        reasons.push(format!("{stage}{}", v.reason));
+                        // The engine's reason normally starts with `<stage>: `.
+                        let reason = match v.failed_stage.as_deref() {
+                            Some(st) if !v.reason.starts_with(&format!("{st}:")) => {
+                                format!("{st}: {}", v.reason)
+                            }
+                            _ => v.reason.clone(),
+                        };
+                        reasons.push(if reason.is_empty() {
+                            "the variant failed (no reason given)".to_string()
+                        } else {
+                            reason
+                        });
                     } else {
                         reasons.push(format!(
                             "no metric `{}` in the record (engine status {})",
@@ -611,8 +618,8 @@ fn axis_x(values: &[Json], v: &Json) -> f64 {
         .unwrap_or_else(|| values.iter().position(|x| x == v).unwrap_or(values.len()) as f64)
 }
 
-/// Variants on an axis of a group: the base point(s) and the variants varying that key, sorted
-/// by x (stable).
+/// Variants on an axis of a group: the base point(s) and the variants varying that key, in the
+/// order of the axis's list (clean first; stable).
 fn axis_points(rec: &SweepRecord, group: &str, axis: &str) -> Vec<usize> {
     let values = &rec
         .each
@@ -629,11 +636,11 @@ fn axis_points(rec: &SweepRecord, group: &str, axis: &str) -> Vec<usize> {
         })
         .map(|(i, _)| i)
         .collect();
-    pts.sort_by(|&a, &b| {
-        let xa = axis_x(values, &rec.variants[a].settings[axis]);
-        let xb = axis_x(values, &rec.variants[b].settings[axis]);
-        xa.total_cmp(&xb)
-    });
+    let pos = |i: usize| {
+        let v = &rec.variants[i].settings[axis];
+        values.iter().position(|x| x == v).unwrap_or(values.len())
+    };
+    pts.sort_by_key(|&i| pos(i));
     pts
 }
 
@@ -715,7 +722,11 @@ fn chart_data(
     axis: &str,
 ) -> ChartData {
     let values = &rec.each.iter().find(|(k, _)| k == axis).expect("axis").1;
-    let pts = axis_points(rec, group, axis);
+    let mut pts = axis_points(rec, group, axis);
+    pts.sort_by(|&a, &b| {
+        axis_x(values, &rec.variants[a].settings[axis])
+            .total_cmp(&axis_x(values, &rec.variants[b].settings[axis]))
+    });
     let numeric = values.iter().all(|v| v.as_f64().is_some());
     let methods = cfg
         .methods
@@ -787,7 +798,7 @@ pub fn draw_chart<DB: DrawingBackend>(
     if xs.is_empty() {
         (x0, x1) = (0.0, 1.0);
     }
-    let pad = if x1 > x0 { 0.08 * (x1 - x0) } else { 1.0 };
+    let pad = if x1 > x0 { 0.12 * (x1 - x0) } else { 1.0 };
     let (x0, x1) = (x0 - pad, x1 + pad);
     let ticks = d.tick_labels.clone();
     let fmt_x = move |x: &f64| match &ticks {
@@ -799,7 +810,7 @@ pub fn draw_chart<DB: DrawingBackend>(
                 String::new()
             }
         }
-        None => fmt_num(*x),
+        None => fmt_value(*x),
     };
     // Top: F-score.
     let fmax = d
@@ -809,6 +820,10 @@ pub fn draw_chart<DB: DrawingBackend>(
         .fold(0.0, f64::max);
     let ymax = ((fmax / 10.0).ceil() * 10.0 + 10.0).clamp(10.0, 110.0);
     let mut chart = ChartBuilder::on(&top)
+        .caption(
+            "F-score (dot ok, ring degraded, cross on the axis failed)",
+            ("sans-serif", 15),
+        )
         .margin(10)
         .x_label_area_size(36)
         .y_label_area_size(56)
@@ -818,6 +833,7 @@ pub fn draw_chart<DB: DrawingBackend>(
         .configure_mesh()
         .x_desc(d.axis.as_str())
         .y_desc("F-score 3 cm / 30\u{b0} (%)")
+        .x_labels(12)
         .x_label_formatter(&fmt_x)
         .y_label_formatter(&|y| format!("{y:.0}"))
         .label_style(("sans-serif", 13))
@@ -856,7 +872,10 @@ pub fn draw_chart<DB: DrawingBackend>(
                         .draw_series(std::iter::once(Text::new(
                             format!("{name} failed"),
                             (p.0, ymax * (0.05 + 0.07 * mi as f64)),
-                            ("sans-serif", 13).into_font().color(&c),
+                            ("sans-serif", 13)
+                                .into_font()
+                                .color(&c)
+                                .pos(Pos::new(HPos::Center, VPos::Bottom)),
                         )))
                         .map_err(chart_err)?;
                 }
@@ -884,6 +903,7 @@ pub fn draw_chart<DB: DrawingBackend>(
         .configure_mesh()
         .x_desc(d.axis.as_str())
         .y_desc("defurring error (x GT thickness)")
+        .x_labels(12)
         .x_label_formatter(&fmt_x)
         .y_label_formatter(&|y| format!("{y:.2}"))
         .label_style(("sans-serif", 13))
@@ -916,7 +936,10 @@ pub fn draw_chart<DB: DrawingBackend>(
             .draw_series(std::iter::once(Text::new(
                 p.2.clone(),
                 (p.0, dy * 0.08),
-                ("sans-serif", 13).into_font().color(&BLACK),
+                ("sans-serif", 13)
+                    .into_font()
+                    .color(&BLACK)
+                    .pos(Pos::new(HPos::Center, VPos::Bottom)),
             )))
             .map_err(chart_err)?;
     }
@@ -1183,7 +1206,7 @@ impl Stage for StabilityReport {
         "stability_report"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "Stability sweep report from the engine's sweep record: per group (animal) and corruption axis, \
@@ -1439,6 +1462,14 @@ mod tests {
         let cfg = ReportConfig::default();
         let dir = tempfile::tempdir().unwrap();
         let (md, csv, metrics) = report(&rec, &cfg, dir.path(), (600, 500)).unwrap();
+        // To look at the charts: FURE_KEEP_CHARTS=/some/dir cargo test ... outputs_are_written
+        if let Some(keep) = std::env::var_os("FURE_KEEP_CHARTS") {
+            for f in std::fs::read_dir(dir.path()).unwrap() {
+                let f = f.unwrap().path();
+                std::fs::create_dir_all(&keep).unwrap();
+                std::fs::copy(&f, Path::new(&keep).join(f.file_name().unwrap())).unwrap();
+            }
+        }
         for g in ["tiger", "bison"] {
             for a in ["corrupt.noise_sigma", "corrupt.views"] {
                 let png = dir.path().join(format!("{g}__{a}.png"));
@@ -1467,7 +1498,7 @@ mod tests {
         );
         let svg =
             std::fs::read_to_string(dir.path().join("bison__corrupt.noise_sigma.svg")).unwrap();
-        assert!(!svg.contains("failed"));
+        assert!(!svg.contains("FurE failed") && !svg.contains("failed at"));
         // CSV: header + one row per variant x method.
         let lines: Vec<&str> = csv.lines().collect();
         assert_eq!(lines.len(), 1 + 24);
