@@ -17,6 +17,12 @@
 //!   `lbar` the mean target strand length. With every strand's length imposed
 //!   by placement, tips on the envelope fix how far each strand leans. Pulling
 //!   every point to the envelope would fight the roots, which lie inside it.
+//! - Reachability gate (`chamfer_reach` > 0): a strand gets no chamfer pull
+//!   when its root lies farther than `chamfer_reach` x its length from
+//!   M_outer. The visual hull overestimates the envelope in concavities the
+//!   cameras cannot carve (between the legs, under the belly); there the tip
+//!   cannot reach the hull at all and the pull would only stand the strand
+//!   up. Off by default.
 //! - L_sdf: `mean over non-root points of relu(-phi(p) / lbar)` with `phi` the
 //!   signed distance to M_root (negative inside). A hinge (L1), so the push
 //!   out of the body does not fade as a point approaches the surface.
@@ -131,13 +137,15 @@ impl DistanceGrid {
 
 /// L_chm over a batch of strands with `l` points each (`points` holds
 /// `n * l` points, root first): returns the loss and adds its gradient
-/// (times `weight`) to `grad`.
+/// (times `weight`) to `grad`. Strands whose `gate` entry is false get no
+/// pull (they still count in the mean, so gating does not reweight the rest).
 pub fn chamfer_tips(
     outer: &DistanceGrid,
     points: &[Vec3],
     l: usize,
     lbar: f32,
     weight: f32,
+    gate: Option<&[bool]>,
     grad: &mut [Vec3],
 ) -> f32 {
     let n = points.len() / l.max(1);
@@ -148,6 +156,9 @@ pub fn chamfer_tips(
     let scale = 1.0 / n as f32;
     let mut loss = 0.0f64;
     for s in 0..n {
+        if gate.is_some_and(|g| !g.get(s).copied().unwrap_or(true)) {
+            continue;
+        }
         let tip = s * l + l - 1;
         let (u, g) = outer.sample(points[tip]);
         // The interpolated unsigned distance can dip below zero near the surface.
@@ -244,7 +255,7 @@ mod tests {
             Vec3::new(1.5, 0.0, 0.0),
         ];
         let mut g = vec![Vec3::ZERO; 3];
-        let lc = chamfer_tips(&outer, &pts, 3, 1.0, 1.0, &mut g);
+        let lc = chamfer_tips(&outer, &pts, 3, 1.0, 1.0, None, &mut g);
         assert!((lc - 0.25).abs() < 0.02);
         // Descending moves the tip outward, toward the envelope.
         assert!(g[2].x < 0.0);

@@ -49,6 +49,8 @@ pub struct ImageConfig {
     pub l_mask: f32,
     pub body_gaussians: usize,
     pub seed: u64,
+    /// Normalised confidence below which a pixel has no orientation target.
+    pub ori_min_confidence: f32,
 }
 
 /// One training view's targets.
@@ -226,7 +228,16 @@ impl ImageLosses {
                 }
             }
             let orientation = match orientation {
-                Some(dir) => Some(read_orientation(dir, cam)?),
+                Some(dir) => {
+                    let (o, mut c) = read_orientation(dir, cam)?;
+                    // Pixels below the confidence threshold carry no orientation target.
+                    for v in c.data.iter_mut() {
+                        if *v < cfg.ori_min_confidence {
+                            *v = 0.0;
+                        }
+                    }
+                    Some((o, c))
+                }
                 None => None,
             };
             views.push(ViewData {

@@ -69,6 +69,8 @@ pub struct Geometry {
     pub outer: DistanceGrid,
     /// Signed distance to M_root (negative inside).
     pub body: DistanceGrid,
+    /// Per strand: whether L_chm pulls it (none: all; see `geomloss`).
+    pub chamfer_gate: Option<Vec<bool>>,
 }
 
 /// What the loop reports.
@@ -131,7 +133,19 @@ pub fn train(
         let mut grad = vec![Vec3::ZERO; points.len()];
         let mut terms: Vec<(&'static str, f32)> = Vec::new();
         if cfg.w_chm > 0.0 {
-            let v = geomloss::chamfer_tips(&geometry.outer, &points, l, lbar, cfg.w_chm, &mut grad);
+            let gate: Option<Vec<bool>> = geometry
+                .chamfer_gate
+                .as_ref()
+                .map(|g| ids.iter().map(|&i| g[i as usize]).collect());
+            let v = geomloss::chamfer_tips(
+                &geometry.outer,
+                &points,
+                l,
+                lbar,
+                cfg.w_chm,
+                gate.as_deref(),
+                &mut grad,
+            );
             terms.push(("chm", cfg.w_chm * v));
         }
         if cfg.w_sdf > 0.0 {
@@ -226,6 +240,7 @@ mod tests {
         let geometry = Geometry {
             outer: DistanceGrid::from_fn(lo, hi, 33, |p| (p.length() - 1.3).abs()),
             body: DistanceGrid::from_fn(lo, hi, 33, |p| p.length() - 1.0),
+            chamfer_gate: None,
         };
         (prep, geometry, Decoder::new(&mean, &comps))
     }
