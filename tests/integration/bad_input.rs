@@ -1289,6 +1289,33 @@ mod fuzz {
         );
     }
 
+    /// Every default passes its own type and bounds, and every numeric parameter
+    /// of a reconstruction stage states its lower bound (a zero or negative value
+    /// is then a planning error with a location, not a NaN three stages later).
+    #[test]
+    fn parameter_specs_are_bounded_and_defaults_valid() {
+        use fure_stage_api::ParamType as T;
+        let mut unbounded = Vec::new();
+        for stage in registry().iter() {
+            for spec in stage.params() {
+                if let Some(d) = &spec.default {
+                    if let Err(e) = fure::plan::check_value(&spec, d) {
+                        panic!("{}.{}: default {d:?}: {e}", stage.kind(), spec.name);
+                    }
+                }
+                let numeric = matches!(spec.ty, T::Int | T::Float | T::FloatList);
+                let exempt = stage.kind().starts_with("demo_") || stage.kind() == "command";
+                if numeric && spec.min.is_none() && !exempt {
+                    unbounded.push(format!("{}.{}", stage.kind(), spec.name));
+                }
+            }
+        }
+        assert!(
+            unbounded.is_empty(),
+            "numeric parameters without a lower bound: {unbounded:?}"
+        );
+    }
+
     #[test]
     fn seeds_plan_or_fail_located() {
         for s in seeds() {
