@@ -105,6 +105,10 @@ pub enum Command {
         /// Table path prefix (writes PREFIX.md and PREFIX.csv); default `<out>/<pipeline>/sweep`.
         #[arg(long)]
         table: Option<PathBuf>,
+        /// Check every variant and aggregate, show per variant what is cached
+        /// and what would run; run nothing, write nothing.
+        #[arg(long)]
+        dry_run: bool,
     },
     /// Remove cache entries and objects.
     Gc {
@@ -352,6 +356,7 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             jobs,
             out,
             table,
+            dry_run,
         } => {
             let p = engine.load(pipeline, sets)?;
             let axis_list = |opt: &str, list: &[String]| -> Result<Vec<_>, Failure> {
@@ -376,13 +381,28 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             let opts = RunOptions {
                 jobs: jobs_or_default(*jobs)?,
                 cores: exec::available_cores(),
-                out_root: Some(out.clone()),
-                dry_run: false,
+                out_root: if *dry_run { None } else { Some(out.clone()) },
+                dry_run: *dry_run,
                 ui: UiMode::Quiet,
                 keep_going: true,
             };
             println!("sweep {}: {} variants", p.name, variants.len());
             let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
+                if *dry_run {
+                    println!(
+                        "variant {} ({}){}: {} cached, {} will run",
+                        row.variant.index,
+                        sweep::describe(&row.variant),
+                        row.variant
+                            .varied
+                            .as_ref()
+                            .map(|k| format!(" varying {k}"))
+                            .unwrap_or_default(),
+                        row.report.count(Status::Cached),
+                        row.report.count(Status::WillRun)
+                    );
+                    return;
+                }
                 println!(
                     "variant {} ({}): {} ran, {} cached, {} failed, {:.2}s: {}{}",
                     row.variant.index,
@@ -402,6 +422,19 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                     cache.save_run_report(&row.name, &json);
                 }
             })?;
+            if *dry_run {
+                if !p.aggregates.is_empty() {
+                    println!(
+                        "aggregates (run after the variants): {}",
+                        p.aggregates
+                            .iter()
+                            .map(|a| a.name.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    );
+                }
+                return Ok(ExitCode::SUCCESS);
+            }
             let prefix = table
                 .clone()
                 .unwrap_or_else(|| out.join(&p.name).join("sweep"));

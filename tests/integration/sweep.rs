@@ -256,6 +256,15 @@ count = 5
 "bad.env" = [{ MODE = "fail" }, { MODE = "ok" }]
 "#,
     );
+    // A dry run checks and lists the variants, runs and writes nothing.
+    let d = p.fure(&["sweep", "k.toml", "--dry-run"]);
+    assert_eq!(d.code(), 0, "{}", d.all());
+    assert!(
+        d.line(1).contains("varying bad.env: 0 cached, 3 will run"),
+        "{}",
+        d.all()
+    );
+    assert!(!p.path("out").exists());
     let s = p.fure(&["sweep", "k.toml", "--jobs", "1"]);
     assert_eq!(s.code(), 0, "{}", s.all());
     // `bad` fails first; `late` (independent, declared after it) still runs; `after` is skipped.
