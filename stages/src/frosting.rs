@@ -37,14 +37,8 @@
 //! - `sigma_n` = mean over the `sigma_k` (4) Gaussians nearest to x of their
 //!   standard deviation along n, `sqrt(n^T Sigma n)` (Frosting's code, the
 //!   default `sigma_n = "gaussians"`); `"fixed"` uses `sigma_n_frac * D`
-//!   instead and `"max"` the larger of the two. Measured on the default tiger
-//!   (scene -> outer -> parts -> frosting with `gt_scene` connected):
-//!   "gaussians" gives widths of the fur's order (median 1.35 cm against GT
-//!   mean thicknesses of 0.4-2.1 cm per part), while "max" with
-//!   `sigma_n_frac = 0.01` lets the level-0.01 tails of the Gaussians dominate
-//!   (about 7-8 cm everywhere). A wider window only helps when the Gaussians
-//!   are much thinner than the fur, which at 256 px (about 1 cm per pixel)
-//!   they are not.
+//!   instead and `"max"` the larger of the two (see "What the widths measure
+//!   at 256 px" below for measurements).
 //! - `samples` (21) points x + t n, t from +`range_sigmas` sigma_n (outside)
 //!   to -`range_sigmas` sigma_n (inside), evenly spaced;
 //! - density at a point = min(1, sum over its `knn` (16) nearest Gaussians of
@@ -60,6 +54,59 @@
 //! - width = max(|outer - inner|, `min_width_frac` * D). Frosting's "scene
 //!   extent" is its camera radius; we use the method's scene scale D (the
 //!   bounding-box diagonal of M_outer) throughout.
+//!
+//! Options beyond Frosting (all off by default, so the stage computes
+//! Frosting's definition unless told otherwise):
+//! - `width_reading = "inner_depth"`: width = `max(0, -inner)`, the depth of
+//!   the innermost crossing under the vertex, instead of `|outer - inner|`.
+//!   Frosting's base mesh lies in the middle of its shell; a visual hull lies
+//!   *outside* the fur (it cannot carve concavities), so on a visual-hull
+//!   M_outer the distance to the skin is the gap down to the fur's outer
+//!   boundary plus the fur's thickness, i.e. the inner crossing's depth.
+//! - `medial_clamp`: the inward half of the window stops at half the inward
+//!   ray-hit distance through M_outer (the medial surface), so that on thin
+//!   parts (ears, muzzle) the density of the part's other side is not read
+//!   as fur.
+//! - `prune_visibility`: after the fit, Gaussians whose total blending weight
+//!   over the training views ([`visibility`], pixels) is below this are
+//!   dropped (Frosting's Gaussians come from a vanilla 3DGS fit, which has no
+//!   unseen interior Gaussians; ours start in a band under M_outer).
+//!
+//! # What the widths measure at 256 px (diagnosis on the synthetic tiger)
+//!
+//! `fure run pipelines/tiger.toml --until defur --set frosting.X=...` with
+//! the `offsets` output and the ignored `defur::tests::diagnose_pipeline_output`
+//! (per-vertex comparison with the true outer-to-skin distance):
+//! - **The window saturates.** With the defaults, the innermost sample is
+//!   still above the level at 98.7 % of the vertices
+//!   (`saturated_inner_fraction`), so Frosting's width is the outer crossing
+//!   plus the window's inner half, `3 sigma_n`, not the fur's extent.
+//! - **`sigma_n` is the initialisation's, not the images'.** `init_flatness`
+//!   0.2 -> 0.1 halves every width (torso median 1.12 -> 0.59 cm, ears 2.7 ->
+//!   2.2 cm) at the same training PSNR (28.76 dB): at this resolution and
+//!   budget (12k Gaussians, about 1.9 cm apart) the images do not constrain
+//!   the Gaussians' extent along the normal. `init_depth_frac` 0.0025 or 0.01
+//!   instead of 0.005 changes the widths by under 6 %.
+//! - A wider window (`range_sigmas = 8`, 81 samples) still saturates at
+//!   87.6 % (the level-0.01 tails of 16 summed overlapping Gaussians reach
+//!   several sigma_n): widths 3-5 cm, M_root 166 % of the GT fur thickness.
+//!   Level 0.5 with that window: 27 % saturated, widths 1.3-2.7 cm, M_root
+//!   66 %. `prune_visibility = 0.1` removes only 52 of 12,000 Gaussians: the
+//!   unseen interior is not what fills the window.
+//! - **Resolution alone does not help**: the scene at 512 px (same fit)
+//!   gives widths 1.4-2.6 cm, M_root 57.5 % (56 % at 256 px), length errors
+//!   up to 277 %, for scene 90 s + frosting 224 s instead of 10 + 28 s: the
+//!   Gaussian count, not the pixel, sets `sigma_n`.
+//! - **Per vertex** (Pearson correlation with the true outer-to-skin distance
+//!   over fur vertices): Frosting width -0.15, depth of the outer crossing
+//!   under M_outer +0.60 (the visual hull's inflation in concavities is
+//!   visible: the fitted surface sinks under M_outer there), `3 sigma_n`
+//!   +0.49, depth of the inner crossing +0.43. Per part the widths are about
+//!   1.1-1.4 cm everywhere except thin parts (ears 2.6, muzzle 2.0, paws 1.7,
+//!   tail 1.9 cm), where `sigma_n` is larger (ears 0.61 cm against 0.4) and
+//!   the outer crossing lies 0.5-0.7 cm *outside* M_outer: the window spans
+//!   the whole part, whose GT fur is the thinnest (0.36-0.49 cm). This is the
+//!   negative correlation with the GT part thicknesses.
 //!
 //! # Imported widths
 //!

@@ -47,6 +47,40 @@
 //!   cuts iterations about threefold. The optimum is the same (strictly
 //!   convex problem); stopping tests use the original variables.
 //!
+//! - **Units of the objective** (`units`, default `"scene"`). The appendix's
+//!   objective is not invariant to the scene's length unit: `a_ij = 1 /
+//!   |x_i - x_j|` has units of 1/length, so measuring lengths in units k
+//!   times smaller multiplies the data terms by k^2 but the smoothness term
+//!   only by k. The smoothing length is about `sqrt(lambda h / c)` for edge
+//!   length h: on the tiger (scene units, D = 2.8, h = 1.6 cm) about 30 cm,
+//!   wider than a leg; in centimetres about 3 cm. `units = "cm"` solves in
+//!   centimetres (via `s_cm`; the same minimiser as scene units with
+//!   `lambda / s_cm`), which makes M_root independent of the scene's unit.
+//!   The default stays the literal reading (scene units), because with the
+//!   widths this project's Frosting fit gives at 256 px the strong smoothing
+//!   is what hides their noise (below).
+//!
+//! # Where the error comes from (synthetic tiger, 256 px)
+//!
+//! From the ignored `tests::diagnose_pipeline_output` on a tiger run (mean
+//! distance to the GT skin as a fraction of the mean GT fur thickness,
+//! 0.80 cm; M_outer is at 132 %):
+//! - Displacing each vertex by its true outer-to-skin distance along `-n`
+//!   (no solve): 8.5 %. The geometry (normals, the visual hull) is not the
+//!   limit.
+//! - The same oracle widths through the appendix solve: 47.9 % in scene
+//!   units, 28.4 % in cm (25.8 % before the post-check). The solve's
+//!   smoothing, not the post-check (about 1 point), is the main loss.
+//! - A per-part constant at the GT part thickness (no solve): 47.2 %; the
+//!   outer-to-skin distance varies within parts (hull inflation in
+//!   concavities; M_outer is 0.26 cm outside the fur on average), so even
+//!   perfect per-part values cannot reach 25 %.
+//! - The fitted Frosting widths: 56.1 % through the solve (scene units),
+//!   77.1 % in cm; 85.9 % displacing by them directly. Their correlation with
+//!   the true distance is -0.15 per vertex: they measure the Gaussians'
+//!   initial thickness, not the fur (see the `frosting` module docs).
+//!   `width_reading = "inner_depth"` (correlation +0.43): 53.2 %.
+//!
 //! Metrics (only with the optional `gt_skin` input): distances from each
 //! mesh to the GT skin are closest-point distances from the mesh's
 //! vertices, **area-weighted** by one third of the incident triangle areas
