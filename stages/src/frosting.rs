@@ -107,6 +107,14 @@
 //!   the outer crossing lies 0.5-0.7 cm *outside* M_outer: the window spans
 //!   the whole part, whose GT fur is the thinnest (0.36-0.49 cm). This is the
 //!   negative correlation with the GT part thicknesses.
+//! - `width_reading = "inner_depth"` with `medial_clamp` on the tiger:
+//!   M_root 53.2 % (56.1 % with the defaults), per-part length errors at most
+//!   155 % (295 %), but torso/belly/neck lengths 27-36 % short, mean strand
+//!   length 3.16 cm (GT 3.70, defaults 3.78) and codec F-scores 45.0 / 65.0 /
+//!   79.2 % against 51.7 / 68.5 / 81.7 % (2/3/4 cm); on the fox preset M_root
+//!   109 % against 105 %. Not a clear gain, so `pipelines/tiger.toml` keeps
+//!   Frosting's definition. `medial_clamp` alone changes only the ears
+//!   (median 2.0 -> 1.8 cm with `inner_depth`).
 //!
 //! # Imported widths
 //!

@@ -26,6 +26,17 @@
 //! are physical guesses, not fitted to any scene; override per part with
 //! the `multiplier` table.
 //!
+//! Calibration check (not adopted). The task allowed calibrating `m_p` on
+//! another preset's ground truth and validating on the tiger. With the fox
+//! preset through the tiger pipeline (`--set scene.preset=fox`, frosting
+//! `width_reading = "inner_depth"`), GT mean length / `T_p` per part ranges
+//! from 1.5 (ears) to 9.5 (tail); on the tiger the same ratios range from
+//! 0.8 to 3.9, and the fox's torso ratio (7.4) would put the tiger's torso
+//! at +118 %. At 256 px `T_p` follows the fitted Gaussians' thickness along
+//! the normal (set by their initialisation and the animal's size, see the
+//! `frosting` docs), not the fur, so no per-part multiplier transfers between
+//! presets; the physical defaults above stay.
+//!
 //! A part is non-fur when its name is in `protected_parts`
 //! (case-insensitive) or the scene file marks it `fur = false`.
 
