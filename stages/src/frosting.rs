@@ -298,6 +298,9 @@ fn crossings(t: &[f32], d: &[f32], level: f32) -> Option<(f32, f32)> {
     Some((outer, inner))
 }
 
+/// Per vertex before smoothing: sigma_n, the inward half-range, the crossings.
+type RawCrossing = (f32, f32, Option<(f32, f32)>);
+
 /// Gaussian Frosting's shell widths at the given vertices (see the module doc).
 pub fn shell_widths(
     field: &DensityField,
@@ -323,8 +326,7 @@ pub fn shell_widths(
         )));
     }
     let ns = s.samples.max(2);
-    // (sigma_n, inward range, crossings)
-    let raw: Vec<(f32, f32, Option<(f32, f32)>)> = positions
+    let raw: Vec<RawCrossing> = positions
         .par_iter()
         .zip(normals.par_iter())
         .enumerate()
@@ -350,7 +352,7 @@ pub fn shell_widths(
         })
         .collect();
     let crossed: Vec<bool> = raw.iter().map(|r| r.2.is_some()).collect();
-    let at_end = |r: &(f32, f32, Option<(f32, f32)>), outer: bool| -> bool {
+    let at_end = |r: &RawCrossing, outer: bool| -> bool {
         let (ro, ri) = (s.range_sigmas * r.0, r.1);
         match r.2 {
             Some((o, _)) if outer => o >= ro * (1.0 - 1e-6),

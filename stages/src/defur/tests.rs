@@ -508,7 +508,7 @@ fn diagnose_pipeline_output() {
             };
             let res = defur(&outer, &sh, &prot, &BTreeMap::new(), &s).unwrap();
             report(&format!("solve({label}) unit_scale {unit}"), &res.d);
-            report(&format!("  d_solved (no post-check)"), &res.d_solved);
+            report("  d_solved (no post-check)", &res.d_solved);
         }
     }
 }
