@@ -108,7 +108,7 @@ pub struct CorruptionReport {
 }
 
 /// Seeds of the independent random streams.
-const STREAM_NOISE: u64 = 0x6e6f_6973_65;
+const STREAM_NOISE: u64 = 0x006e_6f69_7365;
 const STREAM_JITTER: u64 = 0x6a69_7474_6572;
 
 fn mix(mut z: u64) -> u64 {

@@ -703,12 +703,15 @@ fn method_color(i: usize) -> RGBColor {
     METHOD_COLORS[i % METHOD_COLORS.len()]
 }
 
+/// A method's chart points: (x, F3 or None when failed, status).
+pub type MethodPoints = Vec<(f64, Option<f64>, Status)>;
+
 /// One chart's data: per method the (x, F3, status) points, the defurring points (x, value or
 /// None when missing, failure label), the x range and labels.
 pub struct ChartData {
     pub title: String,
     pub axis: String,
-    pub methods: Vec<(String, Vec<(f64, Option<f64>, Status)>)>,
+    pub methods: Vec<(String, MethodPoints)>,
     pub defur: Vec<(f64, Option<f64>, String)>,
     /// Tick labels for non-numeric axes.
     pub tick_labels: Option<Vec<String>>,
@@ -1531,7 +1534,8 @@ mod tests {
     #[test]
     fn missing_keys_are_named() {
         let base = record();
-        let cases: Vec<(Box<dyn Fn(&mut Json)>, &str)> = vec![
+        type Edit = Box<dyn Fn(&mut Json)>;
+        let cases: Vec<(Edit, &str)> = vec![
             (
                 Box::new(|j| {
                     j.as_object_mut().unwrap().remove("variants");
