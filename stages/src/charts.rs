@@ -16,13 +16,14 @@
 //!
 //! Query subsampling. Scoring every point of every snapshot (~400k oriented points a side on the
 //! synthetic tiger, about 60 snapshots) took ~10 s a snapshot on 2 cores even with the exact matcher's
-//! prunings, because every unmatched query scans its whole 4 cm ball. So each side evaluates an evenly
-//! strided subset of at most `max_queries` query points (default 40,000; the reference side is always
-//! complete, so a strided query is matched exactly as in the full evaluation). Precision and recall are
-//! fractions over those queries: unbiased, with a sampling error of at most `sqrt(0.25 / n)` = 0.25
-//! percentage points (one standard deviation of a simple random sample of n = 40,000; strides along
-//! strands sample more evenly than that). `max_queries = 0` scores every point. The `evaluate` stages
-//! score the final strands exactly; the final snapshots (the same strands) show the measured effect.
+//! prunings, because every unmatched query scans its whole 4 cm ball. So each side evaluates a
+//! deterministic pseudo-random subset of about `max_queries` query points
+//! ([`crate::evaluate::query_subset`]; default 40,000; the reference side is always complete, so a
+//! sampled query is matched exactly as in the full evaluation). Precision and recall are fractions over
+//! those queries: unbiased, with a sampling error of about `sqrt(0.25 / n)` = 0.25 percentage points at
+//! most (one standard deviation, n = 40,000). `max_queries = 0` scores every point. The `evaluate`
+//! stages score the final strands exactly; the final snapshots (the same strands) show the measured
+//! effect (README).
 //!
 //! `speedup_to_dense_final_fscore` = `t_dense / t_codec`, with `F*` the dense baseline's final F-score
 //! (its last snapshot), `t_dense` the training time of the FIRST dense snapshot whose F-score reaches `F*`
@@ -435,7 +436,7 @@ impl Stage for SpeedAccuracy {
         "speed_accuracy"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "Scores the codec and dense learners' strand snapshots against GT strands and charts F-score at \

@@ -23,9 +23,9 @@
 //!    and signed counts come from one pass. The ground-truth side ([`OrientedSet`]) can be built once
 //!    and reused against many predictions. Every query is independent and the counts are integers, so
 //!    the result does not depend on threads.
-//!    `max_queries` (0 = all) evaluates a deterministic evenly-strided subset of the query points of each
-//!    side when the sets are huge (the reference side is always complete): precision and recall are
-//!    fractions, so this is an unbiased estimate; the stage records the numbers actually used.
+//!    `max_queries` (0 = all) evaluates a deterministic pseudo-random subset of about that many query
+//!    points of each side ([`query_subset`]; the reference side is always complete): precision and
+//!    recall are fractions, so this is an unbiased estimate; the stage records the numbers used.
 //!
 //! # Unsupervised geometry metrics (the paper names them without defining them; these are fixed here)
 //! All are computed on strands resampled to `spacing_cm` (so they do not depend on the input sampling),
@@ -358,6 +358,28 @@ pub fn match_cell(thresholds: &[(f32, f32)]) -> f32 {
         .max(1e-6)
 }
 
+/// The query points evaluated: all of them, or (when `max_queries` > 0 and smaller than `n`) each
+/// index kept with probability `max_queries / n` by a fixed hash of the index (splitmix64):
+/// deterministic, independent of threads and of any structure in the point order. (A regular stride
+/// was tried first and was biased: on the synthetic tiger's codec strands it gave an F-score 2.6
+/// points below the exact one at 3 cm, as the stride resonated with the number of resampled points
+/// per strand and sampled only some positions along the strands.)
+pub fn query_subset(n: usize, max_queries: usize) -> Vec<usize> {
+    if max_queries == 0 || n <= max_queries {
+        return (0..n).collect();
+    }
+    let p = max_queries as f64 / n as f64;
+    (0..n)
+        .filter(|&i| {
+            let mut z = (i as u64).wrapping_add(0x9E37_79B9_7F4A_7C15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^= z >> 31;
+            ((z >> 11) as f64 / (1u64 << 53) as f64) < p
+        })
+        .collect()
+}
+
 /// One matching rule: distance (and its square), cosine of the angle, signed or not.
 #[derive(Debug, Clone, Copy)]
 struct Rule {
@@ -384,12 +406,7 @@ fn match_counts(
     if n == 0 || rules.is_empty() {
         return (vec![0; rules.len()], n);
     }
-    let stride = if max_queries > 0 && n > max_queries {
-        n.div_ceil(max_queries)
-    } else {
-        1
-    };
-    let queries: Vec<usize> = (0..n).step_by(stride).collect();
+    let queries = query_subset(n, max_queries);
     let grid = &r.grid;
     let chunk = 2048;
     let partial: Vec<Vec<u64>> = queries
@@ -947,7 +964,7 @@ impl Stage for Evaluate {
         "evaluate"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (2cm/20deg, 3cm/30deg, 4cm/40deg; unsigned \
@@ -1345,6 +1362,23 @@ pub(crate) mod tests {
         for (f, l) in full.iter().zip(&lim) {
             assert!((f.fscore - l.fscore).abs() < 5.0);
         }
+    }
+
+    #[test]
+    fn query_subsets_are_unbiased_along_strands() {
+        // Strands of 10 oriented points of which only the root segment matches (GT: 0.5 cm stubs,
+        // 0.3 cm threshold): precision 10 %. A stride of 5 would see 50 %.
+        let pred = patch(32, 10.0, 5.0, 11, Vec3::ZERO);
+        let gt = patch(32, 10.0, 0.5, 2, Vec3::ZERO);
+        let thr = [(0.3f32, 20.0f32)];
+        let exact = strand_prf_limited(&pred, &gt, 1.0, 0.5, &thr, false, 0);
+        assert!((exact[0].precision - 10.0).abs() < 1e-3, "{:?}", exact[0]);
+        let lim = strand_prf_limited(&pred, &gt, 1.0, 0.5, &thr, false, 2048);
+        assert!((lim[0].precision - 10.0).abs() < 2.0, "{:?}", lim[0]);
+        let q = query_subset(10_240, 2048);
+        assert!((q.len() as f64 - 2048.0).abs() < 200.0, "{}", q.len());
+        assert_eq!(q, query_subset(10_240, 2048));
+        assert_eq!(query_subset(100, 0).len(), 100);
     }
 
     #[test]

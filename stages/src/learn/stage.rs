@@ -902,6 +902,11 @@ mod tests {
         let idx: Vec<SnapshotEntry> =
             formats::json::read_json(out_a.join("snapshots").join("index.json")).unwrap();
         assert_eq!(idx.last().unwrap().iteration, 40);
+        // The initial strands at 0 s, then increasing times and iterations.
+        assert_eq!((idx[0].iteration, idx[0].seconds), (0, 0.0));
+        assert!(idx
+            .windows(2)
+            .all(|w| w[0].seconds <= w[1].seconds && w[0].iteration < w[1].iteration));
         assert!(out_a
             .join("snapshots")
             .join(&idx.last().unwrap().file)
