@@ -659,7 +659,7 @@ fn inside_out_meshes_are_flipped_with_a_warning_and_broken_ones_refused() {
         );
         // Truncated in the middle of the faces: holes again, or a broken last line.
         let cut = good.len() - good.len() / 7;
-        s.write("data/outer.obj", good[..cut].as_bytes());
+        s.write("data/outer.obj", &good.as_bytes()[..cut]);
         s.fails(pipeline, stage, &["data/outer.obj"]);
         // Fixed: runs again.
         s.write("data/outer.obj", good.as_bytes());
@@ -1115,7 +1115,7 @@ mod fuzz {
             }
         };
         match spec.ty {
-            T::Bool => (r % 2 == 0).to_string(),
+            T::Bool => r.is_multiple_of(2).to_string(),
             T::Int => int(1),
             T::Float => float(1),
             T::Str => string(1),

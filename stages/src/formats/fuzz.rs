@@ -521,11 +521,9 @@ fn seeds_read_back() {
     // The mutation targets start from valid files: make sure they are.
     let s = seeds();
     let dir = workdir();
-    for (name, bytes) in [("m.obj", &s.obj)] {
-        let p = dir.join(name);
-        write(&p, bytes);
-        assert_eq!(super::obj::read_obj(&p).unwrap().triangles.len(), 5);
-    }
+    let p = dir.join("m.obj");
+    write(&p, &s.obj);
+    assert_eq!(super::obj::read_obj(&p).unwrap().triangles.len(), 5);
     let p = dir.join("s.ply");
     write(&p, &s.ply_ascii);
     assert_eq!(super::ply::read_ply_strands(&p).unwrap().len(), 2);
