@@ -686,7 +686,8 @@ pub fn describe_kind(s: &dyn Stage) -> String {
             if p.min.is_some() || p.max.is_some() {
                 let _ = write!(
                     extra,
-                    " in [{}, {}]",
+                    " in {}{}, {}]",
+                    if p.min_exclusive { "(" } else { "[" },
                     p.min
                         .map(|x| x.to_string())
                         .unwrap_or_else(|| "-inf".into()),

@@ -41,8 +41,23 @@ fn config() -> Config {
     Config {
         cases,
         failure_persistence: None,
+        // The short default run (CI) is reproducible: a fixed seed unless a long run
+        // (`PROPTEST_CASES`) or `PROPTEST_RNG_SEED` asks for other inputs.
+        rng_seed: ci_seed(),
         // Shrinking a byte vector is cheap; keep the default iteration budget.
         ..Config::default()
+    }
+}
+
+/// A fixed seed for the default run; proptest's own choice (random, or `PROPTEST_RNG_SEED`) for
+/// long runs.
+fn ci_seed() -> proptest::test_runner::RngSeed {
+    if std::env::var_os("PROPTEST_CASES").is_none()
+        && std::env::var_os("PROPTEST_RNG_SEED").is_none()
+    {
+        proptest::test_runner::RngSeed::Fixed(0x5eed)
+    } else {
+        Config::default().rng_seed
     }
 }
 
