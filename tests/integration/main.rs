@@ -1,6 +1,6 @@
 //! The one integration-test binary of fure: each area adds a module here.
 //! Tests drive the built `fure` binary on temporary directories.
 
+mod bad_input;
 mod engine;
 mod sweep;
-mod bad_input;
