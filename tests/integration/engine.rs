@@ -8,39 +8,42 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-fn data(name: &str) -> PathBuf {
+pub(crate) fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/data/engine")
         .join(name)
 }
 
-/// A project directory with its own cache.
-struct Project {
+/// A project directory with its own cache (shared by the other integration modules).
+pub(crate) struct Project {
     dir: tempfile::TempDir,
 }
 
 impl Project {
-    fn new() -> Project {
+    pub(crate) fn new() -> Project {
         Project {
             dir: tempfile::tempdir().expect("temp dir"),
         }
     }
-    fn path(&self, rel: &str) -> PathBuf {
+    pub(crate) fn path(&self, rel: &str) -> PathBuf {
         self.dir.path().join(rel)
     }
-    fn write(&self, rel: &str, text: &str) {
+    pub(crate) fn write(&self, rel: &str, text: &str) {
         let p = self.path(rel);
         std::fs::create_dir_all(p.parent().unwrap()).unwrap();
         std::fs::write(p, text).unwrap();
     }
-    fn cmd(&self, args: &[&str]) -> Command {
+    pub(crate) fn read(&self, rel: &str) -> String {
+        std::fs::read_to_string(self.path(rel)).unwrap_or_else(|e| panic!("{rel}: {e}"))
+    }
+    pub(crate) fn cmd(&self, args: &[&str]) -> Command {
         let mut c = Command::new(env!("CARGO_BIN_EXE_fure"));
         c.args(args)
             .current_dir(self.dir.path())
             .env("FURE_CACHE", self.path("cache"));
         c
     }
-    fn fure(&self, args: &[&str]) -> Output {
+    pub(crate) fn fure(&self, args: &[&str]) -> Output {
         self.cmd(args).output().expect("run fure")
     }
     /// `fure run` with a report; returns (exit code, stage -> (status, reason), full report).

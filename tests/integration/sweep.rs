@@ -2,42 +2,20 @@
 //! reasons, the sweep record and aggregate stages. Demo and `command` (`sh`)
 //! stages only, on temporary directories.
 
-use std::path::{Path, PathBuf};
 use std::process::Output;
 
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data/engine")
-        .join(name)
+use super::engine::{data, Project};
+
+/// `fure` through [`Project`], read as a sweep's output.
+trait SweepRun {
+    fn sweep(&self, args: &[&str]) -> Sweep;
 }
 
-struct Project {
-    dir: tempfile::TempDir,
-}
-
-impl Project {
-    fn new() -> Project {
-        Project {
-            dir: tempfile::tempdir().expect("temp dir"),
+impl SweepRun for Project {
+    fn sweep(&self, args: &[&str]) -> Sweep {
+        Sweep {
+            out: self.fure(args),
         }
-    }
-    fn path(&self, rel: &str) -> PathBuf {
-        self.dir.path().join(rel)
-    }
-    fn write(&self, rel: &str, text: &str) {
-        std::fs::write(self.path(rel), text).unwrap();
-    }
-    fn read(&self, rel: &str) -> String {
-        std::fs::read_to_string(self.path(rel)).unwrap_or_else(|e| panic!("{rel}: {e}"))
-    }
-    fn fure(&self, args: &[&str]) -> Sweep {
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_fure"))
-            .args(args)
-            .current_dir(self.dir.path())
-            .env("FURE_CACHE", self.path("cache"))
-            .output()
-            .expect("run fure");
-        Sweep { out }
     }
 }
 
@@ -78,7 +56,7 @@ fn json(text: &str) -> serde_json::Value {
 fn each_axes_statuses_record_and_aggregate() {
     let p = Project::new();
     std::fs::copy(data("sweep_each.toml"), p.path("sw.toml")).unwrap();
-    let s = p.fure(&["sweep", "sw.toml", "--jobs", "1"]);
+    let s = p.sweep(&["sweep", "sw.toml", "--jobs", "1"]);
     assert_eq!(s.code(), 0, "{}", s.all());
     let text = s.stdout();
     // 2 crossed points x (base + 2 more powers + 2 more modes).
@@ -170,7 +148,7 @@ fn each_axes_statuses_record_and_aggregate() {
     assert_ne!(v[0]["metrics"]["sq.mean"], v[1]["metrics"]["sq.mean"]);
     // No absolute path anywhere in the record.
     assert!(
-        !record_text.contains(p.dir.path().to_str().unwrap()),
+        !record_text.contains(p.path("").to_str().unwrap().trim_end_matches('/')),
         "{record_text}"
     );
 
@@ -191,7 +169,7 @@ fn each_axes_statuses_record_and_aggregate() {
     assert_eq!(p.read("out/sw/summary/seen.json"), record_text);
 
     // A second sweep: the same record, byte for byte, and the aggregate is a hit.
-    let s2 = p.fure(&["sweep", "sw.toml", "--jobs", "1"]);
+    let s2 = p.sweep(&["sweep", "sw.toml", "--jobs", "1"]);
     assert_eq!(s2.code(), 0, "{}", s2.all());
     assert_eq!(p.read("out/sw/sweep.json"), record_text);
     assert!(
@@ -208,7 +186,7 @@ fn each_axes_statuses_record_and_aggregate() {
     );
 
     // --grid replaces an each axis's values; --each adds one.
-    let s3 = p.fure(&[
+    let s3 = p.sweep(&[
         "sweep",
         "sw.toml",
         "--grid",
@@ -257,7 +235,7 @@ count = 5
 "#,
     );
     // A dry run checks and lists the variants, runs and writes nothing.
-    let d = p.fure(&["sweep", "k.toml", "--dry-run"]);
+    let d = p.sweep(&["sweep", "k.toml", "--dry-run"]);
     assert_eq!(d.code(), 0, "{}", d.all());
     assert!(
         d.line(1).contains("varying bad.env: 0 cached, 3 will run"),
@@ -265,7 +243,7 @@ count = 5
         d.all()
     );
     assert!(!p.path("out").exists());
-    let s = p.fure(&["sweep", "k.toml", "--jobs", "1"]);
+    let s = p.sweep(&["sweep", "k.toml", "--jobs", "1"]);
     assert_eq!(s.code(), 0, "{}", s.all());
     // `bad` fails first; `late` (independent, declared after it) still runs; `after` is skipped.
     assert!(
@@ -334,7 +312,7 @@ count = 5
     ];
     for (agg, want) in cases {
         p.write("a.toml", &format!("{base}\n{agg}"));
-        let s = p.fure(&["sweep", "a.toml"]);
+        let s = p.sweep(&["sweep", "a.toml"]);
         assert_eq!(s.code(), 2, "{agg}\n{}", s.all());
         assert!(s.all().contains(want), "{agg}\nwant {want}\n{}", s.all());
         assert!(!p.path("out/a@v0").exists(), "nothing runs: {}", s.all());
@@ -346,7 +324,7 @@ count = 5
             "{base}\n[aggregate.r]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"echo no >&2; exit 4\"]\nouts = [\"x\"]\n"
         ),
     );
-    let s = p.fure(&["sweep", "a.toml"]);
+    let s = p.sweep(&["sweep", "a.toml"]);
     assert_eq!(s.code(), 1, "{}", s.all());
     assert!(s.stdout().contains("0 of 2 variants failed"), "{}", s.all());
     assert!(
@@ -392,7 +370,7 @@ extends = "parent.toml"
 cmd = ["sh", "-c", "cp {deps.sweep} r.json # child"]
 "#,
     );
-    let s = p.fure(&["sweep", "child.toml"]);
+    let s = p.sweep(&["sweep", "child.toml"]);
     assert_eq!(s.code(), 0, "{}", s.all());
     // gen.seed crossed (1 value); each: sum.power (kept position), gen.count (moved) -> 1 + 2 + 2.
     assert!(
