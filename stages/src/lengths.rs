@@ -48,7 +48,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::defur::thickness::{percentile, raw_widths};
-use crate::defur::{number_table, protected_parts, read_mesh, DEFAULT_PROTECTED};
+use crate::defur::{number_table, protected_parts, read_labelled_mesh, DEFAULT_PROTECTED};
 use crate::formats::json::{read_json, write_json};
 use crate::geom::PointIndex;
 use crate::scene::SceneInfo;
@@ -352,14 +352,7 @@ impl Stage for LengthsStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;
-        let outer = read_mesh(ctx, "outer")?;
-        if outer.part.len() != outer.positions.len() {
-            return Err(StageError::input(
-                "outer",
-                ctx.input("outer")?,
-                "part labels do not match the vertices",
-            ));
-        }
+        let outer = read_labelled_mesh(ctx, "outer")?;
         let shell_path = ctx.input("shell")?;
         let shell: ShellWidths = read_json(shell_path)?;
         if shell.positions.is_empty() || shell.widths.len() != shell.positions.len() {

@@ -1544,18 +1544,7 @@ mod tests {
     #[test]
     fn imported_mesh_is_reoriented_outward() {
         // A cube with inconsistent and inward triangles.
-        let p = [
-            [0., 0., 0.],
-            [1., 0., 0.],
-            [1., 1., 0.],
-            [0., 1., 0.],
-            [0., 0., 1.],
-            [1., 0., 1.],
-            [1., 1., 1.],
-            [0., 1., 1.],
-        ]
-        .map(Vec3::from_array)
-        .to_vec();
+        let p = unit_cube().positions;
         let tris = vec![
             [0, 2, 1],
             [0, 3, 2],

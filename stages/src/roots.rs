@@ -88,7 +88,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::defur::thickness::{percentile, raw_widths};
-use crate::defur::{number_table, protected_parts, read_mesh, DEFAULT_PROTECTED};
+use crate::defur::{number_table, protected_parts, read_labelled_mesh, DEFAULT_PROTECTED};
 use crate::formats::json::{read_json, write_json};
 use crate::geom::PointIndex;
 use crate::lengths::LengthTable;
@@ -724,14 +724,7 @@ impl Stage for RootsStage {
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;
         let t0 = Instant::now();
-        let mesh = read_mesh(ctx, "root_mesh")?;
-        if mesh.part.len() != mesh.positions.len() {
-            return Err(StageError::input(
-                "root_mesh",
-                ctx.input("root_mesh")?,
-                "part labels do not match the vertices",
-            ));
-        }
+        let mesh = read_labelled_mesh(ctx, "root_mesh")?;
         let lengths_path = ctx.input("lengths")?;
         let table: LengthTable = read_json(lengths_path)?;
         if !(table.s_cm.is_finite() && table.s_cm > 0.0) {

@@ -639,6 +639,19 @@ pub fn read_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError>
     Ok(mesh)
 }
 
+/// Reads a mesh input that must carry one part label per vertex.
+pub fn read_labelled_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
+    let mesh = read_mesh(ctx, port)?;
+    if mesh.part.len() != mesh.positions.len() {
+        return Err(StageError::input(
+            port,
+            ctx.input(port)?,
+            "part labels do not match the vertices",
+        ));
+    }
+    Ok(mesh)
+}
+
 /// Mesh-to-skin figures for metrics.
 #[derive(Debug, Clone, Serialize)]
 pub struct SkinDistance {

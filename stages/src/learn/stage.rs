@@ -276,15 +276,6 @@ pub struct LearnMetrics {
     pub loss_history: Vec<f32>,
 }
 
-fn read_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
-    let path = ctx.input(port)?;
-    let mesh = formats::obj::read_obj(path)?;
-    if mesh.triangles.is_empty() {
-        return Err(StageError::input(port, path, "mesh has no triangles"));
-    }
-    Ok(mesh)
-}
-
 /// Checks the roots' arrays agree and are finite.
 fn check_roots(r: &Roots, path: &Path) -> Result<(), StageError> {
     let n = r.len();
@@ -438,8 +429,8 @@ fn setup(
     let basis_path = ctx.input("basis")?;
     let basis: StrandBasis = formats::json::read_json(basis_path)?;
     check_basis(&basis, basis_path)?;
-    let outer = read_mesh(ctx, "outer")?;
-    let root_mesh = read_mesh(ctx, "root_mesh")?;
+    let outer = crate::defur::read_mesh(ctx, "outer")?;
+    let root_mesh = crate::defur::read_mesh(ctx, "root_mesh")?;
     let mode = p.str("length_mode")?.to_string();
     let fixed_cm = p.f64_opt("fixed_length_cm")?;
     let lengths_all = mode_lengths(&roots, &mode, fixed_cm)?;
