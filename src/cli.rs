@@ -709,7 +709,7 @@ pub fn describe_kind(s: &dyn Stage) -> String {
     let port = |p: &fure_stage_api::PortSpec| {
         let what = match p.kind {
             PortKind::Dir => "directory".to_string(),
-            PortKind::File { ext } if ext.is_empty() => "file".to_string(),
+            PortKind::File { ext: "" } => "file".to_string(),
             PortKind::File { ext } => format!(".{ext}"),
         };
         format!(

@@ -312,7 +312,7 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 }
             }
             // Start queued stages.
-            while running < jobs && free_tokens > 0 && !(failed && !opts.keep_going) {
+            while running < jobs && free_tokens > 0 && (opts.keep_going || !failed) {
                 let Some((i, reason)) = queue.pop_front() else {
                     break;
                 };

@@ -5,6 +5,10 @@
 //! or one piece of mathematics the stages share. The engine reaches this
 //! crate only through [`registry`] and the contract in `fure_stage_api`.
 
+// `!(x > 0.0)` is this crate's idiom for "not a positive number": unlike
+// `x <= 0.0` it also rejects NaN, which is the point of those checks.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 // Data types.
 pub mod camera;
 pub mod image;
@@ -42,28 +46,27 @@ use fure_stage_api::Stage;
 
 /// Every stage kind this crate provides.
 pub fn registry() -> Vec<Box<dyn Stage>> {
-    #[allow(unused_mut)]
-    let mut stages: Vec<Box<dyn Stage>> = Vec::new();
-    // One line per stage kind, alphabetical by module.
-    stages.push(Box::new(basis::StrandBasisStage));
-    stages.push(Box::new(charts::SpeedAccuracy));
-    stages.push(Box::new(corrupt::CorruptViews));
-    stages.push(Box::new(defur::DefurStage));
-    stages.push(Box::new(defur::baseline::DefurBaselineStage));
-    stages.push(Box::new(demo::DemoConcat));
-    stages.push(Box::new(demo::DemoNumbers));
-    stages.push(Box::new(demo::DemoSleep));
-    stages.push(Box::new(demo::DemoSum));
-    stages.push(Box::new(evaluate::Evaluate));
-    stages.push(Box::new(frosting::FrostingStage));
-    stages.push(Box::new(learn::CodecStrands));
-    stages.push(Box::new(learn::DenseStrands));
-    stages.push(Box::new(lengths::LengthsStage));
-    stages.push(Box::new(orientation::OrientationMaps));
-    stages.push(Box::new(outer_surface::OuterSurfaceStage));
-    stages.push(Box::new(parts::PartsStage));
-    stages.push(Box::new(roots::RootsStage));
-    stages.push(Box::new(stability::StabilityReport));
-    stages.push(Box::new(synthetic::SyntheticScene));
-    stages
+    // One entry per stage kind, alphabetical by module.
+    vec![
+        Box::new(basis::StrandBasisStage),
+        Box::new(charts::SpeedAccuracy),
+        Box::new(corrupt::CorruptViews),
+        Box::new(defur::DefurStage),
+        Box::new(defur::baseline::DefurBaselineStage),
+        Box::new(demo::DemoConcat),
+        Box::new(demo::DemoNumbers),
+        Box::new(demo::DemoSleep),
+        Box::new(demo::DemoSum),
+        Box::new(evaluate::Evaluate),
+        Box::new(frosting::FrostingStage),
+        Box::new(learn::CodecStrands),
+        Box::new(learn::DenseStrands),
+        Box::new(lengths::LengthsStage),
+        Box::new(orientation::OrientationMaps),
+        Box::new(outer_surface::OuterSurfaceStage),
+        Box::new(parts::PartsStage),
+        Box::new(roots::RootsStage),
+        Box::new(stability::StabilityReport),
+        Box::new(synthetic::SyntheticScene),
+    ]
 }
