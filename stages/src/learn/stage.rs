@@ -44,6 +44,14 @@ fn common_params(iterations: i64) -> Vec<ParamSpec> {
         )
         .min(0.0),
         ParamSpec::int("views_per_iteration", 1, "Training views rendered per iteration.").min(1.0),
+        ParamSpec::float(
+            "lr_decay",
+            0.01,
+            "Final / initial ratio of the geometry learning rates (encoder and decoder, or dense \
+             points), decayed exponentially over the iterations as 3DGS decays its position rate \
+             (1 = constant rates; colours are not decayed).",
+        )
+        .range(1e-6, 1.0),
         ParamSpec::float("lr_color", 0.02, "Adam learning rate of strand and body colours.")
             .min(0.0),
         ParamSpec::float("l_rgb", 1.0, "Weight of L_rgb (L1 + D-SSIM on the photo).").min(0.0),
@@ -165,7 +173,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -213,7 +221,7 @@ impl Stage for DenseStrands {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
@@ -615,6 +623,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         subset: p.usize("strands_per_iteration")?,
         seed,
         rates,
+        lr_decay: p.f32("lr_decay")?,
         w_chm: p.f32("l_chm")?,
         w_sdf: p.f32("l_sdf")?,
         snapshot_first: p.f64("snapshot_first_seconds")?,
