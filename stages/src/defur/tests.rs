@@ -223,14 +223,21 @@ fn weighted_percentiles() {
     assert!((m - 1.5).abs() < 1e-9);
 }
 
-/// Diagnostic (ignored): defurs a pipeline's outer mesh with an *oracle*
-/// shell whose widths are the true outer-to-skin distances, to separate the
-/// defurring's own error from the Frosting cue's. Run with
-/// `FURE_ORACLE_DIR=<out>/<pipeline> cargo test -p fure-stages --lib oracle -- --ignored --nocapture`
+/// Diagnostic (ignored): the error budget of defurring and lengths with
+/// *oracle* widths, the true per-vertex outer-to-skin distances, to separate
+/// the defurring's own error from the Frosting cue's. Prints, as fractions
+/// of the mean GT fur thickness: displacing each vertex directly by its
+/// oracle width (closest-point distance, and the ray distance along `-n`),
+/// then the same widths through the appendix solve in scene units (the
+/// literal reading), in centimetres (`units = "cm"`), with `eta = 0` and
+/// with `lambda = 0`; then the lengths the oracle widths would give with the
+/// default multipliers (`T_p = s_cm P75(oracle)`), and the multiplier each
+/// part would need (`GT mean length / T_p`). Run with
+/// `FURE_ORACLE_DIR=<out>/<pipeline> cargo test -p fure-stages --release --lib oracle -- --ignored --nocapture`
 /// (expects `parts/mesh.obj`, `scene/skin.obj`, `scene/scene.json`).
 #[test]
 #[ignore]
-fn oracle_shell_on_a_pipeline_output() {
+fn oracle_decomposition_on_a_pipeline_output() {
     use crate::formats::json::read_json;
     use crate::formats::obj::read_obj;
     let Ok(dir) = std::env::var("FURE_ORACLE_DIR") else {
@@ -241,42 +248,108 @@ fn oracle_shell_on_a_pipeline_output() {
     let outer = read_obj(dir.join("parts/mesh.obj")).unwrap();
     let skin_mesh = read_obj(dir.join("scene/skin.obj")).unwrap();
     let scene: SceneInfo = read_json(dir.join("scene/scene.json")).unwrap();
-    let skin = MeshQuery::new(&skin_mesh).unwrap();
     let normals = vertex_normals(&outer);
-    let shell = ShellWidths {
-        positions: outer.positions.clone(),
-        normals: normals.clone(),
-        widths: distances_to(&skin, &outer),
-    };
     let prot = protected_parts(&outer.part_names, &protected_default());
-    let res = defur(
-        &outer,
-        &shell,
-        &prot,
-        &BTreeMap::new(),
-        &DefurSettings::default(),
-    )
-    .unwrap();
     let gt = GtComparison {
-        skin,
+        skin: MeshQuery::new(&skin_mesh).unwrap(),
         s_cm: scene.s_cm as f64,
         thickness_cm: gt_mean_thickness_cm(&skin_mesh, &scene).unwrap(),
         thickness_source: "scene",
     };
-    let r = gt.measure(&res.root, &prot);
+    let closest = distances_to(&gt.skin, &outer);
+    let ray: Vec<f32> = outer
+        .positions
+        .iter()
+        .zip(&normals)
+        .zip(&closest)
+        .map(|((&p, &n), &c)| gt.skin.ray_hit(p, -n, 1.0).unwrap_or(c))
+        .collect();
     let o = gt.measure(&outer, &prot);
     eprintln!(
-        "oracle shell: GT thickness {:.3} cm; outer->skin mean {:.3} cm ({:.1}%), root->skin mean {:.3} cm ({:.1}%), p95 {:.3} cm; solve {:.2} s {:?}; post-check {:?}",
+        "GT fur thickness {:.3} cm; M_outer -> skin {:.3} cm ({:.1}%)",
         gt.thickness_cm,
         o.mean_cm,
-        100.0 * o.mean_frac,
-        r.mean_cm,
-        100.0 * r.mean_frac,
-        r.p95_cm,
-        res.seconds_solve,
-        res.solver.termination,
-        res.postcheck
+        100.0 * o.mean_frac
     );
+    let variants = [
+        ("scene units (literal)", DefurSettings::default()),
+        (
+            "units = cm",
+            DefurSettings {
+                unit_scale: scene.s_cm as f64,
+                ..DefurSettings::default()
+            },
+        ),
+        (
+            "eta = 0",
+            DefurSettings {
+                eta: 0.0,
+                ..DefurSettings::default()
+            },
+        ),
+        (
+            "lambda = 0",
+            DefurSettings {
+                lambda: 0.0,
+                ..DefurSettings::default()
+            },
+        ),
+    ];
+    for (name, w) in [("closest", &closest), ("ray along -n", &ray)] {
+        let d: Vec<f32> = w
+            .iter()
+            .zip(&outer.part)
+            .map(|(&x, &p)| if prot[p as usize] { 0.0 } else { x })
+            .collect();
+        let mut m = outer.clone();
+        m.positions = postcheck::displace(&outer.positions, &normals, &d);
+        let r = gt.measure(&m, &prot);
+        eprintln!(
+            "oracle {name}: direct displacement {:.1}%",
+            100.0 * r.mean_frac
+        );
+        let shell = ShellWidths {
+            positions: outer.positions.clone(),
+            normals: normals.clone(),
+            widths: w.clone(),
+        };
+        for (label, s) in &variants {
+            let res = defur(&outer, &shell, &prot, &BTreeMap::new(), s).unwrap();
+            let r = gt.measure(&res.root, &prot);
+            eprintln!(
+                "  solve, {label:22} {:.1}% (p95 {:.3} cm, post-check reduced {} vertices)",
+                100.0 * r.mean_frac,
+                r.p95_cm,
+                res.postcheck.vertices_reduced
+            );
+        }
+    }
+    eprintln!("part          GT_len  T_p(oracle)  m_p  oracle_len  err%   needed m_p");
+    let defaults: BTreeMap<&str, f32> = crate::lengths::DEFAULT_MULTIPLIERS
+        .iter()
+        .copied()
+        .collect();
+    for (pi, name) in outer.part_names.iter().enumerate() {
+        let Some(info) = scene.parts.get(name) else {
+            continue;
+        };
+        let gt_len = info.mean_length_cm.unwrap_or(0.0);
+        if prot[pi] || !info.fur || gt_len <= 0.0 {
+            continue;
+        }
+        let v: Vec<f32> = (0..outer.positions.len())
+            .filter(|&i| outer.part[i] as usize == pi)
+            .map(|i| closest[i])
+            .collect();
+        let t_cm = scene.s_cm * thickness::percentile(&v, 75.0).unwrap_or(0.0);
+        let m = defaults.get(name.as_str()).copied().unwrap_or(2.5);
+        let l = m * t_cm;
+        eprintln!(
+            "{name:12} {gt_len:7.2} {t_cm:10.2} {m:6.2} {l:9.2} {:7.1} {:9.2}",
+            100.0 * (l - gt_len) / gt_len,
+            gt_len / t_cm.max(1e-6)
+        );
+    }
 }
 
 /// Diagnostic (ignored): where the defurring error of a pipeline run comes
