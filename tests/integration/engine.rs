@@ -47,7 +47,7 @@ impl Project {
         self.cmd(args).output().expect("run fure")
     }
     /// `fure run` with a report; returns (exit code, stage -> (status, reason), full report).
-    fn run(&self, pipeline: &str, extra: &[&str]) -> Run {
+    pub(crate) fn run(&self, pipeline: &str, extra: &[&str]) -> Run {
         let report = self.path("report.json");
         let _ = std::fs::remove_file(&report);
         let mut args = vec![
@@ -79,40 +79,40 @@ impl Project {
     }
 }
 
-struct Run {
+pub(crate) struct Run {
     out: Output,
-    stages: BTreeMap<String, (String, String)>,
+    pub(crate) stages: BTreeMap<String, (String, String)>,
     json: serde_json::Value,
 }
 
 impl Run {
-    fn code(&self) -> i32 {
+    pub(crate) fn code(&self) -> i32 {
         self.out.status.code().unwrap_or(-1)
     }
-    fn stdout(&self) -> String {
+    pub(crate) fn stdout(&self) -> String {
         String::from_utf8_lossy(&self.out.stdout).into_owned()
     }
-    fn stderr(&self) -> String {
+    pub(crate) fn stderr(&self) -> String {
         String::from_utf8_lossy(&self.out.stderr).into_owned()
     }
-    fn status(&self, stage: &str) -> &str {
+    pub(crate) fn status(&self, stage: &str) -> &str {
         self.stages
             .get(stage)
             .map(|s| s.0.as_str())
             .unwrap_or("absent")
     }
-    fn reason(&self, stage: &str) -> &str {
+    pub(crate) fn reason(&self, stage: &str) -> &str {
         self.stages.get(stage).map(|s| s.1.as_str()).unwrap_or("")
     }
     /// Names of the stages with this status.
-    fn with(&self, status: &str) -> Vec<&str> {
+    pub(crate) fn with(&self, status: &str) -> Vec<&str> {
         self.stages
             .iter()
             .filter(|(_, s)| s.0 == status)
             .map(|(n, _)| n.as_str())
             .collect()
     }
-    fn ok(&self) -> &Self {
+    pub(crate) fn ok(&self) -> &Self {
         assert_eq!(
             self.code(),
             0,

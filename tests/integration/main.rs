@@ -3,4 +3,5 @@
 
 mod bad_input;
 mod engine;
+mod method;
 mod sweep;

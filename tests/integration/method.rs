@@ -1,0 +1,265 @@
+//! The fur method end to end through the `fure` binary, on the quickest
+//! synthetic tiger: `pipelines/tiger.toml` itself (extended with small sizes,
+//! so the DAG under test is the shipped one), its cache behaviour when only a
+//! strand-learning parameter changes, byte-for-byte determinism across fresh
+//! caches, and `pipelines/capture.toml` on a capture without ground truth.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use serde_json::Value as Json;
+
+use crate::engine::Project;
+
+fn repo(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+}
+
+/// `tiger.toml` at its smallest: 8 views of 64 px, a small Gaussian fit, few
+/// roots and learning iterations. About 5 s in release.
+fn tiny_pipeline() -> String {
+    format!(
+        r#"extends = '{}'
+
+[pipeline]
+name = "tiny"
+
+[stages.scene]
+size = "quick"
+views = 8
+test_views = 1
+resolution = 64
+supersample = 1
+
+[stages.frosting]
+gaussians = 1500
+iterations = 40
+
+[stages.roots]
+default_density = 0.1
+
+[stages.codec]
+iterations = 10
+"#,
+        repo("pipelines/tiger.toml").display()
+    )
+}
+
+/// Every regular file under `dir`, relative to it, sorted.
+fn files(dir: &Path) -> BTreeSet<PathBuf> {
+    fn walk(root: &Path, dir: &Path, out: &mut BTreeSet<PathBuf>) {
+        for e in std::fs::read_dir(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.insert(p.strip_prefix(root).unwrap().to_path_buf());
+            }
+        }
+    }
+    let mut out = BTreeSet::new();
+    walk(dir, dir, &mut out);
+    out
+}
+
+/// A JSON value without the keys that hold wall-clock measurements.
+fn without_timings(v: Json) -> Json {
+    match v {
+        Json::Object(m) => Json::Object(
+            m.into_iter()
+                .filter(|(k, _)| !k.contains("second"))
+                .map(|(k, v)| (k, without_timings(v)))
+                .collect(),
+        ),
+        Json::Array(a) => Json::Array(a.into_iter().map(without_timings).collect()),
+        v => v,
+    }
+}
+
+fn read_json(path: &Path) -> Json {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_slice(&bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// `v[key]` as a finite number.
+fn number(v: &Json, key: &str, file: &str) -> f64 {
+    let x = v[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{file}: `{key}` is not a number: {}", v[key]));
+    assert!(x.is_finite(), "{file}: `{key}` = {x}");
+    x
+}
+
+const TIGER_STAGES: [&str; 12] = [
+    "basis",
+    "codec",
+    "defur",
+    "defur_baseline",
+    "evaluate",
+    "frosting",
+    "lengths",
+    "orientation",
+    "outer",
+    "parts",
+    "roots",
+    "scene",
+];
+
+#[test]
+fn tiger_pipeline_runs_end_to_end_deterministically_and_reruns_only_learning() {
+    // Two projects with their own caches, run side by side.
+    let (a, b) = (Project::new(), Project::new());
+    for p in [&a, &b] {
+        p.write("tiny.toml", &tiny_pipeline());
+    }
+    let (ra, rb) = std::thread::scope(|s| {
+        let ha = s.spawn(|| a.run("tiny.toml", &[]));
+        let hb = s.spawn(|| b.run("tiny.toml", &[]));
+        (ha.join().unwrap(), hb.join().unwrap())
+    });
+    for r in [&ra, &rb] {
+        r.ok();
+        assert_eq!(r.with("ran"), TIGER_STAGES, "{:?}", r.stages);
+    }
+
+    // The metrics the issues promise, as finite numbers.
+    let out = a.path("out/tiny");
+    let eval = read_json(&out.join("evaluate/metrics.json"));
+    for table in ["prf", "prf_signed"] {
+        for t in ["2cm_20deg", "3cm_30deg", "4cm_40deg"] {
+            for m in ["precision", "recall", "fscore"] {
+                let x = number(&eval[table][t], m, "evaluate/metrics.json");
+                assert!((0.0..=100.0).contains(&x), "{table}.{t}.{m} = {x}");
+            }
+        }
+    }
+    for k in [
+        "mean_length_cm",
+        "std_length_cm",
+        "psnr",
+        "ssim",
+        "train_seconds",
+    ] {
+        number(&eval, k, "evaluate/metrics.json");
+    }
+    let defur = read_json(&out.join("defur/metrics.json"));
+    for k in [
+        "root_to_skin_mean_cm",
+        "root_to_skin_p95_cm",
+        "root_to_skin_mean_frac",
+        "outer_to_skin_mean_frac",
+        "baseline_to_skin_mean_frac",
+        "seconds_solve",
+    ] {
+        number(&defur, k, "defur/metrics.json");
+    }
+    let lengths = read_json(&out.join("lengths/metrics.json"));
+    let errors = lengths["length_error_pct"]
+        .as_object()
+        .expect("lengths/metrics.json: length_error_pct");
+    assert!(errors.contains_key("torso"), "{errors:?}");
+    for (part, e) in errors {
+        assert!(e.as_f64().is_some_and(f64::is_finite), "{part}: {e}");
+    }
+
+    // Same inputs and seeds, fresh caches: the same bytes everywhere except
+    // wall-clock fields, the scene's timing report (nothing else) and the
+    // learner's snapshots, which are taken at wall-clock times by design.
+    let out_b = b.path("out/tiny");
+    let timed =
+        |f: &PathBuf| f.starts_with("codec/snapshots") || f == Path::new("scene/report.json");
+    let fa: BTreeSet<PathBuf> = files(&out).into_iter().filter(|f| !timed(f)).collect();
+    let fb: BTreeSet<PathBuf> = files(&out_b).into_iter().filter(|f| !timed(f)).collect();
+    assert_eq!(fa, fb, "the two runs wrote different files");
+    assert!(fa.contains(Path::new("codec/strands.hair")), "{fa:?}");
+    for f in &fa {
+        let (x, y) = (out.join(f), out_b.join(f));
+        if f.extension().is_some_and(|e| e == "json") {
+            assert_eq!(
+                without_timings(read_json(&x)),
+                without_timings(read_json(&y)),
+                "{} differs between two fresh runs",
+                f.display()
+            );
+        } else {
+            assert!(
+                std::fs::read(&x).unwrap() == std::fs::read(&y).unwrap(),
+                "{} differs between two fresh runs",
+                f.display()
+            );
+        }
+    }
+
+    // A strand-learning parameter reruns the learner and its evaluation only.
+    let r = a.run("tiny.toml", &["--set", "codec.iterations=4"]);
+    r.ok();
+    assert_eq!(r.with("ran"), ["codec", "evaluate"], "{:?}", r.stages);
+    assert_eq!(r.with("cached").len(), TIGER_STAGES.len() - 2);
+}
+
+#[test]
+fn capture_pipeline_runs_on_a_capture_without_ground_truth() {
+    let p = Project::new();
+    p.write("tiny.toml", &tiny_pipeline());
+    p.run("tiny.toml", &["--until", "scene"]).ok();
+
+    // A "user's capture": the views, the eyes and a labelled mesh, nothing else.
+    let scene = p.path("out/tiny/scene");
+    for f in files(&scene.join("views")) {
+        let bytes = std::fs::read(scene.join("views").join(&f)).unwrap();
+        let dst = p.path("cap/views").join(&f);
+        std::fs::create_dir_all(dst.parent().unwrap()).unwrap();
+        std::fs::write(dst, bytes).unwrap();
+    }
+    p.write("cap/labels.obj", &p.read("out/tiny/scene/skin.obj"));
+    let gt = read_json(&scene.join("scene.json"));
+    let parts: serde_json::Map<String, Json> = gt["parts"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| (k.clone(), serde_json::json!({ "fur": v["fur"] })))
+        .collect();
+    let capture = serde_json::json!({
+        "s_cm": 1.0,
+        "eyes": gt["eyes"],
+        "eye_separation_cm": gt["eye_separation_cm"],
+        "parts": parts,
+    });
+    p.write("cap/scene.json", &capture.to_string());
+    p.write(
+        "cap/capture.toml",
+        &std::fs::read_to_string(repo("pipelines/capture.toml")).unwrap(),
+    );
+
+    let r = p.run(
+        "cap/capture.toml",
+        &[
+            "--set",
+            "frosting.gaussians=1500",
+            "--set",
+            "frosting.iterations=40",
+            "--set",
+            "roots.default_density=0.1",
+            "--set",
+            "codec.iterations=10",
+        ],
+    );
+    r.ok();
+    assert_eq!(r.with("failed"), Vec::<&str>::new());
+    let out = p.path("out/capture");
+    let strands = std::fs::metadata(out.join("codec/strands.hair")).expect("strands.hair");
+    assert!(strands.len() > 1000, "{} bytes", strands.len());
+    assert!(out.join("defur/root_mesh.obj").is_file());
+    // No ground truth was given, so no ground-truth metrics were invented.
+    let defur = read_json(&out.join("defur/metrics.json"));
+    assert!(defur.get("root_to_skin_mean_cm").is_none(), "{defur}");
+    let lengths = read_json(&out.join("lengths/metrics.json"));
+    assert!(lengths.get("length_error_pct").is_none(), "{lengths}");
+    // The metric scale came from the eyes, not from the (ignored) s_cm = 1.
+    let s_cm = number(&lengths, "s_cm", "lengths/metrics.json");
+    let s_gt = gt["s_cm"].as_f64().unwrap();
+    assert!(
+        (s_cm - s_gt).abs() < 0.01 * s_gt,
+        "s_cm {s_cm}, truth {s_gt}"
+    );
+}
