@@ -11,7 +11,7 @@
 //! 3. [`exec`] keys each stage ([`key`]), looks it up in the [`cache`], runs
 //!    what is missing in parallel, stores outputs content-addressed and
 //!    materialises them under `out/<pipeline>/<stage>/`;
-//! 4. [`sweep`] and [`bench`] run many variants or repeats of a pipeline;
+//! 4. [`sweep`] and [`bench`](mod@bench) run many variants or repeats of a pipeline;
 //! 5. [`cli`] is the `fure` command line.
 //!
 //! See ARCHITECTURE.md for the invariants.

@@ -97,7 +97,7 @@ impl MeshQuery {
 /// Nearest-neighbour and radius queries on a fixed point set.
 ///
 /// A hand-written, implicit k-d tree (points permuted into leaves of at most
-/// [`LEAF`] points, split at the median of the widest axis). Written here
+/// `LEAF` points, split at the median of the widest axis). Written here
 /// rather than taken from kiddo because kiddo 4's trees panic when more than a
 /// bucket's worth of points share a coordinate, which regular grids and
 /// duplicated vertices produce all the time.

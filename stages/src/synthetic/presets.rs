@@ -1,6 +1,6 @@
 //! Species presets: body proportions (in centimetres), per-part fur and colour patterns.
 //!
-//! Every preset is built by one parametric quadruped ([`Dims`] -> primitives) so the five animals
+//! Every preset is built by one parametric quadruped (`Dims` -> primitives) so the five animals
 //! differ only in numbers: body length and height, head, muzzle, ears, legs, tail, eye separation,
 //! plus species extras (the bison's hump, horns and hooves). Sizes are those of a typical adult:
 //! tiger 190 cm nose to rump, panda 150 cm, bison 300 cm, fox 65 cm, cat 46 cm.
