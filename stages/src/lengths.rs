@@ -37,6 +37,21 @@
 //! `frosting` docs), not the fur, so no per-part multiplier transfers between
 //! presets; the physical defaults above stay.
 //!
+//! With *oracle* widths (the true outer-to-skin distance per vertex, the
+//! ignored `defur::tests::oracle_decomposition_on_a_pipeline_output`), the
+//! multiplier each part needs (GT mean length / `T_p`) is 1.9-4.2 on the
+//! tiger (torso 2.81, belly 2.11, neck 3.11, head 4.15, muzzle 2.74, ears
+//! 1.87, front legs 3.45, hind legs 3.16, paws 3.72, tail 3.48) and 1.9-3.9
+//! on the fox (torso 2.12, belly 1.94, neck 3.47, head 2.67, muzzle 3.87,
+//! ears 2.41, front legs 2.48, hind legs 2.41, paws 3.04, tail 1.93). The
+//! defaults above then give tiger errors from -52 % (head) to +19 % (belly);
+//! multipliers calibrated on the fox's oracle would give -45 % (tail) to
+//! +41 % (muzzle) on the tiger's. The fur's rise per unit length depends on
+//! the species (the synthetic generator's lift angles: tiger torso 16
+//! degrees, fox 24), so even exact widths do not give every part within 20
+//! % with any fixed `m_p`; that needs a per-species prior (V2's reference
+//! lengths).
+//!
 //! A part is non-fur when its name is in `protected_parts`
 //! (case-insensitive) or the scene file marks it `fur = false`.
 

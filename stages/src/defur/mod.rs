@@ -52,7 +52,7 @@
 //!   |x_i - x_j|` has units of 1/length, so measuring lengths in units k
 //!   times smaller multiplies the data terms by k^2 but the smoothness term
 //!   only by k. The smoothing length is about `sqrt(lambda h / c)` for edge
-//!   length h: on the tiger (scene units, D = 2.8, h = 1.6 cm) about 30 cm,
+//!   length h: on the tiger (scene units, D = 2.8, h = 1.4 cm) about 30 cm,
 //!   wider than a leg; in centimetres about 3 cm. `units = "cm"` solves in
 //!   centimetres (via `s_cm`; the same minimiser as scene units with
 //!   `lambda / s_cm`), which makes M_root independent of the scene's unit.
@@ -62,24 +62,49 @@
 //!
 //! # Where the error comes from (synthetic tiger, 256 px)
 //!
-//! From the ignored `tests::diagnose_pipeline_output` on a tiger run (mean
-//! distance to the GT skin as a fraction of the mean GT fur thickness,
-//! 0.80 cm; M_outer is at 132 %):
-//! - Displacing each vertex by its true outer-to-skin distance along `-n`
-//!   (no solve): 8.5 %. The geometry (normals, the visual hull) is not the
-//!   limit.
-//! - The same oracle widths through the appendix solve: 47.9 % in scene
-//!   units, 28.4 % in cm (25.8 % before the post-check). The solve's
-//!   smoothing, not the post-check (about 1 point), is the main loss.
-//! - A per-part constant at the GT part thickness (no solve): 47.2 %; the
+//! Two ignored diagnostics in `tests.rs` read a pipeline's output directory
+//! (`FURE_ORACLE_DIR=<out>/<pipeline> cargo test -p fure-stages --release
+//! --lib oracle -- --ignored --nocapture`, and `diagnose` for the
+//! per-part and per-reading table). Mean distance to the GT skin as a
+//! fraction of the mean GT fur thickness (0.80 cm; M_outer is at 132 %):
+//!
+//! | widths \ defurring | direct `d = w` | solve, scene units | `units = "cm"` | `eta = 0` | `lambda = 0` |
+//! |---|---|---|---|---|---|
+//! | oracle: true closest outer-to-skin distance | 8.5 | 47.9 | 28.4 | 49.6 | 21.1 |
+//! | oracle: ray distance along `-n` | 6.9 | 47.7 | 28.6 | 48.9 | 21.2 |
+//! | GT part thickness (constant per part) | 47.2 | 59.4 | 47.2 | | |
+//! | fitted Frosting widths, 12k Gaussians (default) | 85.9 | **56.1** | 77.1 | | |
+//! | fitted, 48k Gaussians / 800 iterations | 82.5 | 77.5 | 72.9 | | |
+//!
+//! - **The solve, with perfect widths.** The geometry (normals, the visual
+//!   hull) is not the limit (8.5 % direct). The literal solve loses 40
+//!   points to its smoothing: `lambda sum a_ij (d_i - d_j)^2` with `a_ij = 1
+//!   / |x_i - x_j|` against data terms of weight about 1 smooths over a
+//!   length of about `sqrt(lambda h)` for edge length `h`: about 33 cm in
+//!   the tiger's scene units (mean edge h = 0.0147 units = 1.4 cm, D = 2.8
+//!   units = 266 cm), wider than a leg, and about 3.4 cm in centimetres. Solving in cm leaves 28.4
+//!   % (25.8 % before the post-check), without smoothing 21.1 %; `eta`
+//!   matters little (49.6 % without it). On the fox preset (`--set
+//!   scene.preset=fox`) the same oracle gives 35.0 % direct, 76.2 % in scene
+//!   units, 66.8 % in cm and 63.7 % without smoothing: thick fur (tail 2.9
+//!   cm) on thin parts leaves no room along the normals.
+//! - **The widths.** Even exact per-part constants stop at 47.2 %: the
 //!   outer-to-skin distance varies within parts (hull inflation in
-//!   concavities; M_outer is 0.26 cm outside the fur on average), so even
-//!   perfect per-part values cannot reach 25 %.
-//! - The fitted Frosting widths: 56.1 % through the solve (scene units),
-//!   77.1 % in cm; 85.9 % displacing by them directly. Their correlation with
-//!   the true distance is -0.15 per vertex: they measure the Gaussians'
-//!   initial thickness, not the fur (see the `frosting` module docs).
-//!   `width_reading = "inner_depth"` (correlation +0.43): 53.2 %.
+//!   concavities; M_outer is 0.26 cm outside the fur on average). The
+//!   fitted widths carry no per-vertex information (Pearson -0.15 with the
+//!   true distance; 85.9 % displacing by them directly): at 256 px a pixel
+//!   is about 1.1 cm and the fur 0.8 cm, and the widths follow the
+//!   Gaussians' size, set by the budget (see the `frosting` docs: four
+//!   times the budget divides them by three and M_root rises to 77-81 %).
+//!   The best per-vertex cue found is the depth of Frosting's outer crossing
+//!   under M_outer (Pearson +0.60 at 12k, +0.27 at 48k), and even the GT part
+//!   thickness plus that depth only reaches 39.2 % directly.
+//!   `width_reading = "inner_depth"` (Pearson +0.43): 53.2 %.
+//! - So the 25 % target needs both an unsmoothed (or unit-consistent)
+//!   solve *and* widths within a few millimetres per vertex; the second is
+//!   beyond what 36 views at 256 px show. With the fitted widths the
+//!   literal scene-unit smoothing is what hides their noise (56.1 % against
+//!   77.1 % in cm), so the default stays `units = "scene"`.
 //!
 //! Metrics (only with the optional `gt_skin` input): distances from each
 //! mesh to the GT skin are closest-point distances from the mesh's
