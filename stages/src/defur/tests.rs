@@ -480,6 +480,74 @@ fn diagnose_pipeline_output() {
     report("d = GT part thickness", &zero(&gpart));
     let gpart_off: Vec<f32> = gpart.iter().map(|x| x + 0.26 / scene.s_cm).collect();
     report("d = GT part thickness + 0.26 cm", &zero(&gpart_off));
+    // Split the outer-to-skin distance into the visual hull's gap down to the
+    // fur (distance to the nearest GT strand point, strands resampled every
+    // 1 mm) and the fur below it, to see which of the two varies per vertex.
+    if let Ok(gts) = crate::formats::hair::read_hair(dir.join("scene/strands.hair")) {
+        let step = 0.1 / scene.s_cm;
+        let mut pts = Vec::new();
+        for s in 0..gts.len() {
+            for w in gts.strand(s).windows(2) {
+                let k = ((w[1] - w[0]).length() / step).ceil().max(1.0) as usize;
+                for j in 0..k {
+                    pts.push(w[0].lerp(w[1], j as f32 / k as f32));
+                }
+            }
+        }
+        let fur_idx = PointIndex::new(&pts).unwrap();
+        let gap: Vec<f32> = outer
+            .positions
+            .iter()
+            .map(|&p| fur_idx.nearest(p).1)
+            .collect();
+        let below: Vec<f32> = o2s.iter().zip(&gap).map(|(a, b)| a - b).collect();
+        eprintln!("part          o2s    gap   o2s-gap  gt_th  (cm, area-weighted)");
+        for (pi, name) in outer.part_names.iter().enumerate() {
+            let (mut w, mut a, mut b) = (0.0f64, 0.0, 0.0);
+            for i in 0..outer.positions.len() {
+                if outer.part[i] as usize == pi {
+                    let ar = areas[i] as f64;
+                    w += ar;
+                    a += ar * o2s[i] as f64;
+                    b += ar * gap[i] as f64;
+                }
+            }
+            let th = scene
+                .parts
+                .get(name)
+                .and_then(|p| p.mean_thickness_cm)
+                .unwrap_or(0.0);
+            eprintln!(
+                "{name:12} {:6.2} {:6.2} {:6.2} {th:6.2}",
+                a / w * s_cm,
+                b / w * s_cm,
+                (a - b) / w * s_cm
+            );
+        }
+        let gap_plus: Vec<f32> = gap.iter().zip(&gpart).map(|(a, b)| a + b).collect();
+        report("d = hull-to-fur gap + GT part thickness", &zero(&gap_plus));
+        report("d = hull-to-fur gap only", &zero(&gap));
+        let below_med = thickness::percentile(&below, 50.0).unwrap();
+        let gap_plus_c: Vec<f32> = gap.iter().map(|a| a + below_med).collect();
+        report(
+            "d = hull-to-fur gap + median(o2s - gap)",
+            &zero(&gap_plus_c),
+        );
+        let fur: Vec<usize> = (0..outer.positions.len())
+            .filter(|&i| !prot[outer.part[i] as usize])
+            .collect();
+        let var = |v: &[f32]| -> f64 {
+            let n = fur.len() as f64;
+            let m = fur.iter().map(|&i| v[i] as f64).sum::<f64>() / n;
+            fur.iter().map(|&i| (v[i] as f64 - m).powi(2)).sum::<f64>() / n
+        };
+        eprintln!(
+            "variance over fur vertices (cm^2): o2s {:.3}, gap {:.3}, o2s - gap {:.3}",
+            var(&o2s) * s_cm * s_cm,
+            var(&gap) * s_cm * s_cm,
+            var(&below) * s_cm * s_cm
+        );
+    }
     let mut cands = vec![
         ("oracle o2s".to_string(), o2s.clone()),
         ("frosting tau".to_string(), tau.clone()),
