@@ -26,6 +26,7 @@ use crate::rootset::Roots;
 use crate::strands::Strands;
 
 const LENGTH_MODES: &[&str] = &["defurred", "fixed", "shape_prior"];
+const CHAMFER_MODES: &[&str] = &["inside", "surface"];
 
 /// Parameters both stages share.
 fn common_params(iterations: i64) -> Vec<ParamSpec> {
@@ -70,6 +71,14 @@ fn common_params(iterations: i64) -> Vec<ParamSpec> {
         )
         .range(0.0, 1.0),
         ParamSpec::float("l_chm", 0.1, "Weight of L_chm (strand tips toward M_outer).").min(0.0),
+        ParamSpec::string(
+            "chamfer_mode",
+            "inside",
+            "L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips \
+             outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto \
+             M_outer from either side (see learn::geomloss).",
+        )
+        .choices(CHAMFER_MODES),
         ParamSpec::float(
             "chamfer_reach",
             0.0,
@@ -187,8 +196,9 @@ impl Stage for CodecStrands {
             ParamSpec::float("lr_encoder", 5e-4, "Adam learning rate of the encoder.").min(0.0),
             ParamSpec::float(
                 "lr_decoder",
-                1e-4,
-                "Adam learning rate of the decoder fine-tuning.",
+                1e-5,
+                "Adam learning rate of the decoder fine-tuning, in strand lengths per step: every \
+                 strand shares the decoder, so it is a fiftieth of the encoder's (learn module doc).",
             )
             .min(0.0),
             ParamSpec::bool("finetune_decoder", true, "Fine-tune the PCA decoder (psi)."),
@@ -538,7 +548,12 @@ fn setup(
         ));
     }
     let geometry = Geometry {
-        outer: DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.closest_point(x).1),
+        outer: if p.str("chamfer_mode")? == "inside" {
+            // Signed (negative inside): the loss's clamp at 0 makes it a hinge.
+            DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.signed_distance(x))
+        } else {
+            DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.closest_point(x).1)
+        },
         body: DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| bq.signed_distance(x)),
         chamfer_gate,
     };
@@ -1043,6 +1058,8 @@ mod tests {
             ("body_gaussians", Value::Int(2000)),
             ("views_per_iteration", Value::Int(2)),
             ("lr_encoder", Value::Float(2e-3)),
+            // Constant rates: 60 iterations are too few for the schedule's tail.
+            ("lr_decay", Value::Float(1.0)),
         ]);
         let params = params(&stage, &over);
         let mut inputs = write_inputs(d.path());

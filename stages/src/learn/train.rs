@@ -69,7 +69,8 @@ pub trait ImageTerm {
 
 /// Geometry the losses read.
 pub struct Geometry {
-    /// Unsigned distance to M_outer.
+    /// Distance to M_outer: unsigned, or signed (negative inside) for the
+    /// one-sided L_chm (`chamfer_mode = "inside"`).
     pub outer: DistanceGrid,
     /// Signed distance to M_root (negative inside).
     pub body: DistanceGrid,
