@@ -555,14 +555,9 @@ mod tests {
                 rep.f,
                 fr
             );
-            for i in 0..n {
-                assert!(
-                    (rep.x[i] - xr[i]).abs() < 1e-4,
-                    "seed {seed} x[{i}] {} vs {}",
-                    rep.x[i],
-                    xr[i]
-                );
-                assert!(rep.x[i] >= p.lower[i] && rep.x[i] <= p.upper[i]);
+            for (i, (&x, &r)) in rep.x.iter().zip(&xr).enumerate() {
+                assert!((x - r).abs() < 1e-4, "seed {seed} x[{i}] {x} vs {r}");
+                assert!(x >= p.lower[i] && x <= p.upper[i]);
             }
         }
     }

@@ -274,14 +274,9 @@ mod tests {
                 rep.f,
                 fr
             );
-            for i in 0..n {
-                assert!(
-                    (rep.x[i] - xr[i]).abs() < 1e-5,
-                    "seed {seed} d[{i}] = {} vs {}",
-                    rep.x[i],
-                    xr[i]
-                );
-                assert!(rep.x[i] >= 0.0 && rep.x[i] <= p.upper[i]);
+            for (i, (&x, &r)) in rep.x.iter().zip(&xr).enumerate() {
+                assert!((x - r).abs() < 1e-5, "seed {seed} d[{i}] = {x} vs {r}");
+                assert!(x >= 0.0 && x <= p.upper[i]);
             }
         }
     }
