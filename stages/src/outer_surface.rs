@@ -50,6 +50,16 @@
 //!    `smoothing_iterations` Taubin steps (lambda 0.5, mu -0.53: smoothing
 //!    without shrinkage) and area-weighted normals.
 //!
+//! How far the hull is from the skin (synthetic tiger, 36 views at 256 px):
+//! on average 1.06 cm, 132 % of the GT fur thickness, of which about 0.24-0.48
+//! cm per part is the gap between the hull and the fur (concavities a visual
+//! hull cannot carve; `defur` module docs). A finer grid does not close it:
+//! `--set outer.max_resolution=320 --set outer.voxel_pixels=0.75` (voxel 0.8
+//! cm, 94,060 vertices instead of 23,100) gives 134 %, and M_root 64 %
+//! instead of 56 % (the solve smooths over more, shorter edges, and the
+//! post-check reduces 5,732 vertices); the crossings are already located on
+//! the exact mask occupancy, so the default grid is kept.
+//!
 //! # Imported mesh
 //!
 //! Input `mesh` (OBJ) instead of `views`: the triangles are re-oriented
