@@ -147,7 +147,8 @@
 //! So the budget is, in effect, a thickness prior; 12,000 stays the default
 //! (its M_root is the better one on both presets, and choosing the count
 //! that best matches the tiger's GT would be calibrating on it). The 512 px
-//! run is also over the 5-minute preprocessing budget on its own.
+//! run is also over the 5-minute preprocessing budget on its own (and its
+//! scene differs: its M_outer is at 146 % of the GT thickness, not 132 %).
 //!
 //! # Imported widths
 //!
