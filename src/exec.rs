@@ -988,4 +988,21 @@ mod tests {
             "input src now from b.out (was a.out)"
         );
     }
+
+    #[test]
+    fn a_parameter_read_back_from_the_index_is_unchanged() {
+        // f32 defaults widened to f64 have long decimal forms; the index
+        // stores them as JSON numbers and must read back the same bits, or
+        // the reason line reports a change the key does not see.
+        for x in [0.03f32 as f64, 0.1f32 as f64, 1e-13, 0.005f32 as f64] {
+            let old = entry(1, x, "h");
+            let json = serde_json::to_string(&old).unwrap();
+            let back: IndexEntry = serde_json::from_str(&json).unwrap();
+            assert_eq!(
+                explain(Some(&back), &old),
+                "no cache entry (removed by gc or verify)",
+                "{x:e}"
+            );
+        }
+    }
 }
