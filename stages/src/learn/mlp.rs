@@ -89,6 +89,29 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
+/// Dot product with eight independent partial sums combined in a fixed
+/// order: deterministic, and free of the serial dependency of one running sum
+/// so the compiler can vectorise it. Measured on the synthetic tiger (100
+/// codec iterations, shared 2-core machine, two runs each): 0.086 and 0.089 s
+/// an iteration before, 0.074 and 0.087 s after; rendering dominates.
+#[inline]
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let ca = a.chunks_exact(8);
+    let cb = b.chunks_exact(8);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    let mut tail = 0.0f32;
+    for (x, y) in ra.iter().zip(rb) {
+        tail += x * y;
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+}
+
 impl Mlp {
     /// A network `input -> hidden x depth -> output`, initialised from `seed`.
     pub fn new(input: usize, hidden: usize, depth: usize, output: usize, seed: u64) -> Self {
@@ -153,12 +176,7 @@ impl Mlp {
                 let xr = &x[r * n_in..(r + 1) * n_in];
                 let zr = &mut z[r * n_out..(r + 1) * n_out];
                 for o in 0..n_out {
-                    let wr = &w[o * n_in..(o + 1) * n_in];
-                    let mut acc = b[o];
-                    for (a, c) in wr.iter().zip(xr) {
-                        acc += a * c;
-                    }
-                    zr[o] = acc;
+                    zr[o] = b[o] + dot(&w[o * n_in..(o + 1) * n_in], xr);
                 }
             }
             if l + 1 < layers {

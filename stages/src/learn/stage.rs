@@ -182,7 +182,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        3
+        4
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -246,9 +246,10 @@ impl Stage for DenseStrands {
         p.push(
             ParamSpec::float(
                 "lr_points",
-                0.003,
-                "Adam learning rate of the points, in strand lengths per step (the best final \
-                 F-score of 0.003 / 0.01 / 0.03 on the synthetic tiger, learn module doc).",
+                0.001,
+                "Initial Adam learning rate of the points, in strand lengths per step (the best \
+                 final F-score of 0.0003 / 0.001 / 0.003 with lr_decay 0.01 on the synthetic \
+                 tiger, learn module doc).",
             )
             .min(0.0),
         );
