@@ -31,6 +31,7 @@
 //!     iteration ~100 on).
 //!   - `surface`: the unsigned distance to M_outer, tips onto the envelope
 //!     from either side (the previous default; the literal "attracts").
+//!
 //!   The same loss function serves both: the clamp `max(u, 0)` (which also
 //!   absorbs the interpolated unsigned field's dips below zero) turns a signed
 //!   field into the hinge.

@@ -116,7 +116,7 @@ impl Mlp {
     /// A network `input -> hidden x depth -> output`, initialised from `seed`.
     pub fn new(input: usize, hidden: usize, depth: usize, output: usize, seed: u64) -> Self {
         let mut sizes = vec![input];
-        sizes.extend(std::iter::repeat(hidden).take(depth));
+        sizes.extend(std::iter::repeat_n(hidden, depth));
         sizes.push(output);
         let count: usize = sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
         let mut params = vec![0.0f32; count];

@@ -482,7 +482,7 @@ fn setup(
     let mut keep: Vec<usize> = (0..roots.len()).filter(|&i| lengths_all[i] > 0.0).collect();
     let max = p.usize("max_strands")?;
     if max > 0 && keep.len() > max {
-        let mut rng = ChaCha8Rng::seed_from_u64(p.u64("seed")? ^ 0x5EED_0F_F0);
+        let mut rng = ChaCha8Rng::seed_from_u64(p.u64("seed")? ^ 0x5EED_0FF0);
         let mut pick: Vec<usize> = rand::seq::index::sample(&mut rng, keep.len(), max)
             .into_iter()
             .collect();
