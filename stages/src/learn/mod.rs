@@ -28,7 +28,8 @@
 //! them as segment Gaussians together with fixed body occluders ([`image`]),
 //! evaluates L_rgb, L_sil, L_ori, L_mask against the training views and
 //! L_chm, L_sdf against distance grids ([`geomloss`]), back-propagates to the
-//! points, then to the model, and takes one Adam step.
+//! points, then to the model, and takes one Adam step at the scheduled
+//! (exponentially decaying) geometry learning rates.
 //!
 //! # Choices where the paper is vague
 //! - L_chm acts on strand tips only: by default (`chamfer_mode = "inside"`) a
