@@ -378,7 +378,7 @@ fn parse_corner(
             .map_err(|_| bad(&format!("{what} index is not an integer")))?;
         if i > 0 {
             Ok(i as usize - 1)
-        } else if i < 0 && (-i) as usize <= count {
+        } else if i < 0 && i.unsigned_abs() <= count as u64 {
             Ok((count as i64 + i) as usize)
         } else {
             Err(bad(&format!("{what} index {i} is out of range")))
@@ -745,6 +745,11 @@ mod tests {
                 Position::Line(4),
             ),
             ("v 0 0 0\n# fure-vertex-parts 0 5 0\n", Position::Line(2)),
+            // The most negative index: an error, not an overflow (found by fuzz_obj_tokens).
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 -9223372036854775808\n",
+                Position::LineColumn { line: 4, column: 7 },
+            ),
         ];
         for (text, pos) in cases {
             std::fs::write(&p, text).unwrap();
