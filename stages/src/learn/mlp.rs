@@ -82,6 +82,9 @@ pub struct MlpTape {
     acts: Vec<Vec<f32>>,
     /// Per hidden layer pre-activations.
     pre: Vec<Vec<f32>>,
+    /// Per hidden layer `sigmoid(pre)`, kept so that the backward pass does
+    /// not evaluate the exponentials a second time.
+    sig: Vec<Vec<f32>>,
 }
 
 #[inline]
@@ -89,27 +92,74 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
-/// Dot product with eight independent partial sums combined in a fixed
-/// order: deterministic, and free of the serial dependency of one running sum
-/// so the compiler can vectorise it. Measured on the synthetic tiger (100
-/// codec iterations, shared 2-core machine, two runs each): 0.086 and 0.089 s
-/// an iteration before, 0.074 and 0.087 s after; rendering dominates.
-#[inline]
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let ca = a.chunks_exact(8);
-    let cb = b.chunks_exact(8);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for i in 0..8 {
-            acc[i] += x[i] * y[i];
+/// Row and column strides of a matrix operand, in elements.
+#[derive(Clone, Copy)]
+struct Strides(usize, usize);
+
+/// Largest element index touched by an `rows x cols` operand with strides `s`
+/// plus one (0 for an empty operand).
+fn extent(rows: usize, cols: usize, s: Strides) -> usize {
+    if rows == 0 || cols == 0 {
+        0
+    } else {
+        (rows - 1) * s.0 + (cols - 1) * s.1 + 1
+    }
+}
+
+/// `C = A B + beta C` with `A: m x k`, `B: k x n`, `C: m x n`, through
+/// `matrixmultiply::sgemm` (blocked, packed, SIMD kernels chosen once per
+/// process from the CPU's features; single-threaded: the crate's
+/// `threading` feature is off). Its result depends only on the operands,
+/// the sizes and the CPU's feature set, never on the thread count.
+///
+/// The slices are checked against the strides before the unsafe call (a
+/// mismatch is a bug in this module, hence a panic, not an input error).
+#[allow(clippy::too_many_arguments)]
+fn gemm(
+    m: usize,
+    k: usize,
+    n: usize,
+    a: &[f32],
+    sa: Strides,
+    b: &[f32],
+    sb: Strides,
+    beta: f32,
+    c: &mut [f32],
+    sc: Strides,
+) {
+    assert!(a.len() >= extent(m, k, sa), "gemm: A too short");
+    assert!(b.len() >= extent(k, n, sb), "gemm: B too short");
+    assert!(c.len() >= extent(m, n, sc), "gemm: C too short");
+    if m == 0 || n == 0 {
+        return;
+    }
+    if k == 0 {
+        if beta == 0.0 {
+            c.iter_mut().for_each(|v| *v = 0.0);
         }
+        return;
     }
-    let mut tail = 0.0f32;
-    for (x, y) in ra.iter().zip(rb) {
-        tail += x * y;
+    // SAFETY: every index the routine reads or writes, `(i, j) -> i * rs + j
+    // * cs` for `i < rows, j < cols`, lies below the extents checked above;
+    // `c` is borrowed mutably and cannot alias `a` or `b`.
+    unsafe {
+        matrixmultiply::sgemm(
+            m,
+            k,
+            n,
+            1.0,
+            a.as_ptr(),
+            sa.0 as isize,
+            sa.1 as isize,
+            b.as_ptr(),
+            sb.0 as isize,
+            sb.1 as isize,
+            beta,
+            c.as_mut_ptr(),
+            sc.0 as isize,
+            sc.1 as isize,
+        );
     }
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
 impl Mlp {
@@ -159,39 +209,65 @@ impl Mlp {
 
     /// Runs `batch` rows of `input` (row-major, `batch x input_dim`) through the
     /// network; returns the outputs (`batch x output_dim`) and the tape.
+    ///
+    /// Each layer is one matrix product `Z = X W^T + b` (see [`gemm`]); the
+    /// caller splits large batches into fixed row chunks (`model::CHUNK`).
     pub fn forward(&self, input: &[f32], batch: usize) -> (Vec<f32>, MlpTape) {
         debug_assert_eq!(input.len(), batch * self.input_dim());
         let layers = self.sizes.len() - 1;
         let offs = self.offsets();
         let mut acts = vec![input.to_vec()];
         let mut pre = Vec::with_capacity(layers.saturating_sub(1));
+        let mut sig = Vec::with_capacity(layers.saturating_sub(1));
         let mut out = Vec::new();
         for l in 0..layers {
             let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
             let w = &self.params[offs[l]..offs[l] + n_in * n_out];
             let b = &self.params[offs[l] + n_in * n_out..offs[l] + n_in * n_out + n_out];
             let x = &acts[l];
-            let mut z = vec![0.0f32; batch * n_out];
-            for r in 0..batch {
-                let xr = &x[r * n_in..(r + 1) * n_in];
-                let zr = &mut z[r * n_out..(r + 1) * n_out];
-                for o in 0..n_out {
-                    zr[o] = b[o] + dot(&w[o * n_in..(o + 1) * n_in], xr);
-                }
+            let mut z = Vec::with_capacity(batch * n_out);
+            for _ in 0..batch {
+                z.extend_from_slice(b);
             }
+            // Z (batch x n_out) += X (batch x n_in) W^T (n_in x n_out).
+            gemm(
+                batch,
+                n_in,
+                n_out,
+                x,
+                Strides(n_in, 1),
+                w,
+                Strides(1, n_in),
+                1.0,
+                &mut z,
+                Strides(n_out, 1),
+            );
             if l + 1 < layers {
-                let a: Vec<f32> = z.iter().map(|&v| v * sigmoid(v)).collect();
+                let s: Vec<f32> = z.iter().map(|&v| sigmoid(v)).collect();
+                let a: Vec<f32> = z.iter().zip(&s).map(|(&v, &si)| v * si).collect();
                 pre.push(z);
+                sig.push(s);
                 acts.push(a);
             } else {
                 out = z;
             }
         }
-        (out, MlpTape { batch, acts, pre })
+        (
+            out,
+            MlpTape {
+                batch,
+                acts,
+                pre,
+                sig,
+            },
+        )
     }
 
     /// Backward pass: adds d loss / d params to `grad` (same layout as
     /// `params`) given `grad_out` = d loss / d outputs (`batch x output_dim`).
+    ///
+    /// Per layer: `dW += G^T X`, `db += column sums of G` (rows in order),
+    /// `dX = G W`, then through SiLU; all products through [`gemm`].
     pub fn backward(&self, tape: &MlpTape, grad_out: &[f32], grad: &mut [f32]) {
         let layers = self.sizes.len() - 1;
         let offs = self.offsets();
@@ -205,18 +281,22 @@ impl Mlp {
             // Weight and bias gradients.
             {
                 let (gw, gb) = grad[w_off..b_off + n_out].split_at_mut(n_in * n_out);
-                for r in 0..batch {
-                    let xr = &x[r * n_in..(r + 1) * n_in];
-                    let gr = &g[r * n_out..(r + 1) * n_out];
-                    for o in 0..n_out {
-                        let go = gr[o];
-                        if go == 0.0 {
-                            continue;
-                        }
-                        gb[o] += go;
-                        for (gwi, xi) in gw[o * n_in..(o + 1) * n_in].iter_mut().zip(xr) {
-                            *gwi += go * xi;
-                        }
+                // dW (n_out x n_in) += G^T (n_out x batch) X (batch x n_in).
+                gemm(
+                    n_out,
+                    batch,
+                    n_in,
+                    &g,
+                    Strides(1, n_out),
+                    x,
+                    Strides(n_in, 1),
+                    1.0,
+                    gw,
+                    Strides(n_in, 1),
+                );
+                for gr in g.chunks_exact(n_out) {
+                    for (b, v) in gb.iter_mut().zip(gr) {
+                        *b += v;
                     }
                 }
             }
@@ -226,22 +306,22 @@ impl Mlp {
             // Gradient with respect to this layer's input, then through SiLU.
             let w = &self.params[w_off..b_off];
             let mut gx = vec![0.0f32; batch * n_in];
-            for r in 0..batch {
-                let gr = &g[r * n_out..(r + 1) * n_out];
-                let gxr = &mut gx[r * n_in..(r + 1) * n_in];
-                for o in 0..n_out {
-                    let go = gr[o];
-                    if go == 0.0 {
-                        continue;
-                    }
-                    for (gxi, wi) in gxr.iter_mut().zip(&w[o * n_in..(o + 1) * n_in]) {
-                        *gxi += go * wi;
-                    }
-                }
-            }
+            // dX (batch x n_in) = G (batch x n_out) W (n_out x n_in).
+            gemm(
+                batch,
+                n_out,
+                n_in,
+                &g,
+                Strides(n_out, 1),
+                w,
+                Strides(n_in, 1),
+                0.0,
+                &mut gx,
+                Strides(n_in, 1),
+            );
             let z = &tape.pre[l - 1];
-            for (gi, &zi) in gx.iter_mut().zip(z) {
-                let s = sigmoid(zi);
+            let sg = &tape.sig[l - 1];
+            for ((gi, &zi), &s) in gx.iter_mut().zip(z).zip(sg) {
                 *gi *= s * (1.0 + zi * (1.0 - s));
             }
             g = gx;

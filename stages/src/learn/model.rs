@@ -532,3 +532,161 @@ mod tests {
         assert_eq!(&p[4..6], &[1.0, 1.0]);
     }
 }
+
+#[cfg(test)]
+mod sized {
+    //! Tests at the tiger's sizes: 64 x 3 encoder, 10 frequencies, 6 parts,
+    //! L = 8, 21 components.
+    use super::*;
+    use std::time::Instant;
+
+    /// A codec with non-zero output weights over `n` roots.
+    fn tiger_sized(n: usize) -> (Prepared, Model) {
+        let l = 8;
+        let pe = PositionalEncoding::new(10, [-1.0; 3], [1.0; 3]);
+        let roots: Vec<Vec3> = (0..n)
+            .map(|i| {
+                let t = i as f32 * 0.618;
+                Vec3::new(t.sin(), (1.3 * t).cos(), (0.7 * t).sin())
+            })
+            .collect();
+        let parts: Vec<u16> = (0..n).map(|i| (i % 6) as u16).collect();
+        let rho: Vec<f32> = (0..n).map(|i| (i % 11) as f32 / 10.0).collect();
+        let prep = Prepared::new(
+            l,
+            roots,
+            vec![Mat3::IDENTITY; n],
+            vec![0.04; n],
+            &parts,
+            6,
+            &rho,
+            &pe,
+        );
+        let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 7.0).collect();
+        let comps: Vec<Vec<Vec3>> = (0..21)
+            .map(|c| {
+                (0..l)
+                    .map(|i| Vec3::new((c + i) as f32 * 0.01, 0.02, 0.0))
+                    .collect()
+            })
+            .collect();
+        let mut mlp = Mlp::new(prep.feature_dim, 64, 3, 21, 1);
+        for (i, w) in mlp.params.iter_mut().enumerate().rev().take(64 * 21) {
+            *w = ((i * 7919) % 13) as f32 / 130.0 - 0.05;
+        }
+        let model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true));
+        (prep, model)
+    }
+
+    fn point_grads(count: usize) -> Vec<Vec3> {
+        (0..count)
+            .map(|i| Vec3::new((i % 5) as f32 * 0.1 - 0.2, (i % 3) as f32 * 0.3, -0.1))
+            .collect()
+    }
+
+    /// Forward and backward give the same bits on one and on two threads
+    /// (fixed chunks, per-chunk gradients summed in chunk order).
+    #[test]
+    fn codec_results_do_not_depend_on_the_thread_count() {
+        let (prep, model) = tiger_sized(1200);
+        // Five chunks, the last one partial, in a scrambled order.
+        let subset: Vec<u32> = (0..4 * CHUNK as u32 + 37).map(|i| (i * 7) % 1200).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let (p, cache) = model.forward(&prep, &subset);
+                let g = point_grads(p.len());
+                let Grads::Codec { theta, psi } = model.backward(&prep, &subset, &cache, &g) else {
+                    panic!("codec gradients expected")
+                };
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+                let pts: Vec<f32> = p.iter().flat_map(|q| q.to_array()).collect();
+                (bits(&pts), bits(&theta), bits(&psi))
+            })
+        };
+        let one = run(1);
+        let two = run(2);
+        assert!(one.1.iter().any(|&b| f32::from_bits(b) != 0.0));
+        assert!(one.2.iter().any(|&b| f32::from_bits(b) != 0.0));
+        assert_eq!(one.0, two.0, "points differ between 1 and 2 threads");
+        assert_eq!(
+            one.1, two.1,
+            "encoder gradients differ between 1 and 2 threads"
+        );
+        assert_eq!(
+            one.2, two.2,
+            "decoder gradients differ between 1 and 2 threads"
+        );
+    }
+
+    /// Per-iteration cost of the codec's own work at the tiger's sizes
+    /// (4,000 sampled strands). Run with
+    /// `cargo test -p fure-stages --release --lib learn::model::sized -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn codec_iteration_timing() {
+        let (prep, model) = tiger_sized(20_000);
+        let l = prep.points;
+        let subset: Vec<u32> = (0..4000u32).map(|i| i * 5).collect();
+        let reps = 30;
+        let (mut tf, mut tb) = (0.0, 0.0);
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            let (p, cache) = model.forward(&prep, &subset);
+            tf += t0.elapsed().as_secs_f64();
+            let g = point_grads(p.len());
+            let t0 = Instant::now();
+            let gr = model.backward(&prep, &subset, &cache, &g);
+            tb += t0.elapsed().as_secs_f64();
+            std::hint::black_box(gr);
+        }
+        let Model::Codec(c) = &model else {
+            panic!("codec expected")
+        };
+        // The MLP alone on one thread, all 4,000 rows at once.
+        let x: Vec<f32> = prep.features[..4000 * prep.feature_dim].to_vec();
+        let (mut mf, mut mb) = (0.0, 0.0);
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            let (z, tape) = c.mlp.forward(&x, 4000);
+            mf += t0.elapsed().as_secs_f64();
+            let mut gt = vec![0.0; c.mlp.param_count()];
+            let t0 = Instant::now();
+            c.mlp.backward(&tape, &z, &mut gt);
+            mb += t0.elapsed().as_secs_f64();
+        }
+        // Decoding and placement alone, one thread.
+        let t0 = Instant::now();
+        for _ in 0..reps {
+            let mut local = vec![Vec3::ZERO; 4000 * l];
+            let mut world = vec![Vec3::ZERO; 4000 * l];
+            let z = vec![0.1f32; 21];
+            for j in 0..4000 {
+                let loc = &mut local[j * l..(j + 1) * l];
+                c.decoder.decode(&z, loc);
+                placement::place(
+                    loc,
+                    prep.roots[j],
+                    prep.frames[j],
+                    prep.lengths[j],
+                    &mut world[j * l..(j + 1) * l],
+                );
+            }
+            std::hint::black_box(world);
+        }
+        let tdp = t0.elapsed().as_secs_f64();
+        let r = reps as f64 * 1e-3;
+        eprintln!(
+            "codec forward {:.2} ms, backward {:.2} ms (rayon); MLP alone (1 thread, 4000 rows) \
+             forward {:.2} ms, backward {:.2} ms; decode + place (1 thread) {:.2} ms",
+            tf / r,
+            tb / r,
+            mf / r,
+            mb / r,
+            tdp / r
+        );
+    }
+}
