@@ -182,7 +182,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        4
+        5
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -231,7 +231,7 @@ impl Stage for DenseStrands {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        3
+        4
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
