@@ -10,14 +10,12 @@
 //! layer is linear.
 //!
 //! Speed. Each layer is one matrix product per chunk of rows
-//! (`Z = X W^T + b`; backward `dW += G^T X`, `dX = G W`) through
-//! `matrixmultiply::sgemm` (packed, cache-blocked, SIMD kernels picked once
-//! from the CPU's features; its `threading` feature is off, so each call runs
-//! on the calling thread). The caller (`model`) runs fixed chunks of
+//! (`Z = X W^T + b`; backward `dW += G^T X`, `dX = G W`) through [`gemm`], a
+//! portable product with a fixed summation order (the same bits on every
+//! machine). The caller (`model`) runs fixed chunks of
 //! `model::CHUNK` rows in parallel with rayon and sums the per-chunk weight
 //! gradients in chunk order, so the result does not depend on the thread
-//! count (tested bit for bit with 1 and 2 threads); across machines with
-//! different SIMD kernels the last bits may differ. The SiLU keeps its
+//! count either (tested bit for bit with 1 and 2 threads). The SiLU keeps its
 //! sigmoid on the tape and uses a polynomial `exp` (below) that vectorises.
 //! Measured at the synthetic tiger's sizes (4,000 sampled strands, 71
 //! inputs, 64 x 3 hidden, 21 codes; `learn::model::sized::codec_iteration_timing`,
@@ -151,14 +149,33 @@ fn extent(rows: usize, cols: usize, s: Strides) -> usize {
     }
 }
 
-/// `C = A B + beta C` with `A: m x k`, `B: k x n`, `C: m x n`, through
-/// `matrixmultiply::sgemm` (blocked, packed, SIMD kernels chosen once per
-/// process from the CPU's features; single-threaded: the crate's
-/// `threading` feature is off). Its result depends only on the operands,
-/// the sizes and the CPU's feature set, never on the thread count.
+/// Dot product with eight partial sums combined in a fixed order: the same
+/// bits on every machine, and the lanes vectorise.
+fn dot8(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for l in 0..8 {
+            acc[l] += x[l] * y[l];
+        }
+    }
+    let mut tail = 0.0f32;
+    for (x, y) in ra.iter().zip(rb) {
+        tail += x * y;
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+}
+
+/// `C = A B + beta C` with `A: m x k`, `B: k x n`, `C: m x n`. Portable
+/// Rust with a fixed summation order, so the result depends only on the
+/// operands and sizes: the same bits on every machine and thread count.
+/// (`matrixmultiply::sgemm` was measured here too: its kernels are picked at
+/// run time from the CPU's features, so bits could differ between machines,
+/// and it made no difference end to end, where rendering dominates.)
 ///
-/// The slices are checked against the strides before the unsafe call (a
-/// mismatch is a bug in this module, hence a panic, not an input error).
+/// The slices are checked against the strides first (a mismatch is a bug in
+/// this module, hence a panic, not an input error).
 #[allow(clippy::too_many_arguments)]
 fn gemm(
     m: usize,
@@ -184,26 +201,52 @@ fn gemm(
         }
         return;
     }
-    // SAFETY: every index the routine reads or writes, `(i, j) -> i * rs + j
-    // * cs` for `i < rows, j < cols`, lies below the extents checked above;
-    // `c` is borrowed mutably and cannot alias `a` or `b`.
-    unsafe {
-        matrixmultiply::sgemm(
-            m,
-            k,
-            n,
-            1.0,
-            a.as_ptr(),
-            sa.0 as isize,
-            sa.1 as isize,
-            b.as_ptr(),
-            sb.0 as isize,
-            sb.1 as isize,
-            beta,
-            c.as_mut_ptr(),
-            sc.0 as isize,
-            sc.1 as isize,
-        );
+    if beta == 0.0 {
+        // Not `beta * c`: `c` may hold anything, NaN included, and 0 x NaN is NaN.
+        for i in 0..m {
+            for j in 0..n {
+                c[i * sc.0 + j * sc.1] = 0.0;
+            }
+        }
+    } else if beta != 1.0 {
+        for i in 0..m {
+            for j in 0..n {
+                c[i * sc.0 + j * sc.1] *= beta;
+            }
+        }
+    }
+    // Row i of C accumulates A[i, p] * row p of B for p = 0, 1, ... in that
+    // order: every element of C sums its products in the same fixed order on
+    // every machine (no FMA contraction, no runtime kernel choice), and the
+    // inner loop over j runs along contiguous rows where the strides allow,
+    // which the compiler vectorises across independent elements.
+    if sa.1 == 1 && sb.0 == 1 {
+        // Both operands run along p in memory (the forward's `X W^T`): one
+        // dot product per element, with eight lanes in a fixed order.
+        for i in 0..m {
+            let a_row = &a[i * sa.0..i * sa.0 + k];
+            for j in 0..n {
+                let b_col = &b[j * sb.1..j * sb.1 + k];
+                c[i * sc.0 + j * sc.1] += dot8(a_row, b_col);
+            }
+        }
+        return;
+    }
+    for i in 0..m {
+        for p in 0..k {
+            let a_ip = a[i * sa.0 + p * sa.1];
+            if sb.1 == 1 && sc.1 == 1 {
+                let b_row = &b[p * sb.0..p * sb.0 + n];
+                let c_row = &mut c[i * sc.0..i * sc.0 + n];
+                for (cj, bj) in c_row.iter_mut().zip(b_row) {
+                    *cj += a_ip * bj;
+                }
+            } else {
+                for j in 0..n {
+                    c[i * sc.0 + j * sc.1] += a_ip * b[p * sb.0 + j * sb.1];
+                }
+            }
+        }
     }
 }
 

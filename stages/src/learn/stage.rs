@@ -182,7 +182,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        5
+        6
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
