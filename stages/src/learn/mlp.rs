@@ -10,7 +10,7 @@
 //! layer is linear.
 //!
 //! Speed. Each layer is one matrix product per chunk of rows
-//! (`Z = X W^T + b`; backward `dW += G^T X`, `dX = G W`) through [`gemm`], a
+//! (`Z = X W^T + b`; backward `dW += G^T X`, `dX = G W`) through `gemm`, a
 //! portable product with a fixed summation order (the same bits on every
 //! machine). The caller (`model`) runs fixed chunks of
 //! `model::CHUNK` rows in parallel with rayon and sums the per-chunk weight
@@ -21,7 +21,7 @@
 //! inputs, 64 x 3 hidden, 21 codes; `learn::model::sized::codec_iteration_timing`,
 //! shared 2-core machine): the codec's forward + backward took 27-29 ms with
 //! the first per-row version, 7-9 ms through `matrixmultiply::sgemm` and
-//! about 18 ms with [`gemm`] (idle machine); rendering (60-70 ms an
+//! about 18 ms with `gemm` (idle machine); rendering (60-70 ms an
 //! iteration) dominates both learners, and the end-to-end speed-up against
 //! the dense baseline was 9.2 with either product.
 //!
@@ -298,7 +298,7 @@ impl Mlp {
     /// Runs `batch` rows of `input` (row-major, `batch x input_dim`) through the
     /// network; returns the outputs (`batch x output_dim`) and the tape.
     ///
-    /// Each layer is one matrix product `Z = X W^T + b` (see [`gemm`]); the
+    /// Each layer is one matrix product `Z = X W^T + b` (see `gemm`); the
     /// caller splits large batches into fixed row chunks (`model::CHUNK`).
     pub fn forward(&self, input: &[f32], batch: usize) -> (Vec<f32>, MlpTape) {
         debug_assert_eq!(input.len(), batch * self.input_dim());
@@ -355,7 +355,7 @@ impl Mlp {
     /// `params`) given `grad_out` = d loss / d outputs (`batch x output_dim`).
     ///
     /// Per layer: `dW += G^T X`, `db += column sums of G` (rows in order),
-    /// `dX = G W`, then through SiLU; all products through [`gemm`].
+    /// `dX = G W`, then through SiLU; all products through `gemm`.
     pub fn backward(&self, tape: &MlpTape, grad_out: &[f32], grad: &mut [f32]) {
         let layers = self.sizes.len() - 1;
         let offs = self.offsets();
