@@ -133,25 +133,36 @@ fn tiger_pipeline_runs_end_to_end_deterministically_and_reruns_only_learning() {
             }
         }
     }
-    for k in [
-        "mean_length_cm",
-        "std_length_cm",
-        "psnr",
-        "ssim",
-        "train_seconds",
-    ] {
-        number(&eval, k, "evaluate/metrics.json");
-    }
     let defur = read_json(&out.join("defur/metrics.json"));
-    for k in [
-        "root_to_skin_mean_cm",
-        "root_to_skin_p95_cm",
-        "root_to_skin_mean_frac",
-        "outer_to_skin_mean_frac",
-        "baseline_to_skin_mean_frac",
-        "seconds_solve",
-    ] {
-        number(&defur, k, "defur/metrics.json");
+    let promised: [(&Json, &str, &[&str]); 2] = [
+        (
+            &eval,
+            "evaluate/metrics.json",
+            &[
+                "mean_length_cm",
+                "std_length_cm",
+                "psnr",
+                "ssim",
+                "train_seconds",
+            ],
+        ),
+        (
+            &defur,
+            "defur/metrics.json",
+            &[
+                "root_to_skin_mean_cm",
+                "root_to_skin_p95_cm",
+                "root_to_skin_mean_frac",
+                "outer_to_skin_mean_frac",
+                "baseline_to_skin_mean_frac",
+                "seconds_solve",
+            ],
+        ),
+    ];
+    for (metrics, file, keys) in promised {
+        for k in keys {
+            number(metrics, k, file);
+        }
     }
     let lengths = read_json(&out.join("lengths/metrics.json"));
     let errors = lengths["length_error_pct"]
