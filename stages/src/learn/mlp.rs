@@ -149,35 +149,203 @@ fn extent(rows: usize, cols: usize, s: Strides) -> usize {
     }
 }
 
-/// Dot product with eight partial sums combined in a fixed order: the same
-/// bits on every machine, and the lanes vectorise.
-fn dot8(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..8 {
-            acc[l] += x[l] * y[l];
+/// How a dot product folds its eight lanes and tail: one fixed tree.
+#[inline(always)]
+fn combine8(acc: &[f32; 8], tail: f32) -> f32 {
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+}
+
+/// Columns of `C` that [`dot8_block`] computes at once.
+const DOT_COLS: usize = 8;
+
+/// Dot products of `a` with columns `j0 .. j0 + W` of `B`, given `B`
+/// transposed (`bt`: `k x n`, row `p` holds `B[p, :]`), in the dot order of
+/// [`gemm`]: lane `l` of column `q` accumulates `a[8c + l] B[8c + l, q]`
+/// over the whole groups `c` in order, the products past them are summed in
+/// order (the tail), and [`combine8`] folds lanes and tail.
+/// Stored lane-major, the eight lanes of `W` columns are `8 x W` independent
+/// sums updated by broadcasting one `a[p]` against a contiguous run of
+/// `bt`'s row `p`, and the fold runs across columns, not within a register.
+#[inline(always)]
+fn dot8_block<const W: usize>(a: &[f32], bt: &[f32], n: usize, j0: usize) -> [f32; W] {
+    let k = a.len();
+    let whole = k - k % 8;
+    let mut acc = [[0.0f32; W]; 8];
+    for s in (0..whole).step_by(8) {
+        let x: &[f32; 8] = a[s..s + 8].try_into().expect("eight lanes");
+        let rows: &[f32] = &bt[s * n..(s + 8) * n];
+        // Lanes unrolled by hand: written as a loop over `l`, the compiler
+        // kept the accumulators on the stack and did not vectorise them.
+        add_scaled_row(&mut acc[0], x[0], &rows[j0..]);
+        add_scaled_row(&mut acc[1], x[1], &rows[n + j0..]);
+        add_scaled_row(&mut acc[2], x[2], &rows[2 * n + j0..]);
+        add_scaled_row(&mut acc[3], x[3], &rows[3 * n + j0..]);
+        add_scaled_row(&mut acc[4], x[4], &rows[4 * n + j0..]);
+        add_scaled_row(&mut acc[5], x[5], &rows[5 * n + j0..]);
+        add_scaled_row(&mut acc[6], x[6], &rows[6 * n + j0..]);
+        add_scaled_row(&mut acc[7], x[7], &rows[7 * n + j0..]);
+    }
+    let mut tail = [0.0f32; W];
+    for p in whole..k {
+        let x = a[p];
+        let row = &bt[p * n + j0..p * n + j0 + W];
+        for q in 0..W {
+            tail[q] += x * row[q];
         }
     }
-    let mut tail = 0.0f32;
-    for (x, y) in ra.iter().zip(rb) {
-        tail += x * y;
+    std::array::from_fn(|q| {
+        let lanes: [f32; 8] = std::array::from_fn(|l| acc[l][q]);
+        combine8(&lanes, tail[q])
+    })
+}
+
+/// `acc[q] += x row[q]` for the first `W` entries of `row`.
+#[inline(always)]
+fn add_scaled_row<const W: usize>(acc: &mut [f32; W], x: f32, row: &[f32]) {
+    let row: &[f32; W] = row[..W].try_into().expect("a block of columns");
+    for q in 0..W {
+        acc[q] += x * row[q];
     }
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+}
+
+/// Rows of `C` that [`axpy_block`] keeps in registers, and its widths.
+const AXPY_ROWS: usize = 2;
+const AXPY_COLS: usize = 16;
+const AXPY_NARROW: usize = 4;
+
+/// `C[i0 + r, j0 + q] += sum_p A[i0 + r, p] B[p, j0 + q]` for `R` rows and
+/// `W` columns, `B` and `C` contiguous along their rows. Each element adds
+/// its products in the order `p = 0, 1, ...` onto its current value,
+/// exactly as one row update `C[i, :] += A[i, p] B[p, :]` per `p` would;
+/// the block stays in registers over the whole `p` loop instead of being
+/// loaded and stored once per `p`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn axpy_block<const R: usize, const W: usize>(
+    k: usize,
+    a: &[f32],
+    sa: Strides,
+    i0: usize,
+    b: &[f32],
+    sb0: usize,
+    j0: usize,
+    c: &mut [f32],
+    sc0: usize,
+) {
+    let mut acc = [[0.0f32; W]; R];
+    for (r, acc_r) in acc.iter_mut().enumerate() {
+        acc_r.copy_from_slice(&c[(i0 + r) * sc0 + j0..(i0 + r) * sc0 + j0 + W]);
+    }
+    for p in 0..k {
+        let b_p: &[f32; W] = b[p * sb0 + j0..p * sb0 + j0 + W]
+            .try_into()
+            .expect("a block of columns");
+        for (r, acc_r) in acc.iter_mut().enumerate() {
+            let a_rp = a[(i0 + r) * sa.0 + p * sa.1];
+            for q in 0..W {
+                acc_r[q] += a_rp * b_p[q];
+            }
+        }
+    }
+    for (r, acc_r) in acc.iter().enumerate() {
+        c[(i0 + r) * sc0 + j0..(i0 + r) * sc0 + j0 + W].copy_from_slice(acc_r);
+    }
+}
+
+/// Row updates of rows `i0 .. i0 + R`, all columns: blocks of
+/// [`AXPY_COLS`], then of [`AXPY_NARROW`], then one column at a time.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn axpy_rows<const R: usize>(
+    k: usize,
+    n: usize,
+    a: &[f32],
+    sa: Strides,
+    i0: usize,
+    b: &[f32],
+    sb0: usize,
+    c: &mut [f32],
+    sc0: usize,
+) {
+    let mut j = 0;
+    while j + AXPY_COLS <= n {
+        axpy_block::<R, AXPY_COLS>(k, a, sa, i0, b, sb0, j, c, sc0);
+        j += AXPY_COLS;
+    }
+    while j + AXPY_NARROW <= n {
+        axpy_block::<R, AXPY_NARROW>(k, a, sa, i0, b, sb0, j, c, sc0);
+        j += AXPY_NARROW;
+    }
+    for j in j..n {
+        axpy_block::<R, 1>(k, a, sa, i0, b, sb0, j, c, sc0);
+    }
 }
 
 /// `C = A B + beta C` with `A: m x k`, `B: k x n`, `C: m x n`. Portable
 /// Rust with a fixed summation order, so the result depends only on the
 /// operands and sizes: the same bits on every machine and thread count.
 /// (`matrixmultiply::sgemm` was measured here too: its kernels are picked at
-/// run time from the CPU's features, so bits could differ between machines,
-/// and it made no difference end to end, where rendering dominates.)
+/// run time from the CPU's features, so bits could differ between machines.)
+///
+/// Every element of `C` sums its products in one documented order:
+/// - when both operands run along `p` in memory (the forward's `X W^T`), as
+///   eight lanes over groups of eight, a fixed tree, then the tail
+///   ([`dot8_block`]);
+/// - otherwise sequentially, `p = 0, 1, ...`, onto `beta C`.
+///
+/// Blocking (several columns or rows at once) changes which elements are
+/// computed together, never the order within one element, so it is free
+/// to tune for speed (`gemm_sums_in_the_documented_order` checks the bits
+/// against the unblocked loops). No FMA contraction: Rust does not fuse
+/// `a * b + c` unless asked.
 ///
 /// The slices are checked against the strides first (a mismatch is a bug in
 /// this module, hence a panic, not an input error).
 #[allow(clippy::too_many_arguments)]
 fn gemm(
+    m: usize,
+    k: usize,
+    n: usize,
+    a: &[f32],
+    sa: Strides,
+    b: &[f32],
+    sb: Strides,
+    beta: f32,
+    c: &mut [f32],
+    sc: Strides,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        unsafe { gemm_avx2(m, k, n, a, sa, b, sb, beta, c, sc) };
+        return;
+    }
+    gemm_portable(m, k, n, a, sa, b, sb, beta, c, sc)
+}
+
+/// [`gemm_portable`] compiled for AVX2: wider vectors, the same operations in
+/// the same order (no FMA is enabled), hence the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn gemm_avx2(
+    m: usize,
+    k: usize,
+    n: usize,
+    a: &[f32],
+    sa: Strides,
+    b: &[f32],
+    sb: Strides,
+    beta: f32,
+    c: &mut [f32],
+    sc: Strides,
+) {
+    gemm_portable(m, k, n, a, sa, b, sb, beta, c, sc)
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn gemm_portable(
     m: usize,
     k: usize,
     n: usize,
@@ -215,36 +383,46 @@ fn gemm(
             }
         }
     }
-    // Row i of C accumulates A[i, p] * row p of B for p = 0, 1, ... in that
-    // order: every element of C sums its products in the same fixed order on
-    // every machine (no FMA contraction, no runtime kernel choice), and the
-    // inner loop over j runs along contiguous rows where the strides allow,
-    // which the compiler vectorises across independent elements.
     if sa.1 == 1 && sb.0 == 1 {
-        // Both operands run along p in memory (the forward's `X W^T`): one
-        // dot product per element, with eight lanes in a fixed order.
+        // One dot product per element, DOT_COLS columns at a time from a
+        // transposed copy of B (small: a layer's weights).
+        let mut bt = vec![0.0f32; k * n];
+        for j in 0..n {
+            for p in 0..k {
+                bt[p * n + j] = b[j * sb.1 + p];
+            }
+        }
         for i in 0..m {
             let a_row = &a[i * sa.0..i * sa.0 + k];
-            for j in 0..n {
-                let b_col = &b[j * sb.1..j * sb.1 + k];
-                c[i * sc.0 + j * sc.1] += dot8(a_row, b_col);
+            let mut j = 0;
+            while j + DOT_COLS <= n {
+                let d = dot8_block::<DOT_COLS>(a_row, &bt, n, j);
+                for (q, dq) in d.iter().enumerate() {
+                    c[i * sc.0 + (j + q) * sc.1] += dq;
+                }
+                j += DOT_COLS;
             }
+            for j in j..n {
+                c[i * sc.0 + j * sc.1] += dot8_block::<1>(a_row, &bt, n, j)[0];
+            }
+        }
+        return;
+    }
+    if sb.1 == 1 && sc.1 == 1 {
+        let full_rows = m - m % AXPY_ROWS;
+        for i in (0..full_rows).step_by(AXPY_ROWS) {
+            axpy_rows::<AXPY_ROWS>(k, n, a, sa, i, b, sb.0, c, sc.0);
+        }
+        for i in full_rows..m {
+            axpy_rows::<1>(k, n, a, sa, i, b, sb.0, c, sc.0);
         }
         return;
     }
     for i in 0..m {
         for p in 0..k {
             let a_ip = a[i * sa.0 + p * sa.1];
-            if sb.1 == 1 && sc.1 == 1 {
-                let b_row = &b[p * sb.0..p * sb.0 + n];
-                let c_row = &mut c[i * sc.0..i * sc.0 + n];
-                for (cj, bj) in c_row.iter_mut().zip(b_row) {
-                    *cj += a_ip * bj;
-                }
-            } else {
-                for j in 0..n {
-                    c[i * sc.0 + j * sc.1] += a_ip * b[p * sb.0 + j * sb.1];
-                }
+            for j in 0..n {
+                c[i * sc.0 + j * sc.1] += a_ip * b[p * sb.0 + j * sb.1];
             }
         }
     }
@@ -427,6 +605,92 @@ mod tests {
             .zip(target)
             .map(|(a, b)| 0.5 * ((a - b) as f64).powi(2))
             .sum()
+    }
+
+    /// The unblocked definition of `gemm`'s order for one element of `C`.
+    #[allow(clippy::too_many_arguments)]
+    fn reference_element(
+        i: usize,
+        j: usize,
+        k: usize,
+        a: &[f32],
+        sa: Strides,
+        b: &[f32],
+        sb: Strides,
+        c0: f32,
+    ) -> f32 {
+        let av = |p: usize| a[i * sa.0 + p * sa.1];
+        let bv = |p: usize| b[p * sb.0 + j * sb.1];
+        if sa.1 == 1 && sb.0 == 1 {
+            let mut lanes = [0.0f32; 8];
+            let whole = k - k % 8;
+            for p in 0..whole {
+                lanes[p % 8] += av(p) * bv(p);
+            }
+            let mut tail = 0.0f32;
+            for p in whole..k {
+                tail += av(p) * bv(p);
+            }
+            let folded = ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5]))
+                + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]))
+                + tail;
+            c0 + folded
+        } else {
+            let mut acc = c0;
+            for p in 0..k {
+                acc += av(p) * bv(p);
+            }
+            acc
+        }
+    }
+
+    /// Blocking must not change a single bit: every layout the MLP uses
+    /// (`X W^T`, `G^T X`, `G W`) and a fully strided one, at sizes with
+    /// ragged edges, against the element-by-element definition.
+    #[test]
+    fn gemm_sums_in_the_documented_order() {
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        for &(m, k, n) in &[
+            (1, 1, 1),
+            (3, 9, 5),
+            (7, 77, 64),
+            (128, 64, 21),
+            (5, 130, 33),
+        ] {
+            for beta in [0.0f32, 1.0, 0.5] {
+                let layouts = [
+                    (Strides(k, 1), Strides(1, k), Strides(n, 1)),
+                    (Strides(1, m), Strides(n, 1), Strides(n, 1)),
+                    (Strides(k, 1), Strides(n, 1), Strides(n, 1)),
+                    (Strides(1, m), Strides(1, k), Strides(1, m)),
+                ];
+                for (sa, sb, sc) in layouts {
+                    let a: Vec<f32> = (0..m * k).map(|_| rng.gen_range(-1.0..1.0)).collect();
+                    let b: Vec<f32> = (0..k * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+                    let c_in: Vec<f32> = (0..m * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+                    let mut c = c_in.clone();
+                    gemm(m, k, n, &a, sa, &b, sb, beta, &mut c, sc);
+                    for i in 0..m {
+                        for j in 0..n {
+                            let at = i * sc.0 + j * sc.1;
+                            let c0 = if beta == 0.0 {
+                                0.0
+                            } else if beta == 1.0 {
+                                c_in[at]
+                            } else {
+                                c_in[at] * beta
+                            };
+                            let want = reference_element(i, j, k, &a, sa, &b, sb, c0);
+                            assert_eq!(
+                                c[at].to_bits(),
+                                want.to_bits(),
+                                "m {m} k {k} n {n} beta {beta} element ({i}, {j})"
+                            );
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]
