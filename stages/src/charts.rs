@@ -30,7 +30,7 @@
 //! (so a dense run that plateaus early is credited with its early time, which can only lower the ratio),
 //! and `t_codec` the training time of the first codec snapshot whose F-score reaches `F*`. Times are those
 //! of snapshots, not interpolated. The learners take snapshots at geometrically spaced training times
-//! (ratio `g`, 1.25 by default, from 0.5 s), so each time is an upper bound within a factor `g` and the
+//! (ratio `g`, 1.1 by default, from 0.5 s), so each time is an upper bound within a factor `g` and the
 //! ratio is known within a factor `g` either way, at any time scale. When no codec snapshot reaches `F*`
 //! the speed-up is `null` and `speedup_note` says so.
 //!

@@ -149,12 +149,6 @@ fn extent(rows: usize, cols: usize, s: Strides) -> usize {
     }
 }
 
-/// How a dot product folds its eight lanes and tail: one fixed tree.
-#[inline(always)]
-fn combine8(acc: &[f32; 8], tail: f32) -> f32 {
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
-}
-
 /// Columns of `C` that [`dot8_block`] computes at once.
 const DOT_COLS: usize = 8;
 
@@ -162,7 +156,8 @@ const DOT_COLS: usize = 8;
 /// transposed (`bt`: `k x n`, row `p` holds `B[p, :]`), in the dot order of
 /// [`gemm`]: lane `l` of column `q` accumulates `a[8c + l] B[8c + l, q]`
 /// over the whole groups `c` in order, the products past them are summed in
-/// order (the tail), and [`combine8`] folds lanes and tail.
+/// order (the tail), and the result is the fixed tree
+/// `((l0 + l4) + (l1 + l5)) + ((l2 + l6) + (l3 + l7)) + tail`.
 /// Stored lane-major, the eight lanes of `W` columns are `8 x W` independent
 /// sums updated by broadcasting one `a[p]` against a contiguous run of
 /// `bt`'s row `p`, and the fold runs across columns, not within a register.
@@ -193,10 +188,14 @@ fn dot8_block<const W: usize>(a: &[f32], bt: &[f32], n: usize, j0: usize) -> [f3
             tail[q] += x * row[q];
         }
     }
-    std::array::from_fn(|q| {
-        let lanes: [f32; 8] = std::array::from_fn(|l| acc[l][q]);
-        combine8(&lanes, tail[q])
-    })
+    // The tree per column, written across columns so that it vectorises.
+    let mut out = [0.0f32; W];
+    for q in 0..W {
+        out[q] = ((acc[0][q] + acc[4][q]) + (acc[1][q] + acc[5][q]))
+            + ((acc[2][q] + acc[6][q]) + (acc[3][q] + acc[7][q]))
+            + tail[q];
+    }
+    out
 }
 
 /// `acc[q] += x row[q]` for the first `W` entries of `row`.
@@ -209,7 +208,7 @@ fn add_scaled_row<const W: usize>(acc: &mut [f32; W], x: f32, row: &[f32]) {
 }
 
 /// Rows of `C` that [`axpy_block`] keeps in registers, and its widths.
-const AXPY_ROWS: usize = 2;
+const AXPY_ROWS: usize = 4;
 const AXPY_COLS: usize = 16;
 const AXPY_NARROW: usize = 4;
 
