@@ -676,13 +676,14 @@ pub fn read_zip(bytes: &[u8], path: &Path) -> Result<Vec<(String, Vec<u8>)>, Bas
     let mut entries = le_u16(bytes, eocd + 10).unwrap_or(0) as u64;
     let mut cd = le_u32(bytes, eocd + 16).unwrap_or(0) as u64;
     // Zip64 end of central directory locator just before the EOCD.
-    if (entries == 0xffff || cd == 0xffff_ffff) && eocd >= 20 {
-        if le_u32(bytes, eocd - 20) == Some(0x0706_4b50) {
-            let z64 = le_u64(bytes, eocd - 12).unwrap_or(0) as usize;
-            if le_u32(bytes, z64) == Some(0x0606_4b50) {
-                entries = le_u64(bytes, z64 + 32).unwrap_or(entries);
-                cd = le_u64(bytes, z64 + 48).unwrap_or(cd);
-            }
+    if (entries == 0xffff || cd == 0xffff_ffff)
+        && eocd >= 20
+        && le_u32(bytes, eocd - 20) == Some(0x0706_4b50)
+    {
+        let z64 = le_u64(bytes, eocd - 12).unwrap_or(0) as usize;
+        if le_u32(bytes, z64) == Some(0x0606_4b50) {
+            entries = le_u64(bytes, z64 + 32).unwrap_or(entries);
+            cd = le_u64(bytes, z64 + 48).unwrap_or(cd);
         }
     }
     let mut out = Vec::new();
@@ -916,8 +917,8 @@ pub fn perm_basis(
             *out = irfft_ortho(&b, n);
         }
         let mut pts = vec![DVec3::ZERO];
-        for t in 0..n {
-            let perm = [coords[0][t], coords[1][t], coords[2][t]];
+        for ((&x, &y), &z) in coords[0].iter().zip(&coords[1]).zip(&coords[2]).take(n) {
+            let perm = [x, y, z];
             pts.push(DVec3::new(
                 map[0].1 * perm[map[0].0],
                 map[1].1 * perm[map[1].0],

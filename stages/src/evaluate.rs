@@ -1033,6 +1033,8 @@ impl Stage for Evaluate {
             ));
         }
         for pair in t.chunks(2) {
+            // Negated comparisons so that NaN is rejected too.
+            #[allow(clippy::nonminimal_bool)]
             if !(pair[0] > 0.0) || !(pair[1] > 0.0 && pair[1] <= 180.0) {
                 return Err(StageError::param(
                     "thresholds",

@@ -194,8 +194,8 @@ impl ImageLosses {
                     3 => ([px[0], px[1], px[2]], 1.0),
                     _ => ([px[0], px[1], px[2]], px[3]),
                 };
-                for k in 0..3 {
-                    rgb.data[3 * i + k] = col[k] * a;
+                for (k, c) in col.iter().enumerate() {
+                    rgb.data[3 * i + k] = c * a;
                 }
                 if let Some(al) = alpha.as_mut() {
                     al.data[i] = a;
@@ -419,11 +419,14 @@ pub fn normalise_confidence(c: &mut ImageF32) {
 /// L_sil = mean |alpha - mask|; L_mask = mean |fur - fur mask|; L_ori = the
 /// pi-periodic angle difference weighted by the normalised Gabor confidence
 /// inside the GT fur mask (the silhouette mask when there is no fur mask).
+/// Weighted loss terms by name, and d loss / d render outputs.
+type ViewLosses = (Vec<(&'static str, f32)>, OutputGrads);
+
 fn view_losses(
     out: &RenderOutput,
     view: &ViewData,
     cfg: &ImageConfig,
-) -> Result<(Vec<(&'static str, f32)>, OutputGrads), StageError> {
+) -> Result<ViewLosses, StageError> {
     use render::losses;
     let mut terms = Vec::new();
     let mut dl = OutputGrads::default();

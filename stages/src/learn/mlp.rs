@@ -693,6 +693,8 @@ mod tests {
     }
 
     #[test]
+    // Finite differences perturb parameter i and read gradient i.
+    #[allow(clippy::needless_range_loop)]
     fn gradients_match_finite_differences() {
         let mut mlp = Mlp::new(5, 7, 2, 3, 11);
         // Give the output layer non-zero weights so every layer is exercised.

@@ -442,6 +442,8 @@ mod tests {
     use super::*;
 
     #[test]
+    // Finite differences perturb parameter i and read gradient i.
+    #[allow(clippy::needless_range_loop)]
     fn codec_backward_matches_finite_differences() {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;

@@ -207,6 +207,8 @@ mod tests {
     }
 
     #[test]
+    // Finite differences perturb parameter i and read gradient i.
+    #[allow(clippy::needless_range_loop)]
     fn decoder_gradient_matches_finite_differences() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let l = 5;
