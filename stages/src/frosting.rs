@@ -115,6 +115,15 @@
 //!   109 % against 105 %. Not a clear gain, so `pipelines/tiger.toml` keeps
 //!   Frosting's definition. `medial_clamp` alone changes only the ears
 //!   (median 2.0 -> 1.8 cm with `inner_depth`).
+//! - `medial_clamp` alone (Frosting's reading), with the codec's present
+//!   rates: ear length error 295 -> 256 % on the tiger (fox 74 -> 61 %),
+//!   every other part within a point, M_root unchanged (56.1 %, fox 104.7 %).
+//!   Codec F-scores over seeds 0-2 (`--set codec.seed=S`): 55.35 / 76.87 /
+//!   88.43 against 55.59 / 77.01 / 88.47 without it; the fixed-length
+//!   ablation loses more (its one length is the mean over parts, which the
+//!   ears' length pulled up), so at seed 0 the codec leads it at all three
+//!   thresholds with the clamp and not without. A gain on one small part, no
+//!   gain for the codec: not adopted.
 //!
 //! # More, smaller Gaussians (measured; not adopted)
 //!
