@@ -23,8 +23,8 @@
 //! which any one element sums its products, and no FMA is used, so every
 //! build gives the same bits (tested against the unblocked definition).
 //! Measured at the synthetic tiger's sizes (4,000 sampled strands, 71
-//! inputs, 64 x 3 hidden, 21 codes; `learn::model::sized::codec_iteration_timing`,
-//! shared 2-core machine): the codec's forward + backward took 27-29 ms with
+//! inputs, 64 x 3 hidden, 21 codes; an ignored timing test then, `cargo bench
+//! --bench learn` now, shared 2-core machine): the codec's forward + backward took 27-29 ms with
 //! the first per-row version, 7-9 ms through `matrixmultiply::sgemm`, about
 //! 18 ms with the first `gemm` and 14-15 ms with the blocked one. In the
 //! codec stage an iteration went from 0.080 to 0.071 s (dense: 0.061 s;

@@ -540,7 +540,6 @@ mod sized {
     //! Tests at the tiger's sizes: 64 x 3 encoder, 10 frequencies, 6 parts,
     //! L = 8, 21 components.
     use super::*;
-    use std::time::Instant;
 
     /// A codec with non-zero output weights over `n` roots.
     fn tiger_sized(n: usize) -> (Prepared, Model) {
@@ -621,74 +620,6 @@ mod sized {
         assert_eq!(
             one.2, two.2,
             "decoder gradients differ between 1 and 2 threads"
-        );
-    }
-
-    /// Per-iteration cost of the codec's own work at the tiger's sizes
-    /// (4,000 sampled strands). Run with
-    /// `cargo test -p fure-stages --release --lib learn::model::sized -- --ignored --nocapture`.
-    #[test]
-    #[ignore]
-    fn codec_iteration_timing() {
-        let (prep, model) = tiger_sized(20_000);
-        let l = prep.points;
-        let subset: Vec<u32> = (0..4000u32).map(|i| i * 5).collect();
-        let reps = 30;
-        let (mut tf, mut tb) = (0.0, 0.0);
-        for _ in 0..reps {
-            let t0 = Instant::now();
-            let (p, cache) = model.forward(&prep, &subset);
-            tf += t0.elapsed().as_secs_f64();
-            let g = point_grads(p.len());
-            let t0 = Instant::now();
-            let gr = model.backward(&prep, &subset, &cache, &g);
-            tb += t0.elapsed().as_secs_f64();
-            std::hint::black_box(gr);
-        }
-        let Model::Codec(c) = &model else {
-            panic!("codec expected")
-        };
-        // The MLP alone on one thread, all 4,000 rows at once.
-        let x: Vec<f32> = prep.features[..4000 * prep.feature_dim].to_vec();
-        let (mut mf, mut mb) = (0.0, 0.0);
-        for _ in 0..reps {
-            let t0 = Instant::now();
-            let (z, tape) = c.mlp.forward(&x, 4000);
-            mf += t0.elapsed().as_secs_f64();
-            let mut gt = vec![0.0; c.mlp.param_count()];
-            let t0 = Instant::now();
-            c.mlp.backward(&tape, &z, &mut gt);
-            mb += t0.elapsed().as_secs_f64();
-        }
-        // Decoding and placement alone, one thread.
-        let t0 = Instant::now();
-        for _ in 0..reps {
-            let mut local = vec![Vec3::ZERO; 4000 * l];
-            let mut world = vec![Vec3::ZERO; 4000 * l];
-            let z = vec![0.1f32; 21];
-            for j in 0..4000 {
-                let loc = &mut local[j * l..(j + 1) * l];
-                c.decoder.decode(&z, loc);
-                placement::place(
-                    loc,
-                    prep.roots[j],
-                    prep.frames[j],
-                    prep.lengths[j],
-                    &mut world[j * l..(j + 1) * l],
-                );
-            }
-            std::hint::black_box(world);
-        }
-        let tdp = t0.elapsed().as_secs_f64();
-        let r = reps as f64 * 1e-3;
-        eprintln!(
-            "codec forward {:.2} ms, backward {:.2} ms (rayon); MLP alone (1 thread, 4000 rows) \
-             forward {:.2} ms, backward {:.2} ms; decode + place (1 thread) {:.2} ms",
-            tf / r,
-            tb / r,
-            mf / r,
-            mb / r,
-            tdp / r
         );
     }
 }
