@@ -18,11 +18,18 @@ fn repo(rel: &str) -> PathBuf {
 /// `tiger.toml` at its smallest: 8 views of 64 px, a small Gaussian fit, few
 /// roots and learning iterations. About 5 s in release.
 fn tiny_pipeline() -> String {
+    tiny_extension("pipelines/tiger.toml", "tiny")
+}
+
+/// `pipeline` (a shipped file) extended with the smallest sizes of
+/// [`tiny_pipeline`], under the name `name`: the stages it shares with
+/// `tiger.toml` get the same parameters, hence the same cache keys.
+fn tiny_extension(pipeline: &str, name: &str) -> String {
     format!(
         r#"extends = '{}'
 
 [pipeline]
-name = "tiny"
+name = "{name}"
 
 [stages.scene]
 size = "quick"
@@ -41,7 +48,7 @@ default_density = 0.1
 [stages.codec]
 iterations = 10
 "#,
-        repo("pipelines/tiger.toml").display()
+        repo(pipeline).display()
     )
 }
 
@@ -273,4 +280,90 @@ fn capture_pipeline_runs_on_a_capture_without_ground_truth() {
         (s_cm - s_gt).abs() < 0.01 * s_gt,
         "s_cm {s_cm}, truth {s_gt}"
     );
+}
+
+/// `speed_accuracy.toml` (which extends `tiger_ablations.toml`) after
+/// `tiger.toml` on one cache: everything up to the defurring, the roots and
+/// the full method's learner comes from the cache, only the ablations, the
+/// dense baseline, their evaluations and the chart stage run, and the chart
+/// stage writes its charts, tables and the speed-up (a number, or null with
+/// a note saying why).
+#[test]
+fn speed_accuracy_reuses_the_tiger_run_and_charts_both_learners() {
+    let p = Project::new();
+    p.write("tiny.toml", &tiny_pipeline());
+    let learners = "
+[stages.codec_fixed]
+iterations = 10
+
+[stages.codec_prior]
+iterations = 10
+
+[stages.dense]
+iterations = 30
+";
+    p.write(
+        "tiny_sa.toml",
+        &(tiny_extension("pipelines/speed_accuracy.toml", "tiny_sa") + learners),
+    );
+    p.run("tiny.toml", &[]).ok();
+    let r = p.run("tiny_sa.toml", &[]);
+    r.ok();
+    assert_eq!(r.with("cached"), TIGER_STAGES, "{:?}", r.stages);
+    assert_eq!(
+        r.with("ran"),
+        [
+            "codec_fixed",
+            "codec_prior",
+            "dense",
+            "evaluate_dense",
+            "evaluate_fixed",
+            "evaluate_prior",
+            "speed_accuracy"
+        ],
+        "{:?}",
+        r.stages
+    );
+
+    let out = p.path("out/tiny_sa/speed_accuracy");
+    for f in [
+        "chart_time.png",
+        "chart_time_svg.svg",
+        "chart_params.png",
+        "chart_params_svg.svg",
+        "table_md.md",
+        "table_csv.csv",
+    ] {
+        let len = std::fs::metadata(out.join(f))
+            .unwrap_or_else(|e| panic!("{f}: {e}"))
+            .len();
+        assert!(len > 0, "{f} is empty");
+    }
+    let m = read_json(&out.join("metrics.json"));
+    let speedup = &m["speedup_to_dense_final_fscore"];
+    match speedup.as_f64() {
+        Some(x) => assert!(x.is_finite() && x >= 0.0, "speed-up {x}"),
+        None => {
+            assert!(speedup.is_null(), "speed-up {speedup}");
+            let note = m["speedup_note"].as_str().unwrap_or_default();
+            assert!(
+                note.contains("never reached") || note.contains("undefined"),
+                "{note}"
+            );
+        }
+    }
+    for key in [
+        "dense_final_fscore_3cm_30deg",
+        "codec_final_fscore_3cm_30deg",
+    ] {
+        let f = number(&m, key, "speed_accuracy/metrics.json");
+        assert!((0.0..=100.0).contains(&f), "{key} = {f}");
+    }
+    let methods: BTreeSet<&str> = m["snapshots"]
+        .as_array()
+        .expect("snapshots")
+        .iter()
+        .map(|s| s["method"].as_str().unwrap_or_default())
+        .collect();
+    assert_eq!(methods, BTreeSet::from(["codec", "dense"]));
 }
