@@ -2,7 +2,9 @@
 //! synthetic tiger: `pipelines/tiger.toml` itself (extended with small sizes,
 //! so the DAG under test is the shipped one), its cache behaviour when only a
 //! strand-learning parameter changes, byte-for-byte determinism across fresh
-//! caches, and `pipelines/capture.toml` on a capture without ground truth.
+//! caches, `pipelines/speed_accuracy.toml` on the same cache (the ablations
+//! and the dense baseline reuse the tiger's defurring), and
+//! `pipelines/capture.toml` on a capture without ground truth.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
