@@ -19,9 +19,11 @@
 //! transparency `f32[point count]`, colours `f32[3 x point count]`.
 //!
 //! Mapping to [`Strands`]: the format stores thickness and colour per point; ours are per strand.
-//! Writing repeats the strand's value at every point (always writing the segments, points,
-//! thickness and colour arrays, with the defaults set to the first strand's values); reading takes
-//! the value at a strand's root point, so our own files round-trip exactly. Transparency is read
+//! Writing repeats the strand's value at every point, with the defaults set to the first strand's
+//! values, and leaves out the segments, thickness or colour array when every strand has the same
+//! value (the default then holds it: strands of one length, or the untextured snapshots of the
+//! learners, are about half the size); reading takes the value at a strand's root point, so our
+//! own files round-trip exactly. Transparency is read
 //! past and ignored. A file without a thickness array gets the header's default thickness for
 //! every strand, likewise for colours. `.hair` has no place for part labels (the info field is 88
 //! bytes for the whole file): read strands are unlabelled (part 0, no part names); the PLY format
@@ -273,9 +275,29 @@ fn encode(path: &Path, strands: &Strands) -> Result<Vec<u8>, FormatError> {
         }
         segs.push((len - 1) as u16);
     }
-    let flags = FLAG_SEGMENTS | FLAG_POINTS | FLAG_THICKNESS | FLAG_COLORS;
     let default_width = strands.width.first().copied().unwrap_or(1.0);
     let default_color = strands.color.first().copied().unwrap_or([1.0; 3]);
+    // An array is written unless the header's default holds every value (compared bit for
+    // bit, so that reading gives back exactly what was written).
+    let varies = |differs: bool, flag: u32| if differs { flag } else { 0 };
+    let flags = FLAG_POINTS
+        | varies(segs.windows(2).any(|w| w[0] != w[1]), FLAG_SEGMENTS)
+        | varies(
+            strands
+                .width
+                .iter()
+                .any(|w| w.to_bits() != default_width.to_bits()),
+            FLAG_THICKNESS,
+        )
+        | varies(
+            strands
+                .color
+                .iter()
+                .flatten()
+                .zip(default_color.iter().cycle())
+                .any(|(c, d)| c.to_bits() != d.to_bits()),
+            FLAG_COLORS,
+        );
     let mut out = Vec::with_capacity(HEADER + 2 * n + 28 * strands.points.len());
     out.extend_from_slice(b"HAIR");
     out.extend_from_slice(&hair_count.to_le_bytes());
@@ -292,23 +314,29 @@ fn encode(path: &Path, strands: &Strands) -> Result<Vec<u8>, FormatError> {
     info[..INFO.len()].copy_from_slice(INFO.as_bytes());
     out.extend_from_slice(&info);
     debug_assert_eq!(out.len(), HEADER);
-    for s in &segs {
-        out.extend_from_slice(&s.to_le_bytes());
+    if flags & FLAG_SEGMENTS != 0 {
+        for s in &segs {
+            out.extend_from_slice(&s.to_le_bytes());
+        }
     }
     for p in &strands.points {
         for v in p.to_array() {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
-    for s in 0..n {
-        for _ in 0..strands.strand(s).len() {
-            out.extend_from_slice(&strands.width[s].to_le_bytes());
+    if flags & FLAG_THICKNESS != 0 {
+        for s in 0..n {
+            for _ in 0..strands.strand(s).len() {
+                out.extend_from_slice(&strands.width[s].to_le_bytes());
+            }
         }
     }
-    for s in 0..n {
-        for _ in 0..strands.strand(s).len() {
-            for v in strands.color[s] {
-                out.extend_from_slice(&v.to_le_bytes());
+    if flags & FLAG_COLORS != 0 {
+        for s in 0..n {
+            for _ in 0..strands.strand(s).len() {
+                for v in strands.color[s] {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
             }
         }
     }
@@ -363,6 +391,46 @@ pub(crate) mod tests {
         // Empty sets are fine too.
         write_hair(&p, &Strands::new()).unwrap();
         assert!(read_hair(&p).unwrap().is_empty());
+    }
+
+    /// Arrays that the header's defaults can hold are left out, one by one,
+    /// and the file still reads back exactly.
+    #[test]
+    fn uniform_arrays_are_left_out() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("u.hair");
+        let mut s = Strands::new();
+        for k in 0..5 {
+            let pts: Vec<Vec3> = (0..4).map(|i| Vec3::new(k as f32, i as f32, 0.5)).collect();
+            s.push(&pts, 0, 0.02 + 0.01 * (k % 2) as f32, [0.3, 0.2, 0.1]);
+        }
+        let points = s.points.len();
+        // Same segment count and colour everywhere, widths vary: points and thickness only.
+        write_hair(&p, &s).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        assert_eq!(u32::from_le_bytes(bytes[12..16].try_into().unwrap()), 2 | 4);
+        assert_eq!(bytes.len(), 128 + 16 * points);
+        let back = read_hair(&p).unwrap();
+        assert_eq!(
+            (back.points, back.starts),
+            (s.points.clone(), s.starts.clone())
+        );
+        assert_eq!((back.width, back.color), (s.width.clone(), s.color.clone()));
+        // One different colour brings the colour array back; -0.0 is not 0.0.
+        s.color[3] = [0.3, 0.2, -0.0];
+        s.color[0] = [0.3, 0.2, 0.0];
+        for c in &mut s.color[1..3] {
+            *c = [0.3, 0.2, 0.0];
+        }
+        s.color[4] = [0.3, 0.2, 0.0];
+        write_hair(&p, &s).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        assert_eq!(
+            u32::from_le_bytes(bytes[12..16].try_into().unwrap()),
+            2 | 4 | 16
+        );
+        let back = read_hair(&p).unwrap();
+        assert_eq!(back.color[3][2].to_bits(), (-0.0f32).to_bits());
     }
 
     #[test]
