@@ -104,7 +104,7 @@
 //!   of a strand have unit arc length at the start). Training budget: 3,600
 //!   iterations by default, 12x the codec's 300, as the paper trains its dense
 //!   baseline 12x longer (10.5 h vs 52 min); a dense iteration costs about
-//!   0.85x a codec one here (rendering dominates both; the codec adds its
+//!   0.9x a codec one here (rendering dominates both; the codec adds its
 //!   encoder). Each strand is then sampled
 //!   ~270 times (4,000 of ~52,500 per iteration). `lr_points` (the initial
 //!   rate; it decays with `lr_decay` like the codec's) is the best final

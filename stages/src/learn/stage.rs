@@ -248,7 +248,7 @@ impl Stage for DenseStrands {
     }
     fn params(&self) -> Vec<ParamSpec> {
         // 12x the codec's 300 iterations: the paper trains the dense baseline 12x longer
-        // (10.5 h vs 52 min); a dense iteration costs about 0.85x a codec one here
+        // (10.5 h vs 52 min); a dense iteration costs about 0.9x a codec one here
         // (rendering dominates both; the codec adds its encoder), so this is ~10x the
         // codec's training time.
         let mut p = common_params(3600, 0.01);
