@@ -318,33 +318,23 @@ fn gemm(
     c: &mut [f32],
     sc: Strides,
 ) {
+    let mut run = || gemm_portable(m, k, n, a, sa, b, sb, beta, c, sc);
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2 (checked just above).
-        unsafe { gemm_avx2(m, k, n, a, sa, b, sb, beta, c, sc) };
+        unsafe { with_avx2(run) };
         return;
     }
-    gemm_portable(m, k, n, a, sa, b, sb, beta, c, sc)
+    run()
 }
 
-/// [`gemm_portable`] compiled for AVX2: wider vectors, the same operations in
+/// Runs `f` compiled for AVX2: `f` and the `#[inline(always)]` kernels it
+/// calls are inlined here, so they get wider vectors, the same operations in
 /// the same order (no FMA is enabled), hence the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn gemm_avx2(
-    m: usize,
-    k: usize,
-    n: usize,
-    a: &[f32],
-    sa: Strides,
-    b: &[f32],
-    sb: Strides,
-    beta: f32,
-    c: &mut [f32],
-    sc: Strides,
-) {
-    gemm_portable(m, k, n, a, sa, b, sb, beta, c, sc)
+unsafe fn with_avx2(f: impl FnOnce()) {
+    f()
 }
 
 #[allow(clippy::too_many_arguments)]
