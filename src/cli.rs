@@ -377,6 +377,7 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                 &axis_list("--each", eaches)?,
             );
             let variants = axes.variants();
+            crate::publish::check(&p).map_err(|e| Failure::Usage(format!("error: {e}")))?;
             let cache = open_cache(&cli.cache, Access::Shared)?;
             let opts = RunOptions {
                 jobs: jobs_or_default(*jobs)?,
@@ -502,6 +503,18 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                         );
                     }
                     code = ExitCode::from(EXIT_FAILED);
+                } else if !p.publish.is_empty() {
+                    let command: Vec<String> = std::env::args()
+                        .enumerate()
+                        .map(|(i, a)| if i == 0 { "fure".into() } else { a })
+                        .collect();
+                    let repo = p.file.parent().unwrap_or(Path::new("."));
+                    let stamp = crate::publish::provenance(&command.join(" "), repo);
+                    let written = crate::publish::publish(&p, &rep, &stamp)
+                        .map_err(|e| Failure::Failed(format!("error: {e}")))?;
+                    for w in written {
+                        println!("published {}", w.display());
+                    }
                 }
             }
             Ok(code)

@@ -12,6 +12,7 @@
 //!    what is missing in parallel, stores outputs content-addressed and
 //!    materialises them under `out/<pipeline>/<stage>/`;
 //! 4. [`sweep`] and [`bench`](mod@bench) run many variants or repeats of a pipeline;
+//!    [`publish`] copies a sweep's report out of `out/` (e.g. into `docs/`);
 //! 5. [`cli`] is the `fure` command line.
 //!
 //! See ARCHITECTURE.md for the invariants.
@@ -24,6 +25,7 @@ pub mod exec;
 pub mod key;
 pub mod pipeline;
 pub mod plan;
+pub mod publish;
 pub mod sweep;
 pub mod ui;
 

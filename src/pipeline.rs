@@ -18,6 +18,8 @@
 //! "NAME.other" = [0.0, 0.1, 0.2]
 //! [aggregate.report]            # stages run by `fure sweep` on the sweep record
 //! kind = "..."                  # kind and parameters only: no `inputs`
+//! [publish]                     # aggregate outputs copied out of out/ (`crate::publish`)
+//! "report.results" = "../docs/results.md"
 //! ```
 //!
 //! Parsing is purely syntactic: it keeps every value with the file, line and
@@ -33,7 +35,7 @@
 //! and `[sweep.each]` entries replace the parent's by key (a key moves to the
 //! child's kind of axis; a replaced `each` key keeps its position, new ones
 //! come after the parent's), its `[aggregate.NAME]` tables merge like stages,
-//! and the pipeline name is the child's
+//! its `[publish]` entries replace the parent's by key, and the pipeline name is the child's
 //! (its `[pipeline] name`, or its file stem), so an ablation writes its outputs
 //! next to, not over, the original's.
 
@@ -174,6 +176,9 @@ pub struct Pipeline {
     /// `[aggregate.NAME]` stages, run by `fure sweep` on the sweep record
     /// (`kind` and parameters only; their one input is bound by the engine).
     pub aggregates: Vec<StageDecl>,
+    /// `[publish]`: `"AGGREGATE.PORT"` -> destination (resolved against the
+    /// declaring file's directory), copied there by `fure sweep` (`crate::publish`).
+    pub publish: BTreeMap<String, (PathBuf, Loc)>,
 }
 
 impl Pipeline {
@@ -206,6 +211,7 @@ impl Pipeline {
             sweep: raw.sweep,
             sweep_each: raw.sweep_each,
             aggregates: raw.aggregates,
+            publish: raw.publish,
         })
     }
 
@@ -303,6 +309,7 @@ struct RawFile {
     sweep: BTreeMap<String, (Vec<Value>, Loc)>,
     sweep_each: Vec<(String, Vec<Value>, Loc)>,
     aggregates: Vec<StageDecl>,
+    publish: BTreeMap<String, (PathBuf, Loc)>,
 }
 
 fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineErrors> {
@@ -336,6 +343,7 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
             sweep: BTreeMap::new(),
             sweep_each: Vec::new(),
             aggregates: Vec::new(),
+            publish: BTreeMap::new(),
         },
         Some((parent, loc)) => {
             let parent_path = base.join(parent);
@@ -373,6 +381,7 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
         }
     }
     merge_sweep(&mut pipeline, raw.sweep, raw.sweep_each);
+    pipeline.publish.extend(raw.publish);
     for child in raw.aggregates {
         match pipeline
             .aggregates
@@ -483,6 +492,7 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
         sweep: BTreeMap::new(),
         sweep_each: Vec::new(),
         aggregates: Vec::new(),
+        publish: BTreeMap::new(),
     };
     for (key, item) in root.iter() {
         let loc = cx.key_loc(root, key);
@@ -599,10 +609,34 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
                     }
                 }
             },
+            "publish" => match item.as_table_like() {
+                None => errors.push(PipelineError::at(
+                    &loc,
+                    "`publish` must be a table of \"AGGREGATE.PORT\" = \"destination path\"",
+                )),
+                Some(t) => {
+                    for (k, v) in t.iter() {
+                        let kloc = cx.key_loc(t, k);
+                        match (k.split_once('.'), v.as_str()) {
+                            (Some((a, port)), Some(dest)) if !a.is_empty() && !port.is_empty() && !dest.is_empty() => {
+                                out.publish.insert(k.to_string(), (cx.base.join(dest), kloc));
+                            }
+                            (None, _) | (Some(_), Some(_)) => errors.push(PipelineError::at(
+                                &kloc,
+                                format!("publish key `{k}`: expected \"AGGREGATE.PORT\" = \"destination path\""),
+                            )),
+                            (Some(_), None) => errors.push(PipelineError::at(
+                                &cx.item_loc(v),
+                                format!("publish `{k}`: expected a destination path (a string)"),
+                            )),
+                        }
+                    }
+                }
+            },
             other => errors.push(PipelineError::at(
                 &loc,
                 format!(
-                    "unknown field `{other}` (expected `extends`, `[pipeline]`, `[stages.NAME]`, `[sweep]` or `[aggregate.NAME]`)"
+                    "unknown field `{other}` (expected `extends`, `[pipeline]`, `[stages.NAME]`, `[sweep]`, `[aggregate.NAME]` or `[publish]`)"
                 ),
             )),
         }
@@ -623,10 +657,11 @@ fn sweep_axis(
     kloc: &Loc,
     errors: &mut Vec<PipelineError>,
 ) -> Option<Vec<Value>> {
-    if k.split_once('.').is_none() {
+    // A key links one or more comma-separated targets (`crate::sweep::linked_targets`).
+    if k.split(',').any(|t| t.trim().split_once('.').is_none()) {
         errors.push(PipelineError::at(
             kloc,
-            format!("{table} key `{k}`: expected \"STAGE.PARAM\""),
+            format!("{table} key `{k}`: expected \"STAGE.PARAM\" or linked \"STAGE.PARAM,STAGE.PARAM\""),
         ));
         return None;
     }

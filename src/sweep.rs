@@ -21,7 +21,10 @@
 //! variant's settings list every swept key, held ones included (crossed keys
 //! sorted, then `each` keys in declaration order), so a table row describes
 //! itself; [`Variant::varied`] names the `each` key a variant moves (`None`
-//! for a base point). `--grid KEY=...` replaces an axis's values (keeping its
+//! for a base point). A key may link several targets, `"scene.seed,codec.seed"
+//! = [0, 1]`: every target takes the axis's value (one axis, not a product),
+//! for settings that must move together (a scene's seed and its learners',
+//! a preset and its species table). `--grid KEY=...` replaces an axis's values (keeping its
 //! kind) or adds a crossed axis; `--each KEY=...` replaces or adds a
 //! one-at-a-time axis.
 //!
@@ -66,14 +69,18 @@
 //!  "each_order": ["KEY", ...],
 //!  "variants": [{"index": 0, "name": "p@v0", "settings": {"KEY": value},
 //!                "varied": null, "status": "ok", "reason": "", "failed_stage": null,
-//!                "warnings": ["stage: text"], "metrics": {"stage.key": 1.5}}]}
+//!                "warnings": ["stage: text"], "metrics": {"stage.key": 1.5},
+//!                "costs": {"stage": {"seconds": 2.5, "peak_rss_bytes": 1048576}}}]}
 //! ```
 //!
 //! Object keys are sorted (so `each_order` keeps the declaration order of
 //! the `each` axes); `metrics` leaves out every key whose last component
 //! contains `seconds` or `time` (case-insensitive) and holds no paths, so the
 //! record of an unchanged, cached sweep is byte-identical from run to run
-//! and the aggregate stages keyed on it stay cached. The file is replaced
+//! and the aggregate stages keyed on it stay cached. What the stages cost is
+//! kept apart, in `costs` (`{"STAGE": {"seconds", "peak_rss_bytes"}}` of
+//! each stage's cache entry, the figures of the run that computed it), which
+//! a cached sweep reads back unchanged too. The file is replaced
 //! atomically, and only when its bytes change.
 //!
 //! # Aggregate stages
@@ -248,6 +255,8 @@ pub struct Row {
     pub report: RunReport,
     /// stage -> compute seconds (of the entry), cached?
     pub stage_seconds: BTreeMap<String, (f64, bool)>,
+    /// stage -> (compute seconds, peak RSS bytes) of its cache entry.
+    pub costs: BTreeMap<String, (f64, u64)>,
     /// Every number of every stage's `metrics.json`, flattened.
     pub metrics: BTreeMap<String, f64>,
     pub status: VariantStatus,
@@ -270,13 +279,21 @@ fn setting_loc(pipeline: &Pipeline, target: &str) -> Loc {
     Loc::origin(&format!("--grid/--each {target}"))
 }
 
+/// The `STAGE.PARAM` targets of a sweep key: one, or several linked ones
+/// separated by commas (`"scene.seed,codec.seed"` sets both to each value).
+pub fn linked_targets(key: &str) -> impl Iterator<Item = &str> {
+    key.split(',').map(str::trim)
+}
+
 /// The pipeline of one variant (settings applied, named `<pipeline>@v<N>`).
 pub fn variant_pipeline(pipeline: &Pipeline, v: &Variant) -> Result<Pipeline, PipelineErrors> {
     let mut p = pipeline.clone();
     let mut errors = Vec::new();
-    for (target, value) in &v.settings {
-        if let Err(e) = p.set_param(target, value.clone(), &setting_loc(pipeline, target)) {
-            errors.push(e);
+    for (key, value) in &v.settings {
+        for target in linked_targets(key) {
+            if let Err(e) = p.set_param(target, value.clone(), &setting_loc(pipeline, key)) {
+                errors.push(e);
+            }
         }
     }
     if !errors.is_empty() {
@@ -356,10 +373,15 @@ fn stage_metrics(report: &RunReport, cache: &Cache) -> Vec<(String, serde_json::
 
 fn make_row(v: &Variant, plan: &Plan, report: RunReport, cache: &Cache) -> Row {
     let mut stage_seconds = BTreeMap::new();
+    let mut costs = BTreeMap::new();
     for s in &report.stages {
         if matches!(s.status, Status::Ran | Status::Cached) {
-            let secs = cache.lookup(&s.key).map(|m| m.seconds).unwrap_or(s.seconds);
+            let entry = cache.lookup(&s.key);
+            let secs = entry.as_ref().map(|m| m.seconds).unwrap_or(s.seconds);
             stage_seconds.insert(s.name.clone(), (secs, s.status == Status::Cached));
+            if let Some(m) = entry {
+                costs.insert(s.name.clone(), (m.seconds, m.peak_rss_bytes));
+            }
         }
     }
     let mut metrics = BTreeMap::new();
@@ -387,6 +409,7 @@ fn make_row(v: &Variant, plan: &Plan, report: RunReport, cache: &Cache) -> Row {
         name: plan.name.clone(),
         report,
         stage_seconds,
+        costs,
         metrics,
         status,
         reason,
@@ -557,7 +580,13 @@ pub fn record(pipeline: &str, axes: &Axes, rows: &[Row]) -> serde_json::Value {
                 .filter(|(k, _)| !is_timing(k))
                 .map(|(k, x)| (k.clone(), json!(x)))
                 .collect();
+            let costs: serde_json::Map<String, serde_json::Value> = r
+                .costs
+                .iter()
+                .map(|(k, (secs, rss))| (k.clone(), json!({"seconds": secs, "peak_rss_bytes": rss})))
+                .collect();
             json!({
+                "costs": costs,
                 "index": r.variant.index,
                 "name": r.name,
                 "settings": settings,
@@ -726,6 +755,7 @@ pub fn plan_aggregates(
         sweep: BTreeMap::new(),
         sweep_each: Vec::new(),
         aggregates: Vec::new(),
+        publish: BTreeMap::new(),
     };
     let mut plan = engine.plan(&agg)?;
     // Show the record by its place in out/, not by an absolute path.

@@ -384,3 +384,61 @@ cmd = ["sh", "-c", "cp {deps.sweep} r.json # child"]
     assert_eq!(r["variants"][1]["varied"], "sum.power");
     assert_eq!(r["variants"][4]["settings"]["gen.count"], 8);
 }
+
+#[test]
+fn linked_keys_costs_and_publish() {
+    let p = Project::new();
+    p.write(
+        "pipes/lk.toml",
+        r#"[pipeline]
+name = "lk"
+
+[stages.a]
+kind = "demo_numbers"
+count = 5
+
+[stages.b]
+kind = "demo_numbers"
+count = 5
+
+[sweep]
+"a.scale,b.scale" = [1.0, 3.0]
+
+[aggregate.report]
+kind = "command"
+cmd = ["sh", "-c", "printf '# R\n<!-- fure:provenance -->\nend\n' > results.md; mkdir charts; cp {deps.sweep} charts/record.json"]
+outs = ["results.md", "charts/"]
+
+[publish]
+"report.results.md" = "../docs/results.md"
+"report.charts" = "../docs/charts"
+"#,
+    );
+    let s = p.sweep(&["sweep", "pipes/lk.toml", "--jobs", "1"]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    assert!(s.stdout().contains("sweep lk: 2 variants"), "{}", s.all());
+    let r = json(&p.read("out/lk/sweep.json"));
+    // One axis, two targets: both stages take each value.
+    let v1 = &r["variants"][1];
+    assert_eq!(v1["settings"]["a.scale,b.scale"], 3.0, "{r}");
+    assert_eq!(p.read("out/lk@v1/a/numbers.txt"), p.read("out/lk@v1/b/numbers.txt"));
+    assert_ne!(p.read("out/lk@v0/a/numbers.txt"), p.read("out/lk@v1/a/numbers.txt"));
+    // Costs of every stage's cache entry.
+    assert!(v1["costs"]["a"]["seconds"].as_f64().unwrap() >= 0.0, "{r}");
+    assert!(v1["costs"]["b"]["peak_rss_bytes"].is_u64(), "{r}");
+    // Published next to the pipeline's directory, the Markdown stamped.
+    let md = p.read("docs/results.md");
+    assert!(md.starts_with("# R\nGenerated "), "{md}");
+    assert!(md.contains("by `fure sweep pipes/lk.toml --jobs 1`"), "{md}");
+    assert!(md.ends_with("end\n"), "{md}");
+    assert_eq!(json(&p.read("docs/charts/record.json")), r);
+
+    // A publish key naming no aggregate is a located usage error; nothing runs.
+    p.write(
+        "pipes/bad.toml",
+        "extends = \"lk.toml\"\n[publish]\n\"nope.results\" = \"x.md\"\n",
+    );
+    let s = p.sweep(&["sweep", "pipes/bad.toml"]);
+    assert_eq!(s.code(), 2, "{}", s.all());
+    assert!(s.all().contains("bad.toml:3:1: publish `nope.results`: no aggregate stage `nope`"), "{}", s.all());
+}
