@@ -37,8 +37,9 @@
 //! - `points` (L): with `points = 0` the stage picks the segment length near the pixel footprint for the
 //!   mean strand length: footprint `f` = median over training cameras of (depth of the scene centre / fx),
 //!   scene units per pixel, the scene centre being the least-squares intersection of the camera axes;
-//!   mean length `l` = mean `mean_length_cm` over fur parts of `scene.json` (cm, divided by `s_cm`);
-//!   `L = clamp(round(l / f) + 1, 8, 64)`. When `scene` or `views` is missing (or gives no length),
+//!   mean length `l` = mean over fur parts of the `lengths` stage's estimated `l_p` (scene units;
+//!   an estimate from the images, never the scene's ground-truth lengths);
+//!   `L = clamp(round(l / f) + 1, 8, 64)`. When `lengths` or `views` is missing (or gives no length),
 //!   `L = 24`. The rule used and its numbers are written to `metrics.json`.
 //! - `k` (K): with `k = 0` the smallest K whose cumulative explained variance reaches `variance_target`
 //!   (default 0.999), capped at `k_max` (default 32). Why 99.9% and not 99%: on the default corpus 99%
@@ -992,7 +993,7 @@ pub struct PointsChoice {
 
 /// The automatic L (module doc): `clamp(round(mean length / pixel footprint) + 1, 8, 64)`, 24 without data.
 pub fn choose_points(
-    scene: Option<&crate::scene::SceneInfo>,
+    lengths: Option<&crate::lengths::LengthTable>,
     cams: Option<&crate::camera::CameraSet>,
 ) -> PointsChoice {
     let fallback = |why: &str| PointsChoice {
@@ -1001,21 +1002,19 @@ pub fn choose_points(
         footprint: None,
         mean_length: None,
     };
-    let (Some(scene), Some(cams)) = (scene, cams) else {
-        return fallback("no scene or views input");
+    let (Some(lengths), Some(cams)) = (lengths, cams) else {
+        return fallback("no lengths or views input");
     };
-    let lens: Vec<f64> = scene
+    let lens: Vec<f64> = lengths
         .parts
         .values()
-        .filter(|p| p.fur)
-        .filter_map(|p| p.mean_length_cm)
-        .filter(|l| *l > 0.0)
-        .map(|l| l as f64)
+        .filter(|p| p.fur && p.length > 0.0 && p.length.is_finite())
+        .map(|p| p.length as f64)
         .collect();
-    if lens.is_empty() || !(scene.s_cm > 0.0) || cams.train.is_empty() {
-        return fallback("no fur part with mean_length_cm, or no s_cm / training cameras");
+    if lens.is_empty() || cams.train.is_empty() {
+        return fallback("no fur part with a length, or no training cameras");
     }
-    let mean_len = lens.iter().sum::<f64>() / lens.len() as f64 / scene.s_cm as f64;
+    let mean_len = lens.iter().sum::<f64>() / lens.len() as f64;
     let centre = axes_centre(&cams.train).unwrap_or(DVec3::ZERO);
     let mut fp: Vec<f64> = cams
         .train
@@ -1070,7 +1069,7 @@ impl Stage for StrandBasisStage {
         "strand_basis"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "PCA strand basis (mean + K components) in the root-local canonical frame (x tangent, y \
@@ -1095,7 +1094,7 @@ impl Stage for StrandBasisStage {
             ParamSpec::int(
                 "points",
                 0,
-                "points per strand L incl. root (0: from the scene, see docs)",
+                "points per strand L incl. root (0: from the estimated lengths and the views, see docs)",
             )
             .range(0.0, 200.0),
             ParamSpec::int(
@@ -1117,9 +1116,9 @@ impl Stage for StrandBasisStage {
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
             PortSpec::file(
-                "scene",
+                "lengths",
                 "json",
-                "scene.json (fur lengths, s_cm) for the automatic L",
+                "the `lengths` stage's estimated per-part lengths, for the automatic L",
             )
             .optional(),
             PortSpec::dir("views", "views dir (training cameras) for the automatic L").optional(),
@@ -1174,7 +1173,7 @@ impl Stage for StrandBasisStage {
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         self.validate(ctx.params)?;
         let p = ctx.params;
-        let scene: Option<crate::scene::SceneInfo> = match ctx.input_opt("scene") {
+        let lengths: Option<crate::lengths::LengthTable> = match ctx.input_opt("lengths") {
             Some(path) => Some(crate::formats::json::read_json(path)?),
             None => None,
         };
@@ -1182,7 +1181,7 @@ impl Stage for StrandBasisStage {
             Some(path) => Some(crate::formats::cameras::read_views(path)?),
             None => None,
         };
-        let mut choice = choose_points(scene.as_ref(), cams.as_ref());
+        let mut choice = choose_points(lengths.as_ref(), cams.as_ref());
         let l_param = p.usize("points")?;
         if l_param > 0 {
             choice = PointsChoice {
@@ -1521,7 +1520,6 @@ mod tests {
     #[test]
     fn automatic_points_follow_the_footprint() {
         use crate::camera::{Camera, CameraSet};
-        use crate::scene::{PartInfo, SceneInfo};
         let cam = |pos: Vec3| Camera {
             file_path: "x.png".into(),
             c2w: glam::Mat4::look_at_rh(pos, Vec3::ZERO, Vec3::Y).inverse(),
@@ -1536,24 +1534,30 @@ mod tests {
             train: vec![cam(Vec3::new(0.0, 0.0, 5.0)), cam(Vec3::new(5.0, 0.0, 0.0))],
             test: vec![],
         };
-        let mut parts = std::collections::BTreeMap::new();
-        parts.insert(
-            "torso".to_string(),
-            PartInfo {
-                fur: true,
-                mean_length_cm: Some(20.0),
-                density_per_cm2: None,
-                mean_thickness_cm: None,
-            },
-        );
-        let scene = SceneInfo {
+        let part = |fur: bool, length: f32| crate::lengths::PartLength {
+            fur,
+            vertices: 10,
+            width_p75: 0.0,
+            t_cm: 0.0,
+            multiplier: 1.0,
+            shape_cm: 0.0,
+            reference_cm: None,
+            length_cm: length * 100.0,
+            length,
+            width_cm: 0.0,
+            width: 0.0,
+        };
+        let lengths = crate::lengths::LengthTable {
             s_cm: 100.0,
-            eyes: [Vec3::ZERO; 2],
-            eye_separation_cm: None,
-            parts,
+            s_cm_source: "test".into(),
+            variant: "v1".into(),
+            // The bald part's length is ignored.
+            parts: [("torso".to_string(), part(true, 0.2)), ("eyes".to_string(), part(false, 5.0))]
+                .into_iter()
+                .collect(),
         };
         // Footprint 5 / 500 = 0.01 units/px; length 0.2 units -> 20 segments, 21 points.
-        let c = choose_points(Some(&scene), Some(&cams));
+        let c = choose_points(Some(&lengths), Some(&cams));
         assert_eq!(c.points, 21, "{c:?}");
         assert!((c.footprint.unwrap() - 0.01).abs() < 1e-6);
         assert_eq!(choose_points(None, Some(&cams)).points, 24);

@@ -110,6 +110,12 @@ pub struct Speedup {
     pub codec_final_fscore: f64,
     pub codec_seconds_total: f64,
     pub speedup_to_dense_final_fscore: Option<f64>,
+    /// The speed-up the snapshot times allow: each learner crossed the target somewhere between
+    /// its previous snapshot and the one that reached it, so the ratio lies in
+    /// `[dense previous / codec reached, dense reached / codec previous]` (`None` when the codec
+    /// never reached the target; the upper end `None` when the codec reached it at its first
+    /// snapshot).
+    pub speedup_bracket: Option<(f64, Option<f64>)>,
     pub speedup_note: String,
 }
 
@@ -123,7 +129,19 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         .find(|s| s.f3() >= target)
         .map(|s| s.seconds)
         .unwrap_or(dl.seconds);
-    let t_codec = codec.iter().find(|s| s.f3() >= target).map(|s| s.seconds);
+    let i_dense = dense.iter().position(|s| s.f3() >= target);
+    let i_codec = codec.iter().position(|s| s.f3() >= target);
+    let t_codec = i_codec.map(|i| codec[i].seconds);
+    let before = |snaps: &[ScoredSnapshot], i: Option<usize>| {
+        i.and_then(|i| i.checked_sub(1)).map(|j| snaps[j].seconds)
+    };
+    let bracket = match (t_codec, before(codec, i_codec)) {
+        (Some(tc), prev) if tc > 0.0 => Some((
+            before(dense, i_dense).unwrap_or(0.0) / tc,
+            prev.filter(|&p| p > 0.0).map(|p| t_dense / p),
+        )),
+        _ => None,
+    };
     let (ratio, note) = match t_codec {
         Some(tc) if tc > 0.0 => (
             Some(t_dense / tc),
@@ -152,6 +170,7 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         codec_final_fscore: cl.f3(),
         codec_seconds_total: cl.seconds,
         speedup_to_dense_final_fscore: ratio,
+        speedup_bracket: bracket,
         speedup_note: note,
     })
 }
@@ -436,7 +455,7 @@ impl Stage for SpeedAccuracy {
         "speed_accuracy"
     }
     fn version(&self) -> u32 {
-        3
+        4
     }
     fn doc(&self) -> &'static str {
         "Scores the codec and dense learners' strand snapshots against GT strands and charts F-score at \
@@ -589,6 +608,8 @@ impl Stage for SpeedAccuracy {
         std::fs::write(csv_path, csv).map_err(|e| StageError::io(csv_path, e))?;
         let metrics = serde_json::json!({
             "speedup_to_dense_final_fscore": sp.speedup_to_dense_final_fscore,
+            "speedup_low": sp.speedup_bracket.map(|b| b.0),
+            "speedup_high": sp.speedup_bracket.and_then(|b| b.1),
             "speedup_note": sp.speedup_note,
             "dense_final_fscore_3cm_30deg": sp.dense_final_fscore,
             "dense_seconds_to_final": sp.dense_seconds_to_final,

@@ -1007,6 +1007,10 @@ struct Metrics {
     part_median_width: BTreeMap<String, f32>,
     #[serde(skip_serializing_if = "Option::is_none")]
     gt: Option<GtComparison>,
+    /// Per-vertex Pearson correlation of the widths with the true outer-to-skin distance
+    /// (optional `gt_skin`): does the cue follow the fur where it is, not only per part?
+    #[serde(skip_serializing_if = "Option::is_none")]
+    gt_vertex: Option<GtVertexCorrelation>,
     seconds_widths: f64,
     seconds: f64,
 }
@@ -1076,6 +1080,42 @@ fn gt_comparison(
         spearman: pearson(&ranks(&a), &ranks(&b)),
         parts,
     })
+}
+
+/// Per-vertex widths against the distance from each vertex to the GT skin (optional `gt_skin`).
+#[derive(Serialize)]
+struct GtVertexCorrelation {
+    /// Pearson correlation over the vertices used.
+    pearson: f32,
+    /// Spearman rank correlation over the same vertices.
+    spearman: f32,
+    /// Vertices used: those of fur parts (by `gt_scene`'s fur flags when given, else all).
+    vertices: usize,
+}
+
+/// Correlates `widths` with each vertex's distance to `skin`, over the vertices `keep` admits.
+fn gt_vertex_correlation(
+    mesh: &Mesh,
+    widths: &[f32],
+    skin: &Mesh,
+    keep: impl Fn(usize) -> bool + Sync,
+) -> Result<Option<GtVertexCorrelation>, StageError> {
+    let query = MeshQuery::new(skin).map_err(StageError::failed)?;
+    let pairs: Vec<Option<(f32, f32)>> = mesh
+        .positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, &p)| keep(i).then(|| (widths[i], query.closest_point(p).1)))
+        .collect();
+    let (w, d): (Vec<f32>, Vec<f32>) = pairs.into_iter().flatten().unzip();
+    if w.len() < 3 {
+        return Ok(None);
+    }
+    Ok(Some(GtVertexCorrelation {
+        pearson: pearson(&w, &d),
+        spearman: pearson(&ranks(&w), &ranks(&d)),
+        vertices: w.len(),
+    }))
 }
 
 fn width_settings(p: &Params, d: f32) -> Result<WidthSettings, StageError> {
@@ -1235,6 +1275,12 @@ impl Stage for FrostingStage {
                 "gt_scene",
                 "json",
                 "synthetic scene.json: per-part widths vs GT fur thickness in metrics (optional)",
+            )
+            .optional(),
+            PortSpec::file(
+                "gt_skin",
+                "obj",
+                "GT skin: per-vertex correlation of the widths with the outer-to-skin distance (metrics only)",
             )
             .optional(),
         ]
@@ -1406,10 +1452,24 @@ impl Stage for FrostingStage {
             .iter()
             .map(|(k, v)| (k.clone(), percentile(v, 0.5)))
             .collect();
-        let gt = match ctx.input_opt("gt_scene") {
-            Some(p) => {
-                let sc: crate::scene::SceneInfo = crate::formats::json::read_json(p)?;
-                gt_comparison(&sc, &part_median_width)
+        let gt_scene: Option<crate::scene::SceneInfo> = match ctx.input_opt("gt_scene") {
+            Some(p) => Some(crate::formats::json::read_json(p)?),
+            None => None,
+        };
+        let gt = gt_scene
+            .as_ref()
+            .and_then(|sc| gt_comparison(sc, &part_median_width));
+        let gt_vertex = match ctx.input_opt("gt_skin") {
+            Some(path) => {
+                ctx.progress.message("correlating widths with the GT skin");
+                let skin = crate::formats::obj::read_obj(path)
+                    .map_err(|e| StageError::input("gt_skin", path, e))?;
+                let fur = |i: usize| {
+                    gt_scene.as_ref().map_or(true, |sc| {
+                        sc.parts.get(mesh.part_name(i)).map_or(true, |p| p.fur)
+                    })
+                };
+                gt_vertex_correlation(&mesh, &widths, &skin, fur)?
             }
             None => None,
         };
@@ -1421,6 +1481,7 @@ impl Stage for FrostingStage {
             widths: stats,
             part_median_width,
             gt,
+            gt_vertex,
             seconds_widths,
             seconds: t0.elapsed().as_secs_f64(),
         };

@@ -52,8 +52,11 @@
 //! % with any fixed `m_p`; that needs a per-species prior (V2's reference
 //! lengths).
 //!
-//! A part is non-fur when its name is in `protected_parts`
-//! (case-insensitive) or the scene file marks it `fur = false`.
+//! A part is non-fur when its name is in `protected_parts` (case-insensitive)
+//! or in the optional `protected` input (the `parts` stage's list). The scene
+//! file gives only the eyes and the eye separation: its per-part fields are
+//! ground truth in a synthetic scene and reach this stage only through
+//! `gt_scene`, for the metrics.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -126,14 +129,6 @@ struct MetricReference {
     eyes: Option<[Vec3; 2]>,
     #[serde(default)]
     eye_separation_cm: Option<f32>,
-    #[serde(default)]
-    parts: BTreeMap<String, PartFlag>,
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-struct PartFlag {
-    #[serde(default)]
-    fur: Option<bool>,
 }
 
 /// Errors of the length computation.
@@ -273,7 +268,7 @@ impl Stage for LengthsStage {
         "lengths"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "Metric scale from the eye separation and per-part strand lengths l_p = m_p T_p (V1) or blended \
@@ -329,6 +324,12 @@ impl Stage for LengthsStage {
                 "scene",
                 "json",
                 "scene.json with `eyes` and `eye_separation_cm` (its s_cm is ignored)",
+            )
+            .optional(),
+            PortSpec::file(
+                "protected",
+                "json",
+                "extra non-fur part names (JSON list: the `parts` stage's `protected`)",
             )
             .optional(),
             PortSpec::file(
@@ -411,14 +412,11 @@ impl Stage for LengthsStage {
         let index = PointIndex::new(&shell.positions)
             .map_err(|e| StageError::input("shell", shell_path, e))?;
         let tau = raw_widths(&shell, &index, &outer.positions);
-        let names = p.str_list("protected_parts")?;
+        // Fur flags come from the labelled mesh's parts and the protected set, never from the
+        // scene file (whose per-part fields are ground truth for synthetic scenes).
+        let names = crate::defur::protected_names(ctx)?;
         let prot = protected_parts(&outer.part_names, &names);
-        let fur: Vec<bool> = outer
-            .part_names
-            .iter()
-            .zip(&prot)
-            .map(|(n, &pr)| !pr && reference.parts.get(n).and_then(|f| f.fur).unwrap_or(true))
-            .collect();
+        let fur: Vec<bool> = prot.iter().map(|&pr| !pr).collect();
         let mut multipliers: BTreeMap<String, f32> = DEFAULT_MULTIPLIERS
             .iter()
             .map(|(k, v)| (k.to_string(), *v))
@@ -483,9 +481,14 @@ impl Stage for LengthsStage {
                 abs.insert(name.clone(), e.abs().into());
                 signed.insert(name.clone(), e.into());
             }
-            m.insert("length_error_pct".into(), abs.into());
+            m.insert("length_error_pct".into(), abs.clone().into());
             m.insert("length_error_signed_pct".into(), signed.into());
             m.insert("length_error_max_pct".into(), worst.into());
+            let n = abs.len().max(1) as f64;
+            let mean_abs: f64 = abs.values().filter_map(|v| v.as_f64()).sum::<f64>() / n;
+            if !abs.is_empty() {
+                m.insert("length_error_mean_pct".into(), mean_abs.into());
+            }
         }
         write_json(ctx.output("metrics")?, &serde_json::Value::Object(m))?;
         Ok(())

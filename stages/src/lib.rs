@@ -27,6 +27,7 @@ pub mod render;
 
 // Stages.
 pub mod basis;
+pub mod benchmark;
 pub mod charts;
 pub mod corrupt;
 pub mod defur;
@@ -49,6 +50,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     // One entry per stage kind, alphabetical by module.
     vec![
         Box::new(basis::StrandBasisStage),
+        Box::new(benchmark::BenchmarkReport),
         Box::new(charts::SpeedAccuracy),
         Box::new(corrupt::CorruptViews),
         Box::new(defur::DefurStage),

@@ -81,6 +81,8 @@ pub struct VariantRecord {
     pub failed_stage: Option<String>,
     pub warnings: Vec<String>,
     pub metrics: BTreeMap<String, f64>,
+    /// The record's optional `costs`, flattened: `STAGE.seconds`, `STAGE.peak_rss_bytes`.
+    pub costs: BTreeMap<String, f64>,
 }
 
 /// The sweep record (`sweep.json`).
@@ -359,6 +361,18 @@ impl SweepRecord {
                     ))
                 }
             }
+            let mut costs = BTreeMap::new();
+            match obj.get("costs") {
+                None | Some(Json::Null) => {}
+                Some(c @ Json::Object(_)) => flatten("", c, &mut costs),
+                Some(o) => {
+                    return Err(bad(
+                        path,
+                        &at("costs"),
+                        format!("expected an object, found {}", json_kind(o)),
+                    ))
+                }
+            }
             let index = match obj.get("index") {
                 None | Some(Json::Null) => i,
                 Some(x) => x.as_u64().ok_or_else(|| {
@@ -389,6 +403,7 @@ impl SweepRecord {
                 failed_stage: opt_str("failed_stage")?,
                 warnings,
                 metrics,
+                costs,
             });
         }
         Ok(SweepRecord {

@@ -6,12 +6,23 @@
 //! uniform Laplacian smoothing and shrinks the outer mesh along its normals.
 //!
 //! Choices:
-//! - Default thicknesses are NeuralFur's panda reference list mapped onto
-//!   our part names: torso 3.5 (body), belly 4, neck 4.5, tail 3.5, head,
-//!   muzzle and ears 1.5 (face), legs 3.5 (body), paws 1.5 (face-like short
-//!   fur); other fur parts use `default_thickness_cm` (3.5, body); protected
-//!   (bald) parts 0. Pipelines should set `thickness_cm` to what a user
-//!   would be told for their animal.
+//! - Thicknesses come from a per-species table ([`species_thickness_cm`],
+//!   parameter `species`), the stand-in for NeuralFur's chat-model answer.
+//!   `panda` (the default) is NeuralFur's own reference list mapped onto our
+//!   part names: torso 3.5 (body), belly 4, neck 4.5, tail 3.5, head, muzzle
+//!   and ears 1.5 (face), legs 3.5 (body), paws 1.5. The other species are
+//!   what a person writes down for "how deep is this animal's coat, per body
+//!   region" from general knowledge of the animal (encyclopedia descriptions
+//!   of coat length: a tiger's short sleek coat, a fox's and a wolf's long
+//!   winter coat with a thick neck ruff and brush, a bison's shaggy mane over
+//!   short-haired hindquarters, a short-haired house cat), taken as about half
+//!   the hair length since fur lies at a shallow angle, rounded to 0.5 cm
+//!   (0.3 for the cat's face). They are coarse on purpose, never read from a
+//!   scene, and written without looking at `scene.json`; but they were written
+//!   by the team that built the synthetic presets, so they are not independent
+//!   of the presets' authorship, only of their data. `thickness_cm` overrides
+//!   single parts; other fur parts use `default_thickness_cm`; protected
+//!   (bald) parts 0.
 //! - One smoothing iteration is `s_i <- s_i + step (mean_{j ~ i} s_j - s_i)`
 //!   with `step = 0.5` over all vertices (bald ones included, as their 0
 //!   enters the scalar field): a plain `step = 1` Jacobi average oscillates
@@ -52,6 +63,43 @@ pub const DEFAULT_THICKNESS_CM: &[(&str, f32)] = &[
     ("paws", 1.5),
 ];
 
+/// The species `defur_baseline.species` accepts.
+pub const SPECIES: &[&str] = &["panda", "tiger", "fox", "cat", "bison", "wolf"];
+
+/// Coarse per-part effective fur thickness (cm) of a species (module doc); `None` for an
+/// unknown species.
+pub fn species_thickness_cm(species: &str) -> Option<&'static [(&'static str, f32)]> {
+    Some(match species {
+        "panda" => DEFAULT_THICKNESS_CM,
+        "tiger" => &[
+            ("torso", 1.0), ("belly", 1.5), ("neck", 1.5), ("tail", 1.0), ("head", 0.5),
+            ("muzzle", 0.5), ("ears", 0.5), ("front_legs", 1.0), ("hind_legs", 1.0),
+            ("legs", 1.0), ("paws", 0.5),
+        ],
+        "fox" => &[
+            ("torso", 2.0), ("belly", 2.0), ("neck", 2.5), ("tail", 3.5), ("head", 1.0),
+            ("muzzle", 0.5), ("ears", 0.5), ("front_legs", 1.0), ("hind_legs", 1.0),
+            ("legs", 1.0), ("paws", 0.5),
+        ],
+        "cat" => &[
+            ("torso", 1.0), ("belly", 1.0), ("neck", 1.0), ("tail", 1.0), ("head", 0.5),
+            ("muzzle", 0.3), ("ears", 0.3), ("front_legs", 0.5), ("hind_legs", 0.5),
+            ("legs", 0.5), ("paws", 0.3),
+        ],
+        "bison" => &[
+            ("torso", 2.5), ("shoulders", 8.0), ("belly", 3.0), ("neck", 8.0), ("tail", 3.0),
+            ("head", 6.0), ("muzzle", 1.5), ("ears", 1.5), ("front_legs", 2.0),
+            ("hind_legs", 1.0), ("legs", 1.5), ("paws", 1.0),
+        ],
+        "wolf" => &[
+            ("torso", 3.5), ("belly", 2.5), ("neck", 5.0), ("tail", 4.0), ("head", 1.0),
+            ("muzzle", 0.5), ("ears", 1.0), ("front_legs", 1.0), ("hind_legs", 1.5),
+            ("legs", 1.0), ("paws", 0.5),
+        ],
+        _ => return None,
+    })
+}
+
 /// The baseline shrink of every vertex (scene units) after smoothing.
 pub fn baseline_shrink(
     mesh: &Mesh,
@@ -88,7 +136,7 @@ impl Stage for DefurBaselineStage {
         "defur_baseline"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "NeuralFur's defurring for comparison: per-part thickness (cm, as a chat model would give it) \
@@ -96,9 +144,15 @@ impl Stage for DefurBaselineStage {
     }
     fn params(&self) -> Vec<ParamSpec> {
         vec![
+            ParamSpec::string(
+                "species",
+                "panda",
+                "per-species thickness table (panda: NeuralFur's reference list; module doc)",
+            )
+            .choices(SPECIES),
             ParamSpec::table(
                 "thickness_cm",
-                "per-part fur thickness in cm (overrides the NeuralFur panda defaults)",
+                "per-part fur thickness in cm (overrides the species table)",
             ),
             ParamSpec::float(
                 "default_thickness_cm",
@@ -168,7 +222,14 @@ impl Stage for DefurBaselineStage {
                 "the baseline's thicknesses are in cm and need the metric scale: connect the `scale` input (the lengths stage) or set `s_cm`",
             )
         })?;
-        let mut table: BTreeMap<String, f32> = DEFAULT_THICKNESS_CM
+        let species = p.str("species")?;
+        let mut table: BTreeMap<String, f32> = species_thickness_cm(species)
+            .ok_or_else(|| {
+                StageError::param(
+                    "species",
+                    format!("unknown species `{species}`; expected one of {}", SPECIES.join(", ")),
+                )
+            })?
             .iter()
             .map(|(k, v)| (k.to_string(), *v))
             .collect();

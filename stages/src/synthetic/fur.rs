@@ -199,6 +199,23 @@ pub fn pattern_color(
                 _ => base,
             }
         }
+        Pattern::Wolf => {
+            let cream = [0.86, 0.81, 0.72];
+            let saddle = [0.16, 0.14, 0.12];
+            // Agouti grizzle: banded hairs read as fine light/dark noise on the grey.
+            let v = 1.0 + 0.25 * nz(0.6, 13);
+            let grey = [base[0] * v, base[1] * v, base[2] * v];
+            match part {
+                "torso" | "neck" | "tail" => {
+                    let under = smoothstep(-0.2, -0.6, n.y);
+                    let back = smoothstep(0.45, 0.85, n.y + 0.15 * nz(0.15, 17));
+                    let tip = if part == "tail" { smoothstep(0.8, 0.9, tail_t) } else { 0.0 };
+                    mix3(mix3(mix3(grey, saddle, back.max(tip)), cream, under), saddle, tip)
+                }
+                "head" if n.y < -0.2 => cream,
+                _ => grey,
+            }
+        }
         Pattern::Bison => {
             let v = 1.0 + 0.15 * nz(0.05, 3);
             [base[0] * v, base[1] * v, base[2] * v]

@@ -44,6 +44,13 @@
 //!   vertex labels), `mean_thickness_cm` (mean over the part's strands of the height of the
 //!   strand's highest point above its root's tangent plane: the fur-layer thickness a shell
 //!   fitted around the fur would see).
+//! - Ground truth and what is not: `skin.obj`, `strands.hair`, `regrown.hair` and the per-part
+//!   statistics of `scene.json` are ground truth and may only reach `gt_*` ports (metrics).
+//!   `labels.obj` (the skin's part groups, the stand-in for the mesh a user labels by hand) and
+//!   `scene.json`'s `eyes` / `eye_separation_cm` (what a user clicks and looks up) are the
+//!   capture's own data. `regrown.hair` is the same animal grown again with
+//!   [`regrow_seed`]`(seed)`: scored against `strands.hair` it gives the scene's ceiling, what
+//!   any reconstruction could reach when everything but the seed's draws is right.
 //! - Overrides: `[stages.NAME.parts.<part>]` with `length_cm` (mean strand length),
 //!   `length_jitter` (lengths uniform in `mean * [1 - j, 1 + j]`), `density` (relative to the
 //!   footprint-derived base density), `density_per_cm2` (absolute, replaces the footprint rule
@@ -104,6 +111,9 @@ pub struct Generated {
     pub s_cm: f32,
     pub mesh: crate::mesh::Mesh,
     pub fur: fur::Fur,
+    /// The same animal regrown with another seed ([`regrow_seed`]): the ceiling a reconstruction
+    /// can be scored against, since it differs from `fur` only in what the seed decides.
+    pub regrown: fur::Fur,
     pub cameras: CameraSet,
     pub scene: Scene,
     pub pixel_units: f32,
@@ -285,6 +295,15 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
         ));
     }
     let fur = fur::grow(&preset, &body, &mesh, &cfg);
+    let regrown = fur::grow(
+        &preset,
+        &body,
+        &mesh,
+        &FurConfig {
+            seed: regrow_seed(st.seed),
+            ..cfg.clone()
+        },
+    );
     ensure_finite(
         "GT strands",
         fur.strands.points.iter().flat_map(|p| p.to_array()),
@@ -338,6 +357,7 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
         s_cm,
         mesh,
         fur,
+        regrown,
         cameras: CameraSet { train, test },
         scene,
         pixel_units,
@@ -500,10 +520,10 @@ impl Stage for SyntheticScene {
         "synthetic_scene"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
-        "A synthetic furry animal (tiger, fox, cat, panda, bison): implicit body -> labelled skin \
+        "A synthetic furry animal (tiger, fox, cat, panda, bison, wolf): implicit body -> labelled skin \
          mesh, ground-truth strands, and ray-traced RGBA / mask / fur-mask / depth views on a sphere \
          (training and held-out) with transforms.json; scene.json holds s_cm, the eyes and per-part \
          GT fur statistics. Per-part overrides in `parts.<name>`."
@@ -534,7 +554,9 @@ impl Stage for SyntheticScene {
         vec![
             PortSpec::dir("views", "transforms.json, transforms_test.json, train/ and test/ images, masks, fur masks, depth"),
             PortSpec::file("skin", "obj", "GT skin mesh, one group per part"),
+            PortSpec::file("labels", "obj", "the labelled mesh a user would provide (the skin's part groups); not ground truth for the metrics"),
             PortSpec::file("strands", "hair", "GT strands (Cem Yuksel .hair)"),
+            PortSpec::file("regrown", "hair", "GT: the same animal regrown with another seed, for the per-scene ceiling of the strand metrics"),
             PortSpec::file("strands_ply", "ply", "GT strands as PLY polylines with part labels"),
             PortSpec::file("scene", "json", "scene.json: s_cm, eyes, per-part GT fur statistics"),
             PortSpec::file("report", "json", "what the stage chose: strands, segments, resolution, rays, seconds"),
@@ -551,6 +573,11 @@ impl Stage for SyntheticScene {
     }
 }
 
+/// The seed of the regrown animal (`regrown.hair`): far from any seed a sweep would use.
+pub fn regrow_seed(seed: u64) -> u64 {
+    seed ^ 0x5eed_0000_0001_0000
+}
+
 /// Generates, renders and writes everything for `st` into the context's outputs.
 pub fn run_settings(st: &Settings, ctx: &StageContext<'_>) -> Result<(), StageError> {
     let t0 = Instant::now();
@@ -563,7 +590,11 @@ pub fn run_settings(st: &Settings, ctx: &StageContext<'_>) -> Result<(), StageEr
     let t_render = t1.elapsed().as_secs_f64();
     formats::cameras::write_views(views_dir, &written)?;
     formats::obj::write_obj(ctx.output("skin")?, &g.mesh)?;
+    // The labelled mesh a user would draw by hand (module doc, "Ground truth"): the skin's part
+    // groups, written as its own file so the GT skin can change without touching the labels.
+    formats::obj::write_obj(ctx.output("labels")?, &g.mesh)?;
     formats::hair::write_hair(ctx.output("strands")?, &g.fur.strands)?;
+    formats::hair::write_hair(ctx.output("regrown")?, &g.regrown.strands)?;
     formats::ply::write_ply_strands(ctx.output("strands_ply")?, &g.fur.strands)?;
     formats::json::write_json(ctx.output("scene")?, &scene_info(&g))?;
     let n = g.fur.strands.len();
@@ -632,10 +663,12 @@ mod tests {
     use std::collections::BTreeMap;
     use std::path::Path;
 
-    const FILES: [(&str, &str); 6] = [
+    const FILES: [(&str, &str); 8] = [
         ("views", "views"),
         ("skin", "skin.obj"),
+        ("labels", "labels.obj"),
         ("strands", "strands.hair"),
+        ("regrown", "regrown.hair"),
         ("strands_ply", "strands_ply.ply"),
         ("scene", "scene.json"),
         ("report", "report.json"),

@@ -3,7 +3,9 @@
 //! Every preset is built by one parametric quadruped (`Dims` -> primitives) so the five animals
 //! differ only in numbers: body length and height, head, muzzle, ears, legs, tail, eye separation,
 //! plus species extras (the bison's hump, horns and hooves). Sizes are those of a typical adult:
-//! tiger 190 cm nose to rump, panda 150 cm, bison 300 cm, fox 65 cm, cat 46 cm.
+//! tiger 190 cm nose to rump, panda 150 cm, bison 300 cm, fox 65 cm, cat 46 cm, wolf 120 cm.
+//! The wolf is the held-out shape: long legs under a short, deep chest, a long muzzle, a winter
+//! coat with a long neck ruff and a long bushy tail, and grey colours no other preset has.
 //!
 //! Fur lengths per part are chosen so that the mean GT strand length is near the paper's table
 //! (Artemis: panda 5.22 cm, fox 3.80 cm, cat 1.60 cm, white tiger 3.70 cm); the bison gets long
@@ -17,7 +19,7 @@ use fure_stage_api::{StageError, Value};
 use glam::{Quat, Vec3};
 
 /// The presets the stage offers.
-pub const PRESETS: &[&str] = &["tiger", "fox", "cat", "panda", "bison"];
+pub const PRESETS: &[&str] = &["tiger", "fox", "cat", "panda", "bison", "wolf"];
 
 /// Keys a `parts.<name>` override table may hold.
 pub const OVERRIDE_KEYS: &[&str] = &[
@@ -135,6 +137,8 @@ pub enum Pattern {
     Fox,
     /// Bison: lighter golden hump and head over dark brown.
     Bison,
+    /// Wolf: grey agouti with a dark saddle on the back and a cream underside and muzzle.
+    Wolf,
 }
 
 /// A species preset: geometry, fur and appearance, all in centimetres.
@@ -801,6 +805,56 @@ pub fn preset(name: &str) -> Result<Preset, StageError> {
                     ("eyes", FurParams::bare([0.08, 0.05, 0.04])),
                 ],
                 Pattern::Bison,
+            )
+        }
+        "wolf" => {
+            let g = [0.46, 0.43, 0.39];
+            let c = [0.86, 0.81, 0.72];
+            (
+                Dims {
+                    body_length: 120.0,
+                    torso_y: 56.0,
+                    torso_len: 52.0,
+                    chest_r: 17.0,
+                    hip_r: 12.5,
+                    torso_squash: 0.7,
+                    neck_len: 16.0,
+                    neck_r: 10.0,
+                    neck_rise: 0.5,
+                    head_r: 9.0,
+                    muzzle_len: 12.0,
+                    muzzle_r: 3.8,
+                    ear_len: 8.0,
+                    ear_r: 3.2,
+                    ear_taper: 0.25,
+                    eye_r: 1.2,
+                    eye_sep: 6.0,
+                    leg_r: 4.0,
+                    paw_r: 4.2,
+                    tail_len: 45.0,
+                    tail_r: 4.5,
+                    tail_droop: 1.1,
+                    tail_curve: 0.05,
+                    hooves: false,
+                    hump: false,
+                    horns: false,
+                },
+                vec![
+                    ("torso", FurParams::fur(6.0, 28.0, 0.05, 0.35, 0.3, g)),
+                    ("belly", FurParams::fur(4.0, 22.0, 0.05, 0.3, 0.3, c)),
+                    ("neck", FurParams::fur(8.5, 35.0, 0.1, 0.45, 0.35, g)),
+                    ("head", FurParams::fur(2.2, 14.0, 0.0, 0.15, 0.05, g)),
+                    ("muzzle", FurParams::fur(0.9, 10.0, 0.0, 0.05, 0.0, c)),
+                    ("ears", FurParams::fur(1.8, 14.0, 0.0, 0.1, 0.0, g)),
+                    ("front_legs", FurParams::fur(1.8, 12.0, 0.0, 0.15, 0.1, c)),
+                    ("hind_legs", FurParams::fur(2.4, 14.0, 0.0, 0.2, 0.1, g)),
+                    ("paws", FurParams::fur(1.1, 10.0, 0.0, 0.05, 0.0, c)),
+                    ("pads", FurParams::bare(PAD_COLOR)),
+                    ("tail", FurParams::fur(8.0, 30.0, 0.1, 0.45, 0.35, g)),
+                    ("nose", FurParams::bare(NOSE_COLOR)),
+                    ("eyes", FurParams::bare([0.55, 0.45, 0.1])),
+                ],
+                Pattern::Wolf,
             )
         }
         other => {
