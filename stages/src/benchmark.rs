@@ -85,6 +85,8 @@ pub struct Config {
     pub ceiling: String,
     pub preprocessing: Vec<String>,
     pub speedup: String,
+    /// Where the published charts are, relative to the published document.
+    pub charts_link: String,
 }
 
 /// Mean, sample standard deviation (`None` below two values) and count.
@@ -452,9 +454,10 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         per_scene.insert(sc.name.clone(), sj.into());
         let _ = writeln!(
             md,
-            "![F vs training time, {0}](benchmark/f_vs_time_{1}.svg) ![F vs model size, {0}](benchmark/f_vs_size_{1}.svg)\n",
+            "![F vs training time, {0}]({2}/f_vs_time_{1}.svg) ![F vs model size, {0}]({2}/f_vs_size_{1}.svg)\n",
             sc.name,
-            safe(&sc.name)
+            safe(&sc.name),
+            cfg.charts_link
         );
     }
     out.insert("scenes".into(), per_scene.into());
@@ -636,6 +639,7 @@ fn config(p: &Params) -> Result<Config, StageError> {
         ceiling: p.str("ceiling")?.to_string(),
         preprocessing: p.str_list("preprocessing")?,
         speedup: p.str("speedup")?.to_string(),
+        charts_link: p.str("charts_link")?.to_string(),
     })
 }
 
@@ -679,6 +683,7 @@ impl Stage for BenchmarkReport {
                 "stages whose compute seconds add up to the preprocessing time",
             ),
             ParamSpec::string("speedup", "speed_accuracy", "the speed_accuracy stage's metric prefix"),
+            ParamSpec::string("charts_link", "benchmark", "where the published charts are, relative to the published results.md"),
         ]
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
@@ -749,6 +754,7 @@ mod tests {
             ceiling: "evaluate_ceiling".into(),
             preprocessing: vec!["frosting".into()],
             speedup: "speed_accuracy".into(),
+            charts_link: "benchmark".into(),
         }
     }
 

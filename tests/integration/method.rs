@@ -369,3 +369,188 @@ iterations = 30
         .collect();
     assert_eq!(methods, BTreeSet::from(["codec", "dense"]));
 }
+
+/// The scene's output files a `scene.PORT` input stands for.
+fn scene_file(port: &str) -> &'static str {
+    match port {
+        "views" => "views",
+        "labels" => "labels.obj",
+        "scene" => "scene.json",
+        "skin" => "skin.obj",
+        "strands" => "strands.hair",
+        "regrown" => "regrown.hair",
+        other => panic!("tiger.toml reads scene.{other}: add it to the ground-truth boundary test"),
+    }
+}
+
+/// `tiger.toml` with every `scene.*` input replaced by the same file under `dir`.
+fn from_files(dir: &str, name: &str) -> String {
+    let doc: toml::Table = std::fs::read_to_string(repo("pipelines/tiger.toml"))
+        .unwrap()
+        .parse()
+        .unwrap();
+    let mut s = format!("extends = 'tiny.toml'\n\n[pipeline]\nname = \"{name}\"\n");
+    for (stage, t) in doc["stages"].as_table().unwrap() {
+        let Some(inputs) = t.get("inputs").and_then(|i| i.as_table()) else {
+            continue;
+        };
+        let mut over = Vec::new();
+        for (port, v) in inputs {
+            if let Some(out) = v.as_str().and_then(|v| v.strip_prefix("scene.")) {
+                over.push(format!("{port} = \"{dir}/{}\"", scene_file(out)));
+            }
+        }
+        if !over.is_empty() {
+            s.push_str(&format!("\n[stages.{stage}]\ninputs = {{ {} }}\n", over.join(", ")));
+        }
+    }
+    s
+}
+
+/// The ground-truth boundary: only ports named `gt_*` read ground truth. The same capture is
+/// given twice, once with its ground truth intact and once scrambled (every per-part statistic
+/// and fur flag of scene.json, s_cm, the GT skin moved, the GT strands replaced by another
+/// animal): every reconstruction output is byte-identical, stages without a `gt_*` input are
+/// cache hits (their keys never saw the difference), and the metrics do change.
+#[test]
+fn ground_truth_reaches_only_gt_ports() {
+    let p = Project::new();
+    p.write("tiny.toml", &tiny_pipeline());
+    p.run("tiny.toml", &["--until", "scene"]).ok();
+    let scene = p.path("out/tiny/scene");
+    for dir in ["a", "b"] {
+        for f in files(&scene) {
+            let dst = p.path(dir).join(&f);
+            std::fs::create_dir_all(dst.parent().unwrap()).unwrap();
+            std::fs::copy(scene.join(&f), dst).unwrap();
+        }
+    }
+    // Scramble b's ground truth.
+    let mut gt = read_json(&scene.join("scene.json"));
+    gt["s_cm"] = Json::from(gt["s_cm"].as_f64().unwrap() * 3.0);
+    for (_, part) in gt["parts"].as_object_mut().unwrap() {
+        let part = part.as_object_mut().unwrap();
+        let fur = part["fur"].as_bool().unwrap();
+        part.insert("fur".into(), Json::from(!fur));
+        for k in ["mean_length_cm", "density_per_cm2", "mean_thickness_cm"] {
+            let x = part.get(k).and_then(|x| x.as_f64()).unwrap_or(1.0);
+            part.insert(k.into(), Json::from(x * 7.0 + 1.0));
+        }
+    }
+    p.write("b/scene.json", &gt.to_string());
+    let skin: String = p
+        .read("b/skin.obj")
+        .lines()
+        .map(|l| match l.strip_prefix("v ") {
+            Some(xyz) => {
+                let v: Vec<f64> = xyz.split_whitespace().map(|x| x.parse().unwrap()).collect();
+                format!("v {} {} {}\n", v[0] * 0.9, v[1] * 0.9 + 0.01, v[2] * 0.9)
+            }
+            None => format!("{l}\n"),
+        })
+        .collect();
+    p.write("b/skin.obj", &skin);
+    std::fs::copy(scene.join("regrown.hair"), p.path("b/strands.hair")).unwrap();
+
+    p.write("a.toml", &from_files("a", "gta"));
+    p.write("b.toml", &from_files("b", "gtb"));
+    p.run("a.toml", &[]).ok();
+    let r = p.run("b.toml", &[]);
+    r.ok();
+
+    let reconstruction = [
+        "outer", "parts", "frosting", "lengths", "defur_baseline", "defur", "roots", "basis",
+        "orientation", "codec",
+    ];
+    for stage in reconstruction {
+        let (da, db) = (p.path("out/gta").join(stage), p.path("out/gtb").join(stage));
+        let fa = files(&da);
+        assert!(!fa.is_empty(), "{stage}: no outputs");
+        assert_eq!(fa, files(&db), "{stage}: output files differ");
+        for f in fa.iter().filter(|f| !f.ends_with("metrics.json")) {
+            assert!(
+                std::fs::read(da.join(f)).unwrap() == std::fs::read(db.join(f)).unwrap(),
+                "{stage}/{}: the scrambled ground truth changed a reconstruction output",
+                f.display()
+            );
+        }
+    }
+    // Stages without a gt_* input kept their keys: cache hits.
+    for stage in ["outer", "parts", "roots", "basis", "orientation", "codec"] {
+        assert_eq!(r.status(stage), "cached", "{stage}: {}", r.reason(stage));
+    }
+    // The scrambling reached the metrics (so the test compares what it claims to).
+    let m = |run: &str| read_json(&p.path(&format!("out/{run}/evaluate/metrics.json")));
+    assert_ne!(m("gta")["prf"], m("gtb")["prf"], "the GT strands were not swapped");
+    let d = |run: &str| read_json(&p.path(&format!("out/{run}/defur/metrics.json")));
+    assert_ne!(
+        d("gta")["root_to_skin_mean_cm"], d("gtb")["root_to_skin_mean_cm"],
+        "the GT skin was not moved"
+    );
+}
+
+/// `benchmark.toml` on the suite's smallest scene (the cat) at the tiny sizes, two seeds, as CI
+/// can afford it: every run ends ok, the report aggregates both seeds, and the results document,
+/// its charts and the per-run CSV are published with the provenance stamp where the child
+/// pipeline says (the shipped destinations are replaced, so the repo's docs/ is untouched).
+#[test]
+fn benchmark_suite_runs_on_its_smallest_scene_and_publishes_the_results() {
+    let p = Project::new();
+    let extra = r#"
+[stages.codec_fixed]
+iterations = 10
+
+[stages.codec_prior]
+iterations = 10
+
+[stages.dense]
+iterations = 30
+
+[sweep]
+"scene.preset,defur_baseline.species" = ["cat"]
+"scene.seed,frosting.seed,roots.seed,codec.seed,codec_fixed.seed,codec_prior.seed,dense.seed" = [0, 1]
+
+[publish]
+"report.results" = "docs/results.md"
+"report.charts" = "docs/benchmark"
+"report.runs" = "docs/benchmark/runs.csv"
+"#;
+    p.write(
+        "bench.toml",
+        &(tiny_extension("pipelines/benchmark.toml", "bench") + extra),
+    );
+    let out = p.fure(&["sweep", "bench.toml"]);
+    let text = format!(
+        "stdout:\n{}\nstderr:\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("0 of 2 variants failed"), "{text}");
+
+    let md = p.read("docs/results.md");
+    assert!(md.contains("## Headline, test split"), "{md}");
+    assert!(md.contains("Generated "), "no provenance stamp: {md}");
+    assert!(!md.contains("fure:provenance"), "{md}");
+    for method in ["FurE codec", "dense", "fixed length", "shape prior", "ceiling"] {
+        assert!(md.contains(&format!("| {method} |")), "no row for {method}: {md}");
+    }
+    let m = read_json(&p.path("out/bench/report/metrics.json"));
+    let cat = &m["scenes"]["cat"];
+    assert_eq!(cat["split"], "test", "{m}");
+    for method in ["FurE codec", "dense", "ceiling"] {
+        let f = &cat[method]["signed_f_3cm_30deg"];
+        assert_eq!(f["n"], 2, "{method}: {f}");
+        let mean = f["mean"].as_f64().unwrap();
+        assert!((0.0..=100.0).contains(&mean), "{method}: {f}");
+    }
+    // The regrown animal is close to the truth: its score is a ceiling, above the tiny learners.
+    let ceiling = cat["ceiling"]["signed_f_3cm_30deg"]["mean"].as_f64().unwrap();
+    let codec = cat["FurE codec"]["signed_f_3cm_30deg"]["mean"].as_f64().unwrap();
+    assert!(ceiling > codec, "ceiling {ceiling} <= codec {codec}");
+    assert!(cat["preprocessing"]["seconds"]["mean"].as_f64().unwrap() > 0.0, "{m}");
+    for f in ["f_vs_time_cat.svg", "f_vs_size_cat.png", "runs.csv"] {
+        assert!(p.path("docs/benchmark").join(f).is_file(), "{f} not published");
+    }
+    assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 5);
+}
