@@ -31,11 +31,17 @@
 //!   lock left by a killed run is recovered by the next one; a per-key lock
 //!   makes two runs that need the same stage compute it once, and a run never
 //!   waits while holding a key lock, so there is no deadlock.
+//! - Nothing read from the cache is trusted as a path: a manifest is used only
+//!   after [`validate_manifest`] (hex digests of the right length, plain file
+//!   names, relative directory paths without `.`/`..`, its key and seal
+//!   recomputed), and no symbolic link under the cache is ever followed
+//!   (`O_NOFOLLOW` opens, `lstat`, shard directories checked once per run).
+//!   `verify` reports and removes every violation.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fs::{self, File, OpenOptions};
-use std::io::Write;
-use std::os::unix::fs::{MetadataExt, PermissionsExt};
+use std::io::{Read, Seek, Write};
+use std::os::unix::fs::{MetadataExt, OpenOptionsExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -43,10 +49,10 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
-use crate::key::{self, FileRecord};
+use crate::key::{self, FileRecord, Links};
 
-/// Version of the cache layout and manifest format.
-pub const CACHE_SCHEMA: u32 = 1;
+/// Version of the cache layout and manifest format (2: manifests are sealed).
+pub const CACHE_SCHEMA: u32 = 2;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
@@ -58,6 +64,9 @@ pub enum CacheError {
     },
     #[error("cache {path}: {message}")]
     Format { path: PathBuf, message: String },
+    /// Something fure does not store or follow: a symbolic link, a FIFO, ...
+    #[error("{path}: {message}")]
+    Refused { path: PathBuf, message: String },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CacheError + '_ {
@@ -116,12 +125,129 @@ pub struct Manifest {
     pub peak_rss_bytes: u64,
     pub fure_version: String,
     pub created_unix: u64,
+    /// blake3 over the key and the outputs ([`Manifest::compute_seal`]):
+    /// an edited or damaged manifest naming other (valid) objects is
+    /// detected. It is a checksum, not a signature: the cache's writers are
+    /// trusted not to forge it, its paths are never trusted.
+    #[serde(default)]
+    pub seal: String,
 }
 
 impl Manifest {
     pub fn total_bytes(&self) -> u64 {
         self.outputs.values().map(|o| o.bytes).sum()
     }
+    /// The seal this manifest should carry.
+    pub fn compute_seal(&self) -> String {
+        let mut h = blake3::Hasher::new();
+        h.update(b"fure-manifest-v2\0");
+        h.update(self.key.as_bytes());
+        h.update(b"\0");
+        h.update(&serde_json::to_vec(&self.outputs).unwrap_or_default());
+        h.finalize().to_hex().to_string()
+    }
+    /// Sets the seal (the last step before writing).
+    pub fn seal(mut self) -> Self {
+        self.seal = self.compute_seal();
+        self
+    }
+}
+
+/// A blake3 digest as fure writes it: 64 lowercase hex digits.
+pub fn is_digest(s: &str) -> bool {
+    s.len() == 64 && s.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
+}
+
+/// A plain file name: not empty, not `.` or `..`, no `/` or NUL.
+pub fn is_plain_name(s: &str) -> bool {
+    !s.is_empty() && s != "." && s != ".." && !s.contains('/') && !s.contains('\0')
+}
+
+/// A relative path of plain names separated by single `/`.
+pub fn is_relative_path(s: &str) -> bool {
+    !s.is_empty() && s.split('/').all(is_plain_name)
+}
+
+/// Checks everything of a manifest that a run would use as a path or a
+/// hash; Err says what is wrong. `key` is the name it was found under.
+pub fn validate_manifest(m: &Manifest, key: &str) -> Result<(), String> {
+    if m.schema != CACHE_SCHEMA {
+        return Err(format!(
+            "manifest schema {} (this fure writes {CACHE_SCHEMA})",
+            m.schema
+        ));
+    }
+    if !is_digest(key) || m.key != key {
+        return Err(format!("manifest names key `{}`", m.key));
+    }
+    if m.preimage.key() != key {
+        return Err("the preimage does not hash to the key".into());
+    }
+    let mut names = BTreeSet::new();
+    for (port, o) in &m.outputs {
+        let bad = |what: String| Err(format!("output `{port}`: {what}"));
+        if !is_plain_name(&o.file_name) {
+            return bad(format!("file name {:?} is not a plain name", o.file_name));
+        }
+        if !names.insert(o.file_name.as_str()) {
+            return bad(format!("file name {:?} used twice", o.file_name));
+        }
+        if !is_digest(&o.blake3) {
+            return bad(format!("hash {:?} is not a blake3 digest", o.blake3));
+        }
+        if !o.dir {
+            if !o.files.is_empty() {
+                return bad("a file with a file list".into());
+            }
+            continue;
+        }
+        let mut prev: Option<&str> = None;
+        let mut total = 0u64;
+        let paths: BTreeSet<&str> = o.files.iter().map(|f| f.path.as_str()).collect();
+        for f in &o.files {
+            if !is_relative_path(&f.path) {
+                return bad(format!("path {:?} is not a relative path", f.path));
+            }
+            if !is_digest(&f.blake3) {
+                return bad(format!(
+                    "hash {:?} of {:?} is not a blake3 digest",
+                    f.blake3, f.path
+                ));
+            }
+            // Sorted and unique, and no file is also a directory.
+            if prev.is_some_and(|p| p >= f.path.as_str()) {
+                return bad(format!("path {:?} is out of order or repeated", f.path));
+            }
+            let clash = f
+                .path
+                .match_indices('/')
+                .find(|(i, _)| paths.contains(&f.path[..*i]));
+            if let Some((i, _)) = clash {
+                return bad(format!(
+                    "{:?} is a file and the directory of {:?}",
+                    &f.path[..i],
+                    f.path
+                ));
+            }
+            prev = Some(&f.path);
+            total = total.saturating_add(f.bytes);
+        }
+        if key::dir_hash(&o.files) != o.blake3 || total != o.bytes {
+            return bad("the file list does not match the directory hash".into());
+        }
+    }
+    if m.seal != m.compute_seal() {
+        return Err("the seal does not match the outputs (edited or damaged manifest)".into());
+    }
+    Ok(())
+}
+
+/// Reads a file under the cache without following a symbolic link.
+pub fn read_nofollow(path: &Path) -> std::io::Result<Vec<u8>> {
+    let mut f = key::open_regular(path, Links::Refuse)?;
+    let mut b = Vec::new();
+    f.read_to_end(&mut b)?;
+    Ok(b)
 }
 
 /// What `status` remembers of a stage's last resolution.
@@ -187,8 +313,12 @@ pub enum Access {
 pub struct Cache {
     root: PathBuf,
     hints: Mutex<Hints>,
-    _lock: File,
+    /// None: a read-only cache without a lock file (hits only).
+    _lock: Option<File>,
     counter: AtomicU64,
+    /// Shard directories `objects/ab` found to be real directories (checked
+    /// once per process, so a hit costs no extra `lstat`).
+    shards: Vec<std::sync::atomic::AtomicBool>,
 }
 
 /// A held per-key lock (released on drop).
@@ -248,7 +378,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()
         N.fetch_add(1, Ordering::Relaxed)
     ));
     let res = (|| {
-        let mut f = File::create(&tmp)?;
+        // create_new: a planted link at the temporary name is not followed.
+        let _ = fs::remove_file(&tmp);
+        let mut f = OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)?;
         f.write_all(bytes)?;
         if sync {
             f.sync_all()?;
@@ -278,18 +413,54 @@ impl Cache {
     pub fn open(root: &Path, access: Access) -> Result<Cache, CacheError> {
         for sub in ["objects", "entries", "locks", "tmp", "index", "runs"] {
             let p = root.join(sub);
-            fs::create_dir_all(&p).map_err(io(&p))?;
+            match fs::symlink_metadata(&p) {
+                Ok(md) if md.is_dir() => {}
+                Ok(md) => {
+                    return Err(CacheError::Refused {
+                        message: format!(
+                            "is {} where the cache keeps a directory; fure follows no links \
+                             inside its cache (remove it)",
+                            key::file_type_name(&md.file_type())
+                        ),
+                        path: p,
+                    })
+                }
+                Err(_) => fs::create_dir_all(&p).map_err(io(&p))?,
+            }
         }
         // Absolute, so command stages (which run elsewhere) see valid paths.
         let root = &root.canonicalize().map_err(io(root))?;
         let lock_path = root.join("lock");
-        let lock = OpenOptions::new()
+        let flags = libc::O_NOFOLLOW | libc::O_CLOEXEC;
+        let lock = match OpenOptions::new()
             .create(true)
             .truncate(false)
             .read(true)
             .write(true)
+            .custom_flags(flags)
             .open(&lock_path)
-            .map_err(io(&lock_path))?;
+        {
+            Ok(f) => Some(f),
+            // A read-only cache still serves hits (flock works on a read-only fd).
+            Err(e) if access == Access::Shared && read_only_error(&e) => OpenOptions::new()
+                .read(true)
+                .custom_flags(flags)
+                .open(&lock_path)
+                .ok(),
+            Err(e) => return Err(io(&lock_path)(e)),
+        };
+        let shards = (0..256)
+            .map(|_| std::sync::atomic::AtomicBool::new(false))
+            .collect();
+        let Some(lock) = lock else {
+            return Ok(Cache {
+                root: root.to_path_buf(),
+                hints: Mutex::new(Hints::default()),
+                _lock: None,
+                counter: AtomicU64::new(0),
+                shards,
+            });
+        };
         let got = match access {
             Access::Shared => lock.try_lock_shared(),
             Access::Exclusive => lock.try_lock(),
@@ -306,16 +477,41 @@ impl Cache {
             .map_err(io(&lock_path))?;
         }
         let hints_path = root.join("hints.json");
-        let map = fs::read(&hints_path)
+        let map = read_nofollow(&hints_path)
             .ok()
             .and_then(|b| serde_json::from_slice::<BTreeMap<String, Hint>>(&b).ok())
             .unwrap_or_default();
         Ok(Cache {
             root: root.to_path_buf(),
             hints: Mutex::new(Hints { map, dirty: false }),
-            _lock: lock,
+            _lock: Some(lock),
             counter: AtomicU64::new(0),
+            shards,
         })
+    }
+
+    /// Checks that the shard directory of `hash` is not a link (or anything
+    /// else but a directory); a missing shard is fine (the object is missing).
+    fn check_shard(&self, hash: &str) -> Result<(), String> {
+        let Some(i) = hash.get(..2).and_then(|a| usize::from_str_radix(a, 16).ok()) else {
+            return Err(format!("{hash:?} is not a blake3 digest"));
+        };
+        if self.shards[i].load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        let p = self.root.join("objects").join(&hash[..2]);
+        match fs::symlink_metadata(&p) {
+            Ok(md) if md.is_dir() => {
+                self.shards[i].store(true, Ordering::Relaxed);
+                Ok(())
+            }
+            Ok(md) => Err(format!(
+                "{} is {}, not a directory (run `fure verify`)",
+                p.display(),
+                key::file_type_name(&md.file_type())
+            )),
+            Err(_) => Ok(()),
+        }
     }
 
     pub fn root(&self) -> &Path {
@@ -357,6 +553,9 @@ impl Cache {
     /// blake3 of a file, using the hint table to avoid rereading unchanged files.
     pub fn hash_file_hinted(&self, path: &Path) -> std::io::Result<(String, u64)> {
         let md = fs::metadata(path)?;
+        if !md.is_file() {
+            return Err(key::not_regular(path, &md.file_type()));
+        }
         let k = path.to_string_lossy().into_owned();
         if let Some(h) = self.hint_get(&k) {
             if hint_matches(&h, &md) {
@@ -392,7 +591,10 @@ impl Cache {
         }
     }
 
+    /// The path of an object; `hash` must be a digest (manifests are
+    /// validated before their hashes are used).
     pub fn object_path(&self, hash: &str) -> PathBuf {
+        debug_assert!(is_digest(hash), "{hash:?}");
         let (a, b) = hash.split_at(2.min(hash.len()));
         self.root.join("objects").join(a).join(b)
     }
@@ -400,8 +602,20 @@ impl Cache {
     /// Checks that an object exists with the right size and content (content
     /// by hint when possible). Err describes the problem.
     pub fn check_object(&self, hash: &str, bytes: u64) -> Result<(), String> {
+        if !is_digest(hash) {
+            return Err(format!("{hash:?} is not a blake3 digest"));
+        }
+        self.check_shard(hash)?;
         let p = self.object_path(hash);
-        let md = fs::metadata(&p).map_err(|_| format!("object {} is missing", short(hash)))?;
+        let md =
+            fs::symlink_metadata(&p).map_err(|_| format!("object {} is missing", short(hash)))?;
+        if !md.is_file() {
+            return Err(format!(
+                "object {} is {}",
+                short(hash),
+                key::file_type_name(&md.file_type())
+            ));
+        }
         if md.len() != bytes {
             return Err(format!(
                 "object {} is corrupted (size {} instead of {bytes})",
@@ -420,7 +634,7 @@ impl Cache {
                 return Ok(());
             }
         }
-        match key::hash_file(&p) {
+        match key::open_regular(&p, Links::Refuse).and_then(|mut f| key::hash_open(&mut f)) {
             Ok((h, _)) if h == hash => {
                 self.hint_put(k, &md, hash);
                 Ok(())
@@ -433,12 +647,31 @@ impl Cache {
         }
     }
 
-    /// Reads a manifest; `None` if absent or unreadable (a miss).
+    /// Reads a valid manifest; `None` if absent, unreadable or invalid.
     pub fn lookup(&self, key: &str) -> Option<Manifest> {
+        self.lookup_checked(key).ok().flatten()
+    }
+
+    /// Reads a manifest: Ok(None) if absent, Err(why) if it is there but
+    /// unreadable or fails [`validate_manifest`] (the entry is damaged).
+    pub fn lookup_checked(&self, key: &str) -> Result<Option<Manifest>, String> {
+        if !is_digest(key) {
+            return Err(format!("{key:?} is not a key"));
+        }
         let p = self.root.join("entries").join(format!("{key}.json"));
-        let b = fs::read(p).ok()?;
-        let m: Manifest = serde_json::from_slice(&b).ok()?;
-        (m.schema == CACHE_SCHEMA && m.key == key).then_some(m)
+        let b = match read_nofollow(&p) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("manifest unreadable: {e}")),
+        };
+        let m: Manifest =
+            serde_json::from_slice(&b).map_err(|e| format!("manifest unreadable: {e}"))?;
+        if m.schema != CACHE_SCHEMA {
+            // An older fure's entry: a plain miss, rewritten by this run.
+            return Ok(None);
+        }
+        validate_manifest(&m, key).map_err(|e| format!("invalid manifest: {e}"))?;
+        Ok(Some(m))
     }
 
     /// Checks every object of an entry; Err names the first problem.
@@ -453,43 +686,114 @@ impl Cache {
     }
 
     /// Moves a staged file into the object store; returns its hash and size.
+    ///
+    /// Nothing is followed: a symbolic link is refused, and a file with other
+    /// hard links (its inode is shared with something outside the staging
+    /// directory) is copied first, so the outside file is never made
+    /// read-only nor turned into an object that can change under the cache.
     pub fn store_file(&self, staged: &Path) -> Result<(String, u64), CacheError> {
-        let (hash, n) = key::hash_file(staged).map_err(io(staged))?;
+        let refused = |e: std::io::Error| {
+            if e.kind() == std::io::ErrorKind::InvalidInput {
+                CacheError::Refused {
+                    path: staged.to_path_buf(),
+                    message: format!(
+                        "{e}; a stage's outputs must be regular files and directories"
+                    ),
+                }
+            } else {
+                io(staged)(e)
+            }
+        };
+        let mut f = key::open_regular(staged, Links::Refuse).map_err(refused)?;
+        let md = f.metadata().map_err(io(staged))?;
+        if md.nlink() > 1 {
+            let n = self.counter.fetch_add(1, Ordering::Relaxed);
+            let copy = staged.with_file_name(format!(".fure-copy-{}-{n}", std::process::id()));
+            let _ = fs::remove_file(&copy);
+            let mut c = OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&copy)
+                .map_err(io(&copy))?;
+            std::io::copy(&mut f, &mut c).map_err(io(&copy))?;
+            drop(c);
+            // Unlink our name of the shared inode, then put the copy in its place.
+            fs::remove_file(staged).map_err(io(staged))?;
+            fs::rename(&copy, staged).map_err(io(staged))?;
+            f = key::open_regular(staged, Links::Refuse).map_err(refused)?;
+        }
+        let (hash, n) = key::hash_open(&mut f).map_err(io(staged))?;
+        self.check_shard(&hash).map_err(|message| CacheError::Refused {
+            path: self.root.join("objects"),
+            message,
+        })?;
         let dest = self.object_path(&hash);
-        if fs::metadata(&dest).is_ok() && self.check_object(&hash, n).is_ok() {
+        if fs::symlink_metadata(&dest).is_ok() && self.check_object(&hash, n).is_ok() {
             let _ = fs::remove_file(staged);
             return Ok((hash, n));
         }
         if let Some(parent) = dest.parent() {
             fs::create_dir_all(parent).map_err(io(parent))?;
         }
-        let f = File::open(staged).map_err(io(staged))?;
         f.sync_all().map_err(io(staged))?;
+        // fchmod on our descriptor: never through a name that may have changed.
+        f.set_permissions(fs::Permissions::from_mode(0o444))
+            .map_err(io(staged))?;
         drop(f);
-        fs::set_permissions(staged, fs::Permissions::from_mode(0o444)).map_err(io(staged))?;
-        // A corrupted object in the way is replaced by the rename.
+        // A corrupted object (or anything else) in the way is replaced by the rename.
         if fs::rename(staged, &dest).is_err() {
             // Cross-device staging (should not happen: tmp/ is inside the cache): copy.
             let tmp = dest.with_extension(format!("tmp-{}", std::process::id()));
-            fs::copy(staged, &tmp).map_err(io(&tmp))?;
-            File::open(&tmp)
-                .and_then(|f| f.sync_all())
+            let _ = fs::remove_file(&tmp);
+            let mut src = key::open_regular(staged, Links::Refuse).map_err(refused)?;
+            src.rewind().map_err(io(staged))?;
+            let mut t = OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .mode(0o444)
+                .open(&tmp)
                 .map_err(io(&tmp))?;
+            std::io::copy(&mut src, &mut t).map_err(io(&tmp))?;
+            t.sync_all().map_err(io(&tmp))?;
             fs::rename(&tmp, &dest).map_err(io(&dest))?;
             let _ = fs::remove_file(staged);
         }
         Ok((hash, n))
     }
 
-    /// Stores a staged output (file or directory) as objects.
+    /// Stores a staged output (file or directory) as objects. Links inside
+    /// an output directory, or an output that is a link, are refused.
     pub fn store_output(
         &self,
         staged: &Path,
         file_name: &str,
         dir: bool,
     ) -> Result<OutputRecord, CacheError> {
+        let md = fs::symlink_metadata(staged).map_err(io(staged))?;
+        if md.is_dir() != dir || md.file_type().is_symlink() {
+            return Err(CacheError::Refused {
+                path: staged.to_path_buf(),
+                message: format!(
+                    "output `{file_name}` is {} but should be {}",
+                    key::file_type_name(&md.file_type()),
+                    if dir { "a directory" } else { "a regular file" }
+                ),
+            });
+        }
         if dir {
-            let list = key::list_dir(staged).map_err(io(staged))?;
+            let list = key::list_tree(staged, Links::Refuse).map_err(|e| {
+                if e.kind() == std::io::ErrorKind::InvalidInput {
+                    CacheError::Refused {
+                        path: staged.to_path_buf(),
+                        message: format!(
+                            "output `{file_name}`: {e}; a stage's outputs must be regular \
+                             files and directories"
+                        ),
+                    }
+                } else {
+                    io(staged)(e)
+                }
+            })?;
             let mut files = Vec::with_capacity(list.len());
             let mut total = 0;
             for (rel, p) in list {
@@ -531,18 +835,42 @@ impl Cache {
     }
 
     /// Takes the per-key lock, calling `waiting` once if another process holds it.
+    /// `waiting` gets the holder's pid line, or `this run` when the holder
+    /// is this very process (two stages of one pipeline with one key).
     pub fn lock_key(&self, key: &str, waiting: &dyn Fn(&str)) -> Result<KeyLock, CacheError> {
         let p = self.root.join("locks").join(format!("{key}.lock"));
+        // O_NOFOLLOW: a planted link must not make us truncate another file.
         let mut f = OpenOptions::new()
             .create(true)
             .truncate(false)
             .read(true)
             .write(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
             .open(&p)
-            .map_err(io(&p))?;
+            .map_err(|e| {
+                if e.raw_os_error() == Some(libc::ELOOP) {
+                    CacheError::Refused {
+                        path: p.clone(),
+                        message: "is a symbolic link; fure follows no links inside its cache \
+                                  (run `fure verify`)"
+                            .into(),
+                    }
+                } else {
+                    io(&p)(e)
+                }
+            })?;
+        let ft = f.metadata().map_err(io(&p))?.file_type();
+        if !ft.is_file() {
+            return Err(CacheError::Refused {
+                path: p.clone(),
+                message: format!("is {}, not a lock file (run `fure verify`)", key::file_type_name(&ft)),
+            });
+        }
         if f.try_lock().is_err() {
-            let holder = fs::read_to_string(&p).unwrap_or_default();
-            waiting(holder.trim());
+            let mut holder = String::new();
+            let _ = (&f).read_to_string(&mut holder);
+            let own = format!("pid {}", std::process::id());
+            waiting(if holder.trim() == own { "this run" } else { holder.trim() });
             f.lock().map_err(io(&p))?;
         }
         let _ = f.set_len(0);
@@ -586,7 +914,7 @@ impl Cache {
     }
 
     pub fn load_index(&self, pipeline: &str) -> BTreeMap<String, IndexEntry> {
-        fs::read(self.index_path(pipeline))
+        read_nofollow(&self.index_path(pipeline))
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok())
             .unwrap_or_default()
@@ -611,62 +939,135 @@ impl Cache {
         write_atomic(&p, json, false).ok().map(|_| p)
     }
 
-    /// Every manifest (key -> manifest); unreadable ones are listed separately.
-    fn all_entries(&self) -> (BTreeMap<String, (Manifest, u64)>, Vec<PathBuf>) {
+    /// Every valid manifest (key -> manifest, mtime), and what else is in
+    /// `entries/`: (path, Some(why) to report, None for a temporary leftover).
+    #[allow(clippy::type_complexity)]
+    fn all_entries(&self) -> (BTreeMap<String, (Manifest, u64)>, Vec<(PathBuf, Option<String>)>) {
         let mut ok = BTreeMap::new();
         let mut bad = Vec::new();
         if let Ok(rd) = fs::read_dir(self.root.join("entries")) {
             for e in rd.flatten() {
                 let p = e.path();
                 let name = e.file_name().to_string_lossy().into_owned();
-                let Some(key) = name.strip_suffix(".json") else {
-                    bad.push(p); // temporary leftovers
+                let ft = e.file_type().ok();
+                let key = name.strip_suffix(".json").filter(|k| is_digest(k));
+                let Some(key) = key.filter(|_| ft.is_some_and(|t| t.is_file())) else {
+                    let why = match ft {
+                        Some(t) if t.is_file() && name.contains(".tmp-") => None,
+                        Some(t) => Some(format!(
+                            "entries/{name}: {} that is no manifest",
+                            key::file_type_name(&t)
+                        )),
+                        None => Some(format!("entries/{name}: unreadable")),
+                    };
+                    bad.push((p, why));
                     continue;
                 };
                 let mtime = e.metadata().map(|m| m.mtime() as u64).unwrap_or(0);
-                match fs::read(&p)
-                    .ok()
-                    .and_then(|b| serde_json::from_slice::<Manifest>(&b).ok())
-                {
-                    Some(m) if m.key == key && m.schema == CACHE_SCHEMA => {
+                let parsed = read_nofollow(&p)
+                    .map_err(|e| e.to_string())
+                    .and_then(|b| serde_json::from_slice::<Manifest>(&b).map_err(|e| e.to_string()))
+                    .and_then(|m| validate_manifest(&m, key).map(|()| m));
+                match parsed {
+                    Ok(m) => {
                         ok.insert(key.to_string(), (m, mtime));
                     }
-                    _ => bad.push(p),
+                    Err(why) => bad.push((p, Some(format!("entry {key}: {why}")))),
                 }
             }
         }
         (ok, bad)
     }
 
-    fn all_objects(&self) -> Vec<(String, PathBuf, u64)> {
+    /// Every object (hash, path, size), and whatever else is under
+    /// `objects/` (path, description); nothing is followed.
+    #[allow(clippy::type_complexity)]
+    fn all_objects(&self) -> (Vec<(String, PathBuf, u64)>, Vec<(PathBuf, String)>) {
+        let hex = |s: &str| s.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'));
         let mut out = Vec::new();
+        let mut strays = Vec::new();
         if let Ok(rd) = fs::read_dir(self.root.join("objects")) {
             for d in rd.flatten() {
                 let a = d.file_name().to_string_lossy().into_owned();
+                let ft = d.file_type().ok();
+                if !(ft.is_some_and(|t| t.is_dir()) && a.len() == 2 && hex(&a)) {
+                    let what = ft.map(|t| key::file_type_name(&t)).unwrap_or("unreadable");
+                    strays.push((d.path(), format!("objects/{a}: {what} where a shard directory belongs")));
+                    continue;
+                }
                 if let Ok(rd2) = fs::read_dir(d.path()) {
                     for e in rd2.flatten() {
                         let b = e.file_name().to_string_lossy().into_owned();
-                        let n = e.metadata().map(|m| m.len()).unwrap_or(0);
-                        out.push((format!("{a}{b}"), e.path(), n));
+                        let ft = e.file_type().ok();
+                        if ft.is_some_and(|t| t.is_file()) && b.len() == 62 && hex(&b) {
+                            let n = e.metadata().map(|m| m.len()).unwrap_or(0);
+                            out.push((format!("{a}{b}"), e.path(), n));
+                        } else {
+                            let what = ft.map(|t| key::file_type_name(&t)).unwrap_or("unreadable");
+                            strays.push((e.path(), format!("objects/{a}/{b}: {what} that is no object")));
+                        }
                     }
                 }
             }
         }
         out.sort();
+        (out, strays)
+    }
+
+    /// Removes a path found where it does not belong, without following it.
+    fn remove_stray(p: &Path) {
+        match fs::symlink_metadata(p) {
+            Ok(md) if md.is_dir() => {
+                let _ = remove_tree(p);
+            }
+            _ => {
+                let _ = fs::remove_file(p);
+            }
+        }
+    }
+
+    /// Links, directories and other non-files in `locks/` and `index/`.
+    fn strays_in(&self, sub: &str) -> Vec<(PathBuf, String)> {
+        let mut out = Vec::new();
+        if let Ok(rd) = fs::read_dir(self.root.join(sub)) {
+            for e in rd.flatten() {
+                match e.file_type() {
+                    Ok(t) if t.is_file() => {}
+                    t => out.push((
+                        e.path(),
+                        format!(
+                            "{sub}/{}: {}",
+                            e.file_name().to_string_lossy(),
+                            t.map(|t| key::file_type_name(&t)).unwrap_or("unreadable")
+                        ),
+                    )),
+                }
+            }
+        }
         out
     }
 
     /// Rehashes every object; drops corrupted objects and every entry that
-    /// uses one, and unreadable manifests.
+    /// uses one, invalid manifests, and anything under the cache that fure
+    /// does not write there (links, stray files), reporting each.
     pub fn verify(&self) -> VerifyReport {
         let mut rep = VerifyReport::default();
-        let objects = self.all_objects();
+        let (objects, mut strays) = self.all_objects();
+        strays.extend(self.strays_in("locks"));
+        strays.extend(self.strays_in("index"));
+        for (p, why) in strays {
+            Self::remove_stray(&p);
+            rep.violations.push(format!("{why} (removed)"));
+        }
         let mut bad_objects = BTreeSet::new();
         for (name, path, _) in &objects {
             rep.objects_checked += 1;
-            let good = matches!(key::hash_file(path), Ok((h, _)) if &h == name);
+            let good = matches!(
+                key::open_regular(path, Links::Refuse).and_then(|mut f| key::hash_open(&mut f)),
+                Ok((h, _)) if &h == name
+            );
             if good {
-                if let Ok(md) = fs::metadata(path) {
+                if let Ok(md) = fs::symlink_metadata(path) {
                     self.hint_put(path.to_string_lossy().into_owned(), &md, name);
                 }
             } else {
@@ -677,11 +1078,11 @@ impl Cache {
         }
         let present: BTreeSet<&String> = objects.iter().map(|(n, _, _)| n).collect();
         let (entries, bad) = self.all_entries();
-        for p in bad {
-            if p.extension().map(|e| e == "json").unwrap_or(false) {
-                rep.broken_manifests.push(p.display().to_string());
+        for (p, why) in bad {
+            if let Some(why) = why {
+                rep.broken_manifests.push(format!("{why}"));
             }
-            let _ = fs::remove_file(p);
+            Self::remove_stray(&p);
         }
         for (key, (m, _)) in &entries {
             rep.entries_checked += 1;
@@ -707,14 +1108,14 @@ impl Cache {
             ..GcReport::default()
         };
         let (entries, bad) = self.all_entries();
-        for p in bad {
-            let _ = fs::remove_file(p);
+        for (p, _) in bad {
+            Self::remove_stray(&p);
         }
         // Entries the indexes point at were used by the latest run of some stage.
         let mut indexed = BTreeSet::new();
         if let Ok(rd) = fs::read_dir(self.root.join("index")) {
             for e in rd.flatten() {
-                if let Some(ix) = fs::read(e.path())
+                if let Some(ix) = read_nofollow(&e.path())
                     .ok()
                     .and_then(|b| serde_json::from_slice::<BTreeMap<String, IndexEntry>>(&b).ok())
                 {
@@ -760,7 +1161,12 @@ impl Cache {
             .flat_map(|m| m.outputs.values())
             .flat_map(|o| o.objects().into_iter().map(|(h, _, _)| h))
             .collect();
-        for (name, path, n) in self.all_objects() {
+        let (objects, strays) = self.all_objects();
+        // Links and strays are removed themselves, never what they point at.
+        for (p, _) in strays {
+            Self::remove_stray(&p);
+        }
+        for (name, path, n) in objects {
             if !referenced.contains(name.as_str()) {
                 let _ = fs::remove_file(&path);
                 rep.objects_removed += 1;
@@ -769,10 +1175,11 @@ impl Cache {
                 rep.bytes_kept += n;
             }
         }
-        // Under the exclusive lock no one holds key locks: drop the files.
+        // Under the exclusive lock no one holds key locks: drop the files
+        // (remove_stray: a directory planted there goes too, links unfollowed).
         if let Ok(rd) = fs::read_dir(self.root.join("locks")) {
             for e in rd.flatten() {
-                let _ = fs::remove_file(e.path());
+                Self::remove_stray(&e.path());
             }
         }
         // Forget hints for files that are gone.
@@ -827,7 +1234,11 @@ pub struct VerifyReport {
     pub entries_checked: usize,
     pub corrupted_objects: Vec<String>,
     pub dropped_entries: Vec<String>,
+    /// Manifests that failed to parse or validate (removed), with the reason.
     pub broken_manifests: Vec<String>,
+    /// Paths under the cache that fure never writes there: links, stray
+    /// files or directories (removed, never followed).
+    pub violations: Vec<String>,
 }
 
 impl VerifyReport {
@@ -835,7 +1246,16 @@ impl VerifyReport {
         self.corrupted_objects.is_empty()
             && self.dropped_entries.is_empty()
             && self.broken_manifests.is_empty()
+            && self.violations.is_empty()
     }
+}
+
+/// Whether an error means the cache (or its file system) is read-only.
+fn read_only_error(e: &std::io::Error) -> bool {
+    matches!(
+        e.raw_os_error(),
+        Some(libc::EROFS) | Some(libc::EACCES) | Some(libc::EPERM)
+    )
 }
 
 /// The first 12 hex digits of a hash, for messages.

@@ -578,14 +578,19 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                 println!("dropped entry {e}");
             }
             for m in &rep.broken_manifests {
-                println!("broken manifest {m} (removed)");
+                println!("invalid manifest: {m} (removed)");
+            }
+            for v in &rep.violations {
+                println!("not fure's: {v}");
             }
             println!(
-                "verify: {} objects, {} entries checked; {} corrupted objects, {} entries dropped{}",
+                "verify: {} objects, {} entries checked; {} corrupted objects, {} entries dropped, {} invalid manifests, {} stray paths{}",
                 rep.objects_checked,
                 rep.entries_checked,
                 rep.corrupted_objects.len(),
                 rep.dropped_entries.len(),
+                rep.broken_manifests.len(),
+                rep.violations.len(),
                 if rep.clean() { "; clean" } else { "" }
             );
             Ok(if rep.clean() {

@@ -255,16 +255,39 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                         continue;
                     }
                 };
-                let hit = cache.lookup(&k.key);
-                let damage = hit.as_ref().and_then(|m| cache.check_entry(m).err());
+                let (hit, damage) = match cache.lookup_checked(&k.key) {
+                    Ok(Some(m)) => {
+                        let d = entry_fits(st, &m).and_then(|()| cache.check_entry(&m)).err();
+                        (Some(m), d)
+                    }
+                    Ok(None) => (None, None),
+                    // Present but invalid: damaged, recomputed and rewritten.
+                    Err(e) => (None, Some(e)),
+                };
                 match (hit, damage) {
                     (Some(m), None) => {
                         let reason = cutoff_reason(plan, i, &reports);
                         ui.cached(&st.name, &k.key, &reason);
                         let outputs = if opts.dry_run {
-                            output_reports(cache, &m, None)
+                            Ok(output_reports(cache, &m, None))
                         } else {
-                            materialise_or_warn(cache, opts, plan, st, &m, &ui)
+                            materialise_outputs(cache, opts, plan, st, &m)
+                        };
+                        let outputs = match outputs {
+                            Ok(o) => o,
+                            Err(e) => {
+                                ui.failed(&st.name, &e, None);
+                                reports[i] = Some(report_without_outputs(
+                                    st,
+                                    &k.key,
+                                    Status::Failed,
+                                    reason,
+                                    Some(e),
+                                ));
+                                states[i] = State::Blocked;
+                                failed = true;
+                                continue;
+                            }
                         };
                         reports[i] = Some(StageReport {
                             name: st.name.clone(),
@@ -281,9 +304,9 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                         states[i] = State::Done(m.outputs);
                         keyed[i] = Some(k);
                     }
-                    (hit, damage) => {
+                    (_, damage) => {
                         let reason = match damage {
-                            Some(d) if hit.is_some() => {
+                            Some(d) => {
                                 ui.line(&format!(
                                     "warning: {}: cached entry {} is damaged ({d}); recomputing",
                                     st.name,
@@ -404,20 +427,31 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                             "computed by a concurrent run".to_string(),
                         )
                     };
-                    let outputs = materialise_or_warn(cache, opts, plan, st, &m, &ui);
-                    reports[i] = Some(StageReport {
-                        name: st.name.clone(),
-                        kind: st.kind.clone(),
-                        key: k.key.clone(),
-                        status,
-                        reason,
-                        seconds,
-                        peak_rss_bytes: m.peak_rss_bytes,
-                        outputs,
-                        error: None,
-                    });
                     new_index.insert(st.name.clone(), k.entry.clone());
-                    states[i] = State::Done(m.outputs);
+                    match materialise_outputs(cache, opts, plan, st, &m) {
+                        Ok(outputs) => {
+                            reports[i] = Some(StageReport {
+                                name: st.name.clone(),
+                                kind: st.kind.clone(),
+                                key: k.key.clone(),
+                                status,
+                                reason,
+                                seconds,
+                                peak_rss_bytes: m.peak_rss_bytes,
+                                outputs,
+                                error: None,
+                            });
+                            states[i] = State::Done(m.outputs);
+                        }
+                        Err(e) => {
+                            // Cached, but the run did not deliver its outputs.
+                            ui.failed(&st.name, &e, None);
+                            reports[i] =
+                                Some(report_without_outputs(st, &k.key, Status::Failed, reason, Some(e)));
+                            states[i] = State::Blocked;
+                            failed = true;
+                        }
+                    }
                 }
                 Err(e) => {
                     ui.failed(&st.name, &e, Some(done.progress));
@@ -708,14 +742,19 @@ fn execute(
     let _lock = cache
         .lock_key(key, &|holder| {
             ui.line(&format!(
-                "wait    {}  (another fure process is computing it: {holder})",
-                st.name
+                "wait    {}  ({})",
+                st.name,
+                if holder == "this run" {
+                    "another stage of this run with the same key is computing it".to_string()
+                } else {
+                    format!("another fure process is computing it: {holder}")
+                }
             ))
         })
         .map_err(|e| e.to_string())?;
     // Another process may have finished it while we waited.
-    if let Some(m) = cache.lookup(key) {
-        if cache.check_entry(&m).is_ok() {
+    if let Ok(Some(m)) = cache.lookup_checked(key) {
+        if entry_fits(st, &m).and_then(|()| cache.check_entry(&m)).is_ok() {
             return Ok((m, false));
         }
     }
@@ -780,7 +819,8 @@ fn execute(
     let mut outputs = BTreeMap::new();
     for spec in &st.outputs {
         let p = &ctx.outputs[&spec.name];
-        let md = fs::metadata(p).map_err(|_| {
+        // lstat: an output that is a link is refused by store_output, not followed.
+        let md = fs::symlink_metadata(p).map_err(|_| {
             format!(
                 "did not write its output `{}` ({})",
                 spec.name,
@@ -788,12 +828,17 @@ fn execute(
             )
         })?;
         let dir = spec.kind == PortKind::Dir;
-        if md.is_dir() != dir {
+        if md.is_dir() != dir || !(md.is_dir() || md.is_file()) {
             return Err(format!(
-                "output `{}` should be a {} but is a {}",
+                "output `{}` should be {} but is {}{}",
                 spec.name,
-                if dir { "directory" } else { "file" },
-                if md.is_dir() { "directory" } else { "file" }
+                if dir { "a directory" } else { "a regular file" },
+                crate::key::file_type_name(&md.file_type()),
+                if md.file_type().is_symlink() {
+                    " (fure stores no links: copy the file instead)"
+                } else {
+                    ""
+                }
             ));
         }
         let rec = cache
@@ -813,7 +858,9 @@ fn execute(
         peak_rss_bytes: peak,
         fure_version: FURE_VERSION.to_string(),
         created_unix: cache::created_now(),
-    };
+        seal: String::new(),
+    }
+    .seal();
     cache.write_manifest(&m).map_err(|e| e.to_string())?;
     Ok((m, true))
 }
@@ -854,38 +901,110 @@ fn output_reports(
         .collect()
 }
 
-fn materialise_or_warn(
+/// Materialises a resolved stage's outputs (when the run has an `out/`);
+/// Err is the stage's failure message.
+fn materialise_outputs(
     cache: &Cache,
     opts: &RunOptions,
     plan: &Plan,
     st: &PlannedStage,
     m: &Manifest,
-    ui: &Ui,
-) -> BTreeMap<String, OutputReport> {
+) -> Result<BTreeMap<String, OutputReport>, String> {
     let Some(root) = &opts.out_root else {
-        return output_reports(cache, m, None);
+        return Ok(output_reports(cache, m, None));
     };
     let dir = root.join(&plan.name).join(&st.name);
-    if let Err(e) = materialise(cache, m, &dir) {
-        ui.line(&format!(
-            "warning: {}: cannot materialise outputs in {}: {e}",
-            st.name,
-            dir.display()
-        ));
-    }
-    output_reports(cache, m, Some(&dir))
+    materialise(cache, m, &dir)
+        .map_err(|e| format!("cannot materialise outputs in {}: {e}", dir.display()))?;
+    Ok(output_reports(cache, m, Some(&dir)))
 }
 
-/// Makes `dir` hold exactly the entry's outputs, as hard links to objects.
+/// Whether a (validated) manifest has exactly the outputs the planned stage
+/// declares, under the names it declares: a manifest is never trusted to
+/// say where its files go.
+fn entry_fits(st: &PlannedStage, m: &Manifest) -> Result<(), String> {
+    if m.outputs.len() != st.outputs.len() {
+        return Err("the manifest's outputs are not the stage's".into());
+    }
+    for spec in &st.outputs {
+        let ok = m.outputs.get(&spec.name).is_some_and(|o| {
+            o.file_name == spec.file_name() && o.dir == (spec.kind == PortKind::Dir)
+        });
+        if !ok {
+            return Err(format!(
+                "the manifest's output `{}` is not the stage's",
+                spec.name
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The temporary-name prefix of materialisation; `<prefix><pid>-` marks whose.
+const TMP_PREFIX: &str = ".fure-tmp-";
+
+/// Whether a name is another live process's materialisation temporary (a
+/// concurrent run into the same `out/` must not lose it).
+fn live_foreign_tmp(name: &str) -> bool {
+    name.strip_prefix(TMP_PREFIX)
+        .and_then(|r| r.split('-').next())
+        .and_then(|p| p.parse::<u32>().ok())
+        .is_some_and(|pid| pid != std::process::id() && Path::new(&format!("/proc/{pid}")).exists())
+}
+
+/// Removes a file, a missing one being fine (a concurrent run may have
+/// removed it first).
+fn remove_file_if_there(p: &Path) -> std::io::Result<()> {
+    match fs::remove_file(p) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
+    }
+}
+
+/// Everything but directories under `root` (links not followed), with
+/// relative paths: what may have to go from a materialised directory.
+fn non_dirs(root: &Path) -> std::io::Result<Vec<(String, PathBuf)>> {
+    fn walk(dir: &Path, rel: &str, out: &mut Vec<(String, PathBuf)>) -> std::io::Result<()> {
+        for e in fs::read_dir(dir)? {
+            let e = e?;
+            let name = e.file_name().to_string_lossy().into_owned();
+            let r = if rel.is_empty() {
+                name
+            } else {
+                format!("{rel}/{name}")
+            };
+            if e.file_type()?.is_dir() {
+                walk(&e.path(), &r, out)?;
+            } else {
+                out.push((r, e.path()));
+            }
+        }
+        Ok(())
+    }
+    let mut out = Vec::new();
+    walk(root, "", &mut out)?;
+    Ok(out)
+}
+
+/// Makes `dir` hold exactly the entry's outputs, as hard links to objects
+/// (copies where linking is refused; a copy with the object's size and
+/// content is kept, so a no-op run copies nothing again).
 pub fn materialise(cache: &Cache, m: &Manifest, dir: &Path) -> std::io::Result<()> {
+    static N: AtomicUsize = AtomicUsize::new(0);
     let mut changed = false;
     fs::create_dir_all(dir)?;
     for o in m.outputs.values() {
-        for (hash, _, rel) in o.objects() {
+        for (hash, bytes, rel) in o.objects() {
             let obj = cache.object_path(hash);
             let target = dir.join(&rel);
-            let same = match (fs::symlink_metadata(&target), fs::metadata(&obj)) {
-                (Ok(t), Ok(ob)) => t.is_file() && t.ino() == ob.ino() && t.dev() == ob.dev(),
+            let same = match (fs::symlink_metadata(&target), fs::symlink_metadata(&obj)) {
+                (Ok(t), Ok(ob)) if t.is_file() => {
+                    (t.ino() == ob.ino() && t.dev() == ob.dev())
+                        || (t.len() == bytes
+                            && cache
+                                .hash_file_hinted(&target)
+                                .is_ok_and(|(h, _)| h == hash))
+                }
                 _ => false,
             };
             if same {
@@ -898,22 +1017,28 @@ pub fn materialise(cache: &Cache, m: &Manifest, dir: &Path) -> std::io::Result<(
                 }
             }
             if let Some(p) = target.parent() {
-                if p.is_file() {
+                if fs::symlink_metadata(p).is_ok_and(|md| !md.is_dir()) {
                     fs::remove_file(p)?;
                 }
                 fs::create_dir_all(p)?;
             }
+            // Unique per process and call, so concurrent runs never share one.
             let tmp = target.with_file_name(format!(
-                ".fure-tmp-{}-{}",
+                "{TMP_PREFIX}{}-{}-{}",
                 std::process::id(),
+                N.fetch_add(1, Ordering::Relaxed),
                 target
                     .file_name()
                     .map(|s| s.to_string_lossy().into_owned())
                     .unwrap_or_default()
             ));
             let _ = fs::remove_file(&tmp);
-            link_or_copy(&obj, &tmp)?;
-            fs::rename(&tmp, &target)?;
+            let res = link_or_copy(&obj, &tmp).and_then(|()| fs::rename(&tmp, &target));
+            if let Err(e) = res {
+                // No partial temporary is left behind (a full disk, say).
+                let _ = fs::remove_file(&tmp);
+                return Err(e);
+            }
         }
     }
     if changed {
@@ -922,21 +1047,22 @@ pub fn materialise(cache: &Cache, m: &Manifest, dir: &Path) -> std::io::Result<(
             m.outputs.values().map(|o| o.file_name.clone()).collect();
         for e in fs::read_dir(dir)?.flatten() {
             let name = e.file_name().to_string_lossy().into_owned();
-            if !keep.contains(&name) {
+            if !keep.contains(&name) && !live_foreign_tmp(&name) {
                 let p = e.path();
-                if p.is_dir() {
+                if e.file_type().is_ok_and(|t| t.is_dir()) {
                     cache::remove_tree(&p)?;
                 } else {
-                    fs::remove_file(&p)?;
+                    remove_file_if_there(&p)?;
                 }
             }
         }
         for o in m.outputs.values().filter(|o| o.dir) {
             let wanted: std::collections::BTreeSet<&str> =
                 o.files.iter().map(|f| f.path.as_str()).collect();
-            for (rel, p) in crate::key::list_dir(&dir.join(&o.file_name))? {
-                if !wanted.contains(rel.as_str()) {
-                    fs::remove_file(p)?;
+            for (rel, p) in non_dirs(&dir.join(&o.file_name))? {
+                let name = rel.rsplit('/').next().unwrap_or(&rel);
+                if !wanted.contains(rel.as_str()) && !live_foreign_tmp(name) {
+                    remove_file_if_there(&p)?;
                 }
             }
         }

@@ -85,14 +85,53 @@ impl Preimage {
     }
 }
 
-/// blake3 of a file's bytes and its length.
+/// blake3 of a file's bytes and its length (a final symlink is followed;
+/// anything but a regular file is refused).
 pub fn hash_file(path: &Path) -> std::io::Result<(String, u64)> {
-    let mut f = File::open(path)?;
+    hash_open(&mut open_regular(path, Links::Follow)?)
+}
+
+/// Opens a regular file for reading. Non-blocking, so a FIFO is refused
+/// instead of hanging the open; with [`Links::Refuse`] a final symlink is
+/// refused too (`O_NOFOLLOW`).
+pub fn open_regular(path: &Path, links: Links) -> std::io::Result<File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut flags = libc::O_NONBLOCK | libc::O_CLOEXEC;
+    if links == Links::Refuse {
+        flags |= libc::O_NOFOLLOW;
+    }
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(flags)
+        .open(path)
+        .map_err(|e| {
+            if links == Links::Refuse && e.raw_os_error() == Some(libc::ELOOP) {
+                std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    format!("{} is a symbolic link", path.display()),
+                )
+            } else {
+                e
+            }
+        })?;
+    let ft = f.metadata()?.file_type();
+    if !ft.is_file() {
+        return Err(not_regular(path, &ft));
+    }
+    Ok(f)
+}
+
+/// blake3 of an open file's bytes from its current position, and their length.
+pub fn hash_open(f: &mut File) -> std::io::Result<(String, u64)> {
     let mut h = blake3::Hasher::new();
     let mut buf = vec![0u8; 1 << 16];
     let mut n = 0u64;
     loop {
-        let k = f.read(&mut buf)?;
+        let k = match f.read(&mut buf) {
+            Ok(k) => k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
         if k == 0 {
             break;
         }
@@ -126,11 +165,66 @@ pub fn dir_hash(files: &[FileRecord]) -> String {
     h.finalize().to_hex().to_string()
 }
 
-/// Lists the files under `root` (following symlinks), sorted by relative path.
+/// How [`list_tree`] treats symbolic links.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Links {
+    /// Inputs: a user's data may be a tree of links; they are followed.
+    Follow,
+    /// Stage outputs: a link is refused, so storing never moves or reads
+    /// anything outside the output directory.
+    Refuse,
+}
+
+/// What a path is, for messages about non-regular files.
+pub fn file_type_name(ft: &std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if ft.is_symlink() {
+        "a symbolic link"
+    } else if ft.is_dir() {
+        "a directory"
+    } else if ft.is_file() {
+        "a regular file"
+    } else if ft.is_fifo() {
+        "a FIFO"
+    } else if ft.is_socket() {
+        "a socket"
+    } else if ft.is_char_device() {
+        "a character device"
+    } else if ft.is_block_device() {
+        "a block device"
+    } else {
+        "not a regular file"
+    }
+}
+
+/// An `InvalidInput` error naming a path that is not a regular file or directory.
+pub fn not_regular(path: &Path, ft: &std::fs::FileType) -> std::io::Error {
+    std::io::Error::new(
+        std::io::ErrorKind::InvalidInput,
+        format!(
+            "{} is {}, not a regular file or directory",
+            path.display(),
+            file_type_name(ft)
+        ),
+    )
+}
+
+/// Lists the files under `root` (following symlinks), sorted by relative
+/// path. FIFOs, sockets and devices are refused (reading one would hang or
+/// never end).
 pub fn list_dir(root: &Path) -> std::io::Result<Vec<(String, std::path::PathBuf)>> {
+    list_tree(root, Links::Follow)
+}
+
+/// Lists the regular files under `root`, sorted by relative path.
+pub fn list_tree(
+    root: &Path,
+    links: Links,
+) -> std::io::Result<Vec<(String, std::path::PathBuf)>> {
     fn walk(
         root: &Path,
         rel: &str,
+        links: Links,
         out: &mut Vec<(String, std::path::PathBuf)>,
     ) -> std::io::Result<()> {
         let dir = if rel.is_empty() {
@@ -147,17 +241,23 @@ pub fn list_dir(root: &Path) -> std::io::Result<Vec<(String, std::path::PathBuf)
                 format!("{rel}/{name}")
             };
             let p = e.path();
-            let md = std::fs::metadata(&p)?;
-            if md.is_dir() {
-                walk(root, &r, out)?;
-            } else {
+            let ft = match links {
+                Links::Follow => std::fs::metadata(&p)?.file_type(),
+                // The entry's own type: never a stat through a link.
+                Links::Refuse => e.file_type()?,
+            };
+            if ft.is_dir() {
+                walk(root, &r, links, out)?;
+            } else if ft.is_file() {
                 out.push((r, p));
+            } else {
+                return Err(not_regular(&p, &ft));
             }
         }
         Ok(())
     }
     let mut out = Vec::new();
-    walk(root, "", &mut out)?;
+    walk(root, "", links, &mut out)?;
     out.sort_by(|a, b| a.0.cmp(&b.0));
     Ok(out)
 }

@@ -80,9 +80,9 @@ impl Project {
 }
 
 pub(crate) struct Run {
-    out: Output,
+    pub(crate) out: Output,
     pub(crate) stages: BTreeMap<String, (String, String)>,
-    json: serde_json::Value,
+    pub(crate) json: serde_json::Value,
 }
 
 impl Run {
@@ -478,7 +478,7 @@ fn kill_9_mid_stage_then_rerun_and_verify_clean() {
     let text = String::from_utf8_lossy(&v.stdout);
     assert_eq!(v.status.code(), Some(0), "{text}");
     assert!(
-        text.contains("0 corrupted objects, 0 entries dropped; clean"),
+        text.contains("0 corrupted objects, 0 entries dropped, 0 invalid manifests, 0 stray paths; clean"),
         "{text}"
     );
     // gc removes the dead run's leftovers and keeps the entries.

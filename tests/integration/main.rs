@@ -3,5 +3,6 @@
 
 mod bad_input;
 mod engine;
+mod engine_trust;
 mod method;
 mod sweep;

@@ -1,0 +1,409 @@
+//! The cache and command outputs are untrusted (issue 16): outputs are
+//! stored without following links, every path read from the cache is
+//! validated, materialisation failures fail the run, placeholders have a
+//! grammar, signals reach the children, non-regular inputs are refused.
+//! Each test is a case that once went wrong silently.
+
+use std::os::unix::fs::{MetadataExt, PermissionsExt};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::engine::Project;
+
+/// The manifest path of the entry a stage resolved to in the last report.
+fn manifest_of(p: &Project, run: &crate::engine::Run, stage: &str) -> PathBuf {
+    let key = run.json["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == stage)
+        .unwrap_or_else(|| panic!("no stage {stage}"))["key"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    p.path("cache/entries").join(format!("{key}.json"))
+}
+
+fn read_manifest(path: &Path) -> fure::cache::Manifest {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+/// Rewrites a manifest, resealed: only path and hash validation can catch it.
+fn tamper(path: &Path, edit: impl FnOnce(&mut fure::cache::Manifest)) {
+    let mut m = read_manifest(path);
+    edit(&mut m);
+    let m = m.seal();
+    std::fs::write(path, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+}
+
+fn mode(p: &Path) -> u32 {
+    std::fs::metadata(p).unwrap().mode() & 0o777
+}
+
+/// No symbolic link anywhere under `root`.
+fn assert_no_links(root: &Path) {
+    for e in walk(root) {
+        let md = std::fs::symlink_metadata(&e).unwrap();
+        assert!(!md.file_type().is_symlink(), "link in the cache: {}", e.display());
+    }
+}
+
+fn walk(root: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Ok(rd) = std::fs::read_dir(root) {
+        for e in rd.flatten() {
+            let p = e.path();
+            if e.file_type().unwrap().is_dir() {
+                out.extend(walk(&p));
+            }
+            out.push(p);
+        }
+    }
+    out
+}
+
+#[test]
+fn links_in_command_outputs_are_refused_and_their_targets_untouched() {
+    let p = Project::new();
+    p.write("outside/a.txt", "keep me\n");
+    p.write("outside/sub/b.txt", "me too\n");
+    let outside = p.path("outside");
+    let o = outside.display();
+    p.write(
+        "links.toml",
+        &format!(
+            r#"
+[stages.dir_is_link]
+kind = "command"
+cmd = ["sh", "-c", "rmdir d && ln -s {o} d"]
+outs = ["d/"]
+
+[stages.link_inside]
+kind = "command"
+cmd = ["sh", "-c", "echo x > d/x.txt && ln -s {o}/sub d/sub"]
+outs = ["d/"]
+
+[stages.file_is_link]
+kind = "command"
+cmd = ["ln", "-s", "{o}/a.txt", "f.txt"]
+outs = ["f.txt"]
+"#
+        ),
+    );
+    let r = p.run("links.toml", &["--keep-going"]);
+    assert_eq!(r.code(), 1, "{}", r.stderr());
+    for s in ["dir_is_link", "link_inside", "file_is_link"] {
+        assert_eq!(r.status(s), "failed", "{s}");
+    }
+    let err = r.stderr();
+    assert!(err.contains("symbolic link"), "{err}");
+    // The targets are where they were, unchanged and still writable.
+    assert_eq!(p.read("outside/a.txt"), "keep me\n");
+    assert_eq!(p.read("outside/sub/b.txt"), "me too\n");
+    assert_eq!(mode(&outside.join("a.txt")) & 0o200, 0o200);
+    assert_no_links(&p.path("cache"));
+    assert_eq!(walk(&p.path("cache/entries")).len(), 0);
+}
+
+#[test]
+fn a_hard_linked_output_is_copied_never_made_read_only() {
+    let p = Project::new();
+    p.write("outside/b.txt", "shared inode\n");
+    let b = p.path("outside/b.txt");
+    p.write(
+        "hard.toml",
+        &format!(
+            "[stages.hard]\nkind = \"command\"\ncmd = [\"ln\", \"{}\", \"h.txt\"]\nouts = [\"h.txt\"]\n",
+            b.display()
+        ),
+    );
+    let r = p.run("hard.toml", &[]);
+    r.ok();
+    assert_eq!(mode(&b), 0o644, "the outside file was chmod-ed");
+    assert_eq!(std::fs::metadata(&b).unwrap().nlink(), 1);
+    assert_eq!(p.read("out/hard/hard/h.txt"), "shared inode\n");
+    // Changing the outside file does not change the cached object.
+    std::fs::write(&b, "changed\n").unwrap();
+    let v = p.fure(&["verify"]);
+    assert_eq!(v.status.code(), Some(0), "{}", String::from_utf8_lossy(&v.stdout));
+    assert_eq!(p.read("out/hard/hard/h.txt"), "shared inode\n");
+}
+
+const TWO: &str = r#"
+[stages.f]
+kind = "command"
+cmd = ["sh", "-c", "echo file > o.txt"]
+outs = ["o.txt"]
+
+[stages.d]
+kind = "command"
+cmd = ["sh", "-c", "mkdir -p d/s && echo one > d/x.txt && echo two > d/s/y.txt"]
+outs = ["d/"]
+
+[stages.g]
+kind = "command"
+cmd = ["sh", "-c", "echo gggg > g.txt"]
+outs = ["g.txt"]
+"#;
+
+#[test]
+fn paths_and_hashes_read_from_a_manifest_are_validated() {
+    let p = Project::new();
+    p.write("two.toml", TWO);
+    let first = p.run("two.toml", &[]);
+    first.ok();
+    let mf = manifest_of(&p, &first, "f");
+    let md = manifest_of(&p, &first, "d");
+    let g_hash = read_manifest(&manifest_of(&p, &first, "g")).outputs["g.txt"]
+        .blake3
+        .clone();
+    std::fs::create_dir_all(p.path("victim")).unwrap();
+    p.write("victim/other.txt", "survives\n");
+    let victim = p.path("victim").display().to_string();
+    type Edit = Box<dyn Fn(&mut fure::cache::Manifest)>;
+    let cases: Vec<(&str, &Path, Edit, &str)> = vec![
+        (
+            "f",
+            &mf,
+            Box::new(|m| m.outputs.get_mut("o.txt").unwrap().file_name = "../../escape.txt".into()),
+            "not a plain name",
+        ),
+        (
+            "f",
+            &mf,
+            Box::new({
+                let v = victim.clone();
+                move |m| m.outputs.get_mut("o.txt").unwrap().file_name = format!("{v}/o.txt")
+            }),
+            "not a plain name",
+        ),
+        (
+            "d",
+            &md,
+            Box::new({
+                let v = victim.clone();
+                move |m| m.outputs.get_mut("d").unwrap().file_name = v.clone()
+            }),
+            "not a plain name",
+        ),
+        (
+            "d",
+            &md,
+            Box::new(|m| {
+                let o = m.outputs.get_mut("d").unwrap();
+                o.files[0].path = "../../../escape.txt".into();
+                o.files.sort_by(|a, b| a.path.cmp(&b.path));
+                o.blake3 = fure::key::dir_hash(&o.files);
+            }),
+            "not a relative path",
+        ),
+        (
+            "f",
+            &mf,
+            Box::new(|m| m.outputs.get_mut("o.txt").unwrap().blake3 = "../../../../etc/hostname".into()),
+            "not a blake3 digest",
+        ),
+    ];
+    for (stage, path, edit, why) in &cases {
+        tamper(path, edit);
+        let r = p.run("two.toml", &[]);
+        r.ok();
+        assert_eq!(r.status(stage), "ran", "{why}");
+        assert!(
+            r.reason(stage).contains("cached entry damaged") && r.reason(stage).contains(why),
+            "{}",
+            r.reason(stage)
+        );
+        assert!(!p.path("escape.txt").exists() && !p.path("out/escape.txt").exists());
+        assert!(!p.path("victim/o.txt").exists());
+        assert_eq!(p.read("victim/other.txt"), "survives\n");
+        assert_eq!(p.read("out/two/f/o.txt"), "file\n");
+        assert_eq!(p.read("out/two/d/d/s/y.txt"), "two\n");
+        // verify reports the same damage and drops the entry.
+        tamper(path, edit);
+        let v = p.fure(&["verify"]);
+        let text = String::from_utf8_lossy(&v.stdout);
+        assert_eq!(v.status.code(), Some(1), "{text}");
+        assert!(text.contains("invalid manifest") && text.contains(why), "{text}");
+        assert!(!path.exists());
+        let v = p.fure(&["verify"]);
+        assert_eq!(v.status.code(), Some(0), "{}", String::from_utf8_lossy(&v.stdout));
+        p.run("two.toml", &[]).ok();
+    }
+
+    // A manifest naming another valid object (not resealed): detected by the seal.
+    let mut m = read_manifest(&mf);
+    let o = m.outputs.get_mut("o.txt").unwrap();
+    o.blake3 = g_hash.clone();
+    o.bytes = 5;
+    std::fs::write(&mf, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+    let r = p.run("two.toml", &[]);
+    r.ok();
+    assert_eq!(r.status("f"), "ran");
+    assert!(r.reason("f").contains("seal"), "{}", r.reason("f"));
+    assert_eq!(p.read("out/two/f/o.txt"), "file\n");
+    std::fs::write(&mf, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+    let v = p.fure(&["verify"]);
+    let text = String::from_utf8_lossy(&v.stdout);
+    assert_eq!(v.status.code(), Some(1), "{text}");
+    assert!(text.contains("seal"), "{text}");
+}
+
+#[test]
+fn links_under_the_cache_are_never_followed() {
+    let p = Project::new();
+    p.write("two.toml", TWO);
+    let r = p.run("two.toml", &[]);
+    r.ok();
+    // A symlinked key lock: the run refuses it instead of truncating the target.
+    p.write("victim.txt", "precious\n");
+    let mf = manifest_of(&p, &r, "f");
+    let key = mf.file_stem().unwrap().to_string_lossy().into_owned();
+    std::fs::remove_file(&mf).unwrap();
+    let lock = p.path("cache/locks").join(format!("{key}.lock"));
+    let _ = std::fs::remove_file(&lock);
+    std::os::unix::fs::symlink(p.path("victim.txt"), &lock).unwrap();
+    let r = p.run("two.toml", &[]);
+    assert_eq!(r.code(), 1);
+    assert_eq!(r.status("f"), "failed");
+    assert!(r.stderr().contains("symbolic link"), "{}", r.stderr());
+    assert_eq!(p.read("victim.txt"), "precious\n");
+
+    // A symlinked shard directory: gc and verify remove the link, not the target's files.
+    std::fs::create_dir_all(p.path("victim_dir")).unwrap();
+    p.write("victim_dir/file", "precious\n");
+    std::os::unix::fs::symlink(p.path("victim_dir"), p.path("cache/objects/zz")).unwrap();
+    let v = p.fure(&["verify"]);
+    let text = String::from_utf8_lossy(&v.stdout);
+    assert_eq!(v.status.code(), Some(1), "{text}");
+    assert!(text.contains("objects/zz: a symbolic link"), "{text}");
+    assert!(text.contains(&format!("locks/{key}.lock: a symbolic link")), "{text}");
+    assert!(std::fs::symlink_metadata(&lock).is_err());
+    std::os::unix::fs::symlink(p.path("victim_dir"), p.path("cache/objects/zz")).unwrap();
+    let g = p.fure(&["gc"]);
+    assert_eq!(g.status.code(), Some(0));
+    assert_eq!(p.read("victim_dir/file"), "precious\n");
+    assert!(std::fs::symlink_metadata(p.path("cache/objects/zz")).is_err());
+    // A symlinked manifest is not read through.
+    let r = p.run("two.toml", &[]);
+    r.ok();
+    let mg = manifest_of(&p, &r, "g");
+    let real = p.path("g.json");
+    std::fs::rename(&mg, &real).unwrap();
+    std::os::unix::fs::symlink(&real, &mg).unwrap();
+    let r = p.run("two.toml", &[]);
+    r.ok();
+    assert_eq!(r.status("g"), "ran");
+    let v = p.fure(&["verify"]);
+    assert_eq!(v.status.code(), Some(0), "{}", String::from_utf8_lossy(&v.stdout));
+}
+
+#[test]
+fn a_materialisation_failure_fails_the_run_and_leaves_no_temporaries() {
+    let p = Project::new();
+    p.write("two.toml", TWO);
+    // An unusable --out (a file).
+    p.write("not_a_dir", "x");
+    let r = p.run("two.toml", &["--out", "not_a_dir", "--keep-going"]);
+    assert_eq!(r.code(), 1, "{}", r.stdout());
+    assert_eq!(r.with("failed").len(), 3, "{:?}", r.stages);
+    assert!(r.stderr().contains("cannot materialise outputs"), "{}", r.stderr());
+    // The entries were stored: the next run into a usable out/ hits.
+    let r = p.run("two.toml", &[]);
+    r.ok();
+    assert_eq!(r.with("cached").len(), 3);
+
+    // A full disk under out/ (a small tmpfs in a private mount namespace,
+    // where the test may create one).
+    p.write(
+        "big.toml",
+        "[stages.big]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"head -c 300000 /dev/zero > big.bin\"]\nouts = [\"big.bin\"]\n",
+    );
+    std::fs::create_dir_all(p.path("small")).unwrap();
+    let script = format!(
+        "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} run big.toml --plain --out small; c=$?; \
+         find small -name '.fure-tmp-*' | sed 's/^/LEFT /' >&2; exit $c",
+        env!("CARGO_BIN_EXE_fure")
+    );
+    let out = Command::new("unshare")
+        .args(["-rm", "sh", "-c", &script])
+        .current_dir(p.path(""))
+        .env("FURE_CACHE", p.path("cache"))
+        .output();
+    match out {
+        Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => {
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(1), "{err}");
+            assert!(err.contains("cannot materialise outputs"), "{err}");
+            assert!(err.contains("No space left"), "{err}");
+            assert!(!err.contains("LEFT "), "a partial temporary is left: {err}");
+        }
+        _ => eprintln!("skipped the full-disk case: no private tmpfs here"),
+    }
+    // (The tmpfs was private; no `.fure-tmp-*` is left in the real out/.)
+    assert!(walk(&p.path("out"))
+        .iter()
+        .all(|f| !f.to_string_lossy().contains(".fure-tmp-")));
+}
+
+#[test]
+fn concurrent_materialisations_keep_each_others_temporaries() {
+    let p = Project::new();
+    let pipe = |tag: &str| {
+        format!(
+            "[stages.s]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"mkdir -p d && echo {tag} > d/x.txt && echo {tag} > o.txt\"]\nouts = [\"o.txt\", \"d/\"]\n"
+        )
+    };
+    p.write("m.toml", &pipe("one"));
+    p.run("m.toml", &[]).ok();
+    // Another live process's temporaries (this test's pid) stay; a dead one's go.
+    let me = std::process::id();
+    let live = format!(".fure-tmp-{me}-0-o.txt");
+    let live_in_dir = format!(".fure-tmp-{me}-1-x.txt");
+    let dead = ".fure-tmp-999999999-0-o.txt";
+    p.write(&format!("out/m/s/{live}"), "in flight");
+    p.write(&format!("out/m/s/d/{live_in_dir}"), "in flight");
+    p.write(&format!("out/m/s/{dead}"), "stale");
+    p.write("m.toml", &pipe("two"));
+    p.run("m.toml", &[]).ok();
+    assert_eq!(p.read("out/m/s/o.txt"), "two\n");
+    assert!(p.path(&format!("out/m/s/{live}")).exists());
+    assert!(p.path(&format!("out/m/s/d/{live_in_dir}")).exists());
+    assert!(!p.path(&format!("out/m/s/{dead}")).exists());
+
+    // Two real runs into one out/, many rounds: no warnings, no failures.
+    for round in 0..6 {
+        p.write("m.toml", &pipe(&format!("r{round}")));
+        let spawn = || {
+            p.cmd(&["run", "m.toml", "--plain"])
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap()
+        };
+        let (a, b) = (spawn(), spawn());
+        for c in [a, b] {
+            let out = c.wait_with_output().unwrap();
+            let text = String::from_utf8_lossy(&out.stdout).into_owned()
+                + &String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(0), "{text}");
+            assert!(!text.contains("warning"), "{text}");
+        }
+        assert_eq!(p.read("out/m/s/o.txt"), format!("r{round}\n"));
+    }
+}
+
+#[allow(dead_code)]
+fn wait_until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
+    let t = Instant::now();
+    while !f() {
+        assert!(t.elapsed() < limit, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[allow(dead_code)]
+fn set_mode(p: &Path, m: u32) {
+    std::fs::set_permissions(p, std::fs::Permissions::from_mode(m)).unwrap();
+}
