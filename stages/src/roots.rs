@@ -234,8 +234,19 @@ fn face_adjacency(mesh: &Mesh) -> Vec<Vec<(u32, [u32; 2])>> {
     adj
 }
 
-/// The smoothest degree-2 face field with one constraint per connected piece.
-pub fn tangent_field(mesh: &Mesh, max_iterations: usize) -> TangentField {
+/// Soft alignment of the degree-2 field to per-face reference directions (module doc).
+pub struct Alignment {
+    /// Per face, a reference direction (any length; only its tangential part counts).
+    pub reference: Vec<Vec3>,
+    /// Weight of a face whose reference lies in its plane, relative to one edge's smoothness.
+    pub weight: f64,
+}
+
+/// The smoothest degree-2 face field with one constraint per connected piece, or, with an
+/// [`Alignment`], the field minimising smoothness plus the weighted distance to the references
+/// (no hard constraint then; a piece where every reference is normal to the surface keeps
+/// the hard one).
+pub fn tangent_field(mesh: &Mesh, max_iterations: usize, align: Option<&Alignment>) -> TangentField {
     let nf = mesh.triangles.len();
     let frames: Vec<(Vec3, Vec3, Vec3)> =
         mesh.triangles.iter().map(|t| face_frame(mesh, t)).collect();
@@ -276,22 +287,51 @@ pub fn tangent_field(mesh: &Mesh, max_iterations: usize) -> TangentField {
             }
         }
     }
+    // Soft alignment: per face weight w_f (the reference's in-plane fraction squared) and target
+    // z*_f = e^{2 i theta_f}, theta_f the reference's angle in the face frame.
+    let mut wgt = vec![0.0f64; nf];
+    let mut target = vec![C64::default(); nf];
+    if let Some(al) = align {
+        for f in 0..nf {
+            let (e1, e2, _) = frames[f];
+            let r = al.reference.get(f).copied().unwrap_or(Vec3::ZERO);
+            let (a, b) = (r.dot(e1) as f64, r.dot(e2) as f64);
+            let len2 = r.length_squared() as f64;
+            if len2 > 0.0 && a * a + b * b > 0.0 {
+                wgt[f] = al.weight * (a * a + b * b) / len2;
+                target[f] = C64::from_angle(2.0 * b.atan2(a));
+            }
+        }
+    }
     let mut fixed = vec![false; nf];
     let mut z = vec![C64::default(); nf];
+    let mut aligned_pieces = std::collections::HashSet::new();
+    for f in 0..nf {
+        if wgt[f] > 0.0 {
+            aligned_pieces.insert(piece[f]);
+        }
+    }
+    let mut hard = 0usize;
     for &r in &roots {
+        if aligned_pieces.contains(&(r as u32)) {
+            continue;
+        }
         fixed[r] = true;
+        hard += 1;
         z[r] = C64 { re: 1.0, im: 0.0 };
     }
-    // A z over free faces: (Az)_f = deg_f z_f - sum r_{g->f} z_g (fixed z_g moved to the right side).
+    // A z over free faces: (Az)_f = (deg_f + w_f) z_f - sum r_{g->f} z_g (fixed z_g moved to
+    // the right side).
     let apply = |x: &[C64], out: &mut [C64], include_fixed: bool| {
         for f in 0..nf {
             if fixed[f] {
                 out[f] = C64::default();
                 continue;
             }
+            let diag = trans[f].len() as f64 + wgt[f];
             let mut acc = C64 {
-                re: trans[f].len() as f64 * x[f].re,
-                im: trans[f].len() as f64 * x[f].im,
+                re: diag * x[f].re,
+                im: diag * x[f].im,
             };
             for &(g, r) in &trans[f] {
                 if fixed[g as usize] != include_fixed {
@@ -314,12 +354,14 @@ pub fn tangent_field(mesh: &Mesh, max_iterations: usize) -> TangentField {
         }
         s
     };
-    // Right side: b_f = sum over fixed neighbours r z_g.
+    // Right side: b_f = w_f z*_f + sum over fixed neighbours r z_g.
     let mut bvec = vec![C64::default(); nf];
     for f in 0..nf {
         if fixed[f] {
             continue;
         }
+        bvec[f].re += wgt[f] * target[f].re;
+        bvec[f].im += wgt[f] * target[f].im;
         for &(g, r) in &trans[f] {
             if fixed[g as usize] {
                 let v = r.mul(z[g as usize]);
@@ -394,7 +436,7 @@ pub fn tangent_field(mesh: &Mesh, max_iterations: usize) -> TangentField {
         faces: dirs,
         cg_iterations: it,
         relative_residual: rr.sqrt() / bnorm.max(f64::MIN_POSITIVE),
-        constrained_faces: roots.len(),
+        constrained_faces: hard,
     }
 }
 
@@ -505,6 +547,9 @@ pub struct RootSettings {
     pub cg_iterations: usize,
     /// Choose each tangent's sign with [`GrowthPrior`] (else the breadth-first signs).
     pub direction_prior: bool,
+    /// Align the field's axis softly to the prior's references over this length (fraction of
+    /// the bounding-box diagonal); `None` keeps the smoothest field (module doc).
+    pub direction_smoothing: Option<f64>,
 }
 
 /// Everything [`build_roots`] reports besides the roots.
@@ -545,7 +590,17 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
         *e *= scale;
     }
     let samples = sample_triangles(&expected, s.seed);
-    let field = tangent_field(mesh, s.cg_iterations);
+    let prior = if s.direction_prior {
+        GrowthPrior::from_mesh(mesh)
+    } else {
+        None
+    };
+    let roles: Vec<PartRole> = mesh.part_names.iter().map(|n| part_role(n)).collect();
+    let align = match (&prior, s.direction_smoothing) {
+        (Some(gp), Some(len)) if len > 0.0 => Some(prior_alignment(mesh, gp, &roles, &tparts, len)),
+        _ => None,
+    };
+    let field = tangent_field(mesh, s.cg_iterations, align.as_ref());
     // Per-vertex area-weighted sum of aligned face directions.
     let mut vdir = vec![Vec3::ZERO; mesh.positions.len()];
     for (f, t) in mesh.triangles.iter().enumerate() {
@@ -567,12 +622,6 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
         ..Roots::default()
     };
     let mut fallbacks = 0usize;
-    let prior = if s.direction_prior {
-        GrowthPrior::from_mesh(mesh)
-    } else {
-        None
-    };
-    let roles: Vec<PartRole> = mesh.part_names.iter().map(|n| part_role(n)).collect();
     let mut flipped = 0usize;
     for smp in &samples {
         let f = smp.triangle as usize;
@@ -660,6 +709,43 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
     (roots, report)
 }
 
+/// The [`Alignment`] to the growth prior's references, with the weight that makes the field
+/// follow them over about `smoothing` diagonals: an edge's smoothness and a face's alignment
+/// balance over `sqrt(1 / w)` faces, so `w = (mean edge / (smoothing D))^2` is independent of
+/// the mesh's resolution and unit.
+fn prior_alignment(
+    mesh: &Mesh,
+    gp: &GrowthPrior,
+    roles: &[PartRole],
+    tparts: &[u16],
+    smoothing: f64,
+) -> Alignment {
+    let reference = mesh
+        .triangles
+        .iter()
+        .zip(tparts)
+        .map(|(t, &p)| {
+            let c = t.iter().map(|&i| mesh.positions[i as usize]).sum::<Vec3>() / 3.0;
+            let role = roles.get(p as usize).copied().unwrap_or(PartRole::Body);
+            gp.reference(role, c).normalize_or_zero()
+        })
+        .collect();
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            let (a, b) = (mesh.positions[t[k] as usize], mesh.positions[t[(k + 1) % 3] as usize]);
+            sum += f64::from((b - a).length());
+            n += 1;
+        }
+    }
+    let h = sum / n.max(1) as f64;
+    let len = smoothing * f64::from(mesh.diagonal());
+    Alignment {
+        reference,
+        weight: if len > 0.0 { (h / len).powi(2) } else { 0.0 },
+    }
+}
+
 fn vdir_scale(vdir: &[Vec3], t: &[u32; 3]) -> f32 {
     t.iter()
         .map(|&i| vdir[i as usize].length())
@@ -690,6 +776,7 @@ impl Stage for RootsStage {
             ParamSpec::int("cg_iterations", 20_000, "iteration cap of the tangent-field solve").range(1.0, 1e7),
             ParamSpec::str_list("protected_parts", DEFAULT_PROTECTED, "non-fur part names (no roots), case-insensitive"),
             ParamSpec::string("direction_prior", "body_axis", "sign of the root tangents (growth direction): body_axis = away from the head, down the limbs, toward the ear tips (module doc); none = the breadth-first signs from face 0").choices(&["body_axis", "none"]),
+            ParamSpec::float("direction_smoothing", 0.0, "0: the field's axis is the smoothest degree-2 field (one arbitrary constraint); > 0: softly aligned to the body_axis prior's directions, which it follows over about this fraction of the bounding-box diagonal (module doc)").range(0.0, 10.0),
         ]
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
@@ -807,6 +894,7 @@ impl Stage for RootsStage {
                 seed: p.u64("seed")?,
                 cg_iterations: p.usize("cg_iterations")?,
                 direction_prior: p.str("direction_prior")? == "body_axis",
+                direction_smoothing: Some(p.f64("direction_smoothing")?).filter(|&x| x > 0.0),
             },
         );
         if p.str("direction_prior")? == "body_axis" && report.growth_prior.is_none() {
@@ -880,6 +968,7 @@ mod tests {
             seed: 1,
             cg_iterations: 20_000,
             direction_prior: false,
+            direction_smoothing: None,
         };
         let (roots, rep) = build_roots(&mesh, &rho, &s);
         let area = rep.parts["torso"].area_cm2;
@@ -925,6 +1014,7 @@ mod tests {
             seed: 2,
             cg_iterations: 20_000,
             direction_prior: true,
+            direction_smoothing: None,
         };
         let (with, rep) = build_roots(&mesh, &rho, &s);
         let gp = rep.growth_prior.clone().expect("a head-group part exists");
@@ -935,6 +1025,7 @@ mod tests {
             &rho,
             &RootSettings {
                 direction_prior: false,
+                direction_smoothing: None,
                 ..s
             },
         );
@@ -988,12 +1079,50 @@ mod tests {
             triangles,
             ..Mesh::default()
         };
-        let field = tangent_field(&mesh, 10_000);
+        let field = tangent_field(&mesh, 10_000, None);
         let d0 = field.faces[0];
         // Face 0's constraint is its first edge, +x.
         assert!((d0 - Vec3::X).length() < 1e-5, "{d0}");
         for d in &field.faces {
             assert!(d.dot(d0) > 0.9999, "{d}");
         }
+    }
+
+    #[test]
+    fn prior_aligned_field_follows_the_body_axis() {
+        // The head cap at +z: the body axis is -z, so away from the poles the aligned tangents
+        // run along the meridians (|cos| with the projected axis near 1) and point away from
+        // the head; the unaligned field is free to circle the sphere instead.
+        let mesh = icosphere(10.0, 3, 0.8);
+        let rho = vec![0.5; mesh.positions.len()];
+        let s = RootSettings {
+            s_cm: 1.0,
+            density: vec![1.0, 0.0],
+            length: vec![3.0, 0.0],
+            width: vec![0.05, 0.0],
+            max_roots: 1_000_000,
+            seed: 2,
+            cg_iterations: 20_000,
+            direction_prior: true,
+            direction_smoothing: Some(0.05),
+        };
+        let alignment = |roots: &Roots| {
+            let mut cos = Vec::new();
+            for i in 0..roots.len() {
+                let n = roots.normals[i];
+                if n.z.abs() > 0.7 {
+                    continue; // near the poles the axis is normal to the surface
+                }
+                let axis = (Vec3::NEG_Z - n * n.dot(Vec3::NEG_Z)).normalize();
+                cos.push(roots.tangents[i].dot(axis));
+            }
+            cos.iter().sum::<f32>() / cos.len() as f32
+        };
+        let (aligned, rep) = build_roots(&mesh, &rho, &s);
+        assert_eq!(rep.constrained_faces, 0, "soft alignment needs no hard constraint");
+        let a = alignment(&aligned);
+        assert!(a > 0.95, "mean signed cos {a}");
+        let (smooth, _) = build_roots(&mesh, &rho, &RootSettings { direction_smoothing: None, ..s });
+        assert!(alignment(&smooth) < a - 0.05, "smooth {} vs aligned {a}", alignment(&smooth));
     }
 }

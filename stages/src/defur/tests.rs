@@ -704,3 +704,42 @@ fn unit_scale_makes_the_solve_independent_of_the_scene_unit() {
         "literal {lit_diff} vs {max_diff}"
     );
 }
+
+#[test]
+fn diagonal_units_make_the_solve_independent_of_the_scene_unit() {
+    // The same furry sphere at two scales (x1 and x100): with the objective in units of the
+    // bounding-box diagonal (unit_scale = 1 / D) the displacements agree up to the scale, with
+    // no metric scale needed.
+    let (r, t) = (0.5f32, 0.05f32);
+    let small = icosphere(r + t, 3, 0.9);
+    let mut shell_small = shell_on(&small, t, 0.02);
+    for (w, p) in shell_small.widths.iter_mut().zip(&small.positions) {
+        *w *= 1.0 + 0.8 * (6.0 * p.x / (r + t)).sin();
+    }
+    let k = 100.0f32;
+    let mut big = small.clone();
+    for p in &mut big.positions {
+        *p *= k;
+    }
+    let shell_big = ShellWidths {
+        positions: shell_small.positions.iter().map(|p| *p * k).collect(),
+        normals: shell_small.normals.clone(),
+        widths: shell_small.widths.iter().map(|w| w * k).collect(),
+    };
+    let prot = protected_parts(&small.part_names, &protected_default());
+    let solve = |m: &Mesh, sh: &ShellWidths| {
+        let s = DefurSettings {
+            unit_scale: 1.0 / m.diagonal() as f64,
+            ..Default::default()
+        };
+        defur(m, sh, &prot, &BTreeMap::new(), &s).unwrap().d_solved
+    };
+    let (a, b) = (solve(&small, &shell_small), solve(&big, &shell_big));
+    let max_diff = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x * k - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(max_diff < 0.02 * t * k, "max difference {max_diff}");
+    assert!(a.iter().any(|&d| d > 0.1 * t), "nothing was defurred");
+}
