@@ -1000,12 +1000,9 @@ mod tests {
         assert!(rep.density_scale < 1.0);
     }
 
-    #[test]
-    fn growth_prior_points_tangents_away_from_the_head() {
-        // Part 1 ("eyes", a head-group name) is the cap at +z: the body axis is -z.
-        let mesh = icosphere(10.0, 3, 0.8);
-        let rho = vec![0.5; mesh.positions.len()];
-        let s = RootSettings {
+    /// Settings for the icosphere whose part 1 (a head-group name) is the cap at +z.
+    fn head_cap_settings() -> RootSettings {
+        RootSettings {
             s_cm: 1.0,
             density: vec![1.0, 0.0],
             length: vec![3.0, 0.0],
@@ -1015,7 +1012,15 @@ mod tests {
             cg_iterations: 20_000,
             direction_prior: true,
             direction_smoothing: None,
-        };
+        }
+    }
+
+    #[test]
+    fn growth_prior_points_tangents_away_from_the_head() {
+        // Part 1 ("eyes", a head-group name) is the cap at +z: the body axis is -z.
+        let mesh = icosphere(10.0, 3, 0.8);
+        let rho = vec![0.5; mesh.positions.len()];
+        let s = head_cap_settings();
         let (with, rep) = build_roots(&mesh, &rho, &s);
         let gp = rep.growth_prior.clone().expect("a head-group part exists");
         assert!((gp.axis - Vec3::NEG_Z).length() < 0.05, "{:?}", gp.axis);
@@ -1096,15 +1101,8 @@ mod tests {
         let mesh = icosphere(10.0, 3, 0.8);
         let rho = vec![0.5; mesh.positions.len()];
         let s = RootSettings {
-            s_cm: 1.0,
-            density: vec![1.0, 0.0],
-            length: vec![3.0, 0.0],
-            width: vec![0.05, 0.0],
-            max_roots: 1_000_000,
-            seed: 2,
-            cg_iterations: 20_000,
-            direction_prior: true,
             direction_smoothing: Some(0.05),
+            ..head_cap_settings()
         };
         let alignment = |roots: &Roots| {
             let mut cos = Vec::new();

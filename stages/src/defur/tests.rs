@@ -654,15 +654,12 @@ fn diagnose_pipeline_output() {
     }
 }
 
-#[test]
-fn unit_scale_makes_the_solve_independent_of_the_scene_unit() {
-    // The same furry sphere in two units (1 scene unit = 100 "cm" vs 1 cm):
-    // with unit_scale = cm per scene unit the displacements agree (in cm);
-    // read literally in scene units (unit_scale 1) they do not.
+/// A furry sphere with locally varying widths (so that the smoothing strength matters), and the
+/// same scaled by `k`: (small, its shell, big, its shell, k, fur thickness of the small one).
+fn furry_sphere_at_two_scales() -> (Mesh, ShellWidths, Mesh, ShellWidths, f32, f32) {
     let (r, t) = (0.5f32, 0.05f32);
     let small = icosphere(r + t, 3, 0.9);
     let mut shell_small = shell_on(&small, t, 0.02);
-    // Locally varying widths so that the smoothing strength matters.
     for (w, p) in shell_small.widths.iter_mut().zip(&small.positions) {
         *w *= 1.0 + 0.8 * (6.0 * p.x / (r + t)).sin();
     }
@@ -676,6 +673,15 @@ fn unit_scale_makes_the_solve_independent_of_the_scene_unit() {
         normals: shell_small.normals.clone(),
         widths: shell_small.widths.iter().map(|w| w * k).collect(),
     };
+    (small, shell_small, big, shell_big, k, t)
+}
+
+#[test]
+fn unit_scale_makes_the_solve_independent_of_the_scene_unit() {
+    // The same furry sphere in two units (1 scene unit = 100 "cm" vs 1 cm):
+    // with unit_scale = cm per scene unit the displacements agree (in cm);
+    // read literally in scene units (unit_scale 1) they do not.
+    let (small, shell_small, big, shell_big, k, t) = furry_sphere_at_two_scales();
     let prot = protected_parts(&small.part_names, &protected_default());
     let solve = |m: &Mesh, sh: &ShellWidths, unit: f64| {
         let s = DefurSettings {
@@ -710,22 +716,7 @@ fn diagonal_units_make_the_solve_independent_of_the_scene_unit() {
     // The same furry sphere at two scales (x1 and x100): with the objective in units of the
     // bounding-box diagonal (unit_scale = 1 / D) the displacements agree up to the scale, with
     // no metric scale needed.
-    let (r, t) = (0.5f32, 0.05f32);
-    let small = icosphere(r + t, 3, 0.9);
-    let mut shell_small = shell_on(&small, t, 0.02);
-    for (w, p) in shell_small.widths.iter_mut().zip(&small.positions) {
-        *w *= 1.0 + 0.8 * (6.0 * p.x / (r + t)).sin();
-    }
-    let k = 100.0f32;
-    let mut big = small.clone();
-    for p in &mut big.positions {
-        *p *= k;
-    }
-    let shell_big = ShellWidths {
-        positions: shell_small.positions.iter().map(|p| *p * k).collect(),
-        normals: shell_small.normals.clone(),
-        widths: shell_small.widths.iter().map(|w| w * k).collect(),
-    };
+    let (small, shell_small, big, shell_big, k, t) = furry_sphere_at_two_scales();
     let prot = protected_parts(&small.part_names, &protected_default());
     let solve = |m: &Mesh, sh: &ShellWidths| {
         let s = DefurSettings {
