@@ -7,9 +7,12 @@
 //! # Visual hull
 //!
 //! 1. **Masks.** For a training frame whose image is `train/r_000.png` the
-//!    mask is `train/r_000_mask.png` (the synthetic scene's convention); when
-//!    that file does not exist the image's alpha channel is the mask (real
-//!    captures often carry masks as alpha). A mask value is "foreground" when
+//!    mask is `train/r_000_mask.png` (the synthetic scene's convention), or
+//!    `masks/train/r_000.png` (`images/0001.jpg` -> `masks/0001.png`, the
+//!    COLMAP layout; see `formats::cameras`); when no mask file exists the
+//!    image's alpha channel is the mask (real captures often carry masks as
+//!    alpha), and an RGB image with neither is an error naming the image and
+//!    the mask files looked for. A mask value is "foreground" when
 //!    it exceeds `mask_threshold`. A view whose mask has no foreground pixel is
 //!    an error (the whole object would be carved away).
 //! 2. **Occupancy.** A point's occupancy in one view is the mask sampled
@@ -1104,10 +1107,13 @@ pub fn import_closed_mesh(mesh: &mut Mesh) -> Result<ImportReport, String> {
 
 /// The file that lists the training cameras of a views directory (for messages).
 fn train_file(dir: &Path) -> std::path::PathBuf {
+    let colmap = crate::formats::colmap::find_sparse(dir)
+        .map(|s| s.join(if s.join("images.bin").is_file() { "images.bin" } else { "images.txt" }));
     ["transforms.json", "transforms_train.json"]
         .iter()
         .map(|n| dir.join(n))
         .find(|p| p.is_file())
+        .or(colmap)
         .unwrap_or_else(|| dir.join("transforms.json"))
 }
 
@@ -1144,16 +1150,9 @@ pub fn read_mask_views(
         .enumerate()
         .map(|(i, cam)| {
             let img = crate::formats::cameras::read_view(dir, cam)?;
-            let mask: ImageF32 = img.mask.ok_or_else(|| {
-                StageError::input(
-                    "views",
-                    &crate::formats::cameras::mask_path(dir, cam),
-                    format!(
-                        "view {i} ({}) has no mask: expected this file or an alpha channel in the image",
-                        cam.file_path
-                    ),
-                )
-            })?;
+            let mask: ImageF32 = img
+                .mask
+                .ok_or_else(|| crate::formats::cameras::missing_mask(dir, cam).for_input("views"))?;
             let data = mask.data.iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
             // Name the file the mask came from: `<stem>_mask.png`, or the image (alpha).
             let mpath = crate::formats::cameras::mask_path(dir, cam);

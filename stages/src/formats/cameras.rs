@@ -1,6 +1,14 @@
-//! Camera sets in the NeRF / instant-ngp / NeuS2 `transforms.json` convention.
+//! Camera sets in the NeRF / instant-ngp / NeuS2 `transforms.json` convention, or a COLMAP model.
 //!
-//! A *views directory* holds the cameras and the images they saw:
+//! A *views directory* holds the cameras and the images they saw, in one of two layouts, read
+//! by [`read_views`], the one function every stage reads views through:
+//!
+//! - NeRF-style: the `transforms*.json` files below;
+//! - COLMAP: no `transforms*.json`, a sparse model in `sparse/0/` or `sparse/` (`cameras` and
+//!   `images`, `.bin` or `.txt`), the photos under `images/`, optional masks under `masks/`; every
+//!   8th image (sorted by name, from the first) is held out. See [`super::colmap`].
+//!
+//! The NeRF-style files:
 //!
 //! - training frames: `transforms.json` (instant-ngp, NeuS2, our own writer) or, when that file is
 //!   absent, `transforms_train.json` (Blender NeRF synthetic). When both exist `transforms.json` wins:
@@ -32,8 +40,12 @@
 //! `file_path` is normalised when read: backslashes become `/`, a leading `./` is dropped, and a
 //! path without an image extension gets one (`./train/r_0` -> `train/r_0.png`): the first of `.png`,
 //! `.jpg`, `.jpeg`, `.exr` (any case) that exists next to it, `.png` when none does.
-//! Foreground masks live next to the images as `<stem>_mask.png` ([`mask_path`]); captures that
-//! keep the mask in the image's alpha channel work too ([`read_view`]).
+//! Foreground masks (PNG, white = object; the first channel is read) are looked for, in this
+//! order ([`mask_path`]): `<stem>_mask.png` next to the image; `masks/<stem>.png` and
+//! `masks/<name>.png` (COLMAP's own naming, e.g. `masks/0001.jpg.png`), the image's path taken
+//! relative to `images/` when it lies there (`images/a/0001.jpg` -> `masks/a/0001.png`). Without a
+//! mask file the image's alpha channel is the mask ([`read_view`]); an RGB image with neither is
+//! an error wherever a mask is needed ([`missing_mask`]).
 //!
 //! Written `file_path`s keep their extension, as instant-ngp, nerfstudio and NeuS2 expect (the
 //! original NeRF code's Blender loader, which appends `.png` itself, would not read them).
@@ -62,11 +74,12 @@ const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];
 pub fn read_training_views(dir: &Path) -> Result<CameraSet, fure_stage_api::StageError> {
     let set = read_views(dir)?;
     if set.train.is_empty() {
-        return Err(fure_stage_api::StageError::input(
-            "views",
-            dir,
-            "transforms.json lists no training frames",
-        ));
+        let what = if super::colmap::find_sparse(dir).is_some() && !dir.join("transforms.json").is_file() {
+            "the COLMAP model lists no images"
+        } else {
+            "transforms.json lists no training frames"
+        };
+        return Err(fure_stage_api::StageError::input("views", dir, what));
     }
     Ok(set)
 }
@@ -74,16 +87,19 @@ pub fn read_training_views(dir: &Path) -> Result<CameraSet, fure_stage_api::Stag
 /// Reads a views directory (see the module doc for which files count).
 pub fn read_views(dir: impl AsRef<Path>) -> Result<CameraSet, FormatError> {
     let dir = dir.as_ref();
-    let train_path = ["transforms.json", "transforms_train.json"]
+    let Some(train_path) = ["transforms.json", "transforms_train.json"]
         .iter()
         .map(|n| dir.join(n))
         .find(|p| p.is_file())
-        .ok_or_else(|| {
-            FormatError::invalid(
+    else {
+        return match super::colmap::find_sparse(dir) {
+            Some(sparse) => super::colmap::read_colmap_views(dir, &sparse),
+            None => Err(FormatError::invalid(
                 dir,
-                "no camera file: expected transforms.json or transforms_train.json in this directory",
-            )
-        })?;
+                "no cameras: expected transforms.json or transforms_train.json, or a COLMAP model (cameras and images, .bin or .txt) in sparse/0/ or sparse/, in this directory",
+            )),
+        };
+    };
     let train = read_transforms(&train_path)?;
     let test = match ["transforms_test.json", "transforms_val.json"]
         .iter()
@@ -108,10 +124,43 @@ pub fn image_path(dir: impl AsRef<Path>, camera: &Camera) -> PathBuf {
     dir.as_ref().join(&camera.file_path)
 }
 
-/// Path of a camera's foreground mask: the image path with its extension replaced by `_mask.png`
-/// (`train/r_000.png` -> `train/r_000_mask.png`).
+/// Path of a camera's foreground mask: the first of [`mask_candidates`] that exists, else the
+/// default `<stem>_mask.png` next to the image (`train/r_000.png` -> `train/r_000_mask.png`).
 pub fn mask_path(dir: impl AsRef<Path>, camera: &Camera) -> PathBuf {
-    dir.as_ref().join(mask_file_path(&camera.file_path))
+    let dir = dir.as_ref();
+    mask_candidates(&camera.file_path)
+        .into_iter()
+        .map(|m| dir.join(m))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| dir.join(mask_file_path(&camera.file_path)))
+}
+
+/// Where a camera's mask may be, relative like its `file_path`, in the order they are tried (see
+/// the module doc): `<stem>_mask.png`, `masks/<stem>.png`, `masks/<name>.png`.
+pub fn mask_candidates(file_path: &str) -> Vec<String> {
+    let rel = file_path.strip_prefix("images/").unwrap_or(file_path);
+    let stem = match Path::new(rel).extension() {
+        Some(ext) => &rel[..rel.len() - ext.len() - 1],
+        None => rel,
+    };
+    vec![
+        mask_file_path(file_path),
+        format!("masks/{stem}.png"),
+        format!("masks/{rel}.png"),
+    ]
+}
+
+/// The error for a view that needs a mask and has none: it names the image and where a mask was
+/// looked for.
+pub fn missing_mask(dir: impl AsRef<Path>, camera: &Camera) -> FormatError {
+    let c = mask_candidates(&camera.file_path);
+    FormatError::invalid(
+        &image_path(dir, camera),
+        format!(
+            "the image has no alpha channel and no mask: expected a mask PNG (white = object) at {} or {} (or {}), or the object in the image's alpha channel",
+            c[1], c[0], c[2]
+        ),
+    )
 }
 
 /// `file_path` of a camera's mask, relative like the image's.
@@ -967,6 +1016,38 @@ mod tests {
         std::fs::remove_file(&p).unwrap();
         let e = read_views(dir.path()).unwrap_err();
         assert!(e.to_string().contains("transforms.json"), "{e}");
+    }
+
+    #[test]
+    fn masks_folder_for_rgb_images_and_missing_masks_named() {
+        assert_eq!(
+            mask_candidates("images/a/0001.jpg"),
+            ["images/a/0001_mask.png", "masks/a/0001.png", "masks/a/0001.jpg.png"]
+        );
+        assert_eq!(mask_candidates("train/r_0.png")[1], "masks/train/r_0.png");
+        let dir = tempfile::tempdir().unwrap();
+        let mut rgb = ImageF32::new(4, 3, 3);
+        rgb.data.iter_mut().enumerate().for_each(|(i, v)| *v = (i % 5) as f32 / 4.0);
+        super::super::images::write_png(dir.path().join("images/0001.png"), &rgb).unwrap();
+        let cam = Camera { file_path: "images/0001.png".into(), width: 4, height: 3, ..camera(0, 10.0) };
+        // RGB, no mask anywhere: no mask read, and the error names the image and the mask files.
+        assert_eq!(read_view(dir.path(), &cam).unwrap().mask, None);
+        let e = missing_mask(dir.path(), &cam).to_string();
+        assert!(
+            e.contains("images/0001.png") && e.contains("masks/0001.png") && e.contains("images/0001_mask.png") && e.contains("alpha"),
+            "{e}"
+        );
+        // COLMAP's own naming is found, then the plain stem wins over it.
+        let mut m = ImageF32::new(4, 3, 1);
+        m.data[5] = 1.0;
+        super::super::images::write_png(dir.path().join("masks/0001.png.png"), &m).unwrap();
+        assert_eq!(mask_path(dir.path(), &cam), dir.path().join("masks/0001.png.png"));
+        m.data[6] = 1.0;
+        super::super::images::write_png(dir.path().join("masks/0001.png"), &m).unwrap();
+        let v = read_view(dir.path(), &cam).unwrap();
+        assert_eq!(v.mask.unwrap().data, m.data);
+        // 8-bit PNG: within a level.
+        assert!(v.rgb.data.iter().zip(&rgb.data).all(|(a, b)| (a - b).abs() <= 1.0 / 255.0));
     }
 
     #[test]

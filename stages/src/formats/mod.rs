@@ -5,7 +5,8 @@
 //! | module      | files                                   | data                       |
 //! |-------------|-----------------------------------------|----------------------------|
 //! | [`json`]    | any serde type, pretty JSON             | `T: Serialize/Deserialize` |
-//! | [`cameras`] | a views directory with `transforms*.json` (NeRF / instant-ngp / NeuS2) | [`CameraSet`](crate::camera::CameraSet) |
+//! | [`cameras`] | a views directory with `transforms*.json` (NeRF / instant-ngp / NeuS2), or a COLMAP one | [`CameraSet`](crate::camera::CameraSet) |
+//! | [`colmap`]  | COLMAP sparse model `cameras`/`images` (`.txt`, `.bin`), with `images/` and `masks/` | [`CameraSet`](crate::camera::CameraSet) |
 //! | [`images`]  | PNG (8/16 bit, gray/GA/RGB/RGBA), OpenEXR (float), JPEG (read only) | [`ImageF32`](crate::image::ImageF32) |
 //! | [`obj`]     | Wavefront OBJ, one group per part       | [`Mesh`](crate::mesh::Mesh) |
 //! | [`hair`]    | Cem Yuksel `.hair`                      | [`Strands`](crate::strands::Strands) |
@@ -38,6 +39,7 @@ use std::path::{Path, PathBuf};
 use fure_stage_api::StageError;
 
 pub mod cameras;
+pub mod colmap;
 pub mod hair;
 pub mod images;
 pub mod json;

@@ -1,0 +1,692 @@
+//! COLMAP sparse models (`cameras` + `images`, text or binary) as a views directory.
+//!
+//! A COLMAP views directory is what `colmap mapper` (or `colmap image_undistorter`, whose `dense/`
+//! folder has the same layout) leaves behind:
+//!
+//! ```text
+//! views/
+//!   sparse/0/cameras.bin  images.bin  (points3D.*: not read)   or sparse/cameras.* directly
+//!   images/<name>            the photos, `<name>` as written in images.*
+//!   masks/<name stem>.png    optional foreground masks, white = object (also `masks/<name>.png`)
+//! ```
+//!
+//! [`find_sparse`] picks `sparse/0/`, else `sparse/`; in each, binary files win over text ones
+//! when both exist (COLMAP writes binary by default, and its doubles are exact). Text files
+//! follow COLMAP's `cameras.txt` / `images.txt` (`#` comments; two lines per image, the second,
+//! the 2D points, skipped); binary files COLMAP's little-endian layout (`read_write_model.py`).
+//!
+//! **Convention.** COLMAP stores world-to-camera poses (`x_cam = R(q) x_world + t`, quaternion
+//! `qw qx qy qz`) with OpenCV camera axes (+x right, +y down, +z forward); [`Camera`] is
+//! camera-to-world with OpenGL axes (+y up, looking down -z). So `c2w = [R^T | -R^T t]` with its
+//! y and z columns negated. COLMAP's pixel centres are at half-integers, as ours: `cx`, `cy`
+//! carry over unchanged.
+//!
+//! **Camera models.** `SIMPLE_PINHOLE` and `PINHOLE` are read as they are; `SIMPLE_RADIAL`,
+//! `RADIAL`, `OPENCV` and `FULL_OPENCV` only when every distortion coefficient is zero. Any
+//! other model, or non-zero distortion, is refused with an error naming the camera id, the
+//! model and the coefficients: the renderer is a pinhole, so undistort first with
+//! `colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`
+//! and point `views` at `dense/` (it writes `PINHOLE` cameras and undistorted images).
+//!
+//! **Held-out views.** Images are sorted by name; when there are at least [`HOLDOUT_EVERY`]
+//! images, every [`HOLDOUT_EVERY`]-th one from the first (index `i % 8 == 0`, the LLFF /
+//! Mip-NeRF 360 convention) is held out as a test view, the rest are training views. Fewer
+//! images are all training views.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DQuat, DVec3, Mat4};
+
+use super::{read_bytes, write_bytes, FormatError, Position};
+use crate::camera::{Camera, CameraSet};
+
+/// One in this many images (by sorted name, from the first) is held out for testing.
+pub const HOLDOUT_EVERY: usize = 8;
+
+/// COLMAP's camera models: (id, name, parameter count).
+const MODELS: [(i32, &str, usize); 12] = [
+    (0, "SIMPLE_PINHOLE", 3),
+    (1, "PINHOLE", 4),
+    (2, "SIMPLE_RADIAL", 4),
+    (3, "RADIAL", 5),
+    (4, "OPENCV", 8),
+    (5, "OPENCV_FISHEYE", 8),
+    (6, "FULL_OPENCV", 12),
+    (7, "FOV", 5),
+    (8, "SIMPLE_RADIAL_FISHEYE", 4),
+    (9, "RADIAL_FISHEYE", 5),
+    (10, "THIN_PRISM_FISHEYE", 12),
+    (11, "RAD_TAN_THIN_PRISM_FISHEYE", 16),
+];
+
+/// A camera of `cameras.txt` / `cameras.bin`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColmapCamera {
+    pub id: u32,
+    pub model: String,
+    pub width: u64,
+    pub height: u64,
+    pub params: Vec<f64>,
+}
+
+/// A registered image of `images.txt` / `images.bin` (its 2D points are not kept).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColmapImage {
+    pub id: u32,
+    /// World-to-camera rotation, `qw qx qy qz`.
+    pub q: [f64; 4],
+    /// World-to-camera translation.
+    pub t: [f64; 3],
+    pub camera_id: u32,
+    pub name: String,
+}
+
+/// A sparse model's cameras and images.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ColmapModel {
+    pub cameras: Vec<ColmapCamera>,
+    pub images: Vec<ColmapImage>,
+}
+
+fn model_by_name(name: &str) -> Option<(i32, &'static str, usize)> {
+    MODELS.iter().copied().find(|m| m.1 == name)
+}
+
+fn model_by_id(id: i32) -> Option<(i32, &'static str, usize)> {
+    MODELS.iter().copied().find(|m| m.0 == id)
+}
+
+/// The sparse model folder of a COLMAP views directory: `sparse/0/`, else `sparse/`, when it
+/// holds `cameras.bin` or `cameras.txt`.
+pub fn find_sparse(dir: &Path) -> Option<PathBuf> {
+    [dir.join("sparse").join("0"), dir.join("sparse")]
+        .into_iter()
+        .find(|d| d.join("cameras.bin").is_file() || d.join("cameras.txt").is_file())
+}
+
+/// Reads `cameras` and `images` from a sparse model folder (binary files win over text).
+pub fn read_model(sparse: &Path) -> Result<ColmapModel, FormatError> {
+    let pick = |stem: &str| -> Result<PathBuf, FormatError> {
+        let bin = sparse.join(format!("{stem}.bin"));
+        let txt = sparse.join(format!("{stem}.txt"));
+        if bin.is_file() {
+            Ok(bin)
+        } else if txt.is_file() {
+            Ok(txt)
+        } else {
+            Err(FormatError::invalid(
+                sparse,
+                format!("COLMAP model without {stem}: expected {stem}.bin or {stem}.txt in this folder"),
+            ))
+        }
+    };
+    let cams = pick("cameras")?;
+    let imgs = pick("images")?;
+    let is_bin = |p: &Path| p.extension().is_some_and(|e| e == "bin");
+    let cameras = if is_bin(&cams) {
+        read_cameras_bin(&cams)?
+    } else {
+        read_cameras_txt(&cams)?
+    };
+    let images = if is_bin(&imgs) {
+        read_images_bin(&imgs)?
+    } else {
+        read_images_txt(&imgs)?
+    };
+    Ok(ColmapModel { cameras, images })
+}
+
+fn parse<T: std::str::FromStr>(
+    path: &Path,
+    line: usize,
+    column: usize,
+    token: &str,
+    what: &str,
+) -> Result<T, FormatError> {
+    token.parse().map_err(|_| {
+        FormatError::at(
+            path,
+            Position::LineColumn { line, column },
+            format!("expected {what}, found `{token}`"),
+        )
+    })
+}
+
+/// Whitespace-separated tokens of a line with their 1-based columns.
+fn tokens(line: &str) -> Vec<(usize, &str)> {
+    let mut out = Vec::new();
+    let mut start = None;
+    for (i, c) in line.char_indices() {
+        match (c.is_whitespace(), start) {
+            (false, None) => start = Some(i),
+            (true, Some(s)) => {
+                out.push((s + 1, &line[s..i]));
+                start = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some(s) = start {
+        out.push((s + 1, &line[s..]));
+    }
+    out
+}
+
+fn text(path: &Path) -> Result<String, FormatError> {
+    String::from_utf8(read_bytes(path)?).map_err(|e| {
+        FormatError::at(path, Position::Byte(e.utf8_error().valid_up_to() as u64), "not UTF-8 text")
+    })
+}
+
+/// Reads `cameras.txt`: `CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]` per line.
+pub fn read_cameras_txt(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
+    let text = text(path)?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let ln = i + 1;
+        let t = line.trim_start();
+        if t.is_empty() || t.starts_with('#') {
+            continue;
+        }
+        let tok = tokens(line);
+        if tok.len() < 4 {
+            return Err(FormatError::at(
+                path,
+                Position::Line(ln),
+                "expected `CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]`",
+            ));
+        }
+        let id = parse(path, ln, tok[0].0, tok[0].1, "a camera id (integer)")?;
+        let (_, name, n) = model_by_name(tok[1].1).ok_or_else(|| {
+            FormatError::at(
+                path,
+                Position::LineColumn { line: ln, column: tok[1].0 },
+                format!("unknown camera model `{}`", tok[1].1),
+            )
+        })?;
+        let width = parse(path, ln, tok[2].0, tok[2].1, "the image width (integer)")?;
+        let height = parse(path, ln, tok[3].0, tok[3].1, "the image height (integer)")?;
+        if tok.len() != 4 + n {
+            return Err(FormatError::at(
+                path,
+                Position::Line(ln),
+                format!("camera model {name} has {n} parameters, found {}", tok.len() - 4),
+            ));
+        }
+        let params = tok[4..]
+            .iter()
+            .map(|(c, s)| parse::<f64>(path, ln, *c, s, "a number"))
+            .collect::<Result<Vec<_>, _>>()?;
+        out.push(ColmapCamera { id, model: name.to_string(), width, height, params });
+    }
+    Ok(out)
+}
+
+/// Reads `images.txt`: `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`, then a line of 2D points.
+pub fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
+    let text = text(path)?;
+    let lines: Vec<&str> = text.lines().collect();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < lines.len() {
+        let line = lines[i];
+        let ln = i + 1;
+        let t = line.trim_start();
+        if t.is_empty() || t.starts_with('#') {
+            i += 1;
+            continue;
+        }
+        let tok = tokens(line);
+        if tok.len() < 10 {
+            return Err(FormatError::at(
+                path,
+                Position::Line(ln),
+                "expected `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`",
+            ));
+        }
+        let id = parse(path, ln, tok[0].0, tok[0].1, "an image id (integer)")?;
+        let mut v = [0.0f64; 7];
+        for (k, x) in v.iter_mut().enumerate() {
+            *x = parse(path, ln, tok[k + 1].0, tok[k + 1].1, "a number")?;
+        }
+        let camera_id = parse(path, ln, tok[8].0, tok[8].1, "a camera id (integer)")?;
+        // The name is the rest of the line (COLMAP names rarely hold spaces, but may).
+        let name = line[tok[9].0 - 1..].trim_end().to_string();
+        out.push(ColmapImage {
+            id,
+            q: [v[0], v[1], v[2], v[3]],
+            t: [v[4], v[5], v[6]],
+            camera_id,
+            name,
+        });
+        // The next line lists the image's 2D points (possibly empty): not needed.
+        i += 2;
+    }
+    Ok(out)
+}
+
+/// A little-endian cursor over a binary model file that reports where it ran out.
+struct Bin<'a> {
+    path: &'a Path,
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl Bin<'_> {
+    fn take(&mut self, n: usize, what: &str) -> Result<&[u8], FormatError> {
+        if self.bytes.len() - self.at < n {
+            return Err(FormatError::at(
+                self.path,
+                Position::Byte(self.at as u64),
+                format!("file ends inside {what}: expected {n} more bytes"),
+            ));
+        }
+        let s = &self.bytes[self.at..self.at + n];
+        self.at += n;
+        Ok(s)
+    }
+    fn u64(&mut self, what: &str) -> Result<u64, FormatError> {
+        Ok(u64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
+    }
+    fn i32(&mut self, what: &str) -> Result<i32, FormatError> {
+        Ok(i32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
+    }
+    fn f64(&mut self, what: &str) -> Result<f64, FormatError> {
+        Ok(f64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
+    }
+    /// A count of records of at least `min_bytes` each, checked against the bytes left.
+    fn count(&mut self, what: &str, min_bytes: usize) -> Result<usize, FormatError> {
+        let at = self.at;
+        let n = self.u64(what)?;
+        let left = (self.bytes.len() - self.at) as u64;
+        if n.saturating_mul(min_bytes as u64) > left {
+            return Err(FormatError::at(
+                self.path,
+                Position::Byte(at as u64),
+                format!("{what} = {n} does not fit in the {left} bytes left"),
+            ));
+        }
+        Ok(n as usize)
+    }
+}
+
+/// Reads `cameras.bin`.
+pub fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
+    let bytes = read_bytes(path)?;
+    let mut b = Bin { path, bytes: &bytes, at: 0 };
+    let n = b.count("the number of cameras", 24)?;
+    let mut out = Vec::with_capacity(n);
+    for _ in 0..n {
+        let id = b.i32("a camera id")?;
+        let at = b.at;
+        let model_id = b.i32("a camera model id")?;
+        let (_, name, np) = model_by_id(model_id).ok_or_else(|| {
+            FormatError::at(path, Position::Byte(at as u64), format!("camera {id}: unknown camera model id {model_id}"))
+        })?;
+        let width = b.u64("an image width")?;
+        let height = b.u64("an image height")?;
+        let params = (0..np).map(|_| b.f64("camera parameters")).collect::<Result<Vec<_>, _>>()?;
+        out.push(ColmapCamera { id: id as u32, model: name.to_string(), width, height, params });
+    }
+    if b.at != bytes.len() {
+        return Err(FormatError::at(path, Position::Byte(b.at as u64), "trailing bytes after the last camera"));
+    }
+    Ok(out)
+}
+
+/// Reads `images.bin`.
+pub fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
+    let bytes = read_bytes(path)?;
+    let mut b = Bin { path, bytes: &bytes, at: 0 };
+    let n = b.count("the number of images", 4 + 7 * 8 + 4 + 1 + 8)?;
+    let mut out = Vec::with_capacity(n);
+    for _ in 0..n {
+        let id = b.i32("an image id")? as u32;
+        let mut v = [0.0f64; 7];
+        for x in v.iter_mut() {
+            *x = b.f64("an image pose")?;
+        }
+        let camera_id = b.i32("a camera id")? as u32;
+        let at = b.at;
+        let end = bytes[at..].iter().position(|&c| c == 0).ok_or_else(|| {
+            FormatError::at(path, Position::Byte(at as u64), "file ends inside an image name (no terminating 0 byte)")
+        })?;
+        let name = String::from_utf8(bytes[at..at + end].to_vec())
+            .map_err(|_| FormatError::at(path, Position::Byte(at as u64), "image name is not UTF-8"))?;
+        b.at = at + end + 1;
+        let points = b.count("the number of 2D points", 24)?;
+        b.take(points * 24, "2D points")?;
+        out.push(ColmapImage { id, q: [v[0], v[1], v[2], v[3]], t: [v[4], v[5], v[6]], camera_id, name });
+    }
+    if b.at != bytes.len() {
+        return Err(FormatError::at(path, Position::Byte(b.at as u64), "trailing bytes after the last image"));
+    }
+    Ok(out)
+}
+
+/// Writes `cameras.txt` and `images.txt` (no 2D points) into `dir`.
+pub fn write_model_txt(dir: &Path, model: &ColmapModel) -> Result<(), FormatError> {
+    let mut c = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
+    for cam in &model.cameras {
+        c.push_str(&format!("{} {} {} {}", cam.id, cam.model, cam.width, cam.height));
+        for p in &cam.params {
+            c.push_str(&format!(" {p}"));
+        }
+        c.push('\n');
+    }
+    write_bytes(&dir.join("cameras.txt"), c.as_bytes())?;
+    let mut s = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
+    for im in &model.images {
+        let [qw, qx, qy, qz] = im.q;
+        let [tx, ty, tz] = im.t;
+        s.push_str(&format!("{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}\n\n", im.id, im.camera_id, im.name));
+    }
+    write_bytes(&dir.join("images.txt"), s.as_bytes())
+}
+
+/// Writes `cameras.bin` and `images.bin` (no 2D points) into `dir`.
+pub fn write_model_bin(dir: &Path, model: &ColmapModel) -> Result<(), FormatError> {
+    let path = dir.join("cameras.bin");
+    let mut c = (model.cameras.len() as u64).to_le_bytes().to_vec();
+    for cam in &model.cameras {
+        let (id, _, _) = model_by_name(&cam.model)
+            .filter(|m| m.2 == cam.params.len())
+            .ok_or_else(|| FormatError::invalid(&path, format!("camera {}: model {} with {} parameters", cam.id, cam.model, cam.params.len())))?;
+        c.extend((cam.id as i32).to_le_bytes());
+        c.extend(id.to_le_bytes());
+        c.extend(cam.width.to_le_bytes());
+        c.extend(cam.height.to_le_bytes());
+        for p in &cam.params {
+            c.extend(p.to_le_bytes());
+        }
+    }
+    write_bytes(&path, &c)?;
+    let mut s = (model.images.len() as u64).to_le_bytes().to_vec();
+    for im in &model.images {
+        s.extend((im.id as i32).to_le_bytes());
+        for v in im.q.iter().chain(&im.t) {
+            s.extend(v.to_le_bytes());
+        }
+        s.extend((im.camera_id as i32).to_le_bytes());
+        s.extend(im.name.as_bytes());
+        s.push(0);
+        s.extend(0u64.to_le_bytes());
+    }
+    write_bytes(&dir.join("images.bin"), &s)
+}
+
+/// Pinhole intrinsics (fx, fy, cx, cy) of a camera, or an error naming it when it distorts.
+fn pinhole(cam: &ColmapCamera, path: &Path) -> Result<[f64; 4], FormatError> {
+    let p = &cam.params;
+    let (k, distortion): ([f64; 4], &[f64]) = match cam.model.as_str() {
+        "SIMPLE_PINHOLE" => ([p[0], p[0], p[1], p[2]], &[]),
+        "PINHOLE" => ([p[0], p[1], p[2], p[3]], &[]),
+        "SIMPLE_RADIAL" | "RADIAL" => ([p[0], p[0], p[1], p[2]], &p[3..]),
+        "OPENCV" | "FULL_OPENCV" => ([p[0], p[1], p[2], p[3]], &p[4..]),
+        other => {
+            return Err(FormatError::invalid(
+                path,
+                format!(
+                    "camera {} has model {other}, which is not a pinhole: undistort the images first (`colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`, then use `dense/` as the views directory)",
+                    cam.id
+                ),
+            ))
+        }
+    };
+    if distortion.iter().any(|d| *d != 0.0) {
+        return Err(FormatError::invalid(
+            path,
+            format!(
+                "camera {} ({}) has lens distortion {:?}, which fure does not model: undistort the images first (`colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`, then use `dense/` as the views directory), or calibrate with PINHOLE",
+                cam.id, cam.model, distortion
+            ),
+        ));
+    }
+    if k.iter().any(|v| !v.is_finite()) || k[0] <= 0.0 || k[1] <= 0.0 || cam.width == 0 || cam.height == 0 {
+        return Err(FormatError::invalid(
+            path,
+            format!("camera {} ({}): expected positive focal lengths and image size, found {:?}, {} x {}", cam.id, cam.model, cam.params, cam.width, cam.height),
+        ));
+    }
+    Ok(k)
+}
+
+/// COLMAP's world-to-camera pose (OpenCV axes) as our camera-to-world matrix (OpenGL axes).
+pub fn c2w_from_colmap(q: [f64; 4], t: [f64; 3]) -> Mat4 {
+    let r = DMat3::from_quat(DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize());
+    let rt = r.transpose();
+    let centre = -(rt * DVec3::from(t));
+    // Columns of R^T are the camera axes in the world; OpenGL's y and z are OpenCV's negated.
+    let cols = [rt.x_axis, -rt.y_axis, -rt.z_axis];
+    Mat4::from_cols_array(&[
+        cols[0].x as f32, cols[0].y as f32, cols[0].z as f32, 0.0,
+        cols[1].x as f32, cols[1].y as f32, cols[1].z as f32, 0.0,
+        cols[2].x as f32, cols[2].y as f32, cols[2].z as f32, 0.0,
+        centre.x as f32, centre.y as f32, centre.z as f32, 1.0,
+    ])
+}
+
+/// Our camera-to-world matrix as COLMAP's (quaternion `qw qx qy qz`, translation); for writers
+/// and tests.
+pub fn colmap_from_c2w(c2w: &Mat4) -> ([f64; 4], [f64; 3]) {
+    let c = c2w.as_dmat4();
+    let rt = DMat3::from_cols(c.x_axis.truncate(), -c.y_axis.truncate(), -c.z_axis.truncate());
+    let r = rt.transpose();
+    let q = DQuat::from_mat3(&r).normalize();
+    let t = -(r * c.w_axis.truncate());
+    ([q.w, q.x, q.y, q.z], t.to_array())
+}
+
+/// The views of a COLMAP views directory `dir` (see the module doc): images under `images/`,
+/// sorted by name, every [`HOLDOUT_EVERY`]-th held out.
+pub fn read_colmap_views(dir: &Path, sparse: &Path) -> Result<CameraSet, FormatError> {
+    let model = read_model(sparse)?;
+    let images_file = ["images.bin", "images.txt"].iter().map(|n| sparse.join(n)).find(|p| p.is_file()).unwrap_or_else(|| sparse.to_path_buf());
+    let cameras_file = ["cameras.bin", "cameras.txt"].iter().map(|n| sparse.join(n)).find(|p| p.is_file()).unwrap_or_else(|| sparse.to_path_buf());
+    let mut by_id: BTreeMap<u32, (&ColmapCamera, [f64; 4])> = BTreeMap::new();
+    for cam in &model.cameras {
+        if by_id.insert(cam.id, (cam, pinhole(cam, &cameras_file)?)).is_some() {
+            return Err(FormatError::invalid(&cameras_file, format!("camera id {} appears twice", cam.id)));
+        }
+    }
+    let mut images: Vec<&ColmapImage> = model.images.iter().collect();
+    images.sort_by(|a, b| a.name.cmp(&b.name));
+    if let Some(w) = images.windows(2).find(|w| w[0].name == w[1].name) {
+        return Err(FormatError::invalid(&images_file, format!("image name `{}` appears twice", w[0].name)));
+    }
+    let mut set = CameraSet::default();
+    let holdout = images.len() >= HOLDOUT_EVERY;
+    for (i, im) in images.iter().enumerate() {
+        let (cam, k) = by_id.get(&im.camera_id).ok_or_else(|| {
+            FormatError::invalid(
+                &images_file,
+                format!("image {} (`{}`) refers to camera {}, which cameras.* does not list", im.id, im.name, im.camera_id),
+            )
+        })?;
+        if im.q.iter().chain(&im.t).any(|v| !v.is_finite()) || im.q.iter().all(|v| *v == 0.0) {
+            return Err(FormatError::invalid(&images_file, format!("image {} (`{}`): expected a finite pose with a non-zero quaternion", im.id, im.name)));
+        }
+        let name = im.name.replace('\\', "/");
+        let camera = Camera {
+            file_path: format!("images/{name}"),
+            c2w: c2w_from_colmap(im.q, im.t),
+            fx: k[0] as f32,
+            fy: k[1] as f32,
+            cx: k[2] as f32,
+            cy: k[3] as f32,
+            width: u32::try_from(cam.width).unwrap_or(u32::MAX),
+            height: u32::try_from(cam.height).unwrap_or(u32::MAX),
+        };
+        if !dir.join(&camera.file_path).is_file() {
+            return Err(FormatError::invalid(
+                &dir.join(&camera.file_path),
+                format!("missing image: {} lists image `{}`, expected it under images/", images_file.display(), im.name),
+            ));
+        }
+        if holdout && i % HOLDOUT_EVERY == 0 {
+            set.test.push(camera);
+        } else {
+            set.train.push(camera);
+        }
+    }
+    Ok(set)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// Cameras on a ring looking at the origin, one per model (both intrinsics forms).
+    fn known() -> (ColmapModel, Vec<Camera>) {
+        let mut model = ColmapModel::default();
+        model.cameras.push(ColmapCamera { id: 1, model: "PINHOLE".into(), width: 64, height: 48, params: vec![70.5, 71.25, 31.75, 24.5] });
+        model.cameras.push(ColmapCamera { id: 2, model: "SIMPLE_PINHOLE".into(), width: 40, height: 30, params: vec![50.0, 20.0, 15.0] });
+        model.cameras.push(ColmapCamera { id: 3, model: "OPENCV".into(), width: 64, height: 48, params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0] });
+        let mut cams = Vec::new();
+        for i in 0..9u32 {
+            let a = i as f32 * 0.7;
+            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.8 + 0.1 * i as f32);
+            // Our cameras: OpenGL axes, looking at a point near the origin, z up.
+            let c2w = Mat4::look_at_rh(eye, Vec3::new(0.1, -0.2, 0.3), Vec3::Z).inverse();
+            let (q, t) = colmap_from_c2w(&c2w);
+            let camera_id = 1 + i % 3;
+            let name = format!("img_{i:02}.png");
+            model.images.push(ColmapImage { id: 10 + i, q, t, camera_id, name: name.clone() });
+            let c = &model.cameras[(camera_id - 1) as usize];
+            let p = &c.params;
+            let (fx, fy, cx, cy) = match c.model.as_str() {
+                "SIMPLE_PINHOLE" => (p[0], p[0], p[1], p[2]),
+                _ => (p[0], p[1], p[2], p[3]),
+            };
+            cams.push(Camera {
+                file_path: format!("images/{name}"),
+                c2w,
+                fx: fx as f32,
+                fy: fy as f32,
+                cx: cx as f32,
+                cy: cy as f32,
+                width: c.width as u32,
+                height: c.height as u32,
+            });
+        }
+        (model, cams)
+    }
+
+    /// Independent projection the COLMAP way: x_cam = R x + t (OpenCV axes), u = fx x/z + cx.
+    fn project_colmap(im: &ColmapImage, k: [f64; 4], p: [f64; 3]) -> (f64, f64) {
+        let [w, x, y, z] = im.q;
+        let n = (w * w + x * x + y * y + z * z).sqrt();
+        let (w, x, y, z) = (w / n, x / n, y / n, z / n);
+        let r = [
+            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+        ];
+        let c: Vec<f64> = (0..3).map(|i| (0..3).map(|j| r[i][j] * p[j]).sum::<f64>() + im.t[i]).collect();
+        (k[0] * c[0] / c[2] + k[2], k[1] * c[1] / c[2] + k[3])
+    }
+
+    fn views_dir(model: &ColmapModel, bin: bool, nested: bool) -> tempfile::TempDir {
+        let dir = tempfile::tempdir().unwrap();
+        let sparse = if nested { dir.path().join("sparse/0") } else { dir.path().join("sparse") };
+        std::fs::create_dir_all(&sparse).unwrap();
+        if bin {
+            write_model_bin(&sparse, model).unwrap();
+        } else {
+            write_model_txt(&sparse, model).unwrap();
+        }
+        std::fs::create_dir_all(dir.path().join("images")).unwrap();
+        for im in &model.images {
+            std::fs::write(dir.path().join("images").join(&im.name), b"").unwrap();
+        }
+        dir
+    }
+
+    #[test]
+    fn text_and_binary_models_round_trip_poses_and_intrinsics() {
+        let (model, cams) = known();
+        for (bin, nested) in [(false, true), (true, true), (true, false)] {
+            let dir = views_dir(&model, bin, nested);
+            let sparse = find_sparse(dir.path()).unwrap();
+            assert_eq!(sparse.ends_with("0"), nested);
+            let back = read_model(&sparse).unwrap();
+            assert_eq!(back.cameras, model.cameras, "bin {bin}");
+            assert_eq!(back.images, model.images, "bin {bin}");
+            // Through the views reader: 9 images, sorted by name, every 8th held out (0 and 8).
+            let set = super::super::cameras::read_views(dir.path()).unwrap();
+            assert_eq!(set.test.iter().map(|c| c.file_path.as_str()).collect::<Vec<_>>(), ["images/img_00.png", "images/img_08.png"]);
+            assert_eq!(set.train.len(), 7);
+            for cam in set.train.iter().chain(&set.test) {
+                let i: usize = cam.file_path[11..13].parse().unwrap();
+                let want = &cams[i];
+                assert_eq!((cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height), (want.fx, want.fy, want.cx, want.cy, want.width, want.height));
+                assert!(cam.c2w.abs_diff_eq(want.c2w, 1e-5), "{i}: {:?} vs {:?}", cam.c2w, want.c2w);
+                let im = &model.images[i];
+                let k = [want.fx as f64, want.fy as f64, want.cx as f64, want.cy as f64];
+                for p in [[0.1, -0.2, 0.3], [0.5, 0.4, -0.3], [-0.6, 0.2, 0.9]] {
+                    let (u, v) = project_colmap(im, k, p);
+                    let (uv, depth) = cam.project(Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32));
+                    assert!(depth > 0.0);
+                    assert!((uv.x as f64 - u).abs() < 1e-3 && (uv.y as f64 - v).abs() < 1e-3, "{i}: {uv} vs {u},{v}");
+                }
+                // The look-at point projects near the principal point, so the test is not vacuous
+                // only off it: the third point lands away from it.
+                let (uv, _) = cam.project(Vec3::new(-0.6, 0.2, 0.9));
+                assert!((uv - glam::Vec2::new(cam.cx, cam.cy)).length() > 2.0);
+            }
+        }
+    }
+
+    #[test]
+    fn distortion_and_fisheye_are_refused_naming_the_camera() {
+        let (mut model, _) = known();
+        model.cameras[2].params[4] = -0.05;
+        let dir = views_dir(&model, false, true);
+        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("camera 3 (OPENCV)") && e.contains("distortion") && e.contains("image_undistorter") && e.contains("cameras.txt"), "{e}");
+        model.cameras[2] = ColmapCamera { id: 3, model: "OPENCV_FISHEYE".into(), width: 64, height: 48, params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0] };
+        let dir = views_dir(&model, true, true);
+        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("camera 3 has model OPENCV_FISHEYE") && e.contains("cameras.bin"), "{e}");
+        // SIMPLE_RADIAL with k = 0 is a pinhole.
+        model.cameras[2] = ColmapCamera { id: 3, model: "SIMPLE_RADIAL".into(), width: 64, height: 48, params: vec![60.0, 32.0, 24.0, 0.0] };
+        let dir = views_dir(&model, true, true);
+        super::super::cameras::read_views(dir.path()).unwrap();
+    }
+
+    #[test]
+    fn malformed_models_name_file_and_position() {
+        let (model, _) = known();
+        let dir = views_dir(&model, false, true);
+        let sparse = dir.path().join("sparse/0");
+        std::fs::write(sparse.join("cameras.txt"), "# c\n1 PINHOLE 64 48 70 71 32\n").unwrap();
+        let e = read_model(&sparse).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::Line(2)), "{e}");
+        assert!(e.to_string().contains("PINHOLE has 4 parameters, found 3"), "{e}");
+        std::fs::write(sparse.join("cameras.txt"), "1 PINHOL 64 48 70 71 32 24\n").unwrap();
+        let e = read_model(&sparse).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::LineColumn { line: 1, column: 3 }), "{e}");
+        std::fs::write(sparse.join("cameras.txt"), "1 PINHOLE 64 4x8 70 71 32 24\n").unwrap();
+        let e = read_model(&sparse).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::LineColumn { line: 1, column: 14 }), "{e}");
+        std::fs::write(sparse.join("cameras.txt"), "1 PINHOLE 64 48 70 71 32 24\n").unwrap();
+        std::fs::write(sparse.join("images.txt"), "1 1 0 0 0 0 0 1 7 img_00.png\n\n").unwrap();
+        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("refers to camera 7") && e.contains("images.txt"), "{e}");
+        std::fs::write(sparse.join("images.txt"), "1 1 0 0 0 0 0 1 1 nothere.png\n\n").unwrap();
+        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("missing image") && e.contains("nothere.png"), "{e}");
+        // Binary: truncated files name the byte where they end.
+        let bdir = views_dir(&model, true, true);
+        let cams = bdir.path().join("sparse/0/cameras.bin");
+        let bytes = std::fs::read(&cams).unwrap();
+        std::fs::write(&cams, &bytes[..bytes.len() - 3]).unwrap();
+        let e = read_model(&bdir.path().join("sparse/0")).unwrap_err();
+        assert!(matches!(e.position(), Some(Position::Byte(_))) && e.to_string().contains("cameras.bin"), "{e}");
+        std::fs::write(&cams, [255u8; 8]).unwrap();
+        let e = read_model(&bdir.path().join("sparse/0")).unwrap_err();
+        assert!(e.to_string().contains("does not fit"), "{e}");
+    }
+}
