@@ -111,3 +111,98 @@ fn label_meshes_in_the_wrong_frame_fail_and_every_preset_passes() {
         assert!(text.contains("labels"), "{name}: the input is not named:\n{text}");
     }
 }
+
+/// The synthetic tiger's views and the stages that read views, on either layout.
+const HULL: &str = r#"
+[pipeline]
+name = "NAME"
+
+[stages.outer]
+kind = "outer_surface"
+inputs = { views = "VIEWS" }
+
+[stages.parts]
+kind = "parts"
+inputs = { mesh = "outer.mesh", labels = "labels.obj" }
+"#;
+
+fn hull(p: &Project, name: &str, views: &str) -> crate::engine::Run {
+    p.write(&format!("{name}.toml"), &HULL.replace("NAME", name).replace("VIEWS", views));
+    p.run(&format!("{name}.toml"), &[])
+}
+
+/// The synthetic views as a user's COLMAP capture: a sparse text model, RGB photos without
+/// alpha under `images/`, masks under `masks/`. The visual hull and the label transfer on it
+/// match those of the same training cameras written as transforms.json.
+#[test]
+fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
+    use fure_stages::formats::{cameras, colmap, images};
+    let p = Project::new();
+    p.write("scene.toml", &LABELS.replace("name = \"labels\"", "name = \"scene\""));
+    p.run("scene.toml", &["--until", "scene"]).ok();
+    p.write("labels.obj", &p.read("out/scene/scene/labels.obj"));
+    let src = p.path("out/scene/scene/views");
+    let set = cameras::read_views(&src).unwrap();
+    let all: Vec<_> = set.train.iter().chain(&set.test).cloned().collect();
+    assert_eq!(all.len(), 9);
+
+    let cap = p.path("cap");
+    let mut model = colmap::ColmapModel::default();
+    for (i, cam) in all.iter().enumerate() {
+        let v = cameras::read_view(&src, cam).unwrap();
+        let name = format!("{i:04}.png");
+        images::write_png(cap.join("images").join(&name), &v.rgb).unwrap();
+        let mask = v.mask.expect("the synthetic views have masks");
+        images::write_png(cap.join("masks").join(&name), &mask).unwrap();
+        let cid = model.cameras.len() as u32 + 1;
+        model.cameras.push(colmap::ColmapCamera {
+            id: cid,
+            model: "PINHOLE".into(),
+            width: cam.width as u64,
+            height: cam.height as u64,
+            params: vec![cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64],
+        });
+        let (q, t) = colmap::colmap_from_c2w(&cam.c2w);
+        model.images.push(colmap::ColmapImage { id: i as u32 + 1, q, t, camera_id: cid, name });
+    }
+    colmap::write_model_txt(&cap.join("sparse/0"), &model).unwrap();
+    let read = cameras::read_views(&cap).unwrap();
+    // 9 images: 0000 and 0008 held out.
+    assert_eq!(read.test.iter().map(|c| c.file_path.as_str()).collect::<Vec<_>>(), ["images/0000.png", "images/0008.png"]);
+    assert_eq!(read.train.len(), 7);
+
+    // The same 7 training cameras as a transforms.json directory with `_mask.png` files.
+    let ngp = p.path("ngp");
+    for cam in &read.train {
+        let v = cameras::read_view(&cap, cam).unwrap();
+        assert!(v.mask.is_some(), "masks/ is read");
+        images::write_png(cameras::image_path(&ngp, cam), &v.rgb).unwrap();
+        images::write_png(cameras::mask_path(&ngp, cam), &v.mask.unwrap()).unwrap();
+    }
+    cameras::write_views(&ngp, &fure_stages::camera::CameraSet { train: read.train.clone(), test: vec![] }).unwrap();
+
+    hull(&p, "from_colmap", "cap").ok();
+    hull(&p, "from_ngp", "ngp").ok();
+    let m = |name: &str| read_json(&p.path(&format!("out/{name}/outer/metrics.json")));
+    let (a, b) = (m("from_colmap"), m("from_ngp"));
+    for key in ["volume", "area", "diagonal"] {
+        let (x, y) = (a[key].as_f64().unwrap(), b[key].as_f64().unwrap());
+        assert!(x > 0.0 && (x - y).abs() <= 0.01 * y, "{key}: COLMAP {x} vs transforms.json {y}");
+    }
+    let parts = |name: &str| read_json(&p.path(&format!("out/{name}/parts/metrics.json")))["parts"].clone();
+    assert_eq!(parts("from_colmap"), parts("from_ngp"));
+
+    // Without masks/ the RGB photos have nothing to carve with: the error names an image and
+    // where its mask was looked for.
+    std::fs::rename(cap.join("masks"), p.path("masks_aside")).unwrap();
+    let r = hull(&p, "no_masks", "cap");
+    assert_eq!(r.status("outer"), "failed", "{:?}", r.stages);
+    let text = format!("{}{}", r.stdout(), r.stderr());
+    eprintln!("{text}");
+    // The first training view (0000 is held out).
+    assert!(
+        text.contains("cap/images/0001.png") && text.contains("masks/0001.png") && text.contains("images/0001_mask.png"),
+        "the image and its mask files are not named:\n{text}"
+    );
+    assert!(text.contains("no alpha channel and no mask"), "{text}");
+}
