@@ -1552,9 +1552,12 @@ mod tests {
             s_cm_source: "test".into(),
             variant: "v1".into(),
             // The bald part's length is ignored.
-            parts: [("torso".to_string(), part(true, 0.2)), ("eyes".to_string(), part(false, 5.0))]
-                .into_iter()
-                .collect(),
+            parts: [
+                ("torso".to_string(), part(true, 0.2)),
+                ("eyes".to_string(), part(false, 5.0)),
+            ]
+            .into_iter()
+            .collect(),
         };
         // Footprint 5 / 500 = 0.01 units/px; length 0.2 units -> 20 segments, 21 points.
         let c = choose_points(Some(&lengths), Some(&cams));

@@ -65,7 +65,9 @@ pub fn parse_method(s: &str) -> Result<Method, String> {
         None => (rest.trim(), None),
     };
     if name.trim().is_empty() || eval.is_empty() || learner.as_deref() == Some("") {
-        return Err(format!("`{s}`: expected NAME=EVAL_STAGE[:LEARNER_STAGE], none of them empty"));
+        return Err(format!(
+            "`{s}`: expected NAME=EVAL_STAGE[:LEARNER_STAGE], none of them empty"
+        ));
     }
     Ok(Method {
         name: name.trim().to_string(),
@@ -105,9 +107,8 @@ pub fn stat(values: &[f64]) -> Option<Stat> {
     }
     let n = v.len();
     let mean = v.iter().sum::<f64>() / n as f64;
-    let sd = (n > 1).then(|| {
-        (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64).sqrt()
-    });
+    let sd = (n > 1)
+        .then(|| (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64).sqrt());
     Some(Stat { mean, sd, n })
 }
 
@@ -179,15 +180,22 @@ struct Scene<'a> {
 fn scenes<'a>(rec: &'a SweepRecord, cfg: &Config) -> Vec<Scene<'a>> {
     let mut by: BTreeMap<String, Vec<&VariantRecord>> = BTreeMap::new();
     for v in &rec.variants {
-        let name = setting(v, &cfg.scene_setting).map(label).unwrap_or_else(|| "-".into());
+        let name = setting(v, &cfg.scene_setting)
+            .map(label)
+            .unwrap_or_else(|| "-".into());
         by.entry(name).or_default().push(v);
     }
     let mut out = Vec::new();
-    let mut take = |name: &str, split: &'static str, by: &mut BTreeMap<String, Vec<&'a VariantRecord>>| {
-        if let Some(runs) = by.remove(name) {
-            out.push(Scene { name: name.to_string(), split, runs });
-        }
-    };
+    let mut take =
+        |name: &str, split: &'static str, by: &mut BTreeMap<String, Vec<&'a VariantRecord>>| {
+            if let Some(runs) = by.remove(name) {
+                out.push(Scene {
+                    name: name.to_string(),
+                    split,
+                    runs,
+                });
+            }
+        };
     for s in &cfg.dev {
         take(s, "dev", &mut by);
     }
@@ -203,7 +211,10 @@ fn scenes<'a>(rec: &'a SweepRecord, cfg: &Config) -> Vec<Scene<'a>> {
 
 /// The values of `key` over a scene's runs that have it.
 fn values(sc: &Scene<'_>, key: &str) -> Vec<f64> {
-    sc.runs.iter().filter_map(|v| v.metrics.get(key).copied()).collect()
+    sc.runs
+        .iter()
+        .filter_map(|v| v.metrics.get(key).copied())
+        .collect()
 }
 
 fn cost(v: &VariantRecord, stage: &str) -> Option<f64> {
@@ -219,14 +230,20 @@ fn peak_rss(v: &VariantRecord) -> Option<f64> {
 }
 
 fn preprocessing_seconds(v: &VariantRecord, cfg: &Config) -> Option<f64> {
-    let s: Vec<f64> = cfg.preprocessing.iter().filter_map(|st| cost(v, st)).collect();
+    let s: Vec<f64> = cfg
+        .preprocessing
+        .iter()
+        .filter_map(|st| cost(v, st))
+        .collect();
     (!s.is_empty()).then(|| s.iter().sum())
 }
 
 fn fmt_stat(s: Option<Stat>, digits: usize) -> String {
     match s {
         None => "-".into(),
-        Some(Stat { mean, sd: Some(sd), .. }) => format!("{mean:.digits$} ± {sd:.digits$}"),
+        Some(Stat {
+            mean, sd: Some(sd), ..
+        }) => format!("{mean:.digits$} ± {sd:.digits$}"),
         Some(Stat { mean, .. }) => format!("{mean:.digits$}"),
     }
 }
@@ -255,7 +272,8 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         s.dedup();
         s
     };
-    let _ = writeln!(
+    let _ =
+        writeln!(
         md,
         "Splits: **dev** {} (the only scenes any default may be tuned on); **test** {} (reported, \
          never used to choose). Seeds: {} (each regrows the animal and reseeds every learner). \
@@ -286,7 +304,10 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         if in_split.is_empty() {
             continue;
         }
-        let _ = writeln!(md, "## Headline, {split} split: signed F at 3 cm / 30° (strict 1 cm / 10° below)\n");
+        let _ = writeln!(
+            md,
+            "## Headline, {split} split: signed F at 3 cm / 30° (strict 1 cm / 10° below)\n"
+        );
         let mut head = "| scene | seeds |".to_string();
         let mut rule = "|---|---|".to_string();
         for m in &cfg.methods {
@@ -303,9 +324,17 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
                     sc.runs.len()
                 );
                 for m in &cfg.methods {
-                    let _ = write!(row, " {} |", fmt_stat(stat(&values(sc, &f_key(&m.eval, t))), 1));
+                    let _ = write!(
+                        row,
+                        " {} |",
+                        fmt_stat(stat(&values(sc, &f_key(&m.eval, t))), 1)
+                    );
                 }
-                let _ = write!(row, " {} |", fmt_stat(stat(&values(sc, &f_key(&cfg.ceiling, t))), 1));
+                let _ = write!(
+                    row,
+                    " {} |",
+                    fmt_stat(stat(&values(sc, &f_key(&cfg.ceiling, t))), 1)
+                );
                 let _ = writeln!(md, "{row}");
             }
         }
@@ -314,7 +343,11 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
 
     // Verdicts of the first method against each other one, per scene and threshold.
     if let Some((first, others)) = cfg.methods.split_first() {
-        let _ = writeln!(md, "## Comparisons: {} against each method (signed F)\n", first.name);
+        let _ = writeln!(
+            md,
+            "## Comparisons: {} against each method (signed F)\n",
+            first.name
+        );
         let _ = writeln!(md, "| scene | split | against | 1 cm | 2 cm | 3 cm | 4 cm |\n|---|---|---|---|---|---|---|");
         let mut verdicts = Map::new();
         for sc in &scenes {
@@ -346,7 +379,13 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
     let _ = writeln!(md, "## Per scene\n");
     let mut per_scene = Map::new();
     for sc in &scenes {
-        let _ = writeln!(md, "### {} ({} split, {} seeds)\n", sc.name, sc.split, sc.runs.len());
+        let _ = writeln!(
+            md,
+            "### {} ({} split, {} seeds)\n",
+            sc.name,
+            sc.split,
+            sc.runs.len()
+        );
         let _ = writeln!(
             md,
             "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | training (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
@@ -356,16 +395,31 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
             .methods
             .iter()
             .map(|m| (m.name.clone(), m.eval.clone(), m.learner.clone()))
-            .chain(std::iter::once(("ceiling".to_string(), cfg.ceiling.clone(), None)));
+            .chain(std::iter::once((
+                "ceiling".to_string(),
+                cfg.ceiling.clone(),
+                None,
+            )));
         for (name, eval, learner) in rows {
-            let fs: Vec<Option<Stat>> = THRESHOLDS.iter().map(|&t| stat(&values(sc, &f_key(&eval, t)))).collect();
+            let fs: Vec<Option<Stat>> = THRESHOLDS
+                .iter()
+                .map(|&t| stat(&values(sc, &f_key(&eval, t))))
+                .collect();
             let dir = stat(&values(sc, &format!("{eval}.direction_error_deg")));
-            let curv = stat(&values(sc, &format!("{eval}.local_curvature_variance_vs_gt")));
+            let curv = stat(&values(
+                sc,
+                &format!("{eval}.local_curvature_variance_vs_gt"),
+            ));
             let psnr = stat(&values(sc, &format!("{eval}.psnr")));
             let ssim = stat(&values(sc, &format!("{eval}.ssim")));
             let (secs, params) = match &learner {
                 Some(l) => (
-                    stat(&sc.runs.iter().filter_map(|v| cost(v, l)).collect::<Vec<_>>()),
+                    stat(
+                        &sc.runs
+                            .iter()
+                            .filter_map(|v| cost(v, l))
+                            .collect::<Vec<_>>(),
+                    ),
                     stat(&values(sc, &format!("{l}.optimised_parameters"))),
                 ),
                 None => (None, None),
@@ -386,7 +440,10 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
             );
             let mut mj = Map::new();
             for (t, f) in THRESHOLDS.iter().zip(&fs) {
-                mj.insert(format!("signed_f_{}", crate::evaluate::threshold_key(t.0, t.1)), stat_json(*f));
+                mj.insert(
+                    format!("signed_f_{}", crate::evaluate::threshold_key(t.0, t.1)),
+                    stat_json(*f),
+                );
             }
             mj.insert("direction_error_deg".into(), stat_json(dir));
             mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
@@ -405,8 +462,19 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         let base = g("defur.baseline_to_skin_mean_frac");
         let corr = g("frosting.gt_vertex.pearson");
         let len_err = g("lengths.length_error_mean_pct");
-        let pre = stat(&sc.runs.iter().filter_map(|v| preprocessing_seconds(v, cfg)).collect::<Vec<_>>());
-        let mem = stat(&sc.runs.iter().filter_map(|v| peak_rss(v)).map(|b| b / (1u64 << 20) as f64).collect::<Vec<_>>());
+        let pre = stat(
+            &sc.runs
+                .iter()
+                .filter_map(|v| preprocessing_seconds(v, cfg))
+                .collect::<Vec<_>>(),
+        );
+        let mem = stat(
+            &sc.runs
+                .iter()
+                .filter_map(|v| peak_rss(v))
+                .map(|b| b / (1u64 << 20) as f64)
+                .collect::<Vec<_>>(),
+        );
         let _ = writeln!(
             md,
             "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
@@ -422,8 +490,12 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
             fmt_stat(mem, 0),
         );
         let sp = g(&format!("{}.speedup_to_dense_final_fscore", cfg.speedup));
-        let lo = values(sc, &format!("{}.speedup_low", cfg.speedup)).into_iter().reduce(f64::min);
-        let hi = values(sc, &format!("{}.speedup_high", cfg.speedup)).into_iter().reduce(f64::max);
+        let lo = values(sc, &format!("{}.speedup_low", cfg.speedup))
+            .into_iter()
+            .reduce(f64::min);
+        let hi = values(sc, &format!("{}.speedup_high", cfg.speedup))
+            .into_iter()
+            .reduce(f64::max);
         let reached = sp.map(|s| s.n).unwrap_or(0);
         let _ = writeln!(
             md,
@@ -466,9 +538,15 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
     // One CSV row per run and method.
     let mut csv = String::from("scene,split,seed,variant,status,method");
     for t in THRESHOLDS {
-        let _ = write!(csv, ",signed_f_{}", crate::evaluate::threshold_key(t.0, t.1));
+        let _ = write!(
+            csv,
+            ",signed_f_{}",
+            crate::evaluate::threshold_key(t.0, t.1)
+        );
     }
-    csv.push_str(",direction_error_deg,curvature_vs_gt,psnr,ssim,training_seconds,optimised_parameters\n");
+    csv.push_str(
+        ",direction_error_deg,curvature_vs_gt,psnr,ssim,training_seconds,optimised_parameters\n",
+    );
     let num = |x: Option<f64>| x.map_or(String::new(), |x| format!("{x}"));
     for sc in &scenes {
         for v in &sc.runs {
@@ -484,7 +562,11 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
                 .map(|m| (m.name.as_str(), m.eval.as_str(), m.learner.as_deref()))
                 .chain(std::iter::once(("ceiling", cfg.ceiling.as_str(), None)));
             for (name, eval, learner) in all {
-                let _ = write!(csv, "{},{},{},{},{status},{}", sc.name, sc.split, seed, v.name, name);
+                let _ = write!(
+                    csv,
+                    "{},{},{},{},{status},{}",
+                    sc.name, sc.split, seed, v.name, name
+                );
                 for t in THRESHOLDS {
                     let _ = write!(csv, ",{}", num(v.metrics.get(&f_key(eval, t)).copied()));
                 }
@@ -497,7 +579,10 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
                     m("psnr"),
                     m("ssim"),
                     num(learner.and_then(|l| cost(v, l))),
-                    num(learner.and_then(|l| v.metrics.get(&format!("{l}.optimised_parameters")).copied())),
+                    num(learner.and_then(|l| v
+                        .metrics
+                        .get(&format!("{l}.optimised_parameters"))
+                        .copied())),
                 );
             }
         }
@@ -516,7 +601,13 @@ fn list_or_none(v: &[String]) -> String {
 /// A file-name-safe form of a scene name.
 fn safe(s: &str) -> String {
     s.chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
         .collect()
 }
 
@@ -540,7 +631,8 @@ fn draw_scatter<DB: DrawingBackend>(
     let pts: Vec<(f64, f64)> = series.iter().flat_map(|(_, p)| p.iter().copied()).collect();
     let xmin = pts.iter().map(|p| p.0).fold(f64::MAX, f64::min).max(1e-3);
     let xmax = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(xmin * 10.0);
-    let ymax = ((pts.iter().map(|p| p.1).fold(0.0, f64::max) / 10.0).ceil() * 10.0).clamp(10.0, 100.0);
+    let ymax =
+        ((pts.iter().map(|p| p.1).fold(0.0, f64::max) / 10.0).ceil() * 10.0).clamp(10.0, 100.0);
     let mut chart = ChartBuilder::on(root)
         .caption(title, ("sans-serif", 20))
         .margin(14)
@@ -589,27 +681,46 @@ fn write_charts(rec: &SweepRecord, cfg: &Config, dir: &Path) -> Result<(), Stage
             let f = |v: &VariantRecord| v.metrics.get(&f_key(&m.eval, t3)).copied();
             time.push((
                 m.name.clone(),
-                sc.runs.iter().filter_map(|v| Some((cost(v, l)?, f(v)?))).collect::<Vec<_>>(),
+                sc.runs
+                    .iter()
+                    .filter_map(|v| Some((cost(v, l)?, f(v)?)))
+                    .collect::<Vec<_>>(),
             ));
             size.push((
                 m.name.clone(),
                 sc.runs
                     .iter()
-                    .filter_map(|v| Some((*v.metrics.get(&format!("{l}.optimised_parameters"))?, f(v)?)))
+                    .filter_map(|v| {
+                        Some((*v.metrics.get(&format!("{l}.optimised_parameters"))?, f(v)?))
+                    })
                     .collect::<Vec<_>>(),
             ));
         }
         for (stem, title, xdesc, series) in [
-            ("f_vs_time", format!("{}: F vs strand-training time", sc.name), "training compute time (s, log)", &time),
-            ("f_vs_size", format!("{}: F vs model size", sc.name), "optimised parameters (log)", &size),
+            (
+                "f_vs_time",
+                format!("{}: F vs strand-training time", sc.name),
+                "training compute time (s, log)",
+                &time,
+            ),
+            (
+                "f_vs_size",
+                format!("{}: F vs model size", sc.name),
+                "optimised parameters (log)",
+                &size,
+            ),
         ] {
             if series.iter().all(|(_, p)| p.is_empty()) {
                 continue;
             }
             let name = format!("{stem}_{}", safe(&sc.name));
             let size = (820, 600);
-            write_png_chart(&dir.join(format!("{name}.png")), size, |r| draw_scatter(r, &title, xdesc, series))?;
-            write_svg_chart(&dir.join(format!("{name}.svg")), size, |r| draw_scatter(r, &title, xdesc, series))?;
+            write_png_chart(&dir.join(format!("{name}.png")), size, |r| {
+                draw_scatter(r, &title, xdesc, series)
+            })?;
+            write_svg_chart(&dir.join(format!("{name}.svg")), size, |r| {
+                draw_scatter(r, &title, xdesc, series)
+            })?;
         }
     }
     Ok(())
@@ -623,12 +734,18 @@ fn config(p: &Params) -> Result<Config, StageError> {
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| StageError::param("methods", e))?;
     if methods.is_empty() {
-        return Err(StageError::param("methods", "expected at least one NAME=EVAL[:LEARNER]"));
+        return Err(StageError::param(
+            "methods",
+            "expected at least one NAME=EVAL[:LEARNER]",
+        ));
     }
     let dev = p.str_list("dev")?;
     let test = p.str_list("test")?;
     if let Some(s) = dev.iter().find(|s| test.contains(s)) {
-        return Err(StageError::param("test", format!("scene `{s}` is in both splits")));
+        return Err(StageError::param(
+            "test",
+            format!("scene `{s}` is in both splits"),
+        ));
     }
     Ok(Config {
         dev,
@@ -662,10 +779,26 @@ impl Stage for BenchmarkReport {
     }
     fn params(&self) -> Vec<ParamSpec> {
         vec![
-            ParamSpec::str_list("dev", &["tiger", "fox"], "dev split: the only scenes defaults may be tuned on"),
-            ParamSpec::str_list("test", &["panda", "cat", "bison", "wolf"], "test split: reported, never used to choose"),
-            ParamSpec::string("scene_setting", "scene.preset", "the swept STAGE.PARAM naming the scene (a linked key containing it counts)"),
-            ParamSpec::string("seed_setting", "scene.seed", "the swept STAGE.PARAM naming the seed (a linked key containing it counts)"),
+            ParamSpec::str_list(
+                "dev",
+                &["tiger", "fox"],
+                "dev split: the only scenes defaults may be tuned on",
+            ),
+            ParamSpec::str_list(
+                "test",
+                &["panda", "cat", "bison", "wolf"],
+                "test split: reported, never used to choose",
+            ),
+            ParamSpec::string(
+                "scene_setting",
+                "scene.preset",
+                "the swept STAGE.PARAM naming the scene (a linked key containing it counts)",
+            ),
+            ParamSpec::string(
+                "seed_setting",
+                "scene.seed",
+                "the swept STAGE.PARAM naming the seed (a linked key containing it counts)",
+            ),
             ParamSpec::str_list(
                 "methods",
                 &[
@@ -676,25 +809,61 @@ impl Stage for BenchmarkReport {
                 ],
                 "NAME=EVAL_STAGE[:LEARNER_STAGE]; the first is compared with every other",
             ),
-            ParamSpec::string("ceiling", "evaluate_ceiling", "evaluation of the regrown GT against the GT"),
+            ParamSpec::string(
+                "ceiling",
+                "evaluate_ceiling",
+                "evaluation of the regrown GT against the GT",
+            ),
             ParamSpec::str_list(
                 "preprocessing",
-                &["outer", "parts", "frosting", "lengths", "defur", "roots", "basis", "orientation"],
+                &[
+                    "outer",
+                    "parts",
+                    "frosting",
+                    "lengths",
+                    "defur",
+                    "roots",
+                    "basis",
+                    "orientation",
+                ],
                 "stages whose compute seconds add up to the preprocessing time",
             ),
-            ParamSpec::string("speedup", "speed_accuracy", "the speed_accuracy stage's metric prefix"),
-            ParamSpec::string("charts_link", "benchmark", "where the published charts are, relative to the published results.md"),
+            ParamSpec::string(
+                "speedup",
+                "speed_accuracy",
+                "the speed_accuracy stage's metric prefix",
+            ),
+            ParamSpec::string(
+                "charts_link",
+                "benchmark",
+                "where the published charts are, relative to the published results.md",
+            ),
         ]
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
-        vec![PortSpec::file("sweep", "json", "the engine's sweep record (sweep.json)")]
+        vec![PortSpec::file(
+            "sweep",
+            "json",
+            "the engine's sweep record (sweep.json)",
+        )]
     }
     fn outputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
-            PortSpec::file("results", "md", "the results document (publish it to docs/results.md)"),
-            PortSpec::dir("charts", "per scene: f_vs_time_<scene> and f_vs_size_<scene>, PNG and SVG"),
+            PortSpec::file(
+                "results",
+                "md",
+                "the results document (publish it to docs/results.md)",
+            ),
+            PortSpec::dir(
+                "charts",
+                "per scene: f_vs_time_<scene> and f_vs_size_<scene>, PNG and SVG",
+            ),
             PortSpec::file("runs", "csv", "one row per run and method"),
-            PortSpec::file("metrics", "json", "per scene and method: mean, sd, n of every figure; verdicts"),
+            PortSpec::file(
+                "metrics",
+                "json",
+                "per scene and method: mean, sd, n of every figure; verdicts",
+            ),
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
@@ -737,7 +906,8 @@ mod tests {
                 })
             })
             .collect();
-        let root = json!({"pipeline": "benchmark", "crossed": {}, "each": {}, "variants": variants});
+        let root =
+            json!({"pipeline": "benchmark", "crossed": {}, "each": {}, "variants": variants});
         SweepRecord::from_json(Path::new("sweep.json"), &root).unwrap()
     }
 
@@ -761,10 +931,22 @@ mod tests {
     #[test]
     fn verdicts_follow_the_seed_spread() {
         let s = |m: f64, sd: Option<f64>| Stat { mean: m, sd, n: 3 };
-        assert_eq!(verdict(&s(50.0, Some(1.0)), &s(48.5, Some(1.0))), Verdict::Won);
-        assert_eq!(verdict(&s(50.0, Some(2.0)), &s(48.5, Some(1.0))), Verdict::Tie);
-        assert_eq!(verdict(&s(40.0, Some(2.0)), &s(48.5, Some(1.0))), Verdict::Lost);
-        assert_eq!(verdict(&s(90.0, None), &s(10.0, Some(1.0))), Verdict::Undecided);
+        assert_eq!(
+            verdict(&s(50.0, Some(1.0)), &s(48.5, Some(1.0))),
+            Verdict::Won
+        );
+        assert_eq!(
+            verdict(&s(50.0, Some(2.0)), &s(48.5, Some(1.0))),
+            Verdict::Tie
+        );
+        assert_eq!(
+            verdict(&s(40.0, Some(2.0)), &s(48.5, Some(1.0))),
+            Verdict::Lost
+        );
+        assert_eq!(
+            verdict(&s(90.0, None), &s(10.0, Some(1.0))),
+            Verdict::Undecided
+        );
         let st = stat(&[1.0, 2.0, 3.0, f64::NAN]).unwrap();
         assert_eq!((st.mean, st.n), (2.0, 3));
         assert!((st.sd.unwrap() - 1.0).abs() < 1e-12);
@@ -785,7 +967,10 @@ mod tests {
         // Tiger: codec 61 +- 1 vs dense 51 +- 1: won; panda: lost; wolf: one seed, undecided.
         assert_eq!(m["verdicts"]["tiger|dense"]["3cm_30deg"], "won", "{m}");
         assert_eq!(m["verdicts"]["panda|dense"]["3cm_30deg"], "lost", "{m}");
-        assert_eq!(m["verdicts"]["wolf|dense"]["3cm_30deg"], "undecided (1 seed)", "{m}");
+        assert_eq!(
+            m["verdicts"]["wolf|dense"]["3cm_30deg"], "undecided (1 seed)",
+            "{m}"
+        );
         assert_eq!(m["scenes"]["tiger"]["split"], "dev");
         assert_eq!(m["scenes"]["wolf"]["split"], "unsplit");
         let f = &m["scenes"]["tiger"]["FurE"]["signed_f_3cm_30deg"];
@@ -793,10 +978,19 @@ mod tests {
         assert_eq!(f["n"], 3);
         // Missing figures are missing, not zero.
         assert!(m["scenes"]["tiger"]["FurE"]["psnr"].is_null());
-        assert!(md.contains("| tiger | 3 | 61.0 ± 1.0 | 51.0 ± 1.0 | - |"), "{md}");
+        assert!(
+            md.contains("| tiger | 3 | 61.0 ± 1.0 | 51.0 ± 1.0 | - |"),
+            "{md}"
+        );
         assert!(md.find("Headline, dev").unwrap() < md.find("Headline, test").unwrap());
-        assert_eq!(m["scenes"]["tiger"]["preprocessing"]["seconds"]["mean"], 5.0);
-        assert_eq!(m["scenes"]["tiger"]["preprocessing"]["peak_rss_mib"]["mean"], 2.0);
+        assert_eq!(
+            m["scenes"]["tiger"]["preprocessing"]["seconds"]["mean"],
+            5.0
+        );
+        assert_eq!(
+            m["scenes"]["tiger"]["preprocessing"]["peak_rss_mib"]["mean"],
+            2.0
+        );
         // One row per run and method (+ ceiling).
         assert_eq!(csv.lines().count(), 1 + 6 * 3);
     }
@@ -805,10 +999,16 @@ mod tests {
     fn methods_parse_or_say_what_is_expected() {
         assert_eq!(
             parse_method("dense=evaluate_dense:dense").unwrap(),
-            Method { name: "dense".into(), eval: "evaluate_dense".into(), learner: Some("dense".into()) }
+            Method {
+                name: "dense".into(),
+                eval: "evaluate_dense".into(),
+                learner: Some("dense".into())
+            }
         );
         assert_eq!(parse_method("c=ev").unwrap().learner, None);
-        assert!(parse_method("nothing").unwrap_err().contains("NAME=EVAL_STAGE"));
+        assert!(parse_method("nothing")
+            .unwrap_err()
+            .contains("NAME=EVAL_STAGE"));
         assert!(parse_method("x=ev:").is_err());
     }
 
@@ -817,7 +1017,11 @@ mod tests {
         let rec = record(&[("tiger", 0, 60.0, 50.0), ("tiger", 1, 62.0, 51.0)]);
         let dir = tempfile::tempdir().unwrap();
         write_charts(&rec, &cfg(), dir.path()).unwrap();
-        for f in ["f_vs_time_tiger.png", "f_vs_time_tiger.svg", "f_vs_size_tiger.svg"] {
+        for f in [
+            "f_vs_time_tiger.png",
+            "f_vs_time_tiger.svg",
+            "f_vs_size_tiger.svg",
+        ] {
             assert!(dir.path().join(f).is_file(), "{f}");
         }
     }

@@ -1084,7 +1084,12 @@ impl Stage for Evaluate {
             ),
             PortSpec::file("gt_strands", "hair", "ground-truth strands (.hair or PLY)"),
             PortSpec::file("gt_scene", "json", "scene.json with s_cm"),
-            PortSpec::file("gt_skin", "obj", "GT skin: its tangent planes make the direction error in-plane").optional(),
+            PortSpec::file(
+                "gt_skin",
+                "obj",
+                "GT skin: its tangent planes make the direction error in-plane",
+            )
+            .optional(),
             PortSpec::dir("renders", "rendered held-out views (test/NNN.png)").optional(),
             PortSpec::dir("views", "GT views dir (transforms_test.json)").optional(),
             PortSpec::file("train_report", "json", "the learning stage's metrics.json").optional(),

@@ -401,7 +401,10 @@ fn from_files(dir: &str, name: &str) -> String {
             }
         }
         if !over.is_empty() {
-            s.push_str(&format!("\n[stages.{stage}]\ninputs = {{ {} }}\n", over.join(", ")));
+            s.push_str(&format!(
+                "\n[stages.{stage}]\ninputs = {{ {} }}\n",
+                over.join(", ")
+            ));
         }
     }
     s
@@ -459,8 +462,16 @@ fn ground_truth_reaches_only_gt_ports() {
     r.ok();
 
     let reconstruction = [
-        "outer", "parts", "frosting", "lengths", "defur_baseline", "defur", "roots", "basis",
-        "orientation", "codec",
+        "outer",
+        "parts",
+        "frosting",
+        "lengths",
+        "defur_baseline",
+        "defur",
+        "roots",
+        "basis",
+        "orientation",
+        "codec",
     ];
     for stage in reconstruction {
         let (da, db) = (p.path("out/gta").join(stage), p.path("out/gtb").join(stage));
@@ -481,10 +492,15 @@ fn ground_truth_reaches_only_gt_ports() {
     }
     // The scrambling reached the metrics (so the test compares what it claims to).
     let m = |run: &str| read_json(&p.path(&format!("out/{run}/evaluate/metrics.json")));
-    assert_ne!(m("gta")["prf"], m("gtb")["prf"], "the GT strands were not swapped");
+    assert_ne!(
+        m("gta")["prf"],
+        m("gtb")["prf"],
+        "the GT strands were not swapped"
+    );
     let d = |run: &str| read_json(&p.path(&format!("out/{run}/defur/metrics.json")));
     assert_ne!(
-        d("gta")["root_to_skin_mean_cm"], d("gtb")["root_to_skin_mean_cm"],
+        d("gta")["root_to_skin_mean_cm"],
+        d("gtb")["root_to_skin_mean_cm"],
         "the GT skin was not moved"
     );
 }
@@ -532,8 +548,17 @@ iterations = 30
     assert!(md.contains("## Headline, test split"), "{md}");
     assert!(md.contains("Generated "), "no provenance stamp: {md}");
     assert!(!md.contains("fure:provenance"), "{md}");
-    for method in ["FurE codec", "dense", "fixed length", "shape prior", "ceiling"] {
-        assert!(md.contains(&format!("| {method} |")), "no row for {method}: {md}");
+    for method in [
+        "FurE codec",
+        "dense",
+        "fixed length",
+        "shape prior",
+        "ceiling",
+    ] {
+        assert!(
+            md.contains(&format!("| {method} |")),
+            "no row for {method}: {md}"
+        );
     }
     let m = read_json(&p.path("out/bench/report/metrics.json"));
     let cat = &m["scenes"]["cat"];
@@ -545,12 +570,22 @@ iterations = 30
         assert!((0.0..=100.0).contains(&mean), "{method}: {f}");
     }
     // The regrown animal is close to the truth: its score is a ceiling, above the tiny learners.
-    let ceiling = cat["ceiling"]["signed_f_3cm_30deg"]["mean"].as_f64().unwrap();
-    let codec = cat["FurE codec"]["signed_f_3cm_30deg"]["mean"].as_f64().unwrap();
+    let ceiling = cat["ceiling"]["signed_f_3cm_30deg"]["mean"]
+        .as_f64()
+        .unwrap();
+    let codec = cat["FurE codec"]["signed_f_3cm_30deg"]["mean"]
+        .as_f64()
+        .unwrap();
     assert!(ceiling > codec, "ceiling {ceiling} <= codec {codec}");
-    assert!(cat["preprocessing"]["seconds"]["mean"].as_f64().unwrap() > 0.0, "{m}");
+    assert!(
+        cat["preprocessing"]["seconds"]["mean"].as_f64().unwrap() > 0.0,
+        "{m}"
+    );
     for f in ["f_vs_time_cat.svg", "f_vs_size_cat.png", "runs.csv"] {
-        assert!(p.path("docs/benchmark").join(f).is_file(), "{f} not published");
+        assert!(
+            p.path("docs/benchmark").join(f).is_file(),
+            "{f} not published"
+        );
     }
     assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 5);
 }

@@ -209,8 +209,16 @@ pub fn pattern_color(
                 "torso" | "neck" | "tail" => {
                     let under = smoothstep(-0.2, -0.6, n.y);
                     let back = smoothstep(0.45, 0.85, n.y + 0.15 * nz(0.15, 17));
-                    let tip = if part == "tail" { smoothstep(0.8, 0.9, tail_t) } else { 0.0 };
-                    mix3(mix3(mix3(grey, saddle, back.max(tip)), cream, under), saddle, tip)
+                    let tip = if part == "tail" {
+                        smoothstep(0.8, 0.9, tail_t)
+                    } else {
+                        0.0
+                    };
+                    mix3(
+                        mix3(mix3(grey, saddle, back.max(tip)), cream, under),
+                        saddle,
+                        tip,
+                    )
                 }
                 "head" if n.y < -0.2 => cream,
                 _ => grey,
