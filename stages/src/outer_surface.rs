@@ -1107,8 +1107,13 @@ pub fn import_closed_mesh(mesh: &mut Mesh) -> Result<ImportReport, String> {
 
 /// The file that lists the training cameras of a views directory (for messages).
 fn train_file(dir: &Path) -> std::path::PathBuf {
-    let colmap = crate::formats::colmap::find_sparse(dir)
-        .map(|s| s.join(if s.join("images.bin").is_file() { "images.bin" } else { "images.txt" }));
+    let colmap = crate::formats::colmap::find_sparse(dir).map(|s| {
+        s.join(if s.join("images.bin").is_file() {
+            "images.bin"
+        } else {
+            "images.txt"
+        })
+    });
     ["transforms.json", "transforms_train.json"]
         .iter()
         .map(|n| dir.join(n))
@@ -1150,13 +1155,21 @@ pub fn read_mask_views(
         .enumerate()
         .map(|(i, cam)| {
             let img = crate::formats::cameras::read_view(dir, cam)?;
-            let mask: ImageF32 = img
-                .mask
-                .ok_or_else(|| crate::formats::cameras::missing_mask(dir, cam).for_input("views"))?;
-            let data = mask.data.iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
+            let mask: ImageF32 = img.mask.ok_or_else(|| {
+                crate::formats::cameras::missing_mask(dir, cam).for_input("views")
+            })?;
+            let data = mask
+                .data
+                .iter()
+                .map(|v| if v.is_finite() { *v } else { 0.0 })
+                .collect();
             // Name the file the mask came from: `<stem>_mask.png`, or the image (alpha).
             let mpath = crate::formats::cameras::mask_path(dir, cam);
-            let file = if mpath.is_file() { mpath } else { crate::formats::cameras::image_path(dir, cam) };
+            let file = if mpath.is_file() {
+                mpath
+            } else {
+                crate::formats::cameras::image_path(dir, cam)
+            };
             MaskView::new(i, cam, data, mask.width, mask.height, threshold)
                 .map_err(|e| StageError::input("views", &file, e))
         })

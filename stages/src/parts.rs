@@ -175,13 +175,20 @@ pub enum AlignmentError {
     #[error("the labelled mesh does not lie on M_outer: {figures}; no unit factor, axis rotation or shift explains it; expected the animal in the cameras' frame and units")]
     Off { figures: String },
     #[error("fur part(s) {parts} hold {share:.0}% of the labelled mesh's vertices but no vertex of M_outer is nearest to them: the labelled mesh does not follow M_outer's shape{cause}")]
-    Uncovered { parts: String, share: f32, cause: String },
+    Uncovered {
+        parts: String,
+        share: f32,
+        cause: String,
+    },
 }
 
 /// Unit factors a labelled mesh may be off by, with the mix-up they suggest.
 const UNIT_FACTORS: [(f32, &str); 5] = [
     (2.54, "inches vs centimetres"),
-    (10.0, "millimetres vs centimetres, or centimetres vs decimetres"),
+    (
+        10.0,
+        "millimetres vs centimetres, or centimetres vs decimetres",
+    ),
     (25.4, "inches vs millimetres"),
     (100.0, "centimetres vs metres"),
     (1000.0, "millimetres vs metres"),
@@ -192,7 +199,14 @@ fn axis_rotations() -> Vec<(glam::Mat3, String, String)> {
     use glam::{Mat3, Vec3};
     let mut out = Vec::new();
     let names = ["x", "y", "z"];
-    for perm in [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]] {
+    for perm in [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ] {
         for signs in 0..8u32 {
             let s = |k: usize| if signs >> k & 1 == 1 { -1.0f32 } else { 1.0 };
             // Row r of the matrix picks input axis perm[r] with sign s(r).
@@ -217,8 +231,15 @@ fn axis_rotations() -> Vec<(glam::Mat3, String, String)> {
                 let a = fixed[0];
                 let (b, c) = ((a + 1) % 3, (a + 2) % 3);
                 // Angle from where axis b goes: b -> c is +90, b -> -b is 180, b -> -c is -90.
-                let img = m * Vec3::from(std::array::from_fn::<f32, 3, _>(|k| (k == b) as u8 as f32));
-                let deg = if img[c] > 0.5 { "+90" } else if img[b] < -0.5 { "180" } else { "-90" };
+                let img =
+                    m * Vec3::from(std::array::from_fn::<f32, 3, _>(|k| (k == b) as u8 as f32));
+                let deg = if img[c] > 0.5 {
+                    "+90"
+                } else if img[b] < -0.5 {
+                    "180"
+                } else {
+                    "-90"
+                };
                 format!("{deg} degrees about {}", names[a].to_uppercase())
             } else {
                 "a combination of axis swaps".to_string()
@@ -237,7 +258,10 @@ pub fn measure_alignment(
 ) -> Alignment {
     let (lo, hi) = outer.bounds();
     let d = (hi - lo).length().max(1e-12);
-    let lab = Mesh { positions: labels.to_vec(), ..Default::default() };
+    let lab = Mesh {
+        positions: labels.to_vec(),
+        ..Default::default()
+    };
     let (llo, lhi) = lab.bounds();
     let sample = sample_evenly(labels, ALIGNMENT_SAMPLES);
     let (mean, outside) = distances(&sample, query, d);
@@ -258,7 +282,10 @@ fn sample_evenly(points: &[glam::Vec3], n: usize) -> Vec<glam::Vec3> {
 
 /// Mean unsigned distance to the surface and share outside by more than the tolerance, over `d`.
 fn distances(points: &[glam::Vec3], query: &crate::geom::MeshQuery, d: f32) -> (f32, f32) {
-    let sd: Vec<f32> = points.par_iter().map(|p| query.signed_distance(*p)).collect();
+    let sd: Vec<f32> = points
+        .par_iter()
+        .map(|p| query.signed_distance(*p))
+        .collect();
     let n = sd.len().max(1) as f32;
     let mean = sd.iter().map(|v| v.abs() as f64).sum::<f64>() as f32 / n / d;
     let outside = sd.iter().filter(|v| **v > OUTSIDE_TOLERANCE * d).count() as f32 / n;
@@ -301,7 +328,10 @@ fn diagnose(
             Some((k, c)) => (format!("{k}"), *c),
             None => (format!("{f:.3}"), "a scale that is no usual unit factor"),
         };
-        let lab = Mesh { positions: labels.to_vec(), ..Default::default() };
+        let lab = Mesh {
+            positions: labels.to_vec(),
+            ..Default::default()
+        };
         return AlignmentError::Scaled {
             factor,
             larger: if big { "larger" } else { "smaller" },
@@ -337,7 +367,10 @@ fn diagnose(
         return e;
     }
     let (lo, hi) = outer.bounds();
-    let lab = Mesh { positions: labels.to_vec(), ..Default::default() };
+    let lab = Mesh {
+        positions: labels.to_vec(),
+        ..Default::default()
+    };
     let (llo, lhi) = lab.bounds();
     let t = 0.5 * (lo + hi) - 0.5 * (llo + lhi);
     let moved: Vec<glam::Vec3> = sample.iter().map(|p| *p + t).collect();
@@ -350,7 +383,9 @@ fn diagnose(
             figures: a.describe(),
         };
     }
-    AlignmentError::Off { figures: a.describe() }
+    AlignmentError::Off {
+        figures: a.describe(),
+    }
 }
 
 /// Fur parts with a real share of the label vertices that no vertex of M_outer received.
@@ -377,7 +412,9 @@ pub fn check_coverage(
         .filter(|&k| {
             received[k] == 0
                 && in_labels[k] as f32 / n >= MIN_UNCOVERED_SHARE
-                && !protected.iter().any(|p| p.eq_ignore_ascii_case(&labels.part_names[k]))
+                && !protected
+                    .iter()
+                    .any(|p| p.eq_ignore_ascii_case(&labels.part_names[k]))
         })
         .collect();
     if missing.is_empty() {
@@ -386,14 +423,25 @@ pub fn check_coverage(
     let share = 100.0 * missing.iter().map(|&k| in_labels[k]).sum::<usize>() as f32 / n;
     // Name a rotation, unit or shift when one explains it.
     let q = outer_query;
-    let cause = match diagnose(&labels.positions, labelled, q, &measure_alignment(&labels.positions, labelled, q)) {
-        e @ (AlignmentError::Scaled { .. } | AlignmentError::Rotated { .. } | AlignmentError::Shifted { .. }) => {
+    let cause = match diagnose(
+        &labels.positions,
+        labelled,
+        q,
+        &measure_alignment(&labels.positions, labelled, q),
+    ) {
+        e @ (AlignmentError::Scaled { .. }
+        | AlignmentError::Rotated { .. }
+        | AlignmentError::Shifted { .. }) => {
             format!("; {e}")
         }
         _ => String::new(),
     };
     Err(AlignmentError::Uncovered {
-        parts: missing.iter().map(|&k| labels.part_names[k].as_str()).collect::<Vec<_>>().join(", "),
+        parts: missing
+            .iter()
+            .map(|&k| labels.part_names[k].as_str())
+            .collect::<Vec<_>>()
+            .join(", "),
         share,
         cause,
     })
@@ -803,14 +851,24 @@ mod tests {
         };
         let centre = Vec3::new(0.2, 0.0, 0.6);
         let local = |theta: f32, phi: f32| {
-            let (x, y, z) = (theta.cos(), theta.sin() * phi.cos(), theta.sin() * phi.sin());
+            let (x, y, z) = (
+                theta.cos(),
+                theta.sin() * phi.cos(),
+                theta.sin() * phi.sin(),
+            );
             Vec3::new(if x > 0.0 { 1.2 * x } else { 0.7 * x }, 0.4 * y, 0.6 * z) * scale
         };
         let pi = std::f32::consts::PI;
         m.positions.push(centre + local(0.0, 0.0));
         for r in 1..rings {
             for k in 0..segs {
-                m.positions.push(centre + local(pi * r as f32 / rings as f32, 2.0 * pi * k as f32 / segs as f32));
+                m.positions.push(
+                    centre
+                        + local(
+                            pi * r as f32 / rings as f32,
+                            2.0 * pi * k as f32 / segs as f32,
+                        ),
+                );
             }
         }
         m.positions.push(centre + local(pi, 0.0));
@@ -818,25 +876,30 @@ mod tests {
         let ring = |r: usize, k: usize| (1 + (r - 1) * segs + k % segs) as u32;
         for k in 0..segs {
             m.triangles.push([0, ring(1, k), ring(1, k + 1)]);
-            m.triangles.push([last, ring(rings - 1, k + 1), ring(rings - 1, k)]);
+            m.triangles
+                .push([last, ring(rings - 1, k + 1), ring(rings - 1, k)]);
         }
         for r in 1..rings - 1 {
             for k in 0..segs {
-                m.triangles.push([ring(r, k), ring(r + 1, k), ring(r + 1, k + 1)]);
-                m.triangles.push([ring(r, k), ring(r + 1, k + 1), ring(r, k + 1)]);
+                m.triangles
+                    .push([ring(r, k), ring(r + 1, k), ring(r + 1, k + 1)]);
+                m.triangles
+                    .push([ring(r, k), ring(r + 1, k + 1), ring(r, k + 1)]);
             }
         }
         for p in &m.positions {
             let l = *p - centre;
-            m.part.push(if l.x > 0.7 * scale && l.z > 0.1 * scale && l.y.abs() < 0.15 * scale {
-                3
-            } else if l.x > 0.6 * scale {
-                1
-            } else if l.x < -0.45 * scale {
-                2
-            } else {
-                0
-            });
+            m.part.push(
+                if l.x > 0.7 * scale && l.z > 0.1 * scale && l.y.abs() < 0.15 * scale {
+                    3
+                } else if l.x > 0.6 * scale {
+                    1
+                } else if l.x < -0.45 * scale {
+                    2
+                } else {
+                    0
+                },
+            );
         }
         m
     }
@@ -852,7 +915,10 @@ mod tests {
     }
 
     fn moved(m: &Mesh, f: impl Fn(Vec3) -> Vec3) -> Mesh {
-        Mesh { positions: m.positions.iter().map(|p| f(*p)).collect(), ..m.clone() }
+        Mesh {
+            positions: m.positions.iter().map(|p| f(*p)).collect(),
+            ..m.clone()
+        }
     }
 
     #[test]
@@ -862,7 +928,10 @@ mod tests {
         let labels = egg(1.0, 40, 48);
         let a = check_alignment(&labels, &out, &q).unwrap();
         assert!(a.size_ratio > 0.9 && a.size_ratio < 1.0, "{a:?}");
-        assert!(a.outside_frac == 0.0 && a.mean_distance_frac < 0.05, "{a:?}");
+        assert!(
+            a.outside_frac == 0.0 && a.mean_distance_frac < 0.05,
+            "{a:?}"
+        );
         transfer_nearest(&mut out, &labels).unwrap();
         check_coverage(&labels, &out, &["eyes".to_string()], &q).unwrap();
     }
@@ -873,18 +942,32 @@ mod tests {
         let labels = egg(1.0, 40, 48);
         // The brief's case, +90 degrees about X, and Blender's Y-up export, (x, y, z) -> (x, z, -y).
         for (rot, fix) in [
-            (glam::Mat3::from_rotation_x(std::f32::consts::FRAC_PI_2), "-90 degrees about X"),
-            (glam::Mat3::from_rotation_x(-std::f32::consts::FRAC_PI_2), "+90 degrees about X"),
+            (
+                glam::Mat3::from_rotation_x(std::f32::consts::FRAC_PI_2),
+                "-90 degrees about X",
+            ),
+            (
+                glam::Mat3::from_rotation_x(-std::f32::consts::FRAC_PI_2),
+                "+90 degrees about X",
+            ),
         ] {
             let err = check_alignment(&moved(&labels, |p| rot * p), &out, &q).unwrap_err();
             assert!(matches!(err, AlignmentError::Rotated { .. }), "{err}");
             let msg = err.to_string();
-            assert!(msg.contains(fix) && msg.contains("Y-up") && msg.contains("rotated"), "{msg}");
+            assert!(
+                msg.contains(fix) && msg.contains("Y-up") && msg.contains("rotated"),
+                "{msg}"
+            );
         }
         // A rotation about Z is named too, without the Blender hint.
         let rz = glam::Mat3::from_rotation_z(std::f32::consts::PI);
-        let msg = check_alignment(&moved(&labels, |p| rz * p), &out, &q).unwrap_err().to_string();
-        assert!(msg.contains("180 degrees about Z") && !msg.contains("Y-up"), "{msg}");
+        let msg = check_alignment(&moved(&labels, |p| rz * p), &out, &q)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("180 degrees about Z") && !msg.contains("Y-up"),
+            "{msg}"
+        );
     }
 
     #[test]
@@ -893,12 +976,25 @@ mod tests {
         let labels = egg(1.0, 40, 48);
         let err = check_alignment(&moved(&labels, |p| p * 100.0), &out, &q).unwrap_err();
         let msg = err.to_string();
-        assert!(msg.contains("~100x larger") && msg.contains("centimetres vs metres"), "{msg}");
-        let msg = check_alignment(&moved(&labels, |p| p * 0.001), &out, &q).unwrap_err().to_string();
-        assert!(msg.contains("~1000x smaller") && msg.contains("millimetres vs metres"), "{msg}");
+        assert!(
+            msg.contains("~100x larger") && msg.contains("centimetres vs metres"),
+            "{msg}"
+        );
+        let msg = check_alignment(&moved(&labels, |p| p * 0.001), &out, &q)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("~1000x smaller") && msg.contains("millimetres vs metres"),
+            "{msg}"
+        );
         // A factor that is no unit is still reported as a scale.
-        let msg = check_alignment(&moved(&labels, |p| p * 4.0), &out, &q).unwrap_err().to_string();
-        assert!(msg.contains("larger") && msg.contains("no usual unit"), "{msg}");
+        let msg = check_alignment(&moved(&labels, |p| p * 4.0), &out, &q)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("larger") && msg.contains("no usual unit"),
+            "{msg}"
+        );
     }
 
     #[test]
@@ -931,18 +1027,34 @@ mod tests {
                 *p = 0;
             }
         }
-        let msg = check_coverage(&labels, &out, &["eyes".to_string()], &q).unwrap_err().to_string();
-        assert!(msg.contains("fur part(s) head ") && !msg.contains("eyes"), "{msg}");
+        let msg = check_coverage(&labels, &out, &["eyes".to_string()], &q)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("fur part(s) head ") && !msg.contains("eyes"),
+            "{msg}"
+        );
     }
 
     #[test]
     fn axis_rotations_are_the_23_proper_ones() {
         let r = axis_rotations();
         assert_eq!(r.len(), 23);
-        let x90 = r.iter().find(|(_, n, _)| n == "+90 degrees about X").unwrap();
-        assert!((x90.0 - glam::Mat3::from_rotation_x(std::f32::consts::FRAC_PI_2)).abs_diff_eq(glam::Mat3::ZERO, 1e-6));
+        let x90 = r
+            .iter()
+            .find(|(_, n, _)| n == "+90 degrees about X")
+            .unwrap();
+        assert!(
+            (x90.0 - glam::Mat3::from_rotation_x(std::f32::consts::FRAC_PI_2))
+                .abs_diff_eq(glam::Mat3::ZERO, 1e-6)
+        );
         assert_eq!(x90.2, "(x, -z, y)");
-        assert_eq!(r.iter().filter(|(_, n, _)| n.contains("degrees about")).count(), 9);
+        assert_eq!(
+            r.iter()
+                .filter(|(_, n, _)| n.contains("degrees about"))
+                .count(),
+            9
+        );
     }
 
     #[test]

@@ -32,8 +32,10 @@ inputs = { mesh = "outer.mesh", labels = "scene.labels" }
 "#;
 
 fn read_json(path: &Path) -> Json {
-    serde_json::from_slice(&std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    serde_json::from_slice(
+        &std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())),
+    )
+    .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
 /// An OBJ's text with every `v` and `vn` line mapped through `f`.
@@ -67,7 +69,10 @@ fn label_meshes_in_the_wrong_frame_fail_and_every_preset_passes() {
         let m = read_json(&p.path("out/labels/parts/metrics.json"));
         let a = &m["alignment"];
         eprintln!("{preset}: {a}");
-        let num = |k: &str| a[k].as_f64().unwrap_or_else(|| panic!("{preset}: alignment.{k} in {m}"));
+        let num = |k: &str| {
+            a[k].as_f64()
+                .unwrap_or_else(|| panic!("{preset}: alignment.{k} in {m}"))
+        };
         // Margins: the synthetic skin sits well inside every limit.
         assert!((0.6..1.2).contains(&num("size_ratio")), "{preset}: {a}");
         assert!(num("mean_distance_frac") < 0.5 * 0.08, "{preset}: {a}");
@@ -80,16 +85,32 @@ fn label_meshes_in_the_wrong_frame_fail_and_every_preset_passes() {
     let outer = p.read("out/labels/outer/mesh.obj");
     let (mut lo, mut hi) = ([f64::MAX; 3], [f64::MIN; 3]);
     for l in outer.lines().filter_map(|l| l.strip_prefix("v ")) {
-        for (k, x) in l.split_whitespace().map(|x| x.parse::<f64>().unwrap()).enumerate() {
+        for (k, x) in l
+            .split_whitespace()
+            .map(|x| x.parse::<f64>().unwrap())
+            .enumerate()
+        {
             lo[k] = lo[k].min(x);
             hi[k] = hi[k].max(x);
         }
     }
     let half: [f64; 3] = std::array::from_fn(|k| 0.5 * (hi[k] - lo[k]));
     let cases: [(&str, Box<dyn Fn([f64; 3]) -> [f64; 3]>, &[&str]); 3] = [
-        ("yup", Box::new(|[x, y, z]| [x, z, -y]), &["rotated", "+90 degrees about X", "Y-up"]),
-        ("cm", Box::new(|[x, y, z]| [100.0 * x, 100.0 * y, 100.0 * z]), &["~100x larger", "centimetres vs metres"]),
-        ("moved", Box::new(move |[x, y, z]| [x + half[0], y + half[1], z + half[2]]), &["shifted"]),
+        (
+            "yup",
+            Box::new(|[x, y, z]| [x, z, -y]),
+            &["rotated", "+90 degrees about X", "Y-up"],
+        ),
+        (
+            "cm",
+            Box::new(|[x, y, z]| [100.0 * x, 100.0 * y, 100.0 * z]),
+            &["~100x larger", "centimetres vs metres"],
+        ),
+        (
+            "moved",
+            Box::new(move |[x, y, z]| [x + half[0], y + half[1], z + half[2]]),
+            &["shifted"],
+        ),
     ];
     for (name, f, words) in cases {
         let file = format!("labels_{name}.obj");
@@ -108,7 +129,10 @@ fn label_meshes_in_the_wrong_frame_fail_and_every_preset_passes() {
         for w in words {
             assert!(text.contains(w), "{name}: no `{w}` in:\n{text}");
         }
-        assert!(text.contains("labels"), "{name}: the input is not named:\n{text}");
+        assert!(
+            text.contains("labels"),
+            "{name}: the input is not named:\n{text}"
+        );
     }
 }
 
@@ -127,7 +151,10 @@ inputs = { mesh = "outer.mesh", labels = "labels.obj" }
 "#;
 
 fn hull(p: &Project, name: &str, views: &str) -> crate::engine::Run {
-    p.write(&format!("{name}.toml"), &HULL.replace("NAME", name).replace("VIEWS", views));
+    p.write(
+        &format!("{name}.toml"),
+        &HULL.replace("NAME", name).replace("VIEWS", views),
+    );
     p.run(&format!("{name}.toml"), &[])
 }
 
@@ -138,7 +165,10 @@ fn hull(p: &Project, name: &str, views: &str) -> crate::engine::Run {
 fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     use fure_stages::formats::{cameras, colmap, images};
     let p = Project::new();
-    p.write("scene.toml", &LABELS.replace("name = \"labels\"", "name = \"scene\""));
+    p.write(
+        "scene.toml",
+        &LABELS.replace("name = \"labels\"", "name = \"scene\""),
+    );
     p.run("scene.toml", &["--until", "scene"]).ok();
     p.write("labels.obj", &p.read("out/scene/scene/labels.obj"));
     let src = p.path("out/scene/scene/views");
@@ -163,12 +193,24 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
             params: vec![cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64],
         });
         let (q, t) = colmap::colmap_from_c2w(&cam.c2w);
-        model.images.push(colmap::ColmapImage { id: i as u32 + 1, q, t, camera_id: cid, name });
+        model.images.push(colmap::ColmapImage {
+            id: i as u32 + 1,
+            q,
+            t,
+            camera_id: cid,
+            name,
+        });
     }
     colmap::write_model_txt(&cap.join("sparse/0"), &model).unwrap();
     let read = cameras::read_views(&cap).unwrap();
     // 9 images: 0000 and 0008 held out.
-    assert_eq!(read.test.iter().map(|c| c.file_path.as_str()).collect::<Vec<_>>(), ["images/0000.png", "images/0008.png"]);
+    assert_eq!(
+        read.test
+            .iter()
+            .map(|c| c.file_path.as_str())
+            .collect::<Vec<_>>(),
+        ["images/0000.png", "images/0008.png"]
+    );
     assert_eq!(read.train.len(), 7);
 
     // The same 7 training cameras as a transforms.json directory with `_mask.png` files.
@@ -179,7 +221,14 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
         images::write_png(cameras::image_path(&ngp, cam), &v.rgb).unwrap();
         images::write_png(cameras::mask_path(&ngp, cam), &v.mask.unwrap()).unwrap();
     }
-    cameras::write_views(&ngp, &fure_stages::camera::CameraSet { train: read.train.clone(), test: vec![] }).unwrap();
+    cameras::write_views(
+        &ngp,
+        &fure_stages::camera::CameraSet {
+            train: read.train.clone(),
+            test: vec![],
+        },
+    )
+    .unwrap();
 
     hull(&p, "from_colmap", "cap").ok();
     hull(&p, "from_ngp", "ngp").ok();
@@ -187,9 +236,13 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     let (a, b) = (m("from_colmap"), m("from_ngp"));
     for key in ["volume", "area", "diagonal"] {
         let (x, y) = (a[key].as_f64().unwrap(), b[key].as_f64().unwrap());
-        assert!(x > 0.0 && (x - y).abs() <= 0.01 * y, "{key}: COLMAP {x} vs transforms.json {y}");
+        assert!(
+            x > 0.0 && (x - y).abs() <= 0.01 * y,
+            "{key}: COLMAP {x} vs transforms.json {y}"
+        );
     }
-    let parts = |name: &str| read_json(&p.path(&format!("out/{name}/parts/metrics.json")))["parts"].clone();
+    let parts =
+        |name: &str| read_json(&p.path(&format!("out/{name}/parts/metrics.json")))["parts"].clone();
     assert_eq!(parts("from_colmap"), parts("from_ngp"));
 
     // Without masks/ the RGB photos have nothing to carve with: the error names an image and
@@ -201,7 +254,9 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     eprintln!("{text}");
     // The first training view (0000 is held out).
     assert!(
-        text.contains("cap/images/0001.png") && text.contains("masks/0001.png") && text.contains("images/0001_mask.png"),
+        text.contains("cap/images/0001.png")
+            && text.contains("masks/0001.png")
+            && text.contains("images/0001_mask.png"),
         "the image and its mask files are not named:\n{text}"
     );
     assert!(text.contains("no alpha channel and no mask"), "{text}");

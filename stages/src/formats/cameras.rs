@@ -74,7 +74,9 @@ const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];
 pub fn read_training_views(dir: &Path) -> Result<CameraSet, fure_stage_api::StageError> {
     let set = read_views(dir)?;
     if set.train.is_empty() {
-        let what = if super::colmap::find_sparse(dir).is_some() && !dir.join("transforms.json").is_file() {
+        let what = if super::colmap::find_sparse(dir).is_some()
+            && !dir.join("transforms.json").is_file()
+        {
             "the COLMAP model lists no images"
         } else {
             "transforms.json lists no training frames"
@@ -1022,32 +1024,55 @@ mod tests {
     fn masks_folder_for_rgb_images_and_missing_masks_named() {
         assert_eq!(
             mask_candidates("images/a/0001.jpg"),
-            ["images/a/0001_mask.png", "masks/a/0001.png", "masks/a/0001.jpg.png"]
+            [
+                "images/a/0001_mask.png",
+                "masks/a/0001.png",
+                "masks/a/0001.jpg.png"
+            ]
         );
         assert_eq!(mask_candidates("train/r_0.png")[1], "masks/train/r_0.png");
         let dir = tempfile::tempdir().unwrap();
         let mut rgb = ImageF32::new(4, 3, 3);
-        rgb.data.iter_mut().enumerate().for_each(|(i, v)| *v = (i % 5) as f32 / 4.0);
+        rgb.data
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, v)| *v = (i % 5) as f32 / 4.0);
         super::super::images::write_png(dir.path().join("images/0001.png"), &rgb).unwrap();
-        let cam = Camera { file_path: "images/0001.png".into(), width: 4, height: 3, ..camera(0, 10.0) };
+        let cam = Camera {
+            file_path: "images/0001.png".into(),
+            width: 4,
+            height: 3,
+            ..camera(0, 10.0)
+        };
         // RGB, no mask anywhere: no mask read, and the error names the image and the mask files.
         assert_eq!(read_view(dir.path(), &cam).unwrap().mask, None);
         let e = missing_mask(dir.path(), &cam).to_string();
         assert!(
-            e.contains("images/0001.png") && e.contains("masks/0001.png") && e.contains("images/0001_mask.png") && e.contains("alpha"),
+            e.contains("images/0001.png")
+                && e.contains("masks/0001.png")
+                && e.contains("images/0001_mask.png")
+                && e.contains("alpha"),
             "{e}"
         );
         // COLMAP's own naming is found, then the plain stem wins over it.
         let mut m = ImageF32::new(4, 3, 1);
         m.data[5] = 1.0;
         super::super::images::write_png(dir.path().join("masks/0001.png.png"), &m).unwrap();
-        assert_eq!(mask_path(dir.path(), &cam), dir.path().join("masks/0001.png.png"));
+        assert_eq!(
+            mask_path(dir.path(), &cam),
+            dir.path().join("masks/0001.png.png")
+        );
         m.data[6] = 1.0;
         super::super::images::write_png(dir.path().join("masks/0001.png"), &m).unwrap();
         let v = read_view(dir.path(), &cam).unwrap();
         assert_eq!(v.mask.unwrap().data, m.data);
         // 8-bit PNG: within a level.
-        assert!(v.rgb.data.iter().zip(&rgb.data).all(|(a, b)| (a - b).abs() <= 1.0 / 255.0));
+        assert!(v
+            .rgb
+            .data
+            .iter()
+            .zip(&rgb.data)
+            .all(|(a, b)| (a - b).abs() <= 1.0 / 255.0));
     }
 
     #[test]

@@ -117,7 +117,9 @@ pub fn read_model(sparse: &Path) -> Result<ColmapModel, FormatError> {
         } else {
             Err(FormatError::invalid(
                 sparse,
-                format!("COLMAP model without {stem}: expected {stem}.bin or {stem}.txt in this folder"),
+                format!(
+                    "COLMAP model without {stem}: expected {stem}.bin or {stem}.txt in this folder"
+                ),
             ))
         }
     };
@@ -153,6 +155,20 @@ fn parse<T: std::str::FromStr>(
     })
 }
 
+/// A finite number (NaN and infinities are refused where they are read, not downstream).
+fn number(path: &Path, line: usize, column: usize, token: &str) -> Result<f64, FormatError> {
+    let v: f64 = parse(path, line, column, token, "a number")?;
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(FormatError::at(
+            path,
+            Position::LineColumn { line, column },
+            format!("expected a finite number, found `{token}`"),
+        ))
+    }
+}
+
 /// Whitespace-separated tokens of a line with their 1-based columns.
 fn tokens(line: &str) -> Vec<(usize, &str)> {
     let mut out = Vec::new();
@@ -175,7 +191,11 @@ fn tokens(line: &str) -> Vec<(usize, &str)> {
 
 fn text(path: &Path) -> Result<String, FormatError> {
     String::from_utf8(read_bytes(path)?).map_err(|e| {
-        FormatError::at(path, Position::Byte(e.utf8_error().valid_up_to() as u64), "not UTF-8 text")
+        FormatError::at(
+            path,
+            Position::Byte(e.utf8_error().valid_up_to() as u64),
+            "not UTF-8 text",
+        )
     })
 }
 
@@ -201,7 +221,10 @@ pub fn read_cameras_txt(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
         let (_, name, n) = model_by_name(tok[1].1).ok_or_else(|| {
             FormatError::at(
                 path,
-                Position::LineColumn { line: ln, column: tok[1].0 },
+                Position::LineColumn {
+                    line: ln,
+                    column: tok[1].0,
+                },
                 format!("unknown camera model `{}`", tok[1].1),
             )
         })?;
@@ -211,14 +234,23 @@ pub fn read_cameras_txt(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
             return Err(FormatError::at(
                 path,
                 Position::Line(ln),
-                format!("camera model {name} has {n} parameters, found {}", tok.len() - 4),
+                format!(
+                    "camera model {name} has {n} parameters, found {}",
+                    tok.len() - 4
+                ),
             ));
         }
         let params = tok[4..]
             .iter()
-            .map(|(c, s)| parse::<f64>(path, ln, *c, s, "a number"))
+            .map(|(c, s)| number(path, ln, *c, s))
             .collect::<Result<Vec<_>, _>>()?;
-        out.push(ColmapCamera { id, model: name.to_string(), width, height, params });
+        out.push(ColmapCamera {
+            id,
+            model: name.to_string(),
+            width,
+            height,
+            params,
+        });
     }
     Ok(out)
 }
@@ -248,7 +280,7 @@ pub fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
         let id = parse(path, ln, tok[0].0, tok[0].1, "an image id (integer)")?;
         let mut v = [0.0f64; 7];
         for (k, x) in v.iter_mut().enumerate() {
-            *x = parse(path, ln, tok[k + 1].0, tok[k + 1].1, "a number")?;
+            *x = number(path, ln, tok[k + 1].0, tok[k + 1].1)?;
         }
         let camera_id = parse(path, ln, tok[8].0, tok[8].1, "a camera id (integer)")?;
         // The name is the rest of the line (COLMAP names rarely hold spaces, but may).
@@ -293,7 +325,16 @@ impl Bin<'_> {
         Ok(i32::from_le_bytes(self.take(4, what)?.try_into().unwrap()))
     }
     fn f64(&mut self, what: &str) -> Result<f64, FormatError> {
-        Ok(f64::from_le_bytes(self.take(8, what)?.try_into().unwrap()))
+        let at = self.at;
+        let v = f64::from_le_bytes(self.take(8, what)?.try_into().unwrap());
+        if !v.is_finite() {
+            return Err(FormatError::at(
+                self.path,
+                Position::Byte(at as u64),
+                format!("expected a finite number in {what}, found {v}"),
+            ));
+        }
+        Ok(v)
     }
     /// A count of records of at least `min_bytes` each, checked against the bytes left.
     fn count(&mut self, what: &str, min_bytes: usize) -> Result<usize, FormatError> {
@@ -314,7 +355,11 @@ impl Bin<'_> {
 /// Reads `cameras.bin`.
 pub fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
     let bytes = read_bytes(path)?;
-    let mut b = Bin { path, bytes: &bytes, at: 0 };
+    let mut b = Bin {
+        path,
+        bytes: &bytes,
+        at: 0,
+    };
     let n = b.count("the number of cameras", 24)?;
     let mut out = Vec::with_capacity(n);
     for _ in 0..n {
@@ -322,15 +367,31 @@ pub fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
         let at = b.at;
         let model_id = b.i32("a camera model id")?;
         let (_, name, np) = model_by_id(model_id).ok_or_else(|| {
-            FormatError::at(path, Position::Byte(at as u64), format!("camera {id}: unknown camera model id {model_id}"))
+            FormatError::at(
+                path,
+                Position::Byte(at as u64),
+                format!("camera {id}: unknown camera model id {model_id}"),
+            )
         })?;
         let width = b.u64("an image width")?;
         let height = b.u64("an image height")?;
-        let params = (0..np).map(|_| b.f64("camera parameters")).collect::<Result<Vec<_>, _>>()?;
-        out.push(ColmapCamera { id: id as u32, model: name.to_string(), width, height, params });
+        let params = (0..np)
+            .map(|_| b.f64("camera parameters"))
+            .collect::<Result<Vec<_>, _>>()?;
+        out.push(ColmapCamera {
+            id: id as u32,
+            model: name.to_string(),
+            width,
+            height,
+            params,
+        });
     }
     if b.at != bytes.len() {
-        return Err(FormatError::at(path, Position::Byte(b.at as u64), "trailing bytes after the last camera"));
+        return Err(FormatError::at(
+            path,
+            Position::Byte(b.at as u64),
+            "trailing bytes after the last camera",
+        ));
     }
     Ok(out)
 }
@@ -338,7 +399,11 @@ pub fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
 /// Reads `images.bin`.
 pub fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
     let bytes = read_bytes(path)?;
-    let mut b = Bin { path, bytes: &bytes, at: 0 };
+    let mut b = Bin {
+        path,
+        bytes: &bytes,
+        at: 0,
+    };
     let n = b.count("the number of images", 4 + 7 * 8 + 4 + 1 + 8)?;
     let mut out = Vec::with_capacity(n);
     for _ in 0..n {
@@ -350,17 +415,32 @@ pub fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
         let camera_id = b.i32("a camera id")? as u32;
         let at = b.at;
         let end = bytes[at..].iter().position(|&c| c == 0).ok_or_else(|| {
-            FormatError::at(path, Position::Byte(at as u64), "file ends inside an image name (no terminating 0 byte)")
+            FormatError::at(
+                path,
+                Position::Byte(at as u64),
+                "file ends inside an image name (no terminating 0 byte)",
+            )
         })?;
-        let name = String::from_utf8(bytes[at..at + end].to_vec())
-            .map_err(|_| FormatError::at(path, Position::Byte(at as u64), "image name is not UTF-8"))?;
+        let name = String::from_utf8(bytes[at..at + end].to_vec()).map_err(|_| {
+            FormatError::at(path, Position::Byte(at as u64), "image name is not UTF-8")
+        })?;
         b.at = at + end + 1;
         let points = b.count("the number of 2D points", 24)?;
         b.take(points * 24, "2D points")?;
-        out.push(ColmapImage { id, q: [v[0], v[1], v[2], v[3]], t: [v[4], v[5], v[6]], camera_id, name });
+        out.push(ColmapImage {
+            id,
+            q: [v[0], v[1], v[2], v[3]],
+            t: [v[4], v[5], v[6]],
+            camera_id,
+            name,
+        });
     }
     if b.at != bytes.len() {
-        return Err(FormatError::at(path, Position::Byte(b.at as u64), "trailing bytes after the last image"));
+        return Err(FormatError::at(
+            path,
+            Position::Byte(b.at as u64),
+            "trailing bytes after the last image",
+        ));
     }
     Ok(out)
 }
@@ -369,7 +449,10 @@ pub fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
 pub fn write_model_txt(dir: &Path, model: &ColmapModel) -> Result<(), FormatError> {
     let mut c = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
     for cam in &model.cameras {
-        c.push_str(&format!("{} {} {} {}", cam.id, cam.model, cam.width, cam.height));
+        c.push_str(&format!(
+            "{} {} {} {}",
+            cam.id, cam.model, cam.width, cam.height
+        ));
         for p in &cam.params {
             c.push_str(&format!(" {p}"));
         }
@@ -380,7 +463,10 @@ pub fn write_model_txt(dir: &Path, model: &ColmapModel) -> Result<(), FormatErro
     for im in &model.images {
         let [qw, qx, qy, qz] = im.q;
         let [tx, ty, tz] = im.t;
-        s.push_str(&format!("{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}\n\n", im.id, im.camera_id, im.name));
+        s.push_str(&format!(
+            "{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}\n\n",
+            im.id, im.camera_id, im.name
+        ));
     }
     write_bytes(&dir.join("images.txt"), s.as_bytes())
 }
@@ -392,7 +478,17 @@ pub fn write_model_bin(dir: &Path, model: &ColmapModel) -> Result<(), FormatErro
     for cam in &model.cameras {
         let (id, _, _) = model_by_name(&cam.model)
             .filter(|m| m.2 == cam.params.len())
-            .ok_or_else(|| FormatError::invalid(&path, format!("camera {}: model {} with {} parameters", cam.id, cam.model, cam.params.len())))?;
+            .ok_or_else(|| {
+                FormatError::invalid(
+                    &path,
+                    format!(
+                        "camera {}: model {} with {} parameters",
+                        cam.id,
+                        cam.model,
+                        cam.params.len()
+                    ),
+                )
+            })?;
         c.extend((cam.id as i32).to_le_bytes());
         c.extend(id.to_le_bytes());
         c.extend(cam.width.to_le_bytes());
@@ -443,7 +539,14 @@ fn pinhole(cam: &ColmapCamera, path: &Path) -> Result<[f64; 4], FormatError> {
             ),
         ));
     }
-    if k.iter().any(|v| !v.is_finite()) || k[0] <= 0.0 || k[1] <= 0.0 || cam.width == 0 || cam.height == 0 {
+    // Sizes beyond u32 are no image (and would not fit a Camera).
+    let size_ok = |v: u64| v > 0 && v <= u32::MAX as u64;
+    if k.iter().any(|v| !v.is_finite())
+        || k[0] <= 0.0
+        || k[1] <= 0.0
+        || !size_ok(cam.width)
+        || !size_ok(cam.height)
+    {
         return Err(FormatError::invalid(
             path,
             format!("camera {} ({}): expected positive focal lengths and image size, found {:?}, {} x {}", cam.id, cam.model, cam.params, cam.width, cam.height),
@@ -459,19 +562,24 @@ pub fn c2w_from_colmap(q: [f64; 4], t: [f64; 3]) -> Mat4 {
     let centre = -(rt * DVec3::from(t));
     // Columns of R^T are the camera axes in the world; OpenGL's y and z are OpenCV's negated.
     let cols = [rt.x_axis, -rt.y_axis, -rt.z_axis];
-    Mat4::from_cols_array(&[
-        cols[0].x as f32, cols[0].y as f32, cols[0].z as f32, 0.0,
-        cols[1].x as f32, cols[1].y as f32, cols[1].z as f32, 0.0,
-        cols[2].x as f32, cols[2].y as f32, cols[2].z as f32, 0.0,
-        centre.x as f32, centre.y as f32, centre.z as f32, 1.0,
-    ])
+    glam::DMat4::from_cols(
+        cols[0].extend(0.0),
+        cols[1].extend(0.0),
+        cols[2].extend(0.0),
+        centre.extend(1.0),
+    )
+    .as_mat4()
 }
 
 /// Our camera-to-world matrix as COLMAP's (quaternion `qw qx qy qz`, translation); for writers
 /// and tests.
 pub fn colmap_from_c2w(c2w: &Mat4) -> ([f64; 4], [f64; 3]) {
     let c = c2w.as_dmat4();
-    let rt = DMat3::from_cols(c.x_axis.truncate(), -c.y_axis.truncate(), -c.z_axis.truncate());
+    let rt = DMat3::from_cols(
+        c.x_axis.truncate(),
+        -c.y_axis.truncate(),
+        -c.z_axis.truncate(),
+    );
     let r = rt.transpose();
     let q = DQuat::from_mat3(&r).normalize();
     let t = -(r * c.w_axis.truncate());
@@ -482,8 +590,16 @@ pub fn colmap_from_c2w(c2w: &Mat4) -> ([f64; 4], [f64; 3]) {
 /// sorted by name, every [`HOLDOUT_EVERY`]-th held out.
 pub fn read_colmap_views(dir: &Path, sparse: &Path) -> Result<CameraSet, FormatError> {
     let model = read_model(sparse)?;
-    let images_file = ["images.bin", "images.txt"].iter().map(|n| sparse.join(n)).find(|p| p.is_file()).unwrap_or_else(|| sparse.to_path_buf());
-    let cameras_file = ["cameras.bin", "cameras.txt"].iter().map(|n| sparse.join(n)).find(|p| p.is_file()).unwrap_or_else(|| sparse.to_path_buf());
+    let images_file = ["images.bin", "images.txt"]
+        .iter()
+        .map(|n| sparse.join(n))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| sparse.to_path_buf());
+    let cameras_file = ["cameras.bin", "cameras.txt"]
+        .iter()
+        .map(|n| sparse.join(n))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| sparse.to_path_buf());
     let cameras = model_cameras(&model, &cameras_file, &images_file)?;
     let mut set = CameraSet::default();
     let holdout = cameras.len() >= HOLDOUT_EVERY;
@@ -509,29 +625,51 @@ pub fn read_colmap_views(dir: &Path, sparse: &Path) -> Result<CameraSet, FormatE
 
 /// A model's images as cameras (`file_path` = `images/<name>`), sorted by name; the files are
 /// named in errors.
-pub fn model_cameras(model: &ColmapModel, cameras_file: &Path, images_file: &Path) -> Result<Vec<Camera>, FormatError> {
+pub fn model_cameras(
+    model: &ColmapModel,
+    cameras_file: &Path,
+    images_file: &Path,
+) -> Result<Vec<Camera>, FormatError> {
     let (cameras_file, images_file) = (cameras_file.to_path_buf(), images_file.to_path_buf());
     let mut by_id: BTreeMap<u32, (&ColmapCamera, [f64; 4])> = BTreeMap::new();
     for cam in &model.cameras {
-        if by_id.insert(cam.id, (cam, pinhole(cam, &cameras_file)?)).is_some() {
-            return Err(FormatError::invalid(&cameras_file, format!("camera id {} appears twice", cam.id)));
+        if by_id
+            .insert(cam.id, (cam, pinhole(cam, &cameras_file)?))
+            .is_some()
+        {
+            return Err(FormatError::invalid(
+                &cameras_file,
+                format!("camera id {} appears twice", cam.id),
+            ));
         }
     }
     let mut images: Vec<&ColmapImage> = model.images.iter().collect();
     images.sort_by(|a, b| a.name.cmp(&b.name));
     if let Some(w) = images.windows(2).find(|w| w[0].name == w[1].name) {
-        return Err(FormatError::invalid(&images_file, format!("image name `{}` appears twice", w[0].name)));
+        return Err(FormatError::invalid(
+            &images_file,
+            format!("image name `{}` appears twice", w[0].name),
+        ));
     }
     let mut out = Vec::with_capacity(images.len());
     for im in images {
         let (cam, k) = by_id.get(&im.camera_id).ok_or_else(|| {
             FormatError::invalid(
                 &images_file,
-                format!("image {} (`{}`) refers to camera {}, which cameras.* does not list", im.id, im.name, im.camera_id),
+                format!(
+                    "image {} (`{}`) refers to camera {}, which cameras.* does not list",
+                    im.id, im.name, im.camera_id
+                ),
             )
         })?;
         if im.q.iter().chain(&im.t).any(|v| !v.is_finite()) || im.q.iter().all(|v| *v == 0.0) {
-            return Err(FormatError::invalid(&images_file, format!("image {} (`{}`): expected a finite pose with a non-zero quaternion", im.id, im.name)));
+            return Err(FormatError::invalid(
+                &images_file,
+                format!(
+                    "image {} (`{}`): expected a finite pose with a non-zero quaternion",
+                    im.id, im.name
+                ),
+            ));
         }
         let name = im.name.replace('\\', "/");
         let camera = Camera {
@@ -541,9 +679,23 @@ pub fn model_cameras(model: &ColmapModel, cameras_file: &Path, images_file: &Pat
             fy: k[1] as f32,
             cx: k[2] as f32,
             cy: k[3] as f32,
-            width: u32::try_from(cam.width).unwrap_or(u32::MAX),
-            height: u32::try_from(cam.height).unwrap_or(u32::MAX),
+            width: cam.width as u32,
+            height: cam.height as u32,
         };
+        // f64 values beyond f32's range, or a quaternion too small to normalise, end here.
+        if !camera.c2w.is_finite()
+            || ![camera.fx, camera.fy, camera.cx, camera.cy]
+                .iter()
+                .all(|v| v.is_finite())
+        {
+            return Err(FormatError::invalid(
+                &images_file,
+                format!(
+                    "image {} (`{}`) with camera {}: the pose or intrinsics are out of range",
+                    im.id, im.name, im.camera_id
+                ),
+            ));
+        }
         out.push(camera);
     }
     Ok(out)
@@ -557,9 +709,27 @@ mod tests {
     /// Cameras on a ring looking at the origin, one per model (both intrinsics forms).
     fn known() -> (ColmapModel, Vec<Camera>) {
         let mut model = ColmapModel::default();
-        model.cameras.push(ColmapCamera { id: 1, model: "PINHOLE".into(), width: 64, height: 48, params: vec![70.5, 71.25, 31.75, 24.5] });
-        model.cameras.push(ColmapCamera { id: 2, model: "SIMPLE_PINHOLE".into(), width: 40, height: 30, params: vec![50.0, 20.0, 15.0] });
-        model.cameras.push(ColmapCamera { id: 3, model: "OPENCV".into(), width: 64, height: 48, params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0] });
+        model.cameras.push(ColmapCamera {
+            id: 1,
+            model: "PINHOLE".into(),
+            width: 64,
+            height: 48,
+            params: vec![70.5, 71.25, 31.75, 24.5],
+        });
+        model.cameras.push(ColmapCamera {
+            id: 2,
+            model: "SIMPLE_PINHOLE".into(),
+            width: 40,
+            height: 30,
+            params: vec![50.0, 20.0, 15.0],
+        });
+        model.cameras.push(ColmapCamera {
+            id: 3,
+            model: "OPENCV".into(),
+            width: 64,
+            height: 48,
+            params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0],
+        });
         let mut cams = Vec::new();
         for i in 0..9u32 {
             let a = i as f32 * 0.7;
@@ -569,7 +739,13 @@ mod tests {
             let (q, t) = colmap_from_c2w(&c2w);
             let camera_id = 1 + i % 3;
             let name = format!("img_{i:02}.png");
-            model.images.push(ColmapImage { id: 10 + i, q, t, camera_id, name: name.clone() });
+            model.images.push(ColmapImage {
+                id: 10 + i,
+                q,
+                t,
+                camera_id,
+                name: name.clone(),
+            });
             let c = &model.cameras[(camera_id - 1) as usize];
             let p = &c.params;
             let (fx, fy, cx, cy) = match c.model.as_str() {
@@ -602,17 +778,35 @@ mod tests {
         let n = (w * w + x * x + y * y + z * z).sqrt();
         let (w, x, y, z) = (w / n, x / n, y / n, z / n);
         let r = [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+            [
+                1.0 - 2.0 * (y * y + z * z),
+                2.0 * (x * y - w * z),
+                2.0 * (x * z + w * y),
+            ],
+            [
+                2.0 * (x * y + w * z),
+                1.0 - 2.0 * (x * x + z * z),
+                2.0 * (y * z - w * x),
+            ],
+            [
+                2.0 * (x * z - w * y),
+                2.0 * (y * z + w * x),
+                1.0 - 2.0 * (x * x + y * y),
+            ],
         ];
-        let c: Vec<f64> = (0..3).map(|i| (0..3).map(|j| r[i][j] * p[j]).sum::<f64>() + im.t[i]).collect();
+        let c: Vec<f64> = (0..3)
+            .map(|i| (0..3).map(|j| r[i][j] * p[j]).sum::<f64>() + im.t[i])
+            .collect();
         (k[0] * c[0] / c[2] + k[2], k[1] * c[1] / c[2] + k[3])
     }
 
     fn views_dir(model: &ColmapModel, bin: bool, nested: bool) -> tempfile::TempDir {
         let dir = tempfile::tempdir().unwrap();
-        let sparse = if nested { dir.path().join("sparse/0") } else { dir.path().join("sparse") };
+        let sparse = if nested {
+            dir.path().join("sparse/0")
+        } else {
+            dir.path().join("sparse")
+        };
         std::fs::create_dir_all(&sparse).unwrap();
         if bin {
             write_model_bin(&sparse, model).unwrap();
@@ -638,20 +832,42 @@ mod tests {
             assert_eq!(back.images, model.images, "bin {bin}");
             // Through the views reader: 9 images, sorted by name, every 8th held out (0 and 8).
             let set = super::super::cameras::read_views(dir.path()).unwrap();
-            assert_eq!(set.test.iter().map(|c| c.file_path.as_str()).collect::<Vec<_>>(), ["images/img_00.png", "images/img_08.png"]);
+            assert_eq!(
+                set.test
+                    .iter()
+                    .map(|c| c.file_path.as_str())
+                    .collect::<Vec<_>>(),
+                ["images/img_00.png", "images/img_08.png"]
+            );
             assert_eq!(set.train.len(), 7);
             for cam in set.train.iter().chain(&set.test) {
                 let i: usize = cam.file_path[11..13].parse().unwrap();
                 let want = &cams[i];
-                assert_eq!((cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height), (want.fx, want.fy, want.cx, want.cy, want.width, want.height));
-                assert!(cam.c2w.abs_diff_eq(want.c2w, 1e-5), "{i}: {:?} vs {:?}", cam.c2w, want.c2w);
+                assert_eq!(
+                    (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height),
+                    (want.fx, want.fy, want.cx, want.cy, want.width, want.height)
+                );
+                assert!(
+                    cam.c2w.abs_diff_eq(want.c2w, 1e-5),
+                    "{i}: {:?} vs {:?}",
+                    cam.c2w,
+                    want.c2w
+                );
                 let im = &model.images[i];
-                let k = [want.fx as f64, want.fy as f64, want.cx as f64, want.cy as f64];
+                let k = [
+                    want.fx as f64,
+                    want.fy as f64,
+                    want.cx as f64,
+                    want.cy as f64,
+                ];
                 for p in [[0.1, -0.2, 0.3], [0.5, 0.4, -0.3], [-0.6, 0.2, 0.9]] {
                     let (u, v) = project_colmap(im, k, p);
                     let (uv, depth) = cam.project(Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32));
                     assert!(depth > 0.0);
-                    assert!((uv.x as f64 - u).abs() < 1e-3 && (uv.y as f64 - v).abs() < 1e-3, "{i}: {uv} vs {u},{v}");
+                    assert!(
+                        (uv.x as f64 - u).abs() < 1e-3 && (uv.y as f64 - v).abs() < 1e-3,
+                        "{i}: {uv} vs {u},{v}"
+                    );
                 }
                 // The look-at point projects near the principal point, so the test is not vacuous
                 // only off it: the third point lands away from it.
@@ -668,20 +884,39 @@ mod tests {
     fn agreement(pairs: &[(Camera, Camera)]) -> (usize, f64, f32) {
         let rot = |m: &Mat4| DMat3::from_mat4(m.as_dmat4());
         // Frame rotation per image, R_gt = S R_colmap; the consensus is the medoid.
-        let s: Vec<DQuat> = pairs.iter().map(|(c, g)| DQuat::from_mat3(&(rot(&g.c2w) * rot(&c.c2w).transpose()))).collect();
+        let s: Vec<DQuat> = pairs
+            .iter()
+            .map(|(c, g)| DQuat::from_mat3(&(rot(&g.c2w) * rot(&c.c2w).transpose())))
+            .collect();
         let cost = |a: &DQuat| s.iter().map(|b| a.angle_between(*b)).sum::<f64>();
         let s0 = *s.iter().min_by(|a, b| cost(a).total_cmp(&cost(b))).unwrap();
-        let inl: Vec<usize> = (0..s.len()).filter(|&i| s[i].angle_between(s0).to_degrees() < 5.0).collect();
+        let inl: Vec<usize> = (0..s.len())
+            .filter(|&i| s[i].angle_between(s0).to_degrees() < 5.0)
+            .collect();
         let r = DMat3::from_quat(s0);
         // Scale and translation by least squares given the rotation.
         let n = inl.len() as f64;
-        let cc: Vec<DVec3> = inl.iter().map(|&i| pairs[i].0.center().as_dvec3()).collect();
-        let cg: Vec<DVec3> = inl.iter().map(|&i| pairs[i].1.center().as_dvec3()).collect();
+        let cc: Vec<DVec3> = inl
+            .iter()
+            .map(|&i| pairs[i].0.center().as_dvec3())
+            .collect();
+        let cg: Vec<DVec3> = inl
+            .iter()
+            .map(|&i| pairs[i].1.center().as_dvec3())
+            .collect();
         let (mc, mg) = (cc.iter().sum::<DVec3>() / n, cg.iter().sum::<DVec3>() / n);
-        let scale = cc.iter().zip(&cg).map(|(c, g)| (*g - mg).dot(r * (*c - mc))).sum::<f64>()
+        let scale = cc
+            .iter()
+            .zip(&cg)
+            .map(|(c, g)| (*g - mg).dot(r * (*c - mc)))
+            .sum::<f64>()
             / cc.iter().map(|c| (*c - mc).length_squared()).sum::<f64>();
         let spread = cg.iter().map(|g| (*g - mg).length()).sum::<f64>() / n;
-        let centre = cc.iter().zip(&cg).map(|(c, g)| (r * (*c - mc) * scale + mg - *g).length() / spread).fold(0.0, f64::max);
+        let centre = cc
+            .iter()
+            .zip(&cg)
+            .map(|(c, g)| (r * (*c - mc) * scale + mg - *g).length() / spread)
+            .fold(0.0, f64::max);
         // A point near the animal (the cameras look at the origin) through both cameras.
         let p_gt = DVec3::new(0.05, -0.03, 0.1) * spread;
         let p_c = r.transpose() * ((p_gt - mg) / scale) + mc;
@@ -710,29 +945,59 @@ mod tests {
             let dir = tmp.path().join(ext);
             std::fs::create_dir_all(&dir).unwrap();
             for f in ["cameras", "images"] {
-                std::fs::copy(data.join(format!("sparse/0/{f}.{ext}")), dir.join(format!("{f}.{ext}"))).unwrap();
+                std::fs::copy(
+                    data.join(format!("sparse/0/{f}.{ext}")),
+                    dir.join(format!("{f}.{ext}")),
+                )
+                .unwrap();
             }
             let model = read_model(&dir).unwrap();
             let cams = model_cameras(&model, &dir.join("cameras"), &dir.join("images")).unwrap();
             let pairs: Vec<(Camera, Camera)> = cams
                 .iter()
                 .map(|c| {
-                    let g = gt.iter().find(|g| g.file_path == format!("train/{}", &c.file_path[7..])).unwrap();
+                    let g = gt
+                        .iter()
+                        .find(|g| g.file_path == format!("train/{}", &c.file_path[7..]))
+                        .unwrap();
                     assert_eq!((c.fx, c.cx, c.width), (g.fx, g.cx, g.width));
                     (c.clone(), g.clone())
                 })
                 .collect();
             let (inliers, centre, px) = agreement(&pairs);
-            eprintln!("{ext}: {} images, {inliers} agree, centre residual {centre}, {px} px", pairs.len());
-            assert!(inliers * 10 >= pairs.len() * 8, "{ext}: {inliers} of {} images agree", pairs.len());
-            assert!(centre < CENTRE_TOLERANCE && px < PX_TOLERANCE, "{ext}: centre {centre}, {px} px");
+            eprintln!(
+                "{ext}: {} images, {inliers} agree, centre residual {centre}, {px} px",
+                pairs.len()
+            );
+            assert!(
+                inliers * 10 >= pairs.len() * 8,
+                "{ext}: {inliers} of {} images agree",
+                pairs.len()
+            );
+            assert!(
+                centre < CENTRE_TOLERANCE && px < PX_TOLERANCE,
+                "{ext}: centre {centre}, {px} px"
+            );
             // The control: OpenCV axes taken for OpenGL ones.
             let flip = Mat4::from_scale(Vec3::new(1.0, -1.0, -1.0));
-            let wrong: Vec<(Camera, Camera)> =
-                pairs.iter().map(|(c, g)| (Camera { c2w: c.c2w * flip, ..c.clone() }, g.clone())).collect();
+            let wrong: Vec<(Camera, Camera)> = pairs
+                .iter()
+                .map(|(c, g)| {
+                    (
+                        Camera {
+                            c2w: c.c2w * flip,
+                            ..c.clone()
+                        },
+                        g.clone(),
+                    )
+                })
+                .collect();
             let (bad, _, _) = agreement(&wrong);
             eprintln!("{ext}: without the axis flip {bad} agree");
-            assert!(bad * 2 < pairs.len(), "{ext}: the control agrees on {bad} images");
+            assert!(
+                bad * 2 < pairs.len(),
+                "{ext}: the control agrees on {bad} images"
+            );
         }
     }
 
@@ -741,14 +1006,39 @@ mod tests {
         let (mut model, _) = known();
         model.cameras[2].params[4] = -0.05;
         let dir = views_dir(&model, false, true);
-        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
-        assert!(e.contains("camera 3 (OPENCV)") && e.contains("distortion") && e.contains("image_undistorter") && e.contains("cameras.txt"), "{e}");
-        model.cameras[2] = ColmapCamera { id: 3, model: "OPENCV_FISHEYE".into(), width: 64, height: 48, params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0] };
+        let e = super::super::cameras::read_views(dir.path())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("camera 3 (OPENCV)")
+                && e.contains("distortion")
+                && e.contains("image_undistorter")
+                && e.contains("cameras.txt"),
+            "{e}"
+        );
+        model.cameras[2] = ColmapCamera {
+            id: 3,
+            model: "OPENCV_FISHEYE".into(),
+            width: 64,
+            height: 48,
+            params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0],
+        };
         let dir = views_dir(&model, true, true);
-        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
-        assert!(e.contains("camera 3 has model OPENCV_FISHEYE") && e.contains("cameras.bin"), "{e}");
+        let e = super::super::cameras::read_views(dir.path())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("camera 3 has model OPENCV_FISHEYE") && e.contains("cameras.bin"),
+            "{e}"
+        );
         // SIMPLE_RADIAL with k = 0 is a pinhole.
-        model.cameras[2] = ColmapCamera { id: 3, model: "SIMPLE_RADIAL".into(), width: 64, height: 48, params: vec![60.0, 32.0, 24.0, 0.0] };
+        model.cameras[2] = ColmapCamera {
+            id: 3,
+            model: "SIMPLE_RADIAL".into(),
+            width: 64,
+            height: 48,
+            params: vec![60.0, 32.0, 24.0, 0.0],
+        };
         let dir = views_dir(&model, true, true);
         super::super::cameras::read_views(dir.path()).unwrap();
     }
@@ -758,30 +1048,70 @@ mod tests {
         let (model, _) = known();
         let dir = views_dir(&model, false, true);
         let sparse = dir.path().join("sparse/0");
-        std::fs::write(sparse.join("cameras.txt"), "# c\n1 PINHOLE 64 48 70 71 32\n").unwrap();
+        std::fs::write(
+            sparse.join("cameras.txt"),
+            "# c\n1 PINHOLE 64 48 70 71 32\n",
+        )
+        .unwrap();
         let e = read_model(&sparse).unwrap_err();
         assert_eq!(e.position(), Some(&Position::Line(2)), "{e}");
-        assert!(e.to_string().contains("PINHOLE has 4 parameters, found 3"), "{e}");
+        assert!(
+            e.to_string().contains("PINHOLE has 4 parameters, found 3"),
+            "{e}"
+        );
         std::fs::write(sparse.join("cameras.txt"), "1 PINHOL 64 48 70 71 32 24\n").unwrap();
         let e = read_model(&sparse).unwrap_err();
-        assert_eq!(e.position(), Some(&Position::LineColumn { line: 1, column: 3 }), "{e}");
+        assert_eq!(
+            e.position(),
+            Some(&Position::LineColumn { line: 1, column: 3 }),
+            "{e}"
+        );
         std::fs::write(sparse.join("cameras.txt"), "1 PINHOLE 64 4x8 70 71 32 24\n").unwrap();
         let e = read_model(&sparse).unwrap_err();
-        assert_eq!(e.position(), Some(&Position::LineColumn { line: 1, column: 14 }), "{e}");
+        assert_eq!(
+            e.position(),
+            Some(&Position::LineColumn {
+                line: 1,
+                column: 14
+            }),
+            "{e}"
+        );
         std::fs::write(sparse.join("cameras.txt"), "1 PINHOLE 64 48 70 71 32 24\n").unwrap();
-        std::fs::write(sparse.join("images.txt"), "1 1 0 0 0 0 0 1 7 img_00.png\n\n").unwrap();
-        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
-        assert!(e.contains("refers to camera 7") && e.contains("images.txt"), "{e}");
-        std::fs::write(sparse.join("images.txt"), "1 1 0 0 0 0 0 1 1 nothere.png\n\n").unwrap();
-        let e = super::super::cameras::read_views(dir.path()).unwrap_err().to_string();
-        assert!(e.contains("missing image") && e.contains("nothere.png"), "{e}");
+        std::fs::write(
+            sparse.join("images.txt"),
+            "1 1 0 0 0 0 0 1 7 img_00.png\n\n",
+        )
+        .unwrap();
+        let e = super::super::cameras::read_views(dir.path())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("refers to camera 7") && e.contains("images.txt"),
+            "{e}"
+        );
+        std::fs::write(
+            sparse.join("images.txt"),
+            "1 1 0 0 0 0 0 1 1 nothere.png\n\n",
+        )
+        .unwrap();
+        let e = super::super::cameras::read_views(dir.path())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("missing image") && e.contains("nothere.png"),
+            "{e}"
+        );
         // Binary: truncated files name the byte where they end.
         let bdir = views_dir(&model, true, true);
         let cams = bdir.path().join("sparse/0/cameras.bin");
         let bytes = std::fs::read(&cams).unwrap();
         std::fs::write(&cams, &bytes[..bytes.len() - 3]).unwrap();
         let e = read_model(&bdir.path().join("sparse/0")).unwrap_err();
-        assert!(matches!(e.position(), Some(Position::Byte(_))) && e.to_string().contains("cameras.bin"), "{e}");
+        assert!(
+            matches!(e.position(), Some(Position::Byte(_)))
+                && e.to_string().contains("cameras.bin"),
+            "{e}"
+        );
         std::fs::write(&cams, [255u8; 8]).unwrap();
         let e = read_model(&bdir.path().join("sparse/0")).unwrap_err();
         assert!(e.to_string().contains("does not fit"), "{e}");

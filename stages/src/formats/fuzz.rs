@@ -309,6 +309,28 @@ fn views_finite(c: &CameraSet) -> bool {
 }
 
 /// Arbitrary text built from a format's vocabulary (so the parser gets past its first token).
+/// Tokens of COLMAP's text model files.
+const COLMAP_WORDS: &[&str] = &[
+    "\n",
+    "\n",
+    "\n",
+    " ",
+    " ",
+    " ",
+    "#",
+    "PINHOLE",
+    "SIMPLE_PINHOLE",
+    "SIMPLE_RADIAL",
+    "OPENCV",
+    "OPENCV_FISHEYE",
+    "1",
+    "2",
+    "0.5",
+    "-0.5",
+    "a.png",
+    "images/b.jpg",
+];
+
 fn vocabulary_text(words: &'static [&'static str]) -> impl Strategy<Value = Vec<u8>> {
     proptest::collection::vec(
         prop_oneof![
@@ -427,6 +449,38 @@ fn run_transforms(dir: &Path, bytes: &[u8]) -> Result<(), TestCaseError> {
     check(&p, super::cameras::read_views(dir), views_finite)
 }
 
+/// A COLMAP model with one of its files (`cameras.txt`, `images.bin`, ...) replaced by `bytes`
+/// and the other file of the same format valid.
+fn run_colmap(dir: &Path, file: &str, bytes: &[u8]) -> Result<(), TestCaseError> {
+    let ext = if file.ends_with(".bin") { "bin" } else { "txt" };
+    let sparse = dir.join(format!("colmap_{ext}"));
+    std::fs::create_dir_all(&sparse).expect("scratch dir");
+    for other in ["cameras", "images"] {
+        let name = format!("{other}.{ext}");
+        let content = if name == file {
+            bytes.to_vec()
+        } else {
+            seeds().colmap[&name].clone()
+        };
+        write(&sparse.join(&name), &content);
+    }
+    let p = sparse.join(file);
+    check(&p, super::colmap::read_model(&sparse), |m| {
+        m.cameras
+            .iter()
+            .all(|c| c.params.iter().all(|v| v.is_finite()))
+            && m.images
+                .iter()
+                .all(|i| i.q.iter().chain(&i.t).all(|v| v.is_finite()))
+    })?;
+    let model = super::colmap::read_model(&sparse);
+    if let Ok(model) = model {
+        let r = super::colmap::model_cameras(&model, &sparse.join(format!("cameras.{ext}")), &p);
+        check(&p, r, |c: &Vec<Camera>| cameras_finite(c))?;
+    }
+    Ok(())
+}
+
 fn run_png(dir: &Path, bytes: &[u8]) -> Result<(), TestCaseError> {
     let p = dir.join("i.png");
     write(&p, bytes);
@@ -460,6 +514,8 @@ struct Seeds {
     png8: Vec<u8>,
     png_gray: Vec<u8>,
     exr: Vec<u8>,
+    /// `cameras.txt`, `images.txt`, `cameras.bin`, `images.bin` of a small COLMAP model.
+    colmap: std::collections::BTreeMap<String, Vec<u8>>,
 }
 
 impl Seeds {
@@ -495,8 +551,43 @@ impl Seeds {
         let exr = seed_bytes(&d, "i.exr", |p| {
             super::images::write_exr(p, &seed_image(3)).unwrap()
         });
+        let colmap = {
+            let cd = d.join("colmap");
+            let mut model = super::colmap::ColmapModel::default();
+            model.cameras.push(super::colmap::ColmapCamera {
+                id: 1,
+                model: "PINHOLE".into(),
+                width: 8,
+                height: 6,
+                params: vec![7.5, 7.25, 4.0, 3.0],
+            });
+            model.cameras.push(super::colmap::ColmapCamera {
+                id: 2,
+                model: "SIMPLE_RADIAL".into(),
+                width: 8,
+                height: 6,
+                params: vec![7.5, 4.0, 3.0, 0.0],
+            });
+            for (i, c) in seed_cameras().train.iter().enumerate() {
+                let (q, t) = super::colmap::colmap_from_c2w(&c.c2w);
+                model.images.push(super::colmap::ColmapImage {
+                    id: i as u32 + 1,
+                    q,
+                    t,
+                    camera_id: 1 + i as u32 % 2,
+                    name: format!("im {i}.png"),
+                });
+            }
+            super::colmap::write_model_txt(&cd, &model).unwrap();
+            super::colmap::write_model_bin(&cd, &model).unwrap();
+            ["cameras.txt", "images.txt", "cameras.bin", "images.bin"]
+                .iter()
+                .map(|n| (n.to_string(), std::fs::read(cd.join(n)).unwrap()))
+                .collect()
+        };
         Seeds {
             _dir: dir,
+            colmap,
             obj,
             ply_bin,
             ply_ascii,
@@ -561,6 +652,17 @@ fn seeds_read_back() {
     let p = dir.join("v.json");
     write(&p, &s.scalars);
     assert_eq!(super::scalars::read_scalars(&p).unwrap().len(), 3);
+    for ext in ["txt", "bin"] {
+        let d = dir.join(format!("seed_colmap_{ext}"));
+        std::fs::create_dir_all(&d).unwrap();
+        for f in ["cameras", "images"] {
+            let name = format!("{f}.{ext}");
+            write(&d.join(&name), &s.colmap[&name]);
+        }
+        let m = super::colmap::read_model(&d).unwrap();
+        let c = super::colmap::model_cameras(&m, &d.join("cameras"), &d.join("images")).unwrap();
+        assert_eq!(c.len(), 2);
+    }
 }
 
 #[test]
@@ -653,6 +755,25 @@ proptest! {
     fn fuzz_transforms_mutations(m in mutations()) {
         let dir = workdir();
         run_transforms(&dir, &apply(seeds().transforms.clone(), &m))?;
+    }
+
+    #[test]
+    fn fuzz_colmap_bytes(bytes in arbitrary_bytes(), k in 0..4usize) {
+        let dir = workdir();
+        run_colmap(&dir, ["cameras.txt", "images.txt", "cameras.bin", "images.bin"][k], &bytes)?;
+    }
+
+    #[test]
+    fn fuzz_colmap_tokens(bytes in vocabulary_text(COLMAP_WORDS), images in any::<bool>()) {
+        let dir = workdir();
+        run_colmap(&dir, if images { "images.txt" } else { "cameras.txt" }, &bytes)?;
+    }
+
+    #[test]
+    fn fuzz_colmap_mutations(m in mutations(), k in 0..4usize) {
+        let dir = workdir();
+        let file = ["cameras.txt", "images.txt", "cameras.bin", "images.bin"][k];
+        run_colmap(&dir, file, &apply(seeds().colmap[file].clone(), &m))?;
     }
 
     #[test]
