@@ -156,6 +156,7 @@ const EXIT_FAILED: u8 = 1;
 pub fn main_with(stages: Vec<Box<dyn Stage>>) -> ExitCode {
     install_panic_hook();
     let cli = Cli::parse();
+    crate::signals::install();
     let engine = match Engine::new(stages) {
         Ok(e) => e,
         Err(e) => {
@@ -163,7 +164,13 @@ pub fn main_with(stages: Vec<Box<dyn Stage>>) -> ExitCode {
             return ExitCode::from(EXIT_USAGE);
         }
     };
-    match dispatch(&engine, &cli) {
+    let result = dispatch(&engine, &cli);
+    if let Some(sig) = crate::signals::received() {
+        // Interrupted: the commands were stopped, their staging dirs removed.
+        eprintln!("fure: interrupted by {}", crate::signals::name(sig));
+        return ExitCode::from(128u8.saturating_add(sig as u8));
+    }
+    match result {
         Ok(code) => code,
         Err(Failure::Usage(msg)) => {
             eprintln!("{msg}");

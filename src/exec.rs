@@ -217,7 +217,7 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                         Some(Status::WillRun) => {
                             let mut why = match old_index.get(&st.name) {
                                 None => vec!["new stage".to_string()],
-                                Some(o) => explain_params(o, &st.kind, st.version, &st.params.0),
+                                Some(o) => explain_params(o, &st.kind, st.version, &keyed_params(st).0),
                             };
                             why.push(format!("input from `{up}`, which will run"));
                             (Status::WillRun, why.join("; "))
@@ -335,7 +335,12 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 }
             }
             // Start queued stages.
-            while running < jobs && free_tokens > 0 && (opts.keep_going || !failed) {
+            // After SIGINT/SIGTERM/SIGHUP nothing new starts (see `signals`).
+            while running < jobs
+                && free_tokens > 0
+                && (opts.keep_going || !failed)
+                && crate::signals::received().is_none()
+            {
                 let Some((i, reason)) = queue.pop_front() else {
                     break;
                 };
@@ -399,7 +404,13 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 // their dependents in one more pass.
                 for (i, reason) in queue.drain(..) {
                     let st = &plan.stages[i];
-                    let why = format!("not started after a failure ({reason})");
+                    let why = match crate::signals::received() {
+                        Some(sig) => format!(
+                            "not started: fure was interrupted by {} ({reason})",
+                            crate::signals::name(sig)
+                        ),
+                        None => format!("not started after a failure ({reason})"),
+                    };
                     ui.skipped(&st.name, &why);
                     let key = keyed[i].as_ref().map(|k| k.key.as_str()).unwrap_or("");
                     reports[i] = Some(report_without_outputs(st, key, Status::Skipped, why, None));
@@ -538,6 +549,16 @@ fn cutoff_reason(plan: &Plan, i: usize, reports: &[Option<StageReport>]) -> Stri
     }
 }
 
+/// The parameters that enter a stage's key: a command's timeout bounds the
+/// run, not the result, so it is left out.
+fn keyed_params(st: &PlannedStage) -> fure_stage_api::Params {
+    let mut params = st.params.clone();
+    if st.kind == command::KIND {
+        params.0.remove(command::TIMEOUT_PARAM);
+    }
+    params
+}
+
 /// Computes a stage's key from its parameters and the hashes of its inputs.
 fn key_stage(plan: &Plan, i: usize, states: &[State], cache: &Cache) -> Result<Keyed, String> {
     let st = &plan.stages[i];
@@ -580,14 +601,15 @@ fn key_stage(plan: &Plan, i: usize, states: &[State], cache: &Cache) -> Result<K
         );
         hashes.insert(inp.port.clone(), hash);
     }
-    let preimage = Preimage::new(&st.kind, st.version, &st.params, hashes);
+    let params = keyed_params(st);
+    let preimage = Preimage::new(&st.kind, st.version, &params, hashes);
     let key = preimage.key();
     Ok(Keyed {
         entry: IndexEntry {
             key: key.clone(),
             kind: st.kind.clone(),
             version: st.version,
-            params: st.params.0.clone(),
+            params: params.0,
             inputs,
         },
         key,

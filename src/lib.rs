@@ -26,6 +26,7 @@ pub mod key;
 pub mod pipeline;
 pub mod plan;
 pub mod publish;
+pub mod signals;
 pub mod sweep;
 pub mod ui;
 

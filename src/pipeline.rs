@@ -185,7 +185,19 @@ impl Pipeline {
     /// Reads `path` and everything it extends.
     pub fn load(path: &Path) -> Result<Pipeline, PipelineErrors> {
         let mut stack = Vec::new();
-        load_rec(path, &mut stack)
+        let p = load_rec(path, &mut stack)?;
+        // The name is a directory under out/ and a file under cache/index/:
+        // a stem such as `..` (from `...toml`) must not become one.
+        if !valid_name(&p.name) {
+            return Err(PipelineError::bare(format!(
+                "{}: the pipeline name `{}` (from the file name) is not a valid name \
+                 (letters, digits, `_`, `-`); set `[pipeline] name`",
+                path.display(),
+                p.name
+            ))
+            .into());
+        }
+        Ok(p)
     }
 
     /// Parses pipeline text (for tests and generated pipelines); relative paths
@@ -312,6 +324,10 @@ struct RawFile {
     publish: BTreeMap<String, (PathBuf, Loc)>,
 }
 
+/// How many files an `extends` chain may hold (deeper is a mistake, and the
+/// loader recurses).
+pub const MAX_EXTENDS_DEPTH: usize = 32;
+
 fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineErrors> {
     let label = path.display().to_string();
     let canon = path
@@ -353,6 +369,19 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
                     format!(
                         "`extends`: no pipeline file `{parent}` (looked for {})",
                         parent_path.display()
+                    ),
+                )
+                .into());
+            }
+            if stack.len() >= MAX_EXTENDS_DEPTH {
+                return Err(PipelineError::at(
+                    loc,
+                    format!(
+                        "`extends` chain deeper than {MAX_EXTENDS_DEPTH} files (from {})",
+                        stack
+                            .first()
+                            .map(|p| p.display().to_string())
+                            .unwrap_or_default()
                     ),
                 )
                 .into());

@@ -4,7 +4,7 @@
 //! grammar, signals reach the children, non-regular inputs are refused.
 //! Each test is a case that once went wrong silently.
 
-use std::os::unix::fs::{MetadataExt, PermissionsExt};
+use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -394,7 +394,6 @@ fn concurrent_materialisations_keep_each_others_temporaries() {
     }
 }
 
-#[allow(dead_code)]
 fn wait_until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
     let t = Instant::now();
     while !f() {
@@ -403,7 +402,270 @@ fn wait_until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
     }
 }
 
-#[allow(dead_code)]
-fn set_mode(p: &Path, m: u32) {
-    std::fs::set_permissions(p, std::fs::Permissions::from_mode(m)).unwrap();
+#[test]
+fn placeholders_are_found_inside_shell_groups_and_unknown_ones_are_located() {
+    let p = Project::new();
+    p.write("in.txt", "hello\n");
+    p.write(
+        "ph.toml",
+        r#"
+[stages.group]
+kind = "command"
+cmd = ["sh", "-c", "{ cat {deps.x}; echo end; } > b.txt; echo {{deps.x} '{\"k\": {\"v\": 1}}' ${HOME:+h} > e.txt"]
+deps = { x = "in.txt" }
+outs = ["b.txt", "e.txt"]
+"#,
+    );
+    let r = p.run("ph.toml", &[]);
+    r.ok();
+    assert_eq!(p.read("out/ph/group/b.txt"), "hello\nend\n");
+    assert_eq!(
+        p.read("out/ph/group/e.txt"),
+        "{deps.x} {\"k\": {\"v\": 1}} h\n"
+    );
+
+    for (text, want) in [
+        (
+            "cmd = [\"sh\", \"-c\", \"{ cat {deps.undeclared}; echo end; } > b.txt\"]",
+            "bad.toml:4:1: error: stage `s` (kind `command`): parameter `cmd`: argument 2 (\"{ cat {deps.undeclared}; echo end; } > b.txt\"), column 7: placeholder names no declared dependency `undeclared`",
+        ),
+        (
+            "cmd = [\"cat\", \"{dep.x}\"]",
+            "column 1: unknown placeholder `{dep.x}`",
+        ),
+        (
+            "cmd = [\"awk\", \"{print}\", \"{deps.x}\"]",
+            "unknown placeholder `{print}` (expected {out}, {deps.NAME} or {outs.NAME}; write `{{` for a literal brace)",
+        ),
+        ("cmd = [\"cat\", \"{deps.x\"]", "has no closing `}`"),
+    ] {
+        p.write(
+            "bad.toml",
+            &format!("[stages.s]\nkind = \"command\"\ndeps = {{ x = \"in.txt\" }}\n{text}\nouts = [\"b.txt\"]\n"),
+        );
+        let out = p.fure(&["run", "bad.toml"]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{err}");
+        assert!(err.contains(want), "missing `{want}` in:\n{err}");
+        assert!(!p.path("out/bad").exists());
+    }
+}
+
+/// Whether a process is alive (a zombie is not).
+fn alive(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(s) => !s
+            .rsplit_once(')')
+            .is_some_and(|(_, rest)| rest.trim_start().starts_with('Z')),
+        Err(_) => false,
+    }
+}
+
+fn read_pids(p: &Project, files: &[&str]) -> Vec<u32> {
+    files
+        .iter()
+        .map(|f| p.read(f).trim().parse().unwrap())
+        .collect()
+}
+
+/// Two command stages that each leave a grandchild `sleep` behind the shell,
+/// writing the shell's and the sleep's pid; fure is started and both are
+/// waited for.
+fn start_sleepers(p: &Project) -> (std::process::Child, Vec<u32>) {
+    let d = p.path("").display().to_string();
+    let mut text = String::new();
+    for i in 0..2 {
+        text.push_str(&format!(
+            "[stages.s{i}]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"sleep 60 & echo $! > {d}/sleep{i}.tmp; echo $$ > {d}/sh{i}.tmp; mv {d}/sleep{i}.tmp {d}/sleep{i}; mv {d}/sh{i}.tmp {d}/sh{i}; wait; echo done > o.txt\"]\nouts = [\"o.txt\"]\n"
+        ));
+    }
+    p.write("sleepers.toml", &text);
+    let child = p
+        .cmd(&["run", "sleepers.toml", "--plain", "--jobs", "2"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_until("both commands", Duration::from_secs(30), || {
+        ["sleep0", "sleep1", "sh0", "sh1"]
+            .iter()
+            .all(|f| p.path(f).exists())
+    });
+    let pids = read_pids(p, &["sleep0", "sleep1", "sh0", "sh1"]);
+    assert!(pids.iter().all(|&q| alive(q)));
+    (child, pids)
+}
+
+#[test]
+fn signals_to_fure_stop_its_commands_and_clean_up() {
+    for (sig, name, code) in [("TERM", "SIGTERM", 143), ("INT", "SIGINT", 130), ("HUP", "SIGHUP", 129)] {
+        let p = Project::new();
+        let (child, pids) = start_sleepers(&p);
+        let t = Instant::now();
+        let k = Command::new("kill")
+            .args([&format!("-{sig}"), &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(k.success());
+        let out = child.wait_with_output().unwrap();
+        assert!(t.elapsed() < Duration::from_secs(20), "{name}: fure took {:?}", t.elapsed());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(code), "{name}: {err}");
+        assert!(err.contains(&format!("interrupted by {name}")), "{err}");
+        wait_until("the commands to die", Duration::from_secs(5), || {
+            pids.iter().all(|&q| !alive(q))
+        });
+        // Staging directories removed, nothing cached.
+        assert_eq!(walk(&p.path("cache/tmp")).len(), 0, "{name}");
+        assert_eq!(walk(&p.path("cache/entries")).len(), 0, "{name}");
+    }
+}
+
+#[test]
+fn commands_die_with_fure_on_sigkill() {
+    let p = Project::new();
+    let (mut child, pids) = start_sleepers(&p);
+    child.kill().unwrap(); // SIGKILL: no handler runs.
+    child.wait().unwrap();
+    wait_until("the orphans to die", Duration::from_secs(5), || {
+        pids.iter().all(|&q| !alive(q))
+    });
+}
+
+#[test]
+fn a_timeout_fails_the_stage_with_the_reason() {
+    let p = Project::new();
+    p.write(
+        "t.toml",
+        r#"
+[stages.slow]
+kind = "command"
+cmd = ["sleep", "30"]
+outs = ["o.txt"]
+timeout = 0.5
+
+[stages.stubborn]
+kind = "command"
+cmd = ["sh", "-c", "trap '' TERM; echo ignoring TERM >&2; sleep 30"]
+outs = ["o.txt"]
+timeout = 0.3
+
+[stages.quick]
+kind = "command"
+cmd = ["sh", "-c", "echo ok > o.txt"]
+outs = ["o.txt"]
+timeout = 10
+"#,
+    );
+    let t = Instant::now();
+    let r = p.run("t.toml", &["--keep-going", "--jobs", "3"]);
+    assert!(t.elapsed() < Duration::from_secs(15), "{:?}", t.elapsed());
+    assert_eq!(r.code(), 1);
+    assert_eq!(r.status("slow"), "failed");
+    assert_eq!(r.status("stubborn"), "failed");
+    assert_eq!(r.status("quick"), "ran");
+    let err = r.stderr();
+    assert!(err.contains("`sleep 30` timed out after 0.5 s"), "{err}");
+    assert!(err.contains("timed out after 0.3 s"), "{err}");
+    assert!(err.contains("ignoring TERM"), "{err}");
+    // The limit is not part of the key.
+    let text = std::fs::read_to_string(p.path("t.toml")).unwrap().replace("timeout = 10", "timeout = 20");
+    p.write("t.toml", &text);
+    let r = p.run("t.toml", &["--keep-going"]);
+    assert_eq!(r.status("quick"), "cached");
+}
+
+/// Runs fure with a deadline; None if it had to be killed.
+fn run_with_deadline(mut c: Command, limit: Duration) -> Option<std::process::Output> {
+    let mut child = c.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let t = Instant::now();
+    while t.elapsed() < limit {
+        if child.try_wait().unwrap().is_some() {
+            return Some(child.wait_with_output().unwrap());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    None
+}
+
+#[test]
+fn fifos_and_devices_as_inputs_are_refused() {
+    let p = Project::new();
+    assert!(Command::new("mkfifo").arg(p.path("fifo")).status().unwrap().success());
+    for (src, what) in [("fifo", "a FIFO"), ("/dev/zero", "a character device")] {
+        p.write(
+            "f.toml",
+            &format!("[stages.s]\nkind = \"command\"\ncmd = [\"cp\", \"{{deps.x}}\", \"o.txt\"]\ndeps = {{ x = \"{src}\" }}\nouts = [\"o.txt\"]\n"),
+        );
+        let out = run_with_deadline(p.cmd(&["run", "f.toml", "--plain"]), Duration::from_secs(20))
+            .unwrap_or_else(|| panic!("fure hung on {src}"));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains(what) && err.contains("not a regular file"), "{err}");
+    }
+}
+
+#[test]
+fn deep_extends_and_bad_pipeline_names_are_errors() {
+    let p = Project::new();
+    p.write("e0.toml", "[stages.gen]\nkind = \"demo_numbers\"\n");
+    for i in 1..200 {
+        p.write(&format!("e{i}.toml"), &format!("extends = \"e{}.toml\"\n", i - 1));
+    }
+    let out = p.fure(&["run", "e199.toml"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("`extends` chain deeper than 32 files"), "{err}");
+    assert!(p.fure(&["run", "e20.toml"]).status.success());
+
+    // `...toml` would name its pipeline `..` and materialise into ./<stage>.
+    p.write("...toml", "[stages.gen]\nkind = \"demo_numbers\"\n");
+    let out = p.fure(&["run", "...toml"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("pipeline name `..`"), "{err}");
+    assert!(!p.path("gen").exists() && !p.path("out/gen").exists());
+}
+
+#[test]
+fn a_read_only_cache_serves_hits_and_copies_only_once() {
+    let p = Project::new();
+    p.write("two.toml", TWO);
+    p.run("two.toml", &[]).ok();
+    std::fs::remove_dir_all(p.path("out")).unwrap();
+    let fure = env!("CARGO_BIN_EXE_fure");
+    // A read-only bind mount in a private mount namespace, where allowed.
+    let script = format!(
+        "mount --bind cache cache && mount -o remount,bind,ro cache || exit 99; \
+         touch cache/probe 2>/dev/null && exit 98; \
+         {fure} run two.toml --plain || exit 1; stat -c %i out/two/f/o.txt; \
+         {fure} run two.toml --plain || exit 1; stat -c %i out/two/f/o.txt; \
+         {fure} status two.toml"
+    );
+    let out = Command::new("unshare")
+        .args(["-rm", "sh", "-c", &script])
+        .current_dir(p.path(""))
+        .env("FURE_CACHE", p.path("cache"))
+        .output();
+    let Ok(out) = out else {
+        eprintln!("skipped: no unshare");
+        return;
+    };
+    if matches!(out.status.code(), Some(99)) || out.stderr.starts_with(b"unshare") {
+        eprintln!("skipped: no private read-only mount here");
+        return;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{text}\n{err}");
+    assert_eq!(text.matches("0 ran, 3 cached, 0 failed").count(), 2, "{text}\n{err}");
+    assert!(text.contains("two: 3 cached, 0 will run"), "{text}");
+    let inodes: Vec<&str> = text
+        .lines()
+        .filter(|l| !l.is_empty() && l.bytes().all(|b| b.is_ascii_digit()))
+        .collect();
+    assert_eq!(inodes.len(), 2, "{text}");
+    assert_eq!(inodes[0], inodes[1], "the copy was made again");
 }
