@@ -95,7 +95,12 @@ fn label_meshes_in_the_wrong_frame_fail_and_every_preset_passes() {
         }
     }
     let half: [f64; 3] = std::array::from_fn(|k| 0.5 * (hi[k] - lo[k]));
-    let cases: [(&str, Box<dyn Fn([f64; 3]) -> [f64; 3]>, &[&str]); 3] = [
+    type Case = (
+        &'static str,
+        Box<dyn Fn([f64; 3]) -> [f64; 3]>,
+        &'static [&'static str],
+    );
+    let cases: [Case; 3] = [
         (
             "yup",
             Box::new(|[x, y, z]| [x, z, -y]),
