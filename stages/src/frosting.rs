@@ -1465,8 +1465,8 @@ impl Stage for FrostingStage {
                 let skin = crate::formats::obj::read_obj(path)
                     .map_err(|e| StageError::input("gt_skin", path, e))?;
                 let fur = |i: usize| {
-                    gt_scene.as_ref().map_or(true, |sc| {
-                        sc.parts.get(mesh.part_name(i)).map_or(true, |p| p.fur)
+                    gt_scene.as_ref().is_none_or(|sc| {
+                        sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur)
                     })
                 };
                 gt_vertex_correlation(&mesh, &widths, &skin, fur)?
