@@ -1196,11 +1196,13 @@ mod fuzz {
                 let mut t = Vec::new();
                 for p in 0..parts {
                     let fields = pick(4, 6 + p as u64);
+                    let mut inner = std::collections::BTreeSet::new();
                     let body: Vec<String> = (0..fields)
-                        .map(|f| {
+                        .filter_map(|f| {
                             let k = KEYS[pick(KEYS.len(), 7 + p as u64 * 5 + f as u64)];
                             let v = VALS[pick(VALS.len(), 9 + p as u64 * 7 + f as u64)];
-                            format!("{k} = {v}")
+                            // A key twice in one inline table is a TOML error: keep the first.
+                            inner.insert(k).then(|| format!("{k} = {v}"))
                         })
                         .collect();
                     let key = KEYS[pick(KEYS.len(), 11 + p as u64)];
