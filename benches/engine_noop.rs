@@ -1,7 +1,7 @@
 //! No-op `fure run` benchmark: generated pipelines of 100 and 1,000 command
 //! stages, all cached; prints the wall time of a full `fure run` process.
 //!
-//! Run with `cargo bench --bench engine_noop` (release build). Targets from
+//! Run with `cargo bench --bench engine_noop` (release build). Targets:
 //! at most 15 ms for 100 stages and 100 ms for 1,000 stages on a
 //! 2-core machine. Each size: one populating run, two warm-up no-op runs (the
 //! hint table settles once files are two seconds old), then `REPEAT` timed
