@@ -380,10 +380,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()
     let res = (|| {
         // create_new: a planted link at the temporary name is not followed.
         let _ = fs::remove_file(&tmp);
-        let mut f = OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&tmp)?;
+        let mut f = OpenOptions::new().write(true).create_new(true).open(&tmp)?;
         f.write_all(bytes)?;
         if sync {
             f.sync_all()?;
@@ -493,7 +490,10 @@ impl Cache {
     /// Checks that the shard directory of `hash` is not a link (or anything
     /// else but a directory); a missing shard is fine (the object is missing).
     fn check_shard(&self, hash: &str) -> Result<(), String> {
-        let Some(i) = hash.get(..2).and_then(|a| usize::from_str_radix(a, 16).ok()) else {
+        let Some(i) = hash
+            .get(..2)
+            .and_then(|a| usize::from_str_radix(a, 16).ok())
+        else {
             return Err(format!("{hash:?} is not a blake3 digest"));
         };
         if self.shards[i].load(Ordering::Relaxed) {
@@ -723,10 +723,11 @@ impl Cache {
             f = key::open_regular(staged, Links::Refuse).map_err(refused)?;
         }
         let (hash, n) = key::hash_open(&mut f).map_err(io(staged))?;
-        self.check_shard(&hash).map_err(|message| CacheError::Refused {
-            path: self.root.join("objects"),
-            message,
-        })?;
+        self.check_shard(&hash)
+            .map_err(|message| CacheError::Refused {
+                path: self.root.join("objects"),
+                message,
+            })?;
         let dest = self.object_path(&hash);
         if fs::symlink_metadata(&dest).is_ok() && self.check_object(&hash, n).is_ok() {
             let _ = fs::remove_file(staged);
@@ -863,14 +864,21 @@ impl Cache {
         if !ft.is_file() {
             return Err(CacheError::Refused {
                 path: p.clone(),
-                message: format!("is {}, not a lock file (run `fure verify`)", key::file_type_name(&ft)),
+                message: format!(
+                    "is {}, not a lock file (run `fure verify`)",
+                    key::file_type_name(&ft)
+                ),
             });
         }
         if f.try_lock().is_err() {
             let mut holder = String::new();
             let _ = (&f).read_to_string(&mut holder);
             let own = format!("pid {}", std::process::id());
-            waiting(if holder.trim() == own { "this run" } else { holder.trim() });
+            waiting(if holder.trim() == own {
+                "this run"
+            } else {
+                holder.trim()
+            });
             f.lock().map_err(io(&p))?;
         }
         let _ = f.set_len(0);
@@ -942,7 +950,12 @@ impl Cache {
     /// Every valid manifest (key -> manifest, mtime), and what else is in
     /// `entries/`: (path, Some(why) to report, None for a temporary leftover).
     #[allow(clippy::type_complexity)]
-    fn all_entries(&self) -> (BTreeMap<String, (Manifest, u64)>, Vec<(PathBuf, Option<String>)>) {
+    fn all_entries(
+        &self,
+    ) -> (
+        BTreeMap<String, (Manifest, u64)>,
+        Vec<(PathBuf, Option<String>)>,
+    ) {
         let mut ok = BTreeMap::new();
         let mut bad = Vec::new();
         if let Ok(rd) = fs::read_dir(self.root.join("entries")) {
@@ -992,7 +1005,10 @@ impl Cache {
                 let ft = d.file_type().ok();
                 if !(ft.is_some_and(|t| t.is_dir()) && a.len() == 2 && hex(&a)) {
                     let what = ft.map(|t| key::file_type_name(&t)).unwrap_or("unreadable");
-                    strays.push((d.path(), format!("objects/{a}: {what} where a shard directory belongs")));
+                    strays.push((
+                        d.path(),
+                        format!("objects/{a}: {what} where a shard directory belongs"),
+                    ));
                     continue;
                 }
                 if let Ok(rd2) = fs::read_dir(d.path()) {
@@ -1004,7 +1020,10 @@ impl Cache {
                             out.push((format!("{a}{b}"), e.path(), n));
                         } else {
                             let what = ft.map(|t| key::file_type_name(&t)).unwrap_or("unreadable");
-                            strays.push((e.path(), format!("objects/{a}/{b}: {what} that is no object")));
+                            strays.push((
+                                e.path(),
+                                format!("objects/{a}/{b}: {what} that is no object"),
+                            ));
                         }
                     }
                 }
@@ -1080,7 +1099,7 @@ impl Cache {
         let (entries, bad) = self.all_entries();
         for (p, why) in bad {
             if let Some(why) = why {
-                rep.broken_manifests.push(format!("{why}"));
+                rep.broken_manifests.push(why.to_string());
             }
             Self::remove_stray(&p);
         }

@@ -235,7 +235,10 @@ fn parse_arg(arg: &str) -> Result<Vec<Piece<'_>>, (usize, String)> {
         let reserved = ["deps.", "outs."].iter().find(|p| rest.starts_with(**p));
         if reserved.is_some() || rest.starts_with("out}") {
             let Some(j) = rest.find('}') else {
-                return Err((col(i), format!("placeholder `{{{rest}` has no closing `}}`")));
+                return Err((
+                    col(i),
+                    format!("placeholder `{{{rest}` has no closing `}}`"),
+                ));
             };
             let inner = &rest[..j];
             if i > start {
@@ -293,7 +296,10 @@ fn substitute(
             Piece::Output(n, _) => outs.get(n).map(PathBuf::as_path),
         };
         let path = path.ok_or_else(|| {
-            StageError::param("cmd", format!("{arg:?}: a placeholder names nothing declared"))
+            StageError::param(
+                "cmd",
+                format!("{arg:?}: a placeholder names nothing declared"),
+            )
         })?;
         s.push_str(&path.display().to_string());
     }
@@ -319,7 +325,8 @@ pub fn run_command(ctx: &StageContext<'_>) -> Result<u64, StageError> {
         .iter()
         .map(|a| substitute(a, &ctx.inputs, &outs, &out_dir))
         .collect::<Result<_, _>>()?;
-    let (err_r, err_w) = pipe().map_err(|e| StageError::failed(format!("cannot make a pipe: {e}")))?;
+    let (err_r, err_w) =
+        pipe().map_err(|e| StageError::failed(format!("cannot make a pipe: {e}")))?;
     let mut command = std::process::Command::new(&argv[0]);
     command
         .args(&argv[1..])
@@ -452,7 +459,9 @@ impl StderrTail {
         while start < keep.len() && start > 0 && (keep[start] & 0xc0) == 0x80 {
             start += 1;
         }
-        String::from_utf8_lossy(&keep[start..]).trim_end().to_string()
+        String::from_utf8_lossy(&keep[start..])
+            .trim_end()
+            .to_string()
     }
 }
 
@@ -557,7 +566,11 @@ unsafe fn watchdog_main(rfd: libc::c_int, pgid: libc::pid_t, limit_ms: i64) -> !
             }
         }
     }
-    let deadline = if limit_ms < 0 { -1 } else { now_ms() + limit_ms };
+    let deadline = if limit_ms < 0 {
+        -1
+    } else {
+        now_ms() + limit_ms
+    };
     if wait_closed(rfd, deadline) {
         libc::kill(-pgid, libc::SIGKILL);
         libc::_exit(0);
@@ -593,7 +606,9 @@ fn wait_child(
         }
         let err = std::io::Error::last_os_error();
         if err.kind() != std::io::ErrorKind::Interrupted {
-            return Err(StageError::failed(format!("waiting for the command: {err}")));
+            return Err(StageError::failed(format!(
+                "waiting for the command: {err}"
+            )));
         }
     }
     let timed_out = watchdog.map(Watchdog::finish).unwrap_or(false);
@@ -700,12 +715,19 @@ mod tests {
         assert!(mk(&["true"], &[]).is_err());
         assert!(mk(&["cat", "{deps.zz}"], &["a.txt"]).is_err());
         // In a shell group the placeholder is still seen (and checked).
-        let e = mk(&["sh", "-c", "{ cat {deps.undeclared}; echo end; } > b.txt"], &["b.txt"])
-            .unwrap_err()
-            .to_string();
+        let e = mk(
+            &["sh", "-c", "{ cat {deps.undeclared}; echo end; } > b.txt"],
+            &["b.txt"],
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("argument 2") && e.contains("column 7"), "{e}");
         assert!(e.contains("no declared dependency `undeclared`"), "{e}");
-        assert!(mk(&["sh", "-c", "{ echo; } > a.txt; echo {{print}"], &["a.txt"]).is_ok());
+        assert!(mk(
+            &["sh", "-c", "{ echo; } > a.txt; echo {{print}"],
+            &["a.txt"]
+        )
+        .is_ok());
         assert!(mk(&["echo", "{outs.b.txt}"], &["a.txt"]).is_err());
         assert!(mk(&["echo", "{outs.a.txt}{out}"], &["a.txt"]).is_ok());
         assert!(mk(&[], &["a.txt"]).is_err());

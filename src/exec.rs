@@ -217,7 +217,9 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                         Some(Status::WillRun) => {
                             let mut why = match old_index.get(&st.name) {
                                 None => vec!["new stage".to_string()],
-                                Some(o) => explain_params(o, &st.kind, st.version, &keyed_params(st).0),
+                                Some(o) => {
+                                    explain_params(o, &st.kind, st.version, &keyed_params(st).0)
+                                }
                             };
                             why.push(format!("input from `{up}`, which will run"));
                             (Status::WillRun, why.join("; "))
@@ -257,7 +259,9 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 };
                 let (hit, damage) = match cache.lookup_checked(&k.key) {
                     Ok(Some(m)) => {
-                        let d = entry_fits(st, &m).and_then(|()| cache.check_entry(&m)).err();
+                        let d = entry_fits(st, &m)
+                            .and_then(|()| cache.check_entry(&m))
+                            .err();
                         (Some(m), d)
                     }
                     Ok(None) => (None, None),
@@ -457,8 +461,13 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                         Err(e) => {
                             // Cached, but the run did not deliver its outputs.
                             ui.failed(&st.name, &e, None);
-                            reports[i] =
-                                Some(report_without_outputs(st, &k.key, Status::Failed, reason, Some(e)));
+                            reports[i] = Some(report_without_outputs(
+                                st,
+                                &k.key,
+                                Status::Failed,
+                                reason,
+                                Some(e),
+                            ));
                             states[i] = State::Blocked;
                             failed = true;
                         }
@@ -776,7 +785,10 @@ fn execute(
         .map_err(|e| e.to_string())?;
     // Another process may have finished it while we waited.
     if let Ok(Some(m)) = cache.lookup_checked(key) {
-        if entry_fits(st, &m).and_then(|()| cache.check_entry(&m)).is_ok() {
+        if entry_fits(st, &m)
+            .and_then(|()| cache.check_entry(&m))
+            .is_ok()
+        {
             return Ok((m, false));
         }
     }

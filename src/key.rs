@@ -217,10 +217,7 @@ pub fn list_dir(root: &Path) -> std::io::Result<Vec<(String, std::path::PathBuf)
 }
 
 /// Lists the regular files under `root`, sorted by relative path.
-pub fn list_tree(
-    root: &Path,
-    links: Links,
-) -> std::io::Result<Vec<(String, std::path::PathBuf)>> {
+pub fn list_tree(root: &Path, links: Links) -> std::io::Result<Vec<(String, std::path::PathBuf)>> {
     fn walk(
         root: &Path,
         rel: &str,

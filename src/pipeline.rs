@@ -690,7 +690,9 @@ fn sweep_axis(
     if k.split(',').any(|t| t.trim().split_once('.').is_none()) {
         errors.push(PipelineError::at(
             kloc,
-            format!("{table} key `{k}`: expected \"STAGE.PARAM\" or linked \"STAGE.PARAM,STAGE.PARAM\""),
+            format!(
+                "{table} key `{k}`: expected \"STAGE.PARAM\" or linked \"STAGE.PARAM,STAGE.PARAM\""
+            ),
         ));
         return None;
     }

@@ -181,14 +181,22 @@ fn copy_stamped(from: &Path, to: &Path, provenance: &str) -> std::io::Result<()>
         if let Ok(text) = std::str::from_utf8(&bytes) {
             let stamped: Vec<&str> = text
                 .split('\n')
-                .map(|l| if l.trim_end() == PROVENANCE_MARK { provenance } else { l })
+                .map(|l| {
+                    if l.trim_end() == PROVENANCE_MARK {
+                        provenance
+                    } else {
+                        l
+                    }
+                })
                 .collect();
             bytes = stamped.join("\n").into_bytes();
         }
     }
     let tmp = to.with_file_name(format!(
         ".{}.fure-publish-{}",
-        to.file_name().map(|n| n.to_string_lossy()).unwrap_or_default(),
+        to.file_name()
+            .map(|n| n.to_string_lossy())
+            .unwrap_or_default(),
         std::process::id()
     ));
     let result = std::fs::write(&tmp, &bytes).and_then(|()| std::fs::rename(&tmp, to));
@@ -216,7 +224,10 @@ mod tests {
         let text = format!("# R\n{PROVENANCE_MARK}\n| a |\n");
         std::fs::write(d.join("a.md"), &text).unwrap();
         copy_stamped(&d.join("a.md"), &d.join("b.md"), "stamp").unwrap();
-        assert_eq!(std::fs::read_to_string(d.join("b.md")).unwrap(), "# R\nstamp\n| a |\n");
+        assert_eq!(
+            std::fs::read_to_string(d.join("b.md")).unwrap(),
+            "# R\nstamp\n| a |\n"
+        );
         copy_stamped(&d.join("a.md"), &d.join("b.txt"), "stamp").unwrap();
         assert_eq!(std::fs::read_to_string(d.join("b.txt")).unwrap(), text);
         std::fs::remove_dir_all(&d).unwrap();

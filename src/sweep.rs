@@ -583,7 +583,9 @@ pub fn record(pipeline: &str, axes: &Axes, rows: &[Row]) -> serde_json::Value {
             let costs: serde_json::Map<String, serde_json::Value> = r
                 .costs
                 .iter()
-                .map(|(k, (secs, rss))| (k.clone(), json!({"seconds": secs, "peak_rss_bytes": rss})))
+                .map(|(k, (secs, rss))| {
+                    (k.clone(), json!({"seconds": secs, "peak_rss_bytes": rss}))
+                })
                 .collect();
             json!({
                 "costs": costs,

@@ -1465,9 +1465,9 @@ impl Stage for FrostingStage {
                 let skin = crate::formats::obj::read_obj(path)
                     .map_err(|e| StageError::input("gt_skin", path, e))?;
                 let fur = |i: usize| {
-                    gt_scene.as_ref().is_none_or(|sc| {
-                        sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur)
-                    })
+                    gt_scene
+                        .as_ref()
+                        .is_none_or(|sc| sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur))
                 };
                 gt_vertex_correlation(&mesh, &widths, &skin, fur)?
             }

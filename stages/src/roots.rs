@@ -278,7 +278,11 @@ pub struct Alignment {
 /// [`Alignment`], the field minimising smoothness plus the weighted distance to the references
 /// (no hard constraint then; a piece where every reference is normal to the surface keeps
 /// the hard one).
-pub fn tangent_field(mesh: &Mesh, max_iterations: usize, align: Option<&Alignment>) -> TangentField {
+pub fn tangent_field(
+    mesh: &Mesh,
+    max_iterations: usize,
+    align: Option<&Alignment>,
+) -> TangentField {
     let nf = mesh.triangles.len();
     let frames: Vec<(Vec3, Vec3, Vec3)> =
         mesh.triangles.iter().map(|t| face_frame(mesh, t)).collect();
@@ -765,7 +769,10 @@ fn prior_alignment(
     let (mut sum, mut n) = (0.0f64, 0usize);
     for t in &mesh.triangles {
         for k in 0..3 {
-            let (a, b) = (mesh.positions[t[k] as usize], mesh.positions[t[(k + 1) % 3] as usize]);
+            let (a, b) = (
+                mesh.positions[t[k] as usize],
+                mesh.positions[t[(k + 1) % 3] as usize],
+            );
             sum += f64::from((b - a).length());
             n += 1;
         }
@@ -1149,10 +1156,24 @@ mod tests {
             cos.iter().sum::<f32>() / cos.len() as f32
         };
         let (aligned, rep) = build_roots(&mesh, &rho, &s);
-        assert_eq!(rep.constrained_faces, 0, "soft alignment needs no hard constraint");
+        assert_eq!(
+            rep.constrained_faces, 0,
+            "soft alignment needs no hard constraint"
+        );
         let a = alignment(&aligned);
         assert!(a > 0.95, "mean signed cos {a}");
-        let (smooth, _) = build_roots(&mesh, &rho, &RootSettings { direction_smoothing: None, ..s });
-        assert!(alignment(&smooth) < a - 0.05, "smooth {} vs aligned {a}", alignment(&smooth));
+        let (smooth, _) = build_roots(
+            &mesh,
+            &rho,
+            &RootSettings {
+                direction_smoothing: None,
+                ..s
+            },
+        );
+        assert!(
+            alignment(&smooth) < a - 0.05,
+            "smooth {} vs aligned {a}",
+            alignment(&smooth)
+        );
     }
 }

@@ -478,7 +478,9 @@ fn kill_9_mid_stage_then_rerun_and_verify_clean() {
     let text = String::from_utf8_lossy(&v.stdout);
     assert_eq!(v.status.code(), Some(0), "{text}");
     assert!(
-        text.contains("0 corrupted objects, 0 entries dropped, 0 invalid manifests, 0 stray paths; clean"),
+        text.contains(
+            "0 corrupted objects, 0 entries dropped, 0 invalid manifests, 0 stray paths; clean"
+        ),
         "{text}"
     );
     // gc removes the dead run's leftovers and keeps the entries.

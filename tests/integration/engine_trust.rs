@@ -45,7 +45,11 @@ fn mode(p: &Path) -> u32 {
 fn assert_no_links(root: &Path) {
     for e in walk(root) {
         let md = std::fs::symlink_metadata(&e).unwrap();
-        assert!(!md.file_type().is_symlink(), "link in the cache: {}", e.display());
+        assert!(
+            !md.file_type().is_symlink(),
+            "link in the cache: {}",
+            e.display()
+        );
     }
 }
 
@@ -126,7 +130,12 @@ fn a_hard_linked_output_is_copied_never_made_read_only() {
     // Changing the outside file does not change the cached object.
     std::fs::write(&b, "changed\n").unwrap();
     let v = p.fure(&["verify"]);
-    assert_eq!(v.status.code(), Some(0), "{}", String::from_utf8_lossy(&v.stdout));
+    assert_eq!(
+        v.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&v.stdout)
+    );
     assert_eq!(p.read("out/hard/hard/h.txt"), "shared inode\n");
 }
 
@@ -201,7 +210,9 @@ fn paths_and_hashes_read_from_a_manifest_are_validated() {
         (
             "f",
             &mf,
-            Box::new(|m| m.outputs.get_mut("o.txt").unwrap().blake3 = "../../../../etc/hostname".into()),
+            Box::new(|m| {
+                m.outputs.get_mut("o.txt").unwrap().blake3 = "../../../../etc/hostname".into()
+            }),
             "not a blake3 digest",
         ),
     ];
@@ -225,10 +236,18 @@ fn paths_and_hashes_read_from_a_manifest_are_validated() {
         let v = p.fure(&["verify"]);
         let text = String::from_utf8_lossy(&v.stdout);
         assert_eq!(v.status.code(), Some(1), "{text}");
-        assert!(text.contains("invalid manifest") && text.contains(why), "{text}");
+        assert!(
+            text.contains("invalid manifest") && text.contains(why),
+            "{text}"
+        );
         assert!(!path.exists());
         let v = p.fure(&["verify"]);
-        assert_eq!(v.status.code(), Some(0), "{}", String::from_utf8_lossy(&v.stdout));
+        assert_eq!(
+            v.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&v.stdout)
+        );
         p.run("two.toml", &[]).ok();
     }
 
@@ -278,7 +297,10 @@ fn links_under_the_cache_are_never_followed() {
     let text = String::from_utf8_lossy(&v.stdout);
     assert_eq!(v.status.code(), Some(1), "{text}");
     assert!(text.contains("objects/zz: a symbolic link"), "{text}");
-    assert!(text.contains(&format!("locks/{key}.lock: a symbolic link")), "{text}");
+    assert!(
+        text.contains(&format!("locks/{key}.lock: a symbolic link")),
+        "{text}"
+    );
     assert!(std::fs::symlink_metadata(&lock).is_err());
     std::os::unix::fs::symlink(p.path("victim_dir"), p.path("cache/objects/zz")).unwrap();
     let g = p.fure(&["gc"]);
@@ -296,7 +318,12 @@ fn links_under_the_cache_are_never_followed() {
     r.ok();
     assert_eq!(r.status("g"), "ran");
     let v = p.fure(&["verify"]);
-    assert_eq!(v.status.code(), Some(0), "{}", String::from_utf8_lossy(&v.stdout));
+    assert_eq!(
+        v.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&v.stdout)
+    );
 }
 
 #[test]
@@ -308,7 +335,11 @@ fn a_materialisation_failure_fails_the_run_and_leaves_no_temporaries() {
     let r = p.run("two.toml", &["--out", "not_a_dir", "--keep-going"]);
     assert_eq!(r.code(), 1, "{}", r.stdout());
     assert_eq!(r.with("failed").len(), 3, "{:?}", r.stages);
-    assert!(r.stderr().contains("cannot materialise outputs"), "{}", r.stderr());
+    assert!(
+        r.stderr().contains("cannot materialise outputs"),
+        "{}",
+        r.stderr()
+    );
     // The entries were stored: the next run into a usable out/ hits.
     let r = p.run("two.toml", &[]);
     r.ok();
@@ -498,7 +529,11 @@ fn start_sleepers(p: &Project) -> (std::process::Child, Vec<u32>) {
 
 #[test]
 fn signals_to_fure_stop_its_commands_and_clean_up() {
-    for (sig, name, code) in [("TERM", "SIGTERM", 143), ("INT", "SIGINT", 130), ("HUP", "SIGHUP", 129)] {
+    for (sig, name, code) in [
+        ("TERM", "SIGTERM", 143),
+        ("INT", "SIGINT", 130),
+        ("HUP", "SIGHUP", 129),
+    ] {
         let p = Project::new();
         let (child, pids) = start_sleepers(&p);
         let t = Instant::now();
@@ -508,7 +543,11 @@ fn signals_to_fure_stop_its_commands_and_clean_up() {
             .unwrap();
         assert!(k.success());
         let out = child.wait_with_output().unwrap();
-        assert!(t.elapsed() < Duration::from_secs(20), "{name}: fure took {:?}", t.elapsed());
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "{name}: fure took {:?}",
+            t.elapsed()
+        );
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(code), "{name}: {err}");
         assert!(err.contains(&format!("interrupted by {name}")), "{err}");
@@ -569,7 +608,9 @@ timeout = 10
     assert!(err.contains("timed out after 0.3 s"), "{err}");
     assert!(err.contains("ignoring TERM"), "{err}");
     // The limit is not part of the key.
-    let text = std::fs::read_to_string(p.path("t.toml")).unwrap().replace("timeout = 10", "timeout = 20");
+    let text = std::fs::read_to_string(p.path("t.toml"))
+        .unwrap()
+        .replace("timeout = 10", "timeout = 20");
     p.write("t.toml", &text);
     let r = p.run("t.toml", &["--keep-going"]);
     assert_eq!(r.status("quick"), "cached");
@@ -577,7 +618,11 @@ timeout = 10
 
 /// Runs fure with a deadline; None if it had to be killed.
 fn run_with_deadline(mut c: Command, limit: Duration) -> Option<std::process::Output> {
-    let mut child = c.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut child = c
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
     let t = Instant::now();
     while t.elapsed() < limit {
         if child.try_wait().unwrap().is_some() {
@@ -593,17 +638,27 @@ fn run_with_deadline(mut c: Command, limit: Duration) -> Option<std::process::Ou
 #[test]
 fn fifos_and_devices_as_inputs_are_refused() {
     let p = Project::new();
-    assert!(Command::new("mkfifo").arg(p.path("fifo")).status().unwrap().success());
+    assert!(Command::new("mkfifo")
+        .arg(p.path("fifo"))
+        .status()
+        .unwrap()
+        .success());
     for (src, what) in [("fifo", "a FIFO"), ("/dev/zero", "a character device")] {
         p.write(
             "f.toml",
             &format!("[stages.s]\nkind = \"command\"\ncmd = [\"cp\", \"{{deps.x}}\", \"o.txt\"]\ndeps = {{ x = \"{src}\" }}\nouts = [\"o.txt\"]\n"),
         );
-        let out = run_with_deadline(p.cmd(&["run", "f.toml", "--plain"]), Duration::from_secs(20))
-            .unwrap_or_else(|| panic!("fure hung on {src}"));
+        let out = run_with_deadline(
+            p.cmd(&["run", "f.toml", "--plain"]),
+            Duration::from_secs(20),
+        )
+        .unwrap_or_else(|| panic!("fure hung on {src}"));
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(1), "{err}");
-        assert!(err.contains(what) && err.contains("not a regular file"), "{err}");
+        assert!(
+            err.contains(what) && err.contains("not a regular file"),
+            "{err}"
+        );
     }
 }
 
@@ -612,12 +667,18 @@ fn deep_extends_and_bad_pipeline_names_are_errors() {
     let p = Project::new();
     p.write("e0.toml", "[stages.gen]\nkind = \"demo_numbers\"\n");
     for i in 1..200 {
-        p.write(&format!("e{i}.toml"), &format!("extends = \"e{}.toml\"\n", i - 1));
+        p.write(
+            &format!("e{i}.toml"),
+            &format!("extends = \"e{}.toml\"\n", i - 1),
+        );
     }
     let out = p.fure(&["run", "e199.toml"]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
-    assert!(err.contains("`extends` chain deeper than 32 files"), "{err}");
+    assert!(
+        err.contains("`extends` chain deeper than 32 files"),
+        "{err}"
+    );
     assert!(p.fure(&["run", "e20.toml"]).status.success());
 
     // `...toml` would name its pipeline `..` and materialise into ./<stage>.
@@ -660,7 +721,11 @@ fn a_read_only_cache_serves_hits_and_copies_only_once() {
     let text = String::from_utf8_lossy(&out.stdout);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(0), "{text}\n{err}");
-    assert_eq!(text.matches("0 ran, 3 cached, 0 failed").count(), 2, "{text}\n{err}");
+    assert_eq!(
+        text.matches("0 ran, 3 cached, 0 failed").count(),
+        2,
+        "{text}\n{err}"
+    );
     assert!(text.contains("two: 3 cached, 0 will run"), "{text}");
     let inodes: Vec<&str> = text
         .lines()

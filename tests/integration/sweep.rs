@@ -421,15 +421,24 @@ outs = ["results.md", "charts/"]
     // One axis, two targets: both stages take each value.
     let v1 = &r["variants"][1];
     assert_eq!(v1["settings"]["a.scale,b.scale"], 3.0, "{r}");
-    assert_eq!(p.read("out/lk@v1/a/numbers.txt"), p.read("out/lk@v1/b/numbers.txt"));
-    assert_ne!(p.read("out/lk@v0/a/numbers.txt"), p.read("out/lk@v1/a/numbers.txt"));
+    assert_eq!(
+        p.read("out/lk@v1/a/numbers.txt"),
+        p.read("out/lk@v1/b/numbers.txt")
+    );
+    assert_ne!(
+        p.read("out/lk@v0/a/numbers.txt"),
+        p.read("out/lk@v1/a/numbers.txt")
+    );
     // Costs of every stage's cache entry.
     assert!(v1["costs"]["a"]["seconds"].as_f64().unwrap() >= 0.0, "{r}");
     assert!(v1["costs"]["b"]["peak_rss_bytes"].is_u64(), "{r}");
     // Published next to the pipeline's directory, the Markdown stamped.
     let md = p.read("docs/results.md");
     assert!(md.starts_with("# R\nGenerated "), "{md}");
-    assert!(md.contains("by `fure sweep pipes/lk.toml --jobs 1`"), "{md}");
+    assert!(
+        md.contains("by `fure sweep pipes/lk.toml --jobs 1`"),
+        "{md}"
+    );
     assert!(md.ends_with("end\n"), "{md}");
     assert_eq!(json(&p.read("docs/charts/record.json")), r);
 
@@ -440,5 +449,10 @@ outs = ["results.md", "charts/"]
     );
     let s = p.sweep(&["sweep", "pipes/bad.toml"]);
     assert_eq!(s.code(), 2, "{}", s.all());
-    assert!(s.all().contains("bad.toml:3:1: publish `nope.results`: no aggregate stage `nope`"), "{}", s.all());
+    assert!(
+        s.all()
+            .contains("bad.toml:3:1: publish `nope.results`: no aggregate stage `nope`"),
+        "{}",
+        s.all()
+    );
 }

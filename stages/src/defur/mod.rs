@@ -962,7 +962,9 @@ impl Stage for DefurStage {
                 settings.unit_scale = s as f64;
             }
             // Lengths in diagonals of M_outer's bounding box: 1 / D objective units per scene unit.
-            "diagonal" => settings.unit_scale = 1.0 / f64::from(outer.diagonal().max(f32::MIN_POSITIVE)),
+            "diagonal" => {
+                settings.unit_scale = 1.0 / f64::from(outer.diagonal().max(f32::MIN_POSITIVE))
+            }
             _ => {}
         }
         let reference_h: BTreeMap<String, f32> = if refs_cm.is_empty() {
