@@ -388,7 +388,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         );
         let _ = writeln!(
             md,
-            "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | training (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
+            "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | learning stage (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
         );
         let mut sj = Map::new();
         let rows = cfg
@@ -700,7 +700,7 @@ fn write_charts(rec: &SweepRecord, cfg: &Config, dir: &Path) -> Result<(), Stage
             (
                 "f_vs_time",
                 format!("{}: F vs strand-training time", sc.name),
-                "training compute time (s, log)",
+                "learning stage compute time (s, log)",
                 &time,
             ),
             (
