@@ -44,7 +44,7 @@ use std::io::{Read, Seek, Write};
 use std::os::unix::fs::{MetadataExt, OpenOptionsExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
@@ -319,11 +319,57 @@ pub struct Cache {
     /// Shard directories `objects/ab` found to be real directories (checked
     /// once per process, so a hit costs no extra `lstat`).
     shards: Vec<std::sync::atomic::AtomicBool>,
+    /// Keys this process is computing: a stage of this run with the same key
+    /// as another waits here, before the key's lock file (whose holder line
+    /// may not be written yet, or be a previous run's).
+    busy: Busy,
 }
 
-/// A held per-key lock (released on drop).
+/// A held per-key lock (released on drop; the file lock first).
 pub struct KeyLock {
     _file: File,
+    _claim: KeyClaim,
+}
+
+/// The keys held by this process's threads, and their release signal.
+type Busy = Arc<(Mutex<BTreeSet<String>>, Condvar)>;
+
+/// A key claimed by one thread of this process (see `Cache::busy`).
+struct KeyClaim {
+    busy: Busy,
+    key: String,
+}
+
+impl KeyClaim {
+    /// Claims `key`, first waiting (after calling `waiting`) while another
+    /// thread of this process holds it.
+    fn acquire(busy: &Busy, key: &str, waiting: impl FnOnce()) -> KeyClaim {
+        let (set, freed) = &**busy;
+        let mut held = set.lock().unwrap_or_else(|e| e.into_inner());
+        if held.contains(key) {
+            drop(held);
+            waiting();
+            held = set.lock().unwrap_or_else(|e| e.into_inner());
+            while held.contains(key) {
+                held = freed.wait(held).unwrap_or_else(|e| e.into_inner());
+            }
+        }
+        held.insert(key.to_string());
+        KeyClaim {
+            busy: busy.clone(),
+            key: key.to_string(),
+        }
+    }
+}
+
+impl Drop for KeyClaim {
+    fn drop(&mut self) {
+        let (set, freed) = &*self.busy;
+        set.lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&self.key);
+        freed.notify_all();
+    }
 }
 
 /// A staging directory, removed on drop.
@@ -456,6 +502,7 @@ impl Cache {
                 _lock: None,
                 counter: AtomicU64::new(0),
                 shards,
+                busy: Default::default(),
             });
         };
         let got = match access {
@@ -484,6 +531,7 @@ impl Cache {
             _lock: Some(lock),
             counter: AtomicU64::new(0),
             shards,
+            busy: Default::default(),
         })
     }
 
@@ -835,10 +883,12 @@ impl Cache {
         write_atomic(&p, &b, true).map_err(io(&p))
     }
 
-    /// Takes the per-key lock, calling `waiting` once if another process holds it.
-    /// `waiting` gets the holder's pid line, or `this run` when the holder
-    /// is this very process (two stages of one pipeline with one key).
+    /// Takes the per-key lock, calling `waiting` before each wait: with
+    /// `this run` while another thread of this process holds the key (two
+    /// stages of one pipeline with one key), then with the holder's pid line
+    /// if another process holds it.
     pub fn lock_key(&self, key: &str, waiting: &dyn Fn(&str)) -> Result<KeyLock, CacheError> {
+        let claim = KeyClaim::acquire(&self.busy, key, || waiting("this run"));
         let p = self.root.join("locks").join(format!("{key}.lock"));
         // O_NOFOLLOW: a planted link must not make us truncate another file.
         let mut f = OpenOptions::new()
@@ -874,16 +924,20 @@ impl Cache {
             let mut holder = String::new();
             let _ = (&f).read_to_string(&mut holder);
             let own = format!("pid {}", std::process::id());
-            waiting(if holder.trim() == own {
-                "this run"
-            } else {
-                holder.trim()
+            waiting(match holder.trim() {
+                h if h == own => "this run",
+                // It has locked but not yet written its line.
+                "" => "pid unknown",
+                h => h,
             });
             f.lock().map_err(io(&p))?;
         }
         let _ = f.set_len(0);
         let _ = writeln!(f, "pid {}", std::process::id());
-        Ok(KeyLock { _file: f })
+        Ok(KeyLock {
+            _file: f,
+            _claim: claim,
+        })
     }
 
     /// A fresh staging directory for one stage run.

@@ -734,3 +734,106 @@ fn a_read_only_cache_serves_hits_and_copies_only_once() {
     assert_eq!(inodes.len(), 2, "{text}");
     assert_eq!(inodes[0], inodes[1], "the copy was made again");
 }
+
+#[test]
+fn stored_stderr_is_capped_to_its_tail() {
+    let p = Project::new();
+    let d = p.path("").display().to_string();
+    // About 7 MB of stderr between two markers (computed, so that the command
+    // line quoted in the error does not contain them); before failing, the command
+    // looks for a file of more than 1 MB anywhere in the project (the cache
+    // included): a stderr log kept whole would be one.
+    p.write(
+        "loud.toml",
+        &format!(
+            r#"
+[stages.loud]
+kind = "command"
+cmd = ["sh", "-c", "echo FIRST-$((6*7)) >&2; seq 1 400000 | sed 's/^/noise line /' >&2; echo LAST-$((6*7)) >&2; find {d} -type f -size +1000k > {d}/big_files.tmp; mv {d}/big_files.tmp {d}/big_files; exit 3"]
+outs = ["o.txt"]
+"#
+        ),
+    );
+    let r = p.run("loud.toml", &[]);
+    assert_eq!(r.code(), 1, "{}", r.stdout());
+    assert_eq!(r.status("loud"), "failed");
+    assert_eq!(
+        p.read("big_files"),
+        "",
+        "stderr was stored whole while the command ran"
+    );
+    let error = r.json["stages"][0]["error"].as_str().unwrap_or("");
+    assert!(
+        error.contains("exited with status 3") && error.contains("LAST-42"),
+        "{error}"
+    );
+    assert!(!error.contains("FIRST-42"), "not only the tail");
+    assert!(error.len() < 8 * 1024, "{} bytes of error", error.len());
+    let err = r.stderr();
+    assert!(err.contains("LAST-42") && !err.contains("FIRST-42"));
+    assert!(err.len() < 16 * 1024, "{} bytes of stderr", err.len());
+    // Nothing of it is left behind either.
+    for f in walk(&p.path("")) {
+        let len = std::fs::symlink_metadata(&f).unwrap().len();
+        assert!(len < 1 << 20, "{}: {len} bytes", f.display());
+    }
+}
+
+#[test]
+fn identical_stages_of_one_run_wait_for_each_other_without_blaming_another_process() {
+    let p = Project::new();
+    let mut text = String::new();
+    for s in ["a", "b"] {
+        text.push_str(&format!(
+            "[stages.{s}]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"sleep 1; echo same > o.txt\"]\nouts = [\"o.txt\"]\n"
+        ));
+    }
+    p.write("same.toml", &text);
+    let r = p.run("same.toml", &["--jobs", "2"]);
+    r.ok();
+    let text = r.stdout() + &r.stderr();
+    assert!(!text.contains("another fure process"), "{text}");
+    assert!(
+        text.contains("another stage of this run with the same key is computing it"),
+        "{text}"
+    );
+    let mut statuses = vec![r.status("a"), r.status("b")];
+    statuses.sort();
+    assert_eq!(statuses, ["cached", "ran"], "{text}");
+    assert_eq!(p.read("out/same/a/o.txt"), "same\n");
+    assert_eq!(p.read("out/same/b/o.txt"), "same\n");
+}
+
+#[test]
+fn a_command_failing_on_a_full_disk_names_the_cause() {
+    let p = Project::new();
+    p.write(
+        "fill.toml",
+        "[stages.fill]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"head -c 300000 /dev/zero > big.bin\"]\nouts = [\"big.bin\"]\n",
+    );
+    std::fs::create_dir_all(p.path("small")).unwrap();
+    // The whole cache (staging directories included) on a small private tmpfs:
+    // the command's write fails, and so would a stderr log on that disk.
+    let script = format!(
+        "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} run fill.toml --plain; c=$?; \
+         find small/cache/tmp -mindepth 1 2>/dev/null | sed 's/^/LEFT /' >&2; exit $c",
+        env!("CARGO_BIN_EXE_fure")
+    );
+    let out = Command::new("unshare")
+        .args(["-rm", "sh", "-c", &script])
+        .current_dir(p.path(""))
+        .env("FURE_CACHE", p.path("small/cache"))
+        .output();
+    let out = match out {
+        Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => out,
+        _ => {
+            eprintln!("skipped: no private tmpfs here");
+            return;
+        }
+    };
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("exited with status 1"), "{err}");
+    assert!(err.contains("No space left on device"), "{err}");
+    assert!(!err.contains("LEFT "), "a staging directory is left: {err}");
+}
