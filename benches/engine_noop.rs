@@ -1,11 +1,14 @@
-//! No-op `fure run` benchmark: generated pipelines of 100 and 1,000 command
-//! stages, all cached; prints the wall time of a full `fure run` process.
+//! No-op `fure run` benchmark: generated pipelines of 100, 1,000 and 10,000
+//! command stages, all cached; prints the wall time of a full `fure run`
+//! process.
 //!
 //! Run with `cargo bench --bench engine_noop` (release build). Targets:
-//! at most 15 ms for 100 stages and 100 ms for 1,000 stages on a
-//! 2-core machine. Each size: one populating run, two warm-up no-op runs (the
+//! at most 15 ms for 100 stages, 100 ms for 1,000 stages and 1 s for 10,000
+//! stages on a 2-core machine. Each size: one populating run (3.5 minutes
+//! for 10,000 stages on a busy 2-core machine), two warm-up no-op runs (the
 //! hint table settles once files are two seconds old), then `REPEAT` timed
-//! no-op runs; prints min / median / max and checks every stage was cached.
+//! no-op runs (`REPEAT_LARGE` at 10,000 stages); prints min / median / max
+//! and checks every stage was cached.
 //!
 //! The generated pipeline is a layered DAG: stage i reads stage i-1 and
 //! stage i/2 (so it is neither a flat list nor a single chain), each stage a
@@ -16,6 +19,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 const REPEAT: usize = 15;
+const REPEAT_LARGE: usize = 7;
 
 fn pipeline(n: usize) -> String {
     let mut s = String::from("[pipeline]\nname = \"noop\"\n");
@@ -59,7 +63,8 @@ fn main() {
         .map(|n| n.get())
         .unwrap_or(1);
     println!("engine_noop: no-op `fure run` of generated command-stage pipelines ({cores} cores)");
-    for (n, target_ms) in [(100usize, 15.0f64), (1000, 100.0)] {
+    for (n, target_ms) in [(100usize, 15.0f64), (1000, 100.0), (10_000, 1000.0)] {
+        let repeat = if n >= 10_000 { REPEAT_LARGE } else { REPEAT };
         let dir = tempfile::tempdir().expect("temp dir");
         std::fs::write(dir.path().join("p.toml"), pipeline(n)).unwrap();
         let t = Instant::now();
@@ -72,8 +77,8 @@ fn main() {
         std::thread::sleep(Duration::from_millis(2100));
         run(dir.path());
         run(dir.path());
-        let mut times = Vec::with_capacity(REPEAT);
-        for _ in 0..REPEAT {
+        let mut times = Vec::with_capacity(repeat);
+        for _ in 0..repeat {
             let (d, summary) = run(dir.path());
             assert!(
                 summary.contains(&format!("0 ran, {n} cached")),
