@@ -455,7 +455,7 @@ impl Stage for SpeedAccuracy {
         "speed_accuracy"
     }
     fn version(&self) -> u32 {
-        4
+        5
     }
     fn doc(&self) -> &'static str {
         "Scores the codec and dense learners' strand snapshots against GT strands and charts F-score at \
@@ -619,6 +619,12 @@ impl Stage for SpeedAccuracy {
             "codec_seconds_total": sp.codec_seconds_total,
             "dense_best_fscore_3cm_30deg": dense.iter().map(|s| s.f3()).fold(0.0, f64::max),
             "codec_best_fscore_3cm_30deg": codec.iter().map(|s| s.f3()).fold(0.0, f64::max),
+            // The untrained start (first snapshot) and whether the codec reached dense's final
+            // F-score at all, and already there: numbers, so a sweep record keeps them.
+            "codec_start_fscore_3cm_30deg": codec.first().map(|s| s.f3()),
+            "dense_start_fscore_3cm_30deg": dense.first().map(|s| s.f3()),
+            "codec_reached_dense_final": u8::from(sp.codec_seconds_to_dense_final.is_some()),
+            "codec_reached_dense_final_at_start": u8::from(sp.codec_seconds_to_dense_final == Some(0.0)),
             "spacing_cm": spacing,
             "max_queries": max_q,
             "gt_oriented_points": gt_set.len(),
