@@ -306,6 +306,18 @@ struct Bin<'a> {
 }
 
 impl Bin<'_> {
+    /// An error unless every byte was read (`what` names the last record kind).
+    fn finish(&self, what: &str) -> Result<(), FormatError> {
+        if self.at == self.bytes.len() {
+            return Ok(());
+        }
+        Err(FormatError::at(
+            self.path,
+            Position::Byte(self.at as u64),
+            format!("trailing bytes after the last {what}"),
+        ))
+    }
+
     fn take(&mut self, n: usize, what: &str) -> Result<&[u8], FormatError> {
         if self.bytes.len() - self.at < n {
             return Err(FormatError::at(
@@ -386,13 +398,7 @@ pub fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>, FormatError> {
             params,
         });
     }
-    if b.at != bytes.len() {
-        return Err(FormatError::at(
-            path,
-            Position::Byte(b.at as u64),
-            "trailing bytes after the last camera",
-        ));
-    }
+    b.finish("camera")?;
     Ok(out)
 }
 
@@ -435,13 +441,7 @@ pub fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, FormatError> {
             name,
         });
     }
-    if b.at != bytes.len() {
-        return Err(FormatError::at(
-            path,
-            Position::Byte(b.at as u64),
-            "trailing bytes after the last image",
-        ));
-    }
+    b.finish("image")?;
     Ok(out)
 }
 
