@@ -150,6 +150,7 @@ pub fn direction_error_deg(
             let (root, dp) = chord(pred, i)?;
             let (j, _) = index.nearest(root);
             let dg = gt_chords[j].1;
+            let (full_p, full_g) = (dp.length(), dg.length());
             let (dp, dg) = match (&query, skin) {
                 (Some(q), Some(m)) => {
                     let (_, _, tri) = q.closest_point(root);
@@ -159,8 +160,10 @@ pub fn direction_error_deg(
                 }
                 _ => (dp, dg),
             };
+            // A chord whose in-plane part is under 1e-3 of its length stands straight up: its
+            // in-plane direction is noise, so it is skipped (module doc).
             let (lp, lg) = (dp.length(), dg.length());
-            if !(lp > 1e-6 * dp.length().max(1e-30)) || !(lg > 0.0) {
+            if !(lp > 1e-3 * full_p) || !(lg > 1e-3 * full_g) {
                 return None;
             }
             let cos = (dp.dot(dg) / (lp * lg)).clamp(-1.0, 1.0) as f64;
@@ -1034,7 +1037,7 @@ impl Stage for Evaluate {
         "evaluate"
     }
     fn version(&self) -> u32 {
-        3
+        4
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \
@@ -1740,5 +1743,59 @@ pub(crate) mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("bad.hair"), "{e}");
+    }
+
+    #[test]
+    fn direction_error_is_in_plane_signed_and_skips_upright_strands() {
+        // The skin: the plane z = 0 (two triangles), normal +z.
+        let skin = crate::mesh::Mesh {
+            positions: vec![
+                Vec3::new(-10.0, -10.0, 0.0),
+                Vec3::new(10.0, -10.0, 0.0),
+                Vec3::new(10.0, 10.0, 0.0),
+                Vec3::new(-10.0, 10.0, 0.0),
+            ],
+            normals: vec![Vec3::Z; 4],
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+            part: vec![0; 4],
+            part_names: vec!["torso".into()],
+        };
+        let strands = |chords: &[(Vec3, Vec3)]| {
+            let mut s = Strands::new();
+            for &(root, d) in chords {
+                s.push(&[root, root + d], 0, 0.01, [0.5; 3]);
+            }
+            s
+        };
+        let gt = strands(&[(Vec3::ZERO, Vec3::X), (Vec3::new(5.0, 0.0, 0.0), Vec3::X)]);
+        // Same in-plane direction with a lift: 0 deg in-plane (45 deg in 3D).
+        let lifted = strands(&[(Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0))]);
+        let e = direction_error_deg(&lifted, &gt, Some(&skin))
+            .unwrap()
+            .unwrap();
+        assert!(e < 1e-3, "{e}");
+        let e3 = direction_error_deg(&lifted, &gt, None).unwrap().unwrap();
+        assert!((e3 - 45.0).abs() < 1e-3, "{e3}");
+        // Reversed growth counts: 180 deg.
+        let reversed = strands(&[(Vec3::new(5.0, 0.1, 0.0), -Vec3::X)]);
+        let e = direction_error_deg(&reversed, &gt, Some(&skin))
+            .unwrap()
+            .unwrap();
+        assert!((e - 180.0).abs() < 1e-3, "{e}");
+        // A strand standing (almost) straight up has no in-plane direction worth the name:
+        // skipped, so only the perpendicular one (90 deg) counts.
+        let mixed = strands(&[
+            (Vec3::ZERO, Vec3::new(1e-4, 0.0, 1.0)),
+            (Vec3::new(5.0, 0.0, 0.0), Vec3::Y),
+        ]);
+        let e = direction_error_deg(&mixed, &gt, Some(&skin))
+            .unwrap()
+            .unwrap();
+        assert!((e - 90.0).abs() < 1e-3, "{e}");
+        let upright = strands(&[(Vec3::ZERO, Vec3::Z)]);
+        assert_eq!(
+            direction_error_deg(&upright, &gt, Some(&skin)).unwrap(),
+            None
+        );
     }
 }
