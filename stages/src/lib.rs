@@ -34,6 +34,7 @@ pub mod defur;
 pub mod demo;
 pub mod evaluate;
 pub mod frosting;
+pub mod groom;
 pub mod learn;
 pub mod lengths;
 pub mod orientation;
@@ -61,6 +62,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(demo::DemoSum),
         Box::new(evaluate::Evaluate),
         Box::new(frosting::FrostingStage),
+        Box::new(groom::ExportGroom),
         Box::new(learn::CodecStrands),
         Box::new(learn::DenseStrands),
         Box::new(lengths::LengthsStage),

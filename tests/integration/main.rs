@@ -5,5 +5,6 @@ mod bad_input;
 mod capture;
 mod engine;
 mod engine_trust;
+mod groom;
 mod method;
 mod sweep;

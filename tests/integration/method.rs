@@ -19,7 +19,7 @@ fn repo(rel: &str) -> PathBuf {
 
 /// `tiger.toml` at its smallest: 8 views of 64 px, a small Gaussian fit, few
 /// roots and learning iterations. About 5 s in release.
-fn tiny_pipeline() -> String {
+pub(crate) fn tiny_pipeline() -> String {
     tiny_extension("pipelines/tiger.toml", "tiny")
 }
 
@@ -99,13 +99,14 @@ fn number(v: &Json, key: &str, file: &str) -> f64 {
     x
 }
 
-const TIGER_STAGES: [&str; 12] = [
+const TIGER_STAGES: [&str; 13] = [
     "basis",
     "codec",
     "defur",
     "defur_baseline",
     "evaluate",
     "frosting",
+    "groom",
     "lengths",
     "orientation",
     "outer",
@@ -210,11 +211,11 @@ fn tiger_pipeline_runs_end_to_end_deterministically_and_reruns_only_learning() {
         }
     }
 
-    // A strand-learning parameter reruns the learner and its evaluation only.
+    // A strand-learning parameter reruns the learner, its evaluation and the groom export only.
     let r = a.run("tiny.toml", &["--set", "codec.iterations=4"]);
     r.ok();
-    assert_eq!(r.with("ran"), ["codec", "evaluate"], "{:?}", r.stages);
-    assert_eq!(r.with("cached").len(), TIGER_STAGES.len() - 2);
+    assert_eq!(r.with("ran"), ["codec", "evaluate", "groom"], "{:?}", r.stages);
+    assert_eq!(r.with("cached").len(), TIGER_STAGES.len() - 3);
 }
 
 #[test]
@@ -270,6 +271,9 @@ fn capture_pipeline_runs_on_a_capture_without_ground_truth() {
     let strands = std::fs::metadata(out.join("codec/strands.hair")).expect("strands.hair");
     assert!(strands.len() > 1000, "{} bytes", strands.len());
     assert!(out.join("defur/root_mesh.obj").is_file());
+    for f in ["groom/blender.py", "groom/groom.usda"] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
     // No ground truth was given, so no ground-truth metrics were invented.
     let defur = read_json(&out.join("defur/metrics.json"));
     assert!(defur.get("root_to_skin_mean_cm").is_none(), "{defur}");
@@ -472,6 +476,7 @@ fn ground_truth_reaches_only_gt_ports() {
         "basis",
         "orientation",
         "codec",
+        "groom",
     ];
     for stage in reconstruction {
         let (da, db) = (p.path("out/gta").join(stage), p.path("out/gtb").join(stage));
@@ -487,7 +492,15 @@ fn ground_truth_reaches_only_gt_ports() {
         }
     }
     // Stages without a gt_* input kept their keys: cache hits.
-    for stage in ["outer", "parts", "roots", "basis", "orientation", "codec"] {
+    for stage in [
+        "outer",
+        "parts",
+        "roots",
+        "basis",
+        "orientation",
+        "codec",
+        "groom",
+    ] {
         assert_eq!(r.status(stage), "cached", "{stage}: {}", r.reason(stage));
     }
     // The scrambling reached the metrics (so the test compares what it claims to).

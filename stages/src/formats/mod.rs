@@ -12,6 +12,8 @@
 //! | [`hair`]    | Cem Yuksel `.hair`                      | [`Strands`](crate::strands::Strands) |
 //! | [`ply`]     | PLY polylines (vertex + edge elements)  | [`Strands`](crate::strands::Strands) |
 //! | [`scalars`] | per-vertex floats, JSON `{"values": [...]}` | `Vec<f32>`             |
+//! | [`blender`] | a groom as a Blender Python script (write only) | [`Strands`](crate::strands::Strands) + [`Mesh`](crate::mesh::Mesh) |
+//! | [`usd`]     | a groom as USD `.usda`: BasisCurves + Mesh (write only) | [`Strands`](crate::strands::Strands) + [`Mesh`](crate::mesh::Mesh) |
 //!
 //! Common rules, kept by every module:
 //!
@@ -38,6 +40,7 @@ use std::path::{Path, PathBuf};
 
 use fure_stage_api::StageError;
 
+pub mod blender;
 pub mod cameras;
 pub mod colmap;
 pub mod hair;
@@ -46,6 +49,7 @@ pub mod json;
 pub mod obj;
 pub mod ply;
 pub mod scalars;
+pub mod usd;
 
 #[cfg(test)]
 mod fuzz;
