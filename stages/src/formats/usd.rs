@@ -145,7 +145,7 @@ fn encode(strands: &Strands, mesh: &Mesh, info: &UsdInfo) -> String {
         &mut s,
         (0..n).flat_map(|c| {
             let k = (strands.starts[c + 1] - strands.starts[c]) as usize;
-            std::iter::repeat(strands.width[c]).take(k)
+            std::iter::repeat_n(strands.width[c], k)
         }),
         |s, w| {
             let _ = write!(s, "{w}");
