@@ -461,6 +461,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         let root = g("defur.root_to_skin_mean_frac");
         let base = g("defur.baseline_to_skin_mean_frac");
         let corr = g("frosting.gt_vertex.pearson");
+        let inside = g("defur.root_inside_body_frac");
         let len_err = g("lengths.length_error_mean_pct");
         let pre = stat(
             &sc.runs
@@ -478,11 +479,12 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         let _ = writeln!(
             md,
             "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
-             M_root {} (FurE defurring), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
+             M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
              distance, per-vertex Pearson {}; mean per-part length error {} %. Preprocessing {} s; \
              peak memory of a stage {} MiB.\n",
             fmt_stat(outer, 2),
             fmt_stat(root, 2),
+            fmt_stat(inside, 3),
             fmt_stat(base, 2),
             fmt_stat(corr, 2),
             fmt_stat(len_err, 0),
@@ -524,6 +526,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
             json!({
                 "outer_to_skin_frac": stat_json(outer),
                 "root_to_skin_frac": stat_json(root),
+                "root_inside_body_frac": stat_json(inside),
                 "baseline_to_skin_frac": stat_json(base),
                 "frosting_vertex_pearson": stat_json(corr),
                 "length_error_mean_pct": stat_json(len_err),
@@ -781,7 +784,7 @@ impl Stage for BenchmarkReport {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \

@@ -715,6 +715,9 @@ pub struct SkinDistance {
     /// Over fur-part vertices only.
     pub fur_mean_cm: f64,
     pub fur_mean_frac: f64,
+    /// Area-weighted fraction of the fur-part surface inside the GT body
+    /// (under the skin): defurring cut into the animal there.
+    pub fur_inside_frac: f64,
 }
 
 /// GT comparison shared by `defur` and `defur_baseline`.
@@ -788,6 +791,14 @@ impl GtComparison {
             .collect();
         let (m, p95) = weighted_mean_p95(&d, &w, &all);
         let (fm, _) = weighted_mean_p95(&d, &w, &fur);
+        let inside: Vec<f32> = {
+            use rayon::prelude::*;
+            mesh.positions
+                .par_iter()
+                .map(|&p| if self.skin.contains(p) { 1.0 } else { 0.0 })
+                .collect()
+        };
+        let (inside_frac, _) = weighted_mean_p95(&inside, &w, &fur);
         let cm = |x: f64| x * self.s_cm;
         SkinDistance {
             mean_cm: cm(m),
@@ -796,6 +807,7 @@ impl GtComparison {
             p95_frac: cm(p95) / self.thickness_cm,
             fur_mean_cm: cm(fm),
             fur_mean_frac: cm(fm) / self.thickness_cm,
+            fur_inside_frac: inside_frac,
         }
     }
 }
@@ -812,7 +824,7 @@ impl Stage for DefurStage {
         "defur"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         DEFUR_DOC
@@ -1100,6 +1112,12 @@ impl Stage for DefurStage {
                 "root_to_skin_fur_mean_frac",
                 root.fur_mean_frac.into(),
             );
+            put(&mut m, "root_inside_body_frac", root.fur_inside_frac.into());
+            put(
+                &mut m,
+                "outer_inside_body_frac",
+                outer_d.fur_inside_frac.into(),
+            );
             put(&mut m, "outer_to_skin_mean_cm", outer_d.mean_cm.into());
             put(&mut m, "outer_to_skin_p95_cm", outer_d.p95_cm.into());
             put(&mut m, "outer_to_skin_mean_frac", outer_d.mean_frac.into());
@@ -1128,6 +1146,11 @@ impl Stage for DefurStage {
                     &mut m,
                     "baseline_to_skin_fur_mean_frac",
                     b.fur_mean_frac.into(),
+                );
+                put(
+                    &mut m,
+                    "baseline_inside_body_frac",
+                    b.fur_inside_frac.into(),
                 );
             }
         }

@@ -104,6 +104,45 @@ impl Adam {
         Ok(())
     }
 
+    /// Rebuilds a group after its parameters were reordered, cloned or
+    /// pruned (densification): entry `j` of the new group takes the moments
+    /// of old entry `sources[j]` (each entry is `stride` floats), or zero
+    /// moments where `sources[j]` is `None` (a parameter that is new).
+    pub fn remap_group(
+        &mut self,
+        id: usize,
+        sources: &[Option<usize>],
+        stride: usize,
+    ) -> Result<(), RenderError> {
+        let n = self.groups.len();
+        let g = self.groups.get_mut(id).ok_or(RenderError::Length {
+            what: "adam group id",
+            expected: n,
+            found: id,
+        })?;
+        let old = g.m.len() / stride.max(1);
+        let (mut m, mut v) = (
+            vec![0.0; sources.len() * stride],
+            vec![0.0; sources.len() * stride],
+        );
+        for (j, src) in sources.iter().enumerate() {
+            if let Some(i) = *src {
+                if i >= old {
+                    return Err(RenderError::Length {
+                        what: "adam remap source",
+                        expected: old,
+                        found: i,
+                    });
+                }
+                m[j * stride..(j + 1) * stride].copy_from_slice(&g.m[i * stride..(i + 1) * stride]);
+                v[j * stride..(j + 1) * stride].copy_from_slice(&g.v[i * stride..(i + 1) * stride]);
+            }
+        }
+        g.m = m;
+        g.v = v;
+        Ok(())
+    }
+
     /// One Adam step of group `id` on `params` with gradients `grads`.
     pub fn step(
         &mut self,
@@ -200,5 +239,23 @@ mod tests {
         assert_eq!(adam.group(fast).unwrap().steps(), 500);
         assert!(adam.step(fast, &mut a, &[0.0; 2]).is_err());
         assert!(adam.step(7, &mut a, &[0.0; 3]).is_err());
+    }
+
+    #[test]
+    fn remap_keeps_the_moments_of_kept_entries_and_zeroes_new_ones() {
+        let mut adam = Adam::default();
+        let id = adam.add_group("p", 0.1, 6);
+        let mut p = vec![0.0f32; 6];
+        adam.step(id, &mut p, &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+            .unwrap();
+        let before = adam.group(id).unwrap().clone();
+        // Stride 2: entries 0, 1, 2 -> [2, new, 0].
+        adam.remap_group(id, &[Some(2), None, Some(0)], 2).unwrap();
+        let after = adam.group(id).unwrap();
+        assert_eq!(after.len(), 6);
+        assert_eq!(&after.m[0..2], &before.m[4..6]);
+        assert_eq!(&after.m[2..4], &[0.0, 0.0]);
+        assert_eq!(&after.v[4..6], &before.v[0..2]);
+        assert!(adam.remap_group(id, &[Some(3)], 2).is_err());
     }
 }
