@@ -125,7 +125,10 @@
 
 pub mod adam;
 pub mod debug;
+pub mod device;
 pub mod gaussians;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod losses;
 pub mod project;
 pub mod raster;
@@ -179,6 +182,9 @@ pub enum RenderError {
     /// Strand topology is inconsistent.
     #[error("strands: {0}")]
     Strands(String),
+    /// The GPU path failed (no adapter, device lost, too large a scene).
+    #[error("gpu: {0}")]
+    Gpu(String),
 }
 
 impl From<RenderError> for fure_stage_api::StageError {

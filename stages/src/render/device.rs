@@ -1,0 +1,175 @@
+//! Which device renders: the `device` parameter of the rendering stages
+//! (`frosting`, `codec_strands`, `dense_strands`, `evaluate`) and the
+//! dispatch between the CPU reference and the GPU path (feature `gpu`,
+//! docs/gpu.md).
+//!
+//! `cpu` (also when the parameter is unset) is the reference renderer; `gpu` needs the feature and
+//! an adapter and is an error otherwise; `auto` takes the GPU when the
+//! feature is compiled and an adapter exists, else the CPU. The parameter
+//! enters the stage key like any other: GPU and CPU results agree within the
+//! parity tolerances but not bit for bit, so they must not share a cache
+//! entry. The device that ran is written to the stage's metrics.json
+//! ([`Renderer::metrics`]).
+
+use fure_stage_api::{ParamSpec, ParamType, Params, StageError};
+use serde_json::{json, Value};
+
+use super::gaussians::{GaussianGrads, Gaussians};
+use super::raster::{OutputGrads, RenderOutput, RenderState};
+use super::{RenderError, RenderSettings};
+use crate::camera::Camera;
+
+/// The values of the `device` parameter.
+pub const DEVICE_CHOICES: &[&str] = &["auto", "cpu", "gpu"];
+
+/// The `device` parameter, declared the same way by every rendering stage.
+/// Optional: unset means `cpu` and leaves the stage key as it was before the
+/// parameter existed; a set value enters the key.
+pub fn device_param() -> ParamSpec {
+    ParamSpec::optional(
+        "device",
+        ParamType::Str,
+        "where the Gaussian renderer runs: cpu (the reference, also when unset), gpu (wgpu; \
+         needs the `gpu` feature and an adapter), auto (gpu when available, else cpu); a set \
+         value enters the key (docs/gpu.md)",
+    )
+    .choices(DEVICE_CHOICES)
+}
+
+/// The renderer a stage uses: the CPU reference or the shared GPU device.
+#[derive(Debug, Clone)]
+pub enum Renderer {
+    Cpu,
+    #[cfg(feature = "gpu")]
+    Gpu(std::sync::Arc<super::gpu::GpuRenderer>),
+}
+
+/// The forward state of either renderer.
+#[derive(Debug)]
+pub enum State {
+    Cpu(RenderState),
+    #[cfg(feature = "gpu")]
+    Gpu(super::gpu::GpuState),
+}
+
+impl State {
+    /// Gaussian-pixel evaluations of the forward pass.
+    pub fn evaluations(&self) -> u64 {
+        match self {
+            State::Cpu(s) => s.evaluations,
+            #[cfg(feature = "gpu")]
+            State::Gpu(s) => s.evaluations,
+        }
+    }
+}
+
+impl Renderer {
+    /// The renderer for a `device` value (see the module doc).
+    pub fn from_choice(choice: &str) -> Result<Renderer, String> {
+        match choice {
+            "cpu" => Ok(Renderer::Cpu),
+            "gpu" => Self::gpu(),
+            "auto" => Ok(Self::gpu().unwrap_or(Renderer::Cpu)),
+            o => Err(format!("unknown device {o:?} (expected auto, cpu or gpu)")),
+        }
+    }
+
+    /// The renderer for a stage's `device` parameter.
+    pub fn from_params(p: &Params) -> Result<Renderer, StageError> {
+        let choice = p.get("device").and_then(|v| v.as_str()).unwrap_or("cpu");
+        Self::from_choice(choice).map_err(|e| StageError::param("device", e))
+    }
+
+    #[cfg(feature = "gpu")]
+    fn gpu() -> Result<Renderer, String> {
+        super::gpu::GpuRenderer::shared().map(Renderer::Gpu)
+    }
+
+    #[cfg(not(feature = "gpu"))]
+    fn gpu() -> Result<Renderer, String> {
+        Err("this fure was built without the `gpu` feature \
+             (build with `cargo build --release --features gpu`)"
+            .into())
+    }
+
+    /// "cpu" or "gpu".
+    pub fn name(&self) -> &'static str {
+        match self {
+            Renderer::Cpu => "cpu",
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => "gpu",
+        }
+    }
+
+    /// The adapter's name on the GPU; None on the CPU.
+    pub fn adapter(&self) -> Option<String> {
+        match self {
+            Renderer::Cpu => None,
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => Some(r.adapter_name().to_string()),
+        }
+    }
+
+    /// `{"device": ..., "adapter": ...}` for metrics.json.
+    pub fn metrics(&self) -> Value {
+        json!({"device": self.name(), "adapter": self.adapter()})
+    }
+
+    /// [`super::render`] on this device.
+    pub fn render(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+    ) -> Result<(RenderOutput, State), RenderError> {
+        match self {
+            Renderer::Cpu => super::render(g, cam, s).map(|(o, st)| (o, State::Cpu(st))),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => r.render(g, cam, s).map(|(o, st)| (o, State::Gpu(st))),
+        }
+    }
+
+    /// [`super::backward`] on this device (`st` must come from this renderer).
+    pub fn backward(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        st: &State,
+        dl: &OutputGrads,
+    ) -> Result<GaussianGrads, RenderError> {
+        match (self, st) {
+            (Renderer::Cpu, State::Cpu(st)) => super::backward(g, cam, s, st, dl),
+            #[cfg(feature = "gpu")]
+            (Renderer::Gpu(r), State::Gpu(st)) => r.backward(g, cam, s, st, dl),
+            #[cfg(feature = "gpu")]
+            _ => Err(RenderError::Gpu(
+                "backward with a render state of the other device".into(),
+            )),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn choices_resolve_or_fail_clearly() {
+        assert_eq!(Renderer::from_choice("cpu").unwrap().name(), "cpu");
+        let auto = Renderer::from_choice("auto").unwrap();
+        match Renderer::from_choice("gpu") {
+            Ok(r) => {
+                assert_eq!(r.name(), "gpu");
+                assert_eq!(auto.name(), "gpu");
+                assert!(r.adapter().is_some());
+            }
+            Err(e) => {
+                assert_eq!(auto.name(), "cpu");
+                assert!(e.contains("gpu") || e.contains("adapter"), "{e}");
+            }
+        }
+        assert!(Renderer::from_choice("tpu").is_err());
+        assert_eq!(Renderer::Cpu.metrics()["device"], "cpu");
+    }
+}

@@ -1,0 +1,850 @@
+//! The differentiable Gaussian renderer on the GPU (feature `gpu`): WGSL
+//! compute kernels through wgpu, one to one with the CPU reference
+//! ([`crate::render::render`] and [`crate::render::backward`]). See
+//! `docs/gpu.md` for the design, the tolerances and the determinism rule.
+//!
+//! Kernels (the `.wgsl` files beside this one; `common.wgsl` and, for the
+//! per-Gaussian ones, `proj_common.wgsl` are prepended):
+//!
+//! 1. `project` (per Gaussian): EWA projection with the CPU's clamps, low-pass
+//!    and near cull, the support rows, and the number of 16x16 tiles the
+//!    support ellipse touches (the CPU's exact per-band row intervals).
+//! 2. `scan` + `scan_add`: exclusive prefix sum of the counts (integers), so
+//!    Gaussian `i`'s instances own the slots `offsets[i] .. offsets[i + 1]`.
+//! 3. `emit` (per Gaussian): one key `(tile, depth bits, index, slot)` per
+//!    instance; `pad` fills the keys up to a power of two.
+//! 4. `sort` (bitonic, one dispatch per step): the keys by `(tile, depth,
+//!    index)`, a total order, so every tile's list is exactly the CPU's.
+//! 5. `ranges`: each tile's instance range.
+//! 6. `forward` (a workgroup per tile, a thread per pixel, splats loaded by
+//!    batches into workgroup memory): front-to-back compositing of all
+//!    outputs with the CPU's alpha cut, clamp and early termination.
+//! 7. `backward` (same layout, back to front): per instance, the 13
+//!    screen-space gradient values summed over the tile's pixels in a fixed
+//!    order in workgroup memory; then either written to the instance's slot
+//!    ([`GpuMode::Deterministic`], the default) or added to the Gaussian's
+//!    accumulator with a compare-exchange atomic ([`GpuMode::Atomic`]).
+//! 8. `project_backward` (per Gaussian): sums its slots in tile order (as the
+//!    CPU does) and applies the adjoint of the projection.
+
+// `!(x > y)` is deliberate: it is also true for NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use std::sync::{Arc, Mutex, OnceLock};
+
+use bytemuck::{Pod, Zeroable};
+use glam::{Quat, Vec2, Vec3};
+use rayon::prelude::*;
+use wgpu::util::DeviceExt;
+
+use super::gaussians::{GaussianGrads, Gaussians};
+use super::project::CamData;
+use super::raster::{OutputGrads, RenderOutput};
+use super::{RenderError, RenderSettings, TILE};
+use crate::camera::Camera;
+use crate::image::ImageF32;
+
+#[cfg(test)]
+mod tests;
+
+/// How the backward pass accumulates per-tile gradients into Gaussians.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GpuMode {
+    /// Per-instance records summed per Gaussian in tile order: the same bits
+    /// on every run on one adapter and driver (the default; fure requires
+    /// same inputs -> same bytes).
+    Deterministic,
+    /// Per-tile sums added to the Gaussian with atomics: no per-instance
+    /// buffer and no gather pass, but the addition order, and so the last
+    /// bits, vary run to run.
+    Atomic,
+}
+
+/// Camera and settings as the kernels read them (`Params` in common.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct Params {
+    w0: [f32; 4],
+    w1: [f32; 4],
+    w2: [f32; 4],
+    tw: [f32; 4],
+    center: [f32; 4],
+    bg: [f32; 4],
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    rx_lo: f32,
+    rx_hi: f32,
+    ry_lo: f32,
+    ry_hi: f32,
+    near: f32,
+    alpha_min: f32,
+    alpha_max: f32,
+    t_min: f32,
+    extent: f32,
+    low_pass: f32,
+    width: u32,
+    height: u32,
+    n: u32,
+    sh_degree: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    n_inst: u32,
+    mode: u32,
+    pad0: u32,
+    pad1: u32,
+}
+
+/// f32 per Gaussian in the input record (proj_common.wgsl).
+const GREC: usize = 24;
+/// f32 per Gaussian in the gradient record (project_backward.wgsl).
+const OREC: usize = 32;
+/// f32 per instance gradient record (backward.wgsl).
+const NV: u64 = 13;
+/// Bytes of a projected splat (`Splat` in common.wgsl).
+const SPLAT_BYTES: u64 = 80;
+/// Stride of the per-dispatch `Small` uniforms (the largest uniform offset alignment).
+const SMALL_STRIDE: u64 = 256;
+
+struct Kernels {
+    project: wgpu::ComputePipeline,
+    scan: wgpu::ComputePipeline,
+    scan_add: wgpu::ComputePipeline,
+    emit: wgpu::ComputePipeline,
+    pad: wgpu::ComputePipeline,
+    sort: wgpu::ComputePipeline,
+    ranges: wgpu::ComputePipeline,
+    forward: wgpu::ComputePipeline,
+    backward: wgpu::ComputePipeline,
+    project_backward: wgpu::ComputePipeline,
+}
+
+/// A wgpu device with the renderer's kernels compiled.
+pub struct GpuRenderer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    kernels: Kernels,
+    mode: GpuMode,
+    /// Serialises submissions that share the device (one render at a time).
+    lock: Mutex<()>,
+}
+
+impl std::fmt::Debug for GpuRenderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuRenderer")
+            .field("adapter", &self.info.name)
+            .field("backend", &self.info.backend)
+            .field("mode", &self.mode)
+            .finish()
+    }
+}
+
+/// What [`GpuRenderer::backward`] needs from [`GpuRenderer::render`]: the
+/// buffers of the forward pass, kept on the device.
+pub struct GpuState {
+    width: u32,
+    height: u32,
+    n: usize,
+    n_inst: u32,
+    params: Params,
+    gauss: wgpu::Buffer,
+    splats: wgpu::Buffer,
+    offsets: wgpu::Buffer,
+    keys: wgpu::Buffer,
+    ranges: wgpu::Buffer,
+    tfinal: wgpu::Buffer,
+    ncontrib: wgpu::Buffer,
+    /// Gaussian-pixel evaluations in the forward pass.
+    pub evaluations: u64,
+}
+
+impl std::fmt::Debug for GpuState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuState")
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("n", &self.n)
+            .field("instances", &self.n_inst)
+            .finish()
+    }
+}
+
+impl GpuState {
+    /// Number of (tile, Gaussian) instances.
+    pub fn instance_count(&self) -> usize {
+        self.n_inst as usize
+    }
+}
+
+fn gpu_err(m: impl std::fmt::Display) -> RenderError {
+    RenderError::Gpu(m.to_string())
+}
+
+/// The adapter kinds in order of preference (a real GPU first, then the
+/// software rasteriser).
+fn rank(t: wgpu::DeviceType) -> u32 {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
+    }
+}
+
+static SHARED: OnceLock<Result<Arc<GpuRenderer>, String>> = OnceLock::new();
+
+impl GpuRenderer {
+    /// The process-wide renderer on the preferred adapter (created once), or
+    /// why there is none.
+    pub fn shared() -> Result<Arc<GpuRenderer>, String> {
+        SHARED
+            .get_or_init(|| GpuRenderer::new(GpuMode::Deterministic).map(Arc::new))
+            .clone()
+    }
+
+    /// A renderer on the preferred adapter: discrete, integrated, virtual,
+    /// then CPU (lavapipe). `FURE_GPU_ADAPTER=substring` picks by name.
+    pub fn new(mode: GpuMode) -> Result<GpuRenderer, String> {
+        pollster::block_on(Self::new_async(mode))
+    }
+
+    async fn new_async(mode: GpuMode) -> Result<GpuRenderer, String> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::PRIMARY;
+        desc.flags = wgpu::InstanceFlags::empty().with_env();
+        let instance = wgpu::Instance::new(desc);
+        let mut adapters = instance.enumerate_adapters(wgpu::Backends::PRIMARY).await;
+        if let Ok(want) = std::env::var("FURE_GPU_ADAPTER") {
+            let want = want.to_lowercase();
+            adapters.retain(|a| a.get_info().name.to_lowercase().contains(&want));
+        }
+        adapters.sort_by_key(|a| rank(a.get_info().device_type));
+        let adapter = adapters.into_iter().next().ok_or_else(|| {
+            "no GPU adapter (wgpu found no Vulkan, Metal or DX12 device; on Debian \
+             `apt-get install mesa-vulkan-drivers libvulkan1` gives the software one)"
+                .to_string()
+        })?;
+        let info = adapter.get_info();
+        // Everything the adapter offers (large buffers for 1M-Gaussian scenes).
+        let limits = adapter.limits();
+        if limits.max_compute_workgroup_storage_size < 16384
+            || limits.max_compute_invocations_per_workgroup < 256
+        {
+            return Err(format!(
+                "adapter {} lacks 16 KiB of workgroup memory or 256 invocations per workgroup",
+                info.name
+            ));
+        }
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("fure render"),
+                required_features: wgpu::Features::empty(),
+                required_limits: limits,
+                experimental_features: Default::default(),
+                memory_hints: wgpu::MemoryHints::Performance,
+                trace: Default::default(),
+            })
+            .await
+            .map_err(|e| format!("adapter {}: {e}", info.name))?;
+        let kernels = Kernels::new(&device);
+        Ok(GpuRenderer {
+            device,
+            queue,
+            info,
+            kernels,
+            mode,
+            lock: Mutex::new(()),
+        })
+    }
+
+    /// The adapter's name (e.g. "NVIDIA H100 80GB HBM3", "llvmpipe (LLVM 15.0.6, 256 bits)").
+    pub fn adapter_name(&self) -> &str {
+        &self.info.name
+    }
+
+    /// "name (backend, device type, driver)".
+    pub fn adapter_description(&self) -> String {
+        format!(
+            "{} ({:?}, {:?}, {} {})",
+            self.info.name,
+            self.info.backend,
+            self.info.device_type,
+            self.info.driver,
+            self.info.driver_info
+        )
+    }
+
+    pub fn mode(&self) -> GpuMode {
+        self.mode
+    }
+
+    fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes.max(256).next_multiple_of(4),
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    fn storage_init(&self, label: &str, data: &[u8]) -> wgpu::Buffer {
+        if data.len() < 256 {
+            let mut v = data.to_vec();
+            v.resize(256, 0);
+            return self.storage_init(label, &v);
+        }
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: data,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            })
+    }
+
+    fn uniform(&self, data: &[u8]) -> wgpu::Buffer {
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("uniform"),
+                contents: data,
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    /// One dispatch: binding 0 is `uniform` (a whole buffer or a 16-byte
+    /// slice at `offset`), bindings 1.. the storage buffers in order.
+    #[allow(clippy::too_many_arguments)]
+    fn dispatch(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        k: &wgpu::ComputePipeline,
+        uniform: &wgpu::Buffer,
+        offset: Option<u64>,
+        bufs: &[&wgpu::Buffer],
+        groups: (u32, u32),
+    ) {
+        if groups.0 == 0 || groups.1 == 0 {
+            return;
+        }
+        let mut entries = vec![wgpu::BindGroupEntry {
+            binding: 0,
+            resource: match offset {
+                None => uniform.as_entire_binding(),
+                Some(o) => wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: uniform,
+                    offset: o,
+                    size: wgpu::BufferSize::new(16),
+                }),
+            },
+        }];
+        for (i, b) in bufs.iter().enumerate() {
+            entries.push(wgpu::BindGroupEntry {
+                binding: i as u32 + 1,
+                resource: b.as_entire_binding(),
+            });
+        }
+        let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &k.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: None,
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(k);
+        pass.set_bind_group(0, &bg, &[]);
+        pass.dispatch_workgroups(groups.0, groups.1, 1);
+    }
+
+    fn encoder(&self) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None })
+    }
+
+    fn submit_wait(&self, enc: wgpu::CommandEncoder) -> Result<(), RenderError> {
+        self.queue.submit(Some(enc.finish()));
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(gpu_err)?;
+        Ok(())
+    }
+
+    /// Copies `bytes` bytes of `src` to the host.
+    fn read(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, RenderError> {
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let size = bytes.next_multiple_of(4);
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.encoder();
+        enc.copy_buffer_to_buffer(src, 0, &staging, 0, size);
+        self.queue.submit(Some(enc.finish()));
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(gpu_err)?;
+        rx.recv()
+            .map_err(gpu_err)?
+            .map_err(|e| gpu_err(format!("readback: {e}")))?;
+        let out = {
+            let view = staging.get_mapped_range(..).map_err(gpu_err)?;
+            view[..bytes as usize].to_vec()
+        };
+        staging.unmap();
+        Ok(out)
+    }
+
+    /// Exclusive prefix sum of `n` u32 in `data`, in place (recursive over
+    /// the block totals).
+    fn scan(&self, enc: &mut wgpu::CommandEncoder, data: &wgpu::Buffer, n: u32) {
+        let blocks = n.div_ceil(1024);
+        let sums = self.storage("scan sums", blocks as u64 * 4);
+        let u = self.uniform(bytemuck::cast_slice(&[n, 0u32, 0, 0]));
+        self.dispatch(
+            enc,
+            &self.kernels.scan,
+            &u,
+            None,
+            &[data, &sums],
+            groups2(blocks),
+        );
+        if blocks > 1 {
+            self.scan(enc, &sums, blocks);
+            self.dispatch(
+                enc,
+                &self.kernels.scan_add,
+                &u,
+                None,
+                &[data, &sums],
+                groups2(n.div_ceil(256)),
+            );
+        }
+    }
+
+    /// Renders `g` from `cam` on the GPU; the images match [`super::render`]'s
+    /// within the tolerances of docs/gpu.md.
+    pub fn render(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+    ) -> Result<(RenderOutput, GpuState), RenderError> {
+        s.validate()?;
+        g.validate()?;
+        let cd = CamData::new(cam)?;
+        let n = g.len();
+        if n >= (u32::MAX / 64) as usize {
+            return Err(gpu_err(format!(
+                "{n} Gaussians is too many for the GPU path"
+            )));
+        }
+        let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let (w, h) = (cd.width, cd.height);
+        let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
+        let n_tiles = (tx * ty) as u64;
+        let mut params = make_params(&cd, s, n as u32, tx, ty, self.mode);
+        // 1. Upload and project.
+        let gauss = self.storage_init("gaussians", bytemuck::cast_slice(&pack_gaussians(g)));
+        let splats = self.storage("splats", n as u64 * SPLAT_BYTES);
+        let offsets = self.storage("offsets", (n as u64 + 1) * 4);
+        let u = self.uniform(bytemuck::bytes_of(&params));
+        let mut enc = self.encoder();
+        enc.clear_buffer(&offsets, 0, None);
+        self.dispatch(
+            &mut enc,
+            &self.kernels.project,
+            &u,
+            None,
+            &[&gauss, &splats, &offsets],
+            groups2((n as u32).div_ceil(256)),
+        );
+        // 2. Offsets (n + 1 entries: the last is the instance count).
+        self.scan(&mut enc, &offsets, n as u32 + 1);
+        self.submit_wait(enc)?;
+        let last = self.read_slice(&offsets, n as u64 * 4, 4)?;
+        let n_inst = u32::from_le_bytes([last[0], last[1], last[2], last[3]]);
+        params.n_inst = n_inst;
+        let u = self.uniform(bytemuck::bytes_of(&params));
+        // 3. Keys, sort, tile ranges.
+        let padded = n_inst.max(1).next_power_of_two();
+        let keys = self.storage("keys", padded as u64 * 16);
+        let ranges = self.storage("ranges", n_tiles * 8);
+        let mut enc = self.encoder();
+        enc.clear_buffer(&ranges, 0, None);
+        self.dispatch(
+            &mut enc,
+            &self.kernels.emit,
+            &u,
+            None,
+            &[&splats, &offsets, &keys],
+            groups2((n as u32).div_ceil(256)),
+        );
+        if n_inst > 1 {
+            let mut steps: Vec<[u32; 4]> = Vec::new();
+            let mut k = 2u32;
+            while k <= padded {
+                let mut j = k / 2;
+                while j > 0 {
+                    steps.push([padded, k, j, 0]);
+                    j /= 2;
+                }
+                k *= 2;
+            }
+            // Entry 0: the padding (n = padded, a = n_inst); entry i + 1: step i.
+            let stride = SMALL_STRIDE as usize / 4;
+            let mut bytes: Vec<u32> = vec![0; (steps.len() + 1) * stride];
+            bytes[..4].copy_from_slice(&[padded, n_inst, 0, 0]);
+            for (i, st) in steps.iter().enumerate() {
+                bytes[(i + 1) * stride..(i + 1) * stride + 4].copy_from_slice(st);
+            }
+            let su = self.uniform(bytemuck::cast_slice(&bytes));
+            self.dispatch(
+                &mut enc,
+                &self.kernels.pad,
+                &su,
+                Some(0),
+                &[&keys],
+                groups2((padded - n_inst).div_ceil(256)),
+            );
+            for i in 0..steps.len() {
+                self.dispatch(
+                    &mut enc,
+                    &self.kernels.sort,
+                    &su,
+                    Some((i as u64 + 1) * SMALL_STRIDE),
+                    &[&keys],
+                    groups2(padded.div_ceil(256)),
+                );
+            }
+        }
+        self.dispatch(
+            &mut enc,
+            &self.kernels.ranges,
+            &u,
+            None,
+            &[&keys, &ranges],
+            groups2(n_inst.div_ceil(256)),
+        );
+        // 4. Composite.
+        let npix = w as u64 * h as u64;
+        let img = self.storage("image", npix * 8 * 4);
+        let tfinal = self.storage("t_final", npix * 4);
+        let ncontrib = self.storage("n_contrib", npix * 4);
+        let evals = self.storage("tile evaluations", n_tiles * 4);
+        self.dispatch(
+            &mut enc,
+            &self.kernels.forward,
+            &u,
+            None,
+            &[&splats, &keys, &ranges, &img, &tfinal, &ncontrib, &evals],
+            (tx, ty),
+        );
+        self.submit_wait(enc)?;
+        let data: Vec<f32> = bytemuck::pod_collect_to_vec(&self.read(&img, npix * 32)?);
+        let ev: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&evals, n_tiles * 4)?);
+        let mut out = RenderOutput {
+            rgb: ImageF32::new(w, h, 3),
+            alpha: ImageF32::new(w, h, 1),
+            depth: ImageF32::new(w, h, 1),
+            orientation: ImageF32::new(w, h, 2),
+            fur: ImageF32::new(w, h, 1),
+        };
+        for (q, p) in data.chunks_exact(8).enumerate() {
+            out.rgb.data[3 * q..3 * q + 3].copy_from_slice(&p[0..3]);
+            out.alpha.data[q] = p[3];
+            out.depth.data[q] = p[4];
+            out.orientation.data[2 * q] = p[5];
+            out.orientation.data[2 * q + 1] = p[6];
+            out.fur.data[q] = p[7];
+        }
+        let state = GpuState {
+            width: w,
+            height: h,
+            n,
+            n_inst,
+            params,
+            gauss,
+            splats,
+            offsets,
+            keys,
+            ranges,
+            tfinal,
+            ncontrib,
+            evaluations: ev.iter().map(|&e| e as u64).sum(),
+        };
+        Ok((out, state))
+    }
+
+    fn read_slice(
+        &self,
+        src: &wgpu::Buffer,
+        offset: u64,
+        bytes: u64,
+    ) -> Result<Vec<u8>, RenderError> {
+        let tmp = self.storage("slice", bytes);
+        let mut enc = self.encoder();
+        enc.copy_buffer_to_buffer(src, offset, &tmp, 0, bytes);
+        self.queue.submit(Some(enc.finish()));
+        self.read(&tmp, bytes)
+    }
+
+    /// Gradients of all Gaussian parameters given dL/d(outputs), as
+    /// [`super::backward`]. `g`, `cam` and `s` must be the ones `st` was
+    /// rendered with (its buffers are reused; `g` is checked for its length).
+    pub fn backward(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        st: &GpuState,
+        dl: &OutputGrads,
+    ) -> Result<GaussianGrads, RenderError> {
+        s.validate()?;
+        let cd = CamData::new(cam)?;
+        let (w, h) = (st.width, st.height);
+        if cd.width != w || cd.height != h {
+            return Err(RenderError::Camera(format!(
+                "camera is {}x{} but the render state is {w}x{h}",
+                cd.width, cd.height
+            )));
+        }
+        if g.len() != st.n {
+            return Err(RenderError::Length {
+                what: "gaussians (vs the render state)",
+                expected: st.n,
+                found: g.len(),
+            });
+        }
+        let npix = (w * h) as usize;
+        let mut gpix = vec![0.0f32; npix * 8];
+        let chans: [(&Option<ImageF32>, &'static str, u32, usize); 5] = [
+            (&dl.rgb, "rgb gradient", 3, 0),
+            (&dl.alpha, "alpha gradient", 1, 3),
+            (&dl.depth, "depth gradient", 1, 4),
+            (&dl.orientation, "orientation gradient", 2, 5),
+            (&dl.fur, "fur gradient", 1, 7),
+        ];
+        for (img, what, ch, f0) in chans {
+            if let Some(img) = img {
+                check_image(what, img, w, h, ch)?;
+                for q in 0..npix {
+                    for c in 0..ch as usize {
+                        let v = img.data[q * ch as usize + c];
+                        if !v.is_finite() {
+                            return Err(RenderError::NonFinite { what, index: q });
+                        }
+                        gpix[q * 8 + f0 + c] = v;
+                    }
+                }
+            }
+        }
+        let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let n = st.n;
+        let (tx, ty) = (st.params.tiles_x, st.params.tiles_y);
+        let u = self.uniform(bytemuck::bytes_of(&st.params));
+        let gp = self.storage_init("pixel gradients", bytemuck::cast_slice(&gpix));
+        let rec_len = match self.mode {
+            GpuMode::Deterministic => st.n_inst as u64,
+            GpuMode::Atomic => n as u64,
+        };
+        let rec = self.storage("instance gradients", rec_len * NV * 4);
+        let outg = self.storage("gradients", n as u64 * OREC as u64 * 4);
+        let mut enc = self.encoder();
+        enc.clear_buffer(&rec, 0, None);
+        self.dispatch(
+            &mut enc,
+            &self.kernels.backward,
+            &u,
+            None,
+            &[
+                &st.splats,
+                &st.keys,
+                &st.ranges,
+                &gp,
+                &st.tfinal,
+                &st.ncontrib,
+                &rec,
+            ],
+            (tx, ty),
+        );
+        self.dispatch(
+            &mut enc,
+            &self.kernels.project_backward,
+            &u,
+            None,
+            &[&st.gauss, &st.splats, &st.offsets, &rec, &outg],
+            groups2((n as u32).div_ceil(256)),
+        );
+        self.submit_wait(enc)?;
+        let v: Vec<f32> =
+            bytemuck::pod_collect_to_vec(&self.read(&outg, n as u64 * OREC as u64 * 4)?);
+        let mut out = GaussianGrads::zeros(n);
+        for (i, r) in v.chunks_exact(OREC).enumerate() {
+            out.means[i] = Vec3::new(r[0], r[1], r[2]);
+            out.scales[i] = Vec3::new(r[3], r[4], r[5]);
+            out.rotations[i] = Quat::from_xyzw(r[6], r[7], r[8], r[9]);
+            out.opacities[i] = r[10];
+            for k in 0..4 {
+                out.sh[i][k] = Vec3::new(r[11 + 3 * k], r[12 + 3 * k], r[13 + 3 * k]);
+            }
+            out.cov3d[i] = [r[23], r[24], r[25], r[26], r[27], r[28]];
+            out.means2d[i] = Vec2::new(r[29], r[30]);
+        }
+        Ok(out)
+    }
+}
+
+/// Workgroups for `groups` linear workgroups: at most 65535 per dimension
+/// (the kernels' `lin_id` assumes x = 65535 whenever y > 1).
+fn groups2(groups: u32) -> (u32, u32) {
+    if groups <= 65535 {
+        (groups, 1)
+    } else {
+        (65535, groups.div_ceil(65535))
+    }
+}
+
+fn make_params(
+    cd: &CamData,
+    s: &RenderSettings,
+    n: u32,
+    tx: u32,
+    ty: u32,
+    mode: GpuMode,
+) -> Params {
+    let v4 = |v: Vec3| [v.x, v.y, v.z, 0.0];
+    Params {
+        w0: v4(cd.w.x_axis),
+        w1: v4(cd.w.y_axis),
+        w2: v4(cd.w.z_axis),
+        tw: v4(cd.tw),
+        center: v4(cd.center),
+        bg: v4(s.background),
+        fx: cd.fx,
+        fy: cd.fy,
+        cx: cd.cx,
+        cy: cd.cy,
+        rx_lo: cd.rx_lim.0,
+        rx_hi: cd.rx_lim.1,
+        ry_lo: cd.ry_lim.0,
+        ry_hi: cd.ry_lim.1,
+        near: s.near,
+        alpha_min: s.alpha_min,
+        alpha_max: s.alpha_max,
+        t_min: s.transmittance_min,
+        extent: s.extent_sigmas,
+        low_pass: s.low_pass,
+        width: cd.width,
+        height: cd.height,
+        n,
+        sh_degree: s.sh_degree,
+        tiles_x: tx,
+        tiles_y: ty,
+        n_inst: 0,
+        mode: match mode {
+            GpuMode::Deterministic => 0,
+            GpuMode::Atomic => 1,
+        },
+        pad0: 0,
+        pad1: 0,
+    }
+}
+
+/// The Gaussians as 24 f32 each (mean, scale, rotation xyzw, opacity, fur, sh).
+fn pack_gaussians(g: &Gaussians) -> Vec<f32> {
+    let mut v = vec![0.0f32; g.len() * GREC];
+    v.par_chunks_mut(GREC).enumerate().for_each(|(i, r)| {
+        let (m, s, q) = (g.means[i], g.scales[i], g.rotations[i]);
+        r[..3].copy_from_slice(&[m.x, m.y, m.z]);
+        r[3..6].copy_from_slice(&[s.x, s.y, s.z]);
+        r[6..10].copy_from_slice(&[q.x, q.y, q.z, q.w]);
+        r[10] = g.opacities[i];
+        r[11] = if g.fur[i] { 1.0 } else { 0.0 };
+        for k in 0..4 {
+            let c = g.sh[i][k];
+            r[12 + 3 * k..15 + 3 * k].copy_from_slice(&[c.x, c.y, c.z]);
+        }
+    });
+    v
+}
+
+fn check_image(
+    what: &'static str,
+    img: &ImageF32,
+    w: u32,
+    h: u32,
+    ch: u32,
+) -> Result<(), RenderError> {
+    if img.width != w
+        || img.height != h
+        || img.channels != ch
+        || img.data.len() != (w * h * ch) as usize
+    {
+        return Err(RenderError::Image {
+            what,
+            width: w,
+            height: h,
+            channels: ch,
+            found: format!(
+                "{}x{}x{} ({} values)",
+                img.width,
+                img.height,
+                img.channels,
+                img.data.len()
+            ),
+        });
+    }
+    Ok(())
+}
+
+impl Kernels {
+    fn new(device: &wgpu::Device) -> Kernels {
+        const COMMON: &str = include_str!("common.wgsl");
+        const PROJ: &str = include_str!("proj_common.wgsl");
+        let make = |name: &str, parts: &[&str]| {
+            let src: String = parts.concat();
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(src.into()),
+            });
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(name),
+                layout: None,
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        Kernels {
+            project: make("project", &[COMMON, PROJ, include_str!("project.wgsl")]),
+            scan: make("scan", &[COMMON, include_str!("scan.wgsl")]),
+            scan_add: make("scan_add", &[COMMON, include_str!("scan_add.wgsl")]),
+            emit: make("emit", &[COMMON, PROJ, include_str!("emit.wgsl")]),
+            pad: make("pad", &[COMMON, include_str!("pad.wgsl")]),
+            sort: make("sort", &[COMMON, include_str!("sort.wgsl")]),
+            ranges: make("ranges", &[COMMON, include_str!("ranges.wgsl")]),
+            forward: make("forward", &[COMMON, include_str!("forward.wgsl")]),
+            backward: make("backward", &[COMMON, include_str!("backward.wgsl")]),
+            project_backward: make(
+                "project_backward",
+                &[COMMON, PROJ, include_str!("project_backward.wgsl")],
+            ),
+        }
+    }
+}

@@ -1,0 +1,567 @@
+//! Parity of the GPU renderer with the CPU reference (docs/gpu.md): images
+//! within 1e-4 mean / 1e-3 max absolute difference, gradients of every
+//! parameter kind within [`GRAD_TOL`] of the CPU's relative to that kind's
+//! largest CPU value, on scenes with overlapping (equal-depth), very thin,
+//! degenerate, behind-camera and off-screen Gaussians; bit-identical reruns
+//! in the deterministic mode. Without an adapter every test prints why it
+//! skips and passes.
+
+#![allow(clippy::needless_range_loop)]
+
+use glam::{Quat, Vec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::{GpuMode, GpuRenderer};
+use crate::camera::Camera;
+use crate::image::ImageF32;
+use crate::render::tests::test_camera;
+use crate::render::{
+    backward, render, strands_to_gaussians, GaussianGrads, Gaussians, OutputGrads, RenderOutput,
+    RenderSettings,
+};
+
+/// Gradient tolerance: max |gpu - cpu| over a parameter kind, divided by the
+/// kind's largest |cpu| value.
+pub const GRAD_TOL: f64 = 2e-3;
+
+fn gpu(mode: GpuMode) -> Option<GpuRenderer> {
+    match GpuRenderer::new(mode) {
+        Ok(r) => {
+            eprintln!("GPU parity test on {}", r.adapter_description());
+            Some(r)
+        }
+        Err(e) => {
+            eprintln!("SKIPPED: GPU parity test needs a GPU adapter: {e}");
+            None
+        }
+    }
+}
+
+fn random_image(rng: &mut ChaCha8Rng, w: u32, h: u32, c: u32, amp: f32) -> ImageF32 {
+    let mut im = ImageF32::new(w, h, c);
+    for v in im.data.iter_mut() {
+        *v = rng.gen_range(-amp..amp);
+    }
+    im
+}
+
+fn all_grads(rng: &mut ChaCha8Rng, w: u32, h: u32) -> OutputGrads {
+    OutputGrads {
+        rgb: Some(random_image(rng, w, h, 3, 1.0)),
+        alpha: Some(random_image(rng, w, h, 1, 1.0)),
+        depth: Some(random_image(rng, w, h, 1, 0.3)),
+        orientation: Some(random_image(rng, w, h, 2, 1.0)),
+        fur: Some(random_image(rng, w, h, 1, 1.0)),
+    }
+}
+
+fn random_gaussians(rng: &mut ChaCha8Rng, n: usize, spread: f32) -> Gaussians {
+    let mut g = Gaussians::default();
+    for _ in 0..n {
+        let mean = Vec3::new(
+            rng.gen_range(-spread..spread),
+            rng.gen_range(-spread..spread),
+            rng.gen_range(-spread..spread),
+        );
+        let scale = Vec3::new(
+            rng.gen_range(0.02..0.3),
+            rng.gen_range(0.01..0.2),
+            rng.gen_range(0.01..0.2),
+        );
+        let rot = Quat::from_xyzw(
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+        ) * 1.3;
+        let op = rng.gen_range(0.05..1.0);
+        let mut sh = [Vec3::ZERO; 4];
+        for c in sh.iter_mut() {
+            *c = Vec3::new(
+                rng.gen_range(-0.8..0.8),
+                rng.gen_range(-0.8..0.8),
+                rng.gen_range(-0.8..0.8),
+            );
+        }
+        g.means.push(mean);
+        g.scales.push(scale);
+        g.rotations.push(rot);
+        g.opacities.push(op);
+        g.sh.push(sh);
+        g.fur.push(rng.gen_bool(0.5));
+    }
+    g
+}
+
+fn append(g: &mut Gaussians, o: &Gaussians) {
+    g.means.extend_from_slice(&o.means);
+    g.scales.extend_from_slice(&o.scales);
+    g.rotations.extend_from_slice(&o.rotations);
+    g.opacities.extend_from_slice(&o.opacities);
+    g.sh.extend_from_slice(&o.sh);
+    g.fur.extend_from_slice(&o.fur);
+}
+
+/// Random strands of 8 points, widths from 0.002 (sub-pixel) to 0.03.
+fn strand_gaussians(rng: &mut ChaCha8Rng, n: usize) -> Gaussians {
+    let mut points = Vec::new();
+    let mut starts = vec![0u32];
+    let mut widths = Vec::new();
+    let mut colors = Vec::new();
+    for _ in 0..n {
+        let mut p = Vec3::new(
+            rng.gen_range(-0.6..0.6),
+            rng.gen_range(-0.6..0.6),
+            rng.gen_range(-0.6..0.6),
+        );
+        let mut d = Vec3::new(
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+        )
+        .normalize_or_zero()
+            * 0.05;
+        for _ in 0..8 {
+            points.push(p);
+            p += d;
+            d = (d + Vec3::new(
+                rng.gen_range(-0.02..0.02),
+                rng.gen_range(-0.02..0.02),
+                rng.gen_range(-0.02..0.02),
+            ))
+            .normalize_or_zero()
+                * 0.05;
+        }
+        starts.push(points.len() as u32);
+        widths.push(rng.gen_range(0.002..0.03));
+        colors.push([
+            rng.gen_range(0.0..1.0),
+            rng.gen_range(0.0..1.0),
+            rng.gen_range(0.0..1.0),
+        ]);
+    }
+    strands_to_gaussians(&points, &starts, &widths, &colors, true).unwrap()
+}
+
+/// Degenerate, behind-camera, off-screen, border-straddling, huge and
+/// equal-depth Gaussians (camera at z = 4 looking at the origin).
+fn hard_cases(rng: &mut ChaCha8Rng) -> Gaussians {
+    let mut g = Gaussians::default();
+    let rgb = Vec3::new(0.7, 0.2, 0.4);
+    let q = Quat::from_rotation_z(0.3);
+    // Degenerate shapes: zero scales, a flat disc, a zero quaternion, a needle.
+    g.push(Vec3::new(0.1, 0.1, 0.0), Vec3::ZERO, q, 0.8, rgb, true);
+    g.push(
+        Vec3::new(-0.2, 0.1, 0.1),
+        Vec3::new(0.2, 0.2, 0.0),
+        q,
+        0.7,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(0.2, -0.2, 0.0),
+        Vec3::new(0.1, 0.05, 0.05),
+        Quat::from_xyzw(0.0, 0.0, 0.0, 0.0),
+        0.6,
+        rgb,
+        true,
+    );
+    g.push(
+        Vec3::new(0.0, -0.3, 0.2),
+        Vec3::new(0.4, 1e-5, 1e-5),
+        q,
+        1.0,
+        rgb,
+        true,
+    );
+    // Opacity 0, 1 (clamped centre) and just above alpha_min.
+    g.push(
+        Vec3::new(0.3, 0.3, 0.0),
+        Vec3::splat(0.1),
+        q,
+        0.0,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(-0.3, -0.3, 0.1),
+        Vec3::splat(0.1),
+        q,
+        1.0,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(-0.1, 0.3, 0.0),
+        Vec3::splat(0.1),
+        q,
+        0.005,
+        rgb,
+        false,
+    );
+    // Behind the camera, at the camera, just in front of the near plane.
+    g.push(
+        Vec3::new(0.0, 0.0, 5.0),
+        Vec3::splat(0.3),
+        q,
+        0.9,
+        rgb,
+        true,
+    );
+    g.push(
+        Vec3::new(0.0, 0.0, 4.0),
+        Vec3::splat(0.3),
+        q,
+        0.9,
+        rgb,
+        true,
+    );
+    g.push(
+        Vec3::new(0.0, 0.0, 3.995),
+        Vec3::splat(0.001),
+        q,
+        0.9,
+        rgb,
+        true,
+    );
+    // Off screen, straddling the border, far outside the frustum but large.
+    g.push(
+        Vec3::new(30.0, 0.0, 0.0),
+        Vec3::splat(0.1),
+        q,
+        0.9,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(1.75, 0.3, 0.0),
+        Vec3::splat(0.15),
+        q,
+        0.9,
+        rgb,
+        false,
+    );
+    g.push(
+        Vec3::new(-3.0, 2.0, 0.0),
+        Vec3::new(2.0, 0.3, 0.3),
+        q,
+        0.5,
+        rgb,
+        true,
+    );
+    // Huge (covers the image).
+    g.push(
+        Vec3::new(0.0, 0.0, -1.0),
+        Vec3::splat(3.0),
+        q,
+        0.3,
+        rgb,
+        false,
+    );
+    // Equal depths: a stack of identical Gaussians and a row at one depth.
+    for k in 0..6 {
+        let c = Vec3::new(k as f32 / 6.0, 0.5, 1.0 - k as f32 / 6.0);
+        g.push(
+            Vec3::new(0.05, -0.05, 0.3),
+            Vec3::new(0.15, 0.05, 0.05),
+            q,
+            0.4,
+            c,
+            k % 2 == 0,
+        );
+    }
+    for k in 0..8 {
+        let x = -0.4 + 0.1 * k as f32;
+        g.push(
+            Vec3::new(x, 0.0, 0.5),
+            Vec3::new(0.08, 0.04, 0.01),
+            q,
+            0.6,
+            rgb,
+            false,
+        );
+    }
+    let _ = rng;
+    g
+}
+
+struct Scene {
+    name: &'static str,
+    g: Gaussians,
+    cam: Camera,
+    s: RenderSettings,
+}
+
+fn scenes() -> Vec<Scene> {
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let mut out = Vec::new();
+    let cam = |size| test_camera(size, Vec3::new(0.4, 0.3, 4.0), Vec3::ZERO);
+    let mut s1 = RenderSettings {
+        sh_degree: 1,
+        background: Vec3::new(0.2, 0.5, 0.9),
+        ..Default::default()
+    };
+    out.push(Scene {
+        name: "random (overlapping), sh 1, background",
+        g: random_gaussians(&mut rng, 300, 0.8),
+        cam: cam(72),
+        s: s1.clone(),
+    });
+    s1.sh_degree = 0;
+    out.push(Scene {
+        name: "random, smooth settings",
+        g: random_gaussians(&mut rng, 200, 0.8),
+        cam: test_camera(64, Vec3::new(-0.5, 0.8, 3.5), Vec3::new(0.1, 0.0, 0.0)),
+        s: RenderSettings {
+            background: Vec3::new(0.1, 0.1, 0.1),
+            ..RenderSettings::smooth()
+        },
+    });
+    out.push(Scene {
+        name: "thin strands",
+        g: strand_gaussians(&mut rng, 150),
+        cam: cam(96),
+        s: RenderSettings::default(),
+    });
+    let mut hard = hard_cases(&mut rng);
+    append(&mut hard, &random_gaussians(&mut rng, 40, 0.6));
+    out.push(Scene {
+        name: "degenerate, behind-camera, off-screen, equal depths",
+        g: hard,
+        // Not a multiple of 16: partial tiles.
+        cam: {
+            let mut c = cam(80);
+            c.width = 83;
+            c.height = 61;
+            c.cx = 40.0;
+            c.cy = 31.0;
+            c
+        },
+        s: RenderSettings {
+            sh_degree: 1,
+            ..Default::default()
+        },
+    });
+    out
+}
+
+fn image_diff(name: &str, a: &ImageF32, b: &ImageF32) -> (f64, f32) {
+    assert_eq!(
+        (a.width, a.height, a.channels),
+        (b.width, b.height, b.channels),
+        "{name}"
+    );
+    let mut sum = 0.0f64;
+    let mut max = 0.0f32;
+    for (x, y) in a.data.iter().zip(&b.data) {
+        let d = (x - y).abs();
+        sum += d as f64;
+        max = max.max(d);
+    }
+    (sum / a.data.len().max(1) as f64, max)
+}
+
+fn check_images(scene: &str, cpu: &RenderOutput, gpu: &RenderOutput) {
+    for (what, a, b) in [
+        ("rgb", &cpu.rgb, &gpu.rgb),
+        ("alpha", &cpu.alpha, &gpu.alpha),
+        ("depth", &cpu.depth, &gpu.depth),
+        ("orientation", &cpu.orientation, &gpu.orientation),
+        ("fur", &cpu.fur, &gpu.fur),
+    ] {
+        let (mean, max) = image_diff(what, a, b);
+        eprintln!("{scene}: {what}: mean |gpu - cpu| {mean:.2e}, max {max:.2e}");
+        assert!(
+            mean <= 1e-4 && max <= 1e-3,
+            "{scene}: {what}: mean {mean:.3e} (limit 1e-4), max {max:.3e} (limit 1e-3)"
+        );
+    }
+}
+
+/// Per parameter kind: (name, flattened CPU values, flattened GPU values).
+fn kinds(a: &GaussianGrads) -> Vec<(&'static str, Vec<f32>)> {
+    vec![
+        ("means", a.means.iter().flat_map(|v| v.to_array()).collect()),
+        (
+            "scales",
+            a.scales.iter().flat_map(|v| v.to_array()).collect(),
+        ),
+        (
+            "rotations",
+            a.rotations.iter().flat_map(|q| q.to_array()).collect(),
+        ),
+        ("opacities", a.opacities.clone()),
+        (
+            "sh",
+            a.sh.iter()
+                .flat_map(|c| c.iter().flat_map(|v| v.to_array()))
+                .collect(),
+        ),
+        ("cov3d", a.cov3d.iter().flatten().copied().collect()),
+        (
+            "means2d",
+            a.means2d.iter().flat_map(|v| v.to_array()).collect(),
+        ),
+    ]
+}
+
+/// Worst relative difference over all kinds (and asserts each is within tol).
+fn check_grads(scene: &str, cpu: &GaussianGrads, gpu: &GaussianGrads, tol: f64) -> f64 {
+    let mut worst = 0.0f64;
+    for ((name, a), (_, b)) in kinds(cpu).into_iter().zip(kinds(gpu)) {
+        let scale = a.iter().fold(0.0f64, |m, v| m.max(v.abs() as f64));
+        let mut diff = 0.0f64;
+        let mut at = 0;
+        for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+            assert!(y.is_finite(), "{scene}: {name}[{i}] = {y} on the GPU");
+            let d = (*x as f64 - *y as f64).abs();
+            if d > diff {
+                diff = d;
+                at = i;
+            }
+        }
+        let rel = if scale > 0.0 { diff / scale } else { diff };
+        worst = worst.max(rel);
+        eprintln!(
+            "{scene}: d{name}: max |cpu| {scale:.3e}, max |gpu - cpu| {diff:.3e} (rel {rel:.2e}, at {at})"
+        );
+        assert!(
+            rel <= tol,
+            "{scene}: d{name}[{at}]: cpu {} gpu {}: max difference {diff:.3e} is {rel:.2e} of the \
+             largest |cpu| value {scale:.3e} (limit {tol:.0e})",
+            a[at],
+            b[at]
+        );
+    }
+    worst
+}
+
+fn parity(mode: GpuMode) {
+    let Some(r) = gpu(mode) else { return };
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for sc in scenes() {
+        let (co, cs) = render(&sc.g, &sc.cam, &sc.s).unwrap();
+        let (go, gs) = r.render(&sc.g, &sc.cam, &sc.s).unwrap();
+        eprintln!(
+            "{}: {} Gaussians, {} visible, instances cpu {} gpu {}, evaluations cpu {} gpu {}",
+            sc.name,
+            sc.g.len(),
+            cs.visible_count(),
+            cs.instance_count(),
+            gs.instance_count(),
+            cs.evaluations,
+            gs.evaluations
+        );
+        check_images(sc.name, &co, &go);
+        let dl = all_grads(&mut rng, sc.cam.width, sc.cam.height);
+        let cg = backward(&sc.g, &sc.cam, &sc.s, &cs, &dl).unwrap();
+        let gg = r.backward(&sc.g, &sc.cam, &sc.s, &gs, &dl).unwrap();
+        check_grads(sc.name, &cg, &gg, GRAD_TOL);
+    }
+}
+
+#[test]
+fn gpu_matches_cpu_deterministic_mode() {
+    parity(GpuMode::Deterministic);
+}
+
+#[test]
+fn gpu_matches_cpu_atomic_mode() {
+    parity(GpuMode::Atomic);
+}
+
+fn bits(o: &RenderOutput, g: &GaussianGrads) -> Vec<u32> {
+    let mut v: Vec<u32> = Vec::new();
+    for im in [&o.rgb, &o.alpha, &o.depth, &o.orientation, &o.fur] {
+        v.extend(im.data.iter().map(|x| x.to_bits()));
+    }
+    for (_, k) in kinds(g) {
+        v.extend(k.iter().map(|x| x.to_bits()));
+    }
+    v
+}
+
+#[test]
+fn gpu_deterministic_mode_reruns_bit_identical() {
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut g = strand_gaussians(&mut rng, 400);
+    append(&mut g, &random_gaussians(&mut rng, 200, 0.7));
+    let cam = test_camera(128, Vec3::new(0.4, 0.3, 4.0), Vec3::ZERO);
+    let s = RenderSettings::default();
+    let dl = all_grads(&mut rng, 128, 128);
+    let mut first: Option<Vec<u32>> = None;
+    for _ in 0..3 {
+        let (o, st) = r.render(&g, &cam, &s).unwrap();
+        let gr = r.backward(&g, &cam, &s, &st, &dl).unwrap();
+        let b = bits(&o, &gr);
+        match &first {
+            None => first = Some(b),
+            Some(f) => assert!(f == &b, "a rerun changed the bits"),
+        }
+    }
+}
+
+#[test]
+fn gpu_empty_and_fully_culled_scenes() {
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let cam = test_camera(40, Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO);
+    let s = RenderSettings {
+        background: Vec3::new(0.3, 0.2, 0.1),
+        ..Default::default()
+    };
+    let mut behind = Gaussians::default();
+    behind.push(
+        Vec3::new(0.0, 0.0, 6.0),
+        Vec3::splat(0.2),
+        Quat::IDENTITY,
+        0.9,
+        Vec3::ONE,
+        true,
+    );
+    for g in [Gaussians::default(), behind] {
+        let (co, cs) = render(&g, &cam, &s).unwrap();
+        let (go, gs) = r.render(&g, &cam, &s).unwrap();
+        assert_eq!(co, go);
+        assert_eq!(gs.instance_count(), 0);
+        let dl = all_grads(&mut ChaCha8Rng::seed_from_u64(1), 40, 40);
+        let cg = backward(&g, &cam, &s, &cs, &dl).unwrap();
+        let gg = r.backward(&g, &cam, &s, &gs, &dl).unwrap();
+        assert_eq!(cg, gg);
+    }
+}
+
+#[test]
+fn gpu_errors_are_the_cpus() {
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let cam = test_camera(16, Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO);
+    let mut g = Gaussians::default();
+    g.push(
+        Vec3::ZERO,
+        Vec3::splat(0.2),
+        Quat::IDENTITY,
+        0.9,
+        Vec3::ONE,
+        true,
+    );
+    let (_, st) = r.render(&g, &cam, &RenderSettings::default()).unwrap();
+    let dl = OutputGrads {
+        rgb: Some(ImageF32::new(8, 8, 3)),
+        ..Default::default()
+    };
+    let e = r
+        .backward(&g, &cam, &RenderSettings::default(), &st, &dl)
+        .unwrap_err();
+    assert!(e.to_string().contains("rgb gradient"), "{e}");
+    g.means[0].x = f32::NAN;
+    let e = r.render(&g, &cam, &RenderSettings::default()).unwrap_err();
+    assert!(e.to_string().contains("gaussians.means[0]"), "{e}");
+}
