@@ -3,11 +3,11 @@
 //! Layout under the cache directory:
 //!
 //! ```text
-//! lock                      shared by runs, exclusive for gc/verify (flock)
+//! lock                      shared by runs, exclusive for gc/verify (OFD lock)
 //! objects/ab/cdef...        one file per distinct content, named by its blake3, read-only
 //! entries/<key>.json        manifests: a complete entry exists iff its manifest does
-//! locks/<key>.lock          per-key flock held while a stage computes
-//! tmp/<pid>-<n>-<key>/      staging directories of running stages
+//! locks/<key>.lock          per-key OFD lock held while a stage computes
+//! tmp/<pid>-<n>-<key>/      staging directories of running stages (full key)
 //! index/<pipeline>.json     per stage: the last key and preimage (for `status` reasons)
 //! runs/<ms>-<pipeline>.json run reports
 //! hints.json                (path, size, mtime, inode) -> blake3, to skip rehashing
@@ -27,10 +27,23 @@
 //! - Hints are only recorded for files whose mtime is at least two seconds in
 //!   the past, so a file rewritten within the same timestamp tick as it was
 //!   hashed is never trusted (the "racy clean" problem of git).
-//! - Locks are `flock`s: the kernel releases them when a process dies, so a
-//!   lock left by a killed run is recovered by the next one; a per-key lock
-//!   makes two runs that need the same stage compute it once, and a run never
+//! - Locks are open-file-description record locks (`fcntl` `F_OFD_SETLK`/
+//!   `F_OFD_SETLKW` over the whole file), not `flock`: on NFS (v3 through
+//!   NLM, v4 natively), Lustre, GPFS and BeeGFS, record locks are the ones
+//!   the file system arbitrates between machines, while `flock` may only be
+//!   local to one client or be mapped onto them behind fure's back. Unlike
+//!   classic POSIX record locks they belong to the open file description,
+//!   not the process, so two threads of one process (two opens) exclude each
+//!   other and closing an unrelated descriptor of the same file releases
+//!   nothing. The kernel (or the lock manager, for a dead client) releases
+//!   them when a process dies, so a lock left by a killed run is recovered
+//!   by the next one; a per-key lock makes two runs (on any machines sharing
+//!   the cache) that need the same stage compute it once, and a run never
 //!   waits while holding a key lock, so there is no deadlock.
+//! - A staging directory is named after its full key and is only used under
+//!   that key's lock, so a run removes a leftover one exactly when it can
+//!   take the key's lock: whatever machine created it, nobody is using it
+//!   (process ids say nothing across the machines of a cluster).
 //! - Nothing read from the cache is trusted as a path: a manifest is used only
 //!   after [`validate_manifest`] (hex digests of the right length, plain file
 //!   names, relative directory paths without `.`/`..`, its key and seal
@@ -74,6 +87,106 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CacheError + '_ {
         path: path.to_path_buf(),
         source,
     }
+}
+
+/// Whole-file open-file-description record locks (`F_OFD_*` of `fcntl`).
+///
+/// Record locks are the locks shared file systems (NFS through NLM or v4,
+/// Lustre, GPFS, BeeGFS) arbitrate between machines; the OFD flavour is
+/// owned by the open file description, so threads and separate opens of one
+/// process exclude each other like separate processes do, and the lock goes
+/// away when the description is closed or the process dies.
+pub mod ofd {
+    use std::fs::File;
+    use std::os::unix::io::AsRawFd;
+
+    fn request(exclusive: bool) -> libc::flock {
+        // SAFETY: flock is plain data; all-zero is a valid value.
+        let mut fl: libc::flock = unsafe { std::mem::zeroed() };
+        fl.l_type = if exclusive {
+            libc::F_WRLCK as libc::c_short
+        } else {
+            libc::F_RDLCK as libc::c_short
+        };
+        fl.l_whence = libc::SEEK_SET as libc::c_short;
+        fl.l_start = 0;
+        fl.l_len = 0; // to the end of the file, however long it grows
+        fl.l_pid = 0; // required for OFD locks
+        fl
+    }
+
+    /// Takes the lock without waiting: Ok(false) when another description holds
+    /// a conflicting one.
+    pub fn try_lock(f: &File, exclusive: bool) -> std::io::Result<bool> {
+        let fl = request(exclusive);
+        // SAFETY: a valid descriptor and a valid flock struct.
+        let r = unsafe { libc::fcntl(f.as_raw_fd(), libc::F_OFD_SETLK, &fl) };
+        if r == 0 {
+            return Ok(true);
+        }
+        let e = std::io::Error::last_os_error();
+        match e.raw_os_error() {
+            Some(libc::EAGAIN) | Some(libc::EACCES) => Ok(false),
+            _ => Err(e),
+        }
+    }
+
+    /// Takes the lock, waiting as long as needed.
+    pub fn lock(f: &File, exclusive: bool) -> std::io::Result<()> {
+        let fl = request(exclusive);
+        loop {
+            // SAFETY: a valid descriptor and a valid flock struct.
+            let r = unsafe { libc::fcntl(f.as_raw_fd(), libc::F_OFD_SETLKW, &fl) };
+            if r == 0 {
+                return Ok(());
+            }
+            let e = std::io::Error::last_os_error();
+            if e.raw_os_error() != Some(libc::EINTR) {
+                return Err(e);
+            }
+        }
+    }
+
+    /// Whether another description holds a lock that conflicts with taking
+    /// this one (`F_OFD_GETLK`); the lock itself is not taken.
+    pub fn conflicts(f: &File, exclusive: bool) -> std::io::Result<bool> {
+        let mut fl = request(exclusive);
+        // SAFETY: a valid descriptor and a valid flock struct.
+        let r = unsafe { libc::fcntl(f.as_raw_fd(), libc::F_OFD_GETLK, &mut fl) };
+        if r != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(fl.l_type != libc::F_UNLCK as libc::c_short)
+    }
+}
+
+/// This machine's name, for lock holder lines (empty when unknown).
+pub fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    // SAFETY: the buffer is valid for its length; gethostname NUL-terminates
+    // when the name fits.
+    let r = unsafe { libc::gethostname(buf.as_mut_ptr() as *mut libc::c_char, buf.len()) };
+    if r != 0 {
+        return String::new();
+    }
+    let n = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+    String::from_utf8_lossy(&buf[..n]).into_owned()
+}
+
+/// The line a key lock's holder writes into the lock file: `pid N on HOST`,
+/// and the Slurm job when it runs in one.
+fn holder_line() -> String {
+    let mut s = format!("pid {}", std::process::id());
+    let host = host_name();
+    if !host.is_empty() {
+        s.push_str(&format!(" on {host}"));
+    }
+    if let Ok(job) = std::env::var("SLURM_JOB_ID") {
+        if !job.is_empty() && job.bytes().all(|b| b.is_ascii_digit()) {
+            s.push_str(&format!(" (slurm job {job})"));
+        }
+    }
+    s
 }
 
 /// One output of a cached stage.
@@ -334,8 +447,9 @@ pub struct KeyLock {
 /// The keys held by this process's threads, and their release signal.
 type Busy = Arc<(Mutex<BTreeSet<String>>, Condvar)>;
 
-/// A key claimed by one thread of this process (see `Cache::busy`).
-struct KeyClaim {
+/// A key claimed by one thread of this process (see `Cache::busy`),
+/// released on drop.
+pub struct KeyClaim {
     busy: Busy,
     key: String,
 }
@@ -484,7 +598,7 @@ impl Cache {
             .open(&lock_path)
         {
             Ok(f) => Some(f),
-            // A read-only cache still serves hits (flock works on a read-only fd).
+            // A read-only cache still serves hits (a read lock needs only a read-only fd).
             Err(e) if access == Access::Shared && read_only_error(&e) => OpenOptions::new()
                 .read(true)
                 .custom_flags(flags)
@@ -505,20 +619,13 @@ impl Cache {
                 busy: Default::default(),
             });
         };
-        let got = match access {
-            Access::Shared => lock.try_lock_shared(),
-            Access::Exclusive => lock.try_lock(),
-        };
-        if got.is_err() {
+        let exclusive = access == Access::Exclusive;
+        if !ofd::try_lock(&lock, exclusive).map_err(io(&lock_path))? {
             eprintln!(
                 "waiting for other fure processes using the cache {} ...",
                 root.display()
             );
-            match access {
-                Access::Shared => lock.lock_shared(),
-                Access::Exclusive => lock.lock(),
-            }
-            .map_err(io(&lock_path))?;
+            ofd::lock(&lock, exclusive).map_err(io(&lock_path))?;
         }
         let hints_path = root.join("hints.json");
         let map = read_nofollow(&hints_path)
@@ -883,6 +990,42 @@ impl Cache {
         write_atomic(&p, &b, true).map_err(io(&p))
     }
 
+    /// Opens (creating) a key's lock file: never through a link, and only a
+    /// regular file.
+    fn open_key_lock(&self, p: &Path) -> Result<File, CacheError> {
+        // O_NOFOLLOW: a planted link must not make us truncate another file.
+        let f = OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
+            .open(p)
+            .map_err(|e| {
+                if e.raw_os_error() == Some(libc::ELOOP) {
+                    CacheError::Refused {
+                        path: p.to_path_buf(),
+                        message: "is a symbolic link; fure follows no links inside its cache \
+                                  (run `fure verify`)"
+                            .into(),
+                    }
+                } else {
+                    io(p)(e)
+                }
+            })?;
+        let ft = f.metadata().map_err(io(p))?.file_type();
+        if !ft.is_file() {
+            return Err(CacheError::Refused {
+                path: p.to_path_buf(),
+                message: format!(
+                    "is {}, not a lock file (run `fure verify`)",
+                    key::file_type_name(&ft)
+                ),
+            });
+        }
+        Ok(f)
+    }
+
     /// Takes the per-key lock, calling `waiting` before each wait: with
     /// `this run` while another thread of this process holds the key (two
     /// stages of one pipeline with one key), then with the holder's pid line
@@ -890,54 +1033,66 @@ impl Cache {
     pub fn lock_key(&self, key: &str, waiting: &dyn Fn(&str)) -> Result<KeyLock, CacheError> {
         let claim = KeyClaim::acquire(&self.busy, key, || waiting("this run"));
         let p = self.root.join("locks").join(format!("{key}.lock"));
-        // O_NOFOLLOW: a planted link must not make us truncate another file.
-        let mut f = OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .read(true)
-            .write(true)
-            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
-            .open(&p)
-            .map_err(|e| {
-                if e.raw_os_error() == Some(libc::ELOOP) {
-                    CacheError::Refused {
-                        path: p.clone(),
-                        message: "is a symbolic link; fure follows no links inside its cache \
-                                  (run `fure verify`)"
-                            .into(),
-                    }
-                } else {
-                    io(&p)(e)
-                }
-            })?;
-        let ft = f.metadata().map_err(io(&p))?.file_type();
-        if !ft.is_file() {
-            return Err(CacheError::Refused {
-                path: p.clone(),
-                message: format!(
-                    "is {}, not a lock file (run `fure verify`)",
-                    key::file_type_name(&ft)
-                ),
-            });
-        }
-        if f.try_lock().is_err() {
+        let mut f = self.open_key_lock(&p)?;
+        if !ofd::try_lock(&f, true).map_err(io(&p))? {
             let mut holder = String::new();
             let _ = (&f).read_to_string(&mut holder);
-            let own = format!("pid {}", std::process::id());
+            let own = holder_line();
             waiting(match holder.trim() {
                 h if h == own => "this run",
                 // It has locked but not yet written its line.
                 "" => "pid unknown",
                 h => h,
             });
-            f.lock().map_err(io(&p))?;
+            ofd::lock(&f, true).map_err(io(&p))?;
         }
         let _ = f.set_len(0);
-        let _ = writeln!(f, "pid {}", std::process::id());
+        let _ = writeln!(f, "{}", holder_line());
         Ok(KeyLock {
             _file: f,
             _claim: claim,
         })
+    }
+
+    /// Claims `key` among this process's threads only (no file lock): a
+    /// driver that hands the computation to another machine holds the claim
+    /// while the job runs, so two stages of its runs never submit one key
+    /// twice, and lets the job take the file lock.
+    pub fn claim_key(&self, key: &str, waiting: &dyn Fn()) -> KeyClaim {
+        KeyClaim::acquire(&self.busy, key, waiting)
+    }
+
+    /// Waits until no other process (on any machine) computes `key`: takes
+    /// its file lock and releases it at once. With the claim of
+    /// [`Cache::claim_key`] held, a driver then finds the entry another run
+    /// just finished instead of submitting a job that would wait for it.
+    pub fn wait_key_free(&self, key: &str, waiting: &dyn Fn(&str)) -> Result<(), CacheError> {
+        let p = self.root.join("locks").join(format!("{key}.lock"));
+        let f = match self.open_key_lock(&p) {
+            Ok(f) => f,
+            Err(CacheError::Io { source, .. }) if read_only_error(&source) => return Ok(()),
+            Err(e) => return Err(e),
+        };
+        if !ofd::try_lock(&f, true).map_err(io(&p))? {
+            let mut holder = String::new();
+            let _ = (&f).read_to_string(&mut holder);
+            waiting(match holder.trim() {
+                "" => "pid unknown",
+                h => h,
+            });
+            ofd::lock(&f, true).map_err(io(&p))?;
+        }
+        Ok(())
+    }
+
+    /// Whether some open file description (of any process, or of this one
+    /// through another open) holds `key`'s lock.
+    pub fn key_locked(&self, key: &str) -> bool {
+        let p = self.root.join("locks").join(format!("{key}.lock"));
+        match self.open_key_lock(&p) {
+            Ok(f) => ofd::conflicts(&f, true).unwrap_or(false),
+            Err(_) => false,
+        }
     }
 
     /// A fresh staging directory for one stage run.
@@ -946,23 +1101,44 @@ impl Cache {
         let p = self
             .root
             .join("tmp")
-            .join(format!("{}-{n}-{}", std::process::id(), short(key)));
+            .join(format!("{}-{n}-{key}", std::process::id()));
         let _ = remove_tree(&p);
         fs::create_dir_all(&p).map_err(io(&p))?;
         Ok(Staging { path: p })
     }
 
-    /// Removes staging directories of processes that are gone.
+    /// Removes staging directories nobody uses: a directory named after a
+    /// full key goes when its key's lock can be taken (whatever machine made
+    /// it: its maker held that lock while using it); an older name with a
+    /// short key goes when its process is gone from this machine.
     pub fn clean_tmp(&self) -> usize {
         let mut n = 0;
         if let Ok(rd) = fs::read_dir(self.root.join("tmp")) {
             for e in rd.flatten() {
                 let name = e.file_name().to_string_lossy().into_owned();
-                let pid: Option<u32> = name.split('-').next().and_then(|s| s.parse().ok());
-                if pid
-                    .map(|p| p != std::process::id() && !pid_alive(p))
-                    .unwrap_or(true)
-                {
+                let full_key = name.rsplit('-').next().filter(|k| is_digest(k));
+                let unused = match full_key {
+                    Some(k) => {
+                        let p = self.root.join("locks").join(format!("{k}.lock"));
+                        // Keep the lock while removing, so nobody starts
+                        // using a directory of that key meanwhile.
+                        let guard = self
+                            .open_key_lock(&p)
+                            .ok()
+                            .filter(|f| ofd::try_lock(f, true).unwrap_or(false));
+                        if guard.is_some() {
+                            let _ = remove_tree(&e.path());
+                            n += 1;
+                        }
+                        continue;
+                    }
+                    None => {
+                        let pid: Option<u32> = name.split('-').next().and_then(|s| s.parse().ok());
+                        pid.map(|p| p != std::process::id() && !pid_alive(p))
+                            .unwrap_or(true)
+                    }
+                };
+                if unused {
                     let _ = remove_tree(&e.path());
                     n += 1;
                 }
@@ -1384,6 +1560,93 @@ mod tests {
         assert!(e.contains("hash mismatch"), "{e}");
         let v = c.verify();
         assert_eq!(v.corrupted_objects.len(), 1);
+    }
+
+    const KEY: &str = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff";
+
+    /// Key locks are OFD record locks: a second `Cache` of the same
+    /// directory (another open file description, as another machine's run
+    /// would have) waits for the first, and a plain `fcntl` probe of the
+    /// lock file sees the lock (a `flock` would be invisible to it, and to
+    /// a file system that arbitrates only record locks).
+    #[test]
+    fn key_locks_are_record_locks_between_opens() {
+        let d = tempfile::tempdir().unwrap();
+        let a = Cache::open(d.path(), Access::Shared).unwrap();
+        let b = Cache::open(d.path(), Access::Shared).unwrap();
+        assert!(!b.key_locked(KEY));
+        let held = a.lock_key(KEY, &|_| panic!("free key")).unwrap();
+        assert!(
+            b.key_locked(KEY),
+            "the lock is visible through another open"
+        );
+        let probe = File::open(d.path().join("locks").join(format!("{KEY}.lock"))).unwrap();
+        assert!(
+            ofd::conflicts(&probe, false).unwrap(),
+            "F_OFD_GETLK sees it"
+        );
+        let text = fs::read_to_string(d.path().join("locks").join(format!("{KEY}.lock"))).unwrap();
+        assert!(
+            text.starts_with(&format!("pid {} on ", std::process::id())),
+            "{text}"
+        );
+
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::scope(|s| {
+            let b = &b;
+            let waiter = s.spawn(move || {
+                let holder = Mutex::new(String::new());
+                let l = b.lock_key(KEY, &|h| *holder.lock().unwrap() = h.to_string());
+                let _ = tx.send(());
+                drop(l);
+                holder.into_inner().unwrap()
+            });
+            std::thread::sleep(std::time::Duration::from_millis(200));
+            assert!(rx.try_recv().is_err(), "the second open must wait");
+            drop(held);
+            // The holder line names this process: "this run".
+            assert_eq!(waiter.join().unwrap(), "this run");
+        });
+        assert!(!a.key_locked(KEY));
+    }
+
+    /// The cache-wide lock: runs share it, gc/verify take it alone; also
+    /// between two opens of one process.
+    #[test]
+    fn cache_lock_is_shared_or_exclusive() {
+        let d = tempfile::tempdir().unwrap();
+        let a = Cache::open(d.path(), Access::Shared).unwrap();
+        let _b = Cache::open(d.path(), Access::Shared).unwrap();
+        let f = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(d.path().join("lock"))
+            .unwrap();
+        assert!(ofd::conflicts(&f, true).unwrap(), "readers block a writer");
+        assert!(!ofd::conflicts(&f, false).unwrap(), "readers share");
+        drop(a);
+        drop(_b);
+        let _x = Cache::open(d.path(), Access::Exclusive).unwrap();
+        assert!(ofd::conflicts(&f, false).unwrap(), "gc/verify are alone");
+    }
+
+    /// A staging directory is removed exactly when its key is not locked,
+    /// whoever made it (its pid may be another machine's).
+    #[test]
+    fn clean_tmp_keeps_staging_dirs_of_locked_keys() {
+        let d = tempfile::tempdir().unwrap();
+        let a = Cache::open(d.path(), Access::Shared).unwrap();
+        let other = "ffeeddccbbaa99887766554433221100ffeeddccbbaa99887766554433221100";
+        // A live-looking pid (ours) of "another machine", key locked: kept.
+        let _held = a.lock_key(KEY, &|_| {}).unwrap();
+        let busy = a.staging(KEY).unwrap();
+        // A pid that does not exist here, key free: removed.
+        let stale = d.path().join("tmp").join(format!("1-0-{other}"));
+        fs::create_dir_all(stale.join("out")).unwrap();
+        let b = Cache::open(d.path(), Access::Shared).unwrap();
+        assert_eq!(b.clean_tmp(), 1);
+        assert!(busy.path.is_dir());
+        assert!(!stale.exists());
     }
 
     #[test]

@@ -63,6 +63,35 @@ pub struct RunOptions {
     pub ui: UiMode,
     /// Keep running independent stages after a failure.
     pub keep_going: bool,
+    /// Where the stages that must run are computed.
+    pub executor: Executor,
+}
+
+/// Where the stages that must run are computed. Keys, hits, the index and
+/// materialisation are the driver's in every case.
+#[derive(Clone, Default)]
+pub enum Executor {
+    /// In this process, on worker threads under the CPU-token budget.
+    #[default]
+    Local,
+    /// One Slurm job per stage (see [`crate::slurm`]); `jobs` bounds the
+    /// jobs of one run in flight, CPU tokens play no part.
+    Slurm(std::sync::Arc<crate::slurm::Slurm>),
+}
+
+impl Executor {
+    pub fn is_remote(&self) -> bool {
+        !matches!(self, Executor::Local)
+    }
+}
+
+impl std::fmt::Debug for Executor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Executor::Local => f.write_str("Local"),
+            Executor::Slurm(s) => write!(f, "Slurm({s:?})"),
+        }
+    }
 }
 
 impl Default for RunOptions {
@@ -75,6 +104,7 @@ impl Default for RunOptions {
             dry_run: false,
             ui: UiMode::Quiet,
             keep_going: false,
+            executor: Executor::Local,
         }
     }
 }
@@ -340,8 +370,9 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
             }
             // Start queued stages.
             // After SIGINT/SIGTERM/SIGHUP nothing new starts (see `signals`).
+            let remote = opts.executor.is_remote();
             while running < jobs
-                && free_tokens > 0
+                && (free_tokens > 0 || remote)
                 && (opts.keep_going || !failed)
                 && crate::signals::received().is_none()
             {
@@ -350,7 +381,9 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 };
                 let st = &plan.stages[i];
                 let share = (jobs - running).min(queue.len() + 1).max(1);
-                let tokens = if st.kind == command::KIND {
+                let tokens = if remote {
+                    0
+                } else if st.kind == command::KIND {
                     1
                 } else {
                     (free_tokens / share).max(1)
@@ -364,6 +397,10 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 let key = k.key.clone();
                 let preimage = k.preimage.clone();
                 let inputs = stage_inputs(plan, i, &states);
+                let job = match &opts.executor {
+                    Executor::Local => None,
+                    Executor::Slurm(s) => Some((s.clone(), job_spec(plan, i, &states, &keyed))),
+                };
                 let tx = tx.clone();
                 let ui_ref = &ui;
                 let inproc = &inproc_running;
@@ -371,10 +408,13 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
                 let spawned = std::thread::Builder::new()
                     .name(format!("fure-stage-{}", st.name))
                     .spawn_scoped(scope, move || {
-                        let result = execute(
-                            cache, &pipeline, st, &key, preimage, inputs, tokens, &progress,
-                            ui_ref, inproc,
-                        );
+                        let result = match job {
+                            None => execute(
+                                cache, &pipeline, st, &key, preimage, inputs, tokens, &progress,
+                                ui_ref, inproc,
+                            ),
+                            Some((slurm, spec)) => execute_remote(&slurm, cache, st, &spec),
+                        };
                         let _ = tx.send(WorkDone {
                             index: i,
                             result,
@@ -560,7 +600,7 @@ fn cutoff_reason(plan: &Plan, i: usize, reports: &[Option<StageReport>]) -> Stri
 
 /// The parameters that enter a stage's key: a command's timeout bounds the
 /// run, not the result, so it is left out.
-fn keyed_params(st: &PlannedStage) -> fure_stage_api::Params {
+pub(crate) fn keyed_params(st: &PlannedStage) -> fure_stage_api::Params {
     let mut params = st.params.clone();
     if st.kind == command::KIND {
         params.0.remove(command::TIMEOUT_PARAM);
@@ -697,7 +737,7 @@ fn explain_params(
 }
 
 /// Where a running stage finds an input.
-enum InputPath {
+pub(crate) enum InputPath {
     Object(OutputRecord),
     Path(PathBuf),
 }
@@ -754,6 +794,131 @@ fn peak_rss() -> u64 {
         })
         .map(|kb| kb * 1024)
         .unwrap_or(0)
+}
+
+/// The job spec of a queued stage (its upstream stages are resolved).
+fn job_spec(
+    plan: &Plan,
+    i: usize,
+    states: &[State],
+    keyed: &[Option<Keyed>],
+) -> crate::slurm::JobSpec {
+    use crate::slurm::JobInput;
+    let st = &plan.stages[i];
+    let k = keyed[i].as_ref().expect("queued stages are keyed");
+    let inputs = st
+        .inputs
+        .iter()
+        .map(|inp| {
+            let hash = k
+                .entry
+                .inputs
+                .get(&inp.port)
+                .map(|(_, h)| h.clone())
+                .unwrap_or_default();
+            let ji = match &inp.source {
+                Source::Upstream { stage, port } => JobInput::Upstream {
+                    key: keyed[*stage]
+                        .as_ref()
+                        .map(|u| u.key.clone())
+                        .unwrap_or_default(),
+                    port: port.clone(),
+                    blake3: match &states[*stage] {
+                        State::Done(outs) => outs.get(port).map(|o| o.blake3.clone()),
+                        _ => None,
+                    }
+                    .unwrap_or(hash),
+                },
+                Source::Path { path, written } => JobInput::Path {
+                    path: path.clone(),
+                    written: written.clone(),
+                    blake3: hash,
+                },
+            };
+            (inp.port.clone(), ji)
+        })
+        .collect();
+    crate::slurm::JobSpec {
+        schema: crate::slurm::JOB_SCHEMA,
+        pipeline: plan.name.clone(),
+        stage: st.name.clone(),
+        kind: st.kind.clone(),
+        version: st.version,
+        key: k.key.clone(),
+        params: st.params.0.clone(),
+        inputs,
+    }
+}
+
+/// A valid entry of `key` that is exactly `st`'s, if the cache has one.
+fn fitting_entry(cache: &Cache, st: &PlannedStage, key: &str) -> Option<Manifest> {
+    let m = cache.lookup_checked(key).ok().flatten()?;
+    entry_fits(st, &m)
+        .and_then(|()| cache.check_entry(&m))
+        .ok()?;
+    Some(m)
+}
+
+/// Computes one stage through a Slurm job (worker thread of the driver),
+/// then reads the entry the job stored. Ok((manifest, computed_by_us)).
+fn execute_remote(
+    slurm: &crate::slurm::Slurm,
+    cache: &Cache,
+    st: &PlannedStage,
+    spec: &crate::slurm::JobSpec,
+) -> Result<(Manifest, bool), String> {
+    let found = || fitting_entry(cache, st, &spec.key).is_some();
+    let computed = match slurm.run(cache, spec, &found)? {
+        crate::slurm::Outcome::Found => false,
+        crate::slurm::Outcome::Ran { computed } => computed,
+    };
+    // The job's manifest was renamed into place on another machine: give a
+    // shared file system's attribute cache a moment to show it.
+    let t0 = Instant::now();
+    loop {
+        if let Some(m) = fitting_entry(cache, st, &spec.key) {
+            return Ok((m, computed));
+        }
+        if t0.elapsed() > std::time::Duration::from_secs(10) {
+            let why = match cache.lookup_checked(&spec.key) {
+                Ok(None) => "no entry".to_string(),
+                Ok(Some(m)) => entry_fits(st, &m)
+                    .and_then(|()| cache.check_entry(&m))
+                    .err()
+                    .unwrap_or_default(),
+                Err(e) => e,
+            };
+            return Err(format!(
+                "the job ended well but the cache has no valid entry for key {} ({why}); \
+                 do the nodes share the cache directory {}?",
+                cache::short(&spec.key),
+                cache.root().display()
+            ));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+}
+
+/// Computes one stage in this process, as a `fure worker` does for a job:
+/// under the key's lock, rechecking for an entry first, through the same
+/// code as a local run (so the entry is the same, byte for byte).
+/// Ok((manifest, computed_here)).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn compute_stage(
+    cache: &Cache,
+    pipeline: &str,
+    st: &PlannedStage,
+    key: &str,
+    preimage: Preimage,
+    inputs: Vec<(String, InputPath)>,
+    threads: usize,
+    ui: &Ui,
+) -> Result<(Manifest, bool), String> {
+    let progress = ui.started(&st.name, "slurm job");
+    let inproc = AtomicUsize::new(0);
+    execute(
+        cache, pipeline, st, key, preimage, inputs, threads, &progress, ui, &inproc,
+    )
 }
 
 /// Computes one stage (worker thread). Ok((manifest, computed_here)).

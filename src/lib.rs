@@ -12,6 +12,7 @@
 //!    what is missing in parallel, stores outputs content-addressed and
 //!    materialises them under `out/<pipeline>/<stage>/`;
 //! 4. [`sweep`] and [`bench`](mod@bench) run many variants or repeats of a pipeline;
+//!    [`slurm`] computes the stages that must run as Slurm jobs instead;
 //!    [`publish`] copies a sweep's report out of `out/` (e.g. into `docs/`);
 //! 5. [`cli`] is the `fure` command line.
 //!
@@ -27,6 +28,7 @@ pub mod pipeline;
 pub mod plan;
 pub mod publish;
 pub mod signals;
+pub mod slurm;
 pub mod sweep;
 pub mod ui;
 

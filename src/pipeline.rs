@@ -179,6 +179,10 @@ pub struct Pipeline {
     /// `[publish]`: `"AGGREGATE.PORT"` -> destination (resolved against the
     /// declaring file's directory), copied there by `fure sweep` (`crate::publish`).
     pub publish: BTreeMap<String, (PathBuf, Loc)>,
+    /// `[executor]`: where stages run when not locally (`crate::slurm`),
+    /// checked at load time; a child's keys override its parent's (tables
+    /// merged). Never part of a key.
+    pub executor: Option<(Value, Loc)>,
 }
 
 impl Pipeline {
@@ -224,6 +228,7 @@ impl Pipeline {
             sweep_each: raw.sweep_each,
             aggregates: raw.aggregates,
             publish: raw.publish,
+            executor: raw.executor,
         })
     }
 
@@ -322,6 +327,7 @@ struct RawFile {
     sweep_each: Vec<(String, Vec<Value>, Loc)>,
     aggregates: Vec<StageDecl>,
     publish: BTreeMap<String, (PathBuf, Loc)>,
+    executor: Option<(Value, Loc)>,
 }
 
 /// How many files an `extends` chain may hold (deeper is a mistake, and the
@@ -360,6 +366,7 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
             sweep_each: Vec::new(),
             aggregates: Vec::new(),
             publish: BTreeMap::new(),
+            executor: None,
         },
         Some((parent, loc)) => {
             let parent_path = base.join(parent);
@@ -411,6 +418,10 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
     }
     merge_sweep(&mut pipeline, raw.sweep, raw.sweep_each);
     pipeline.publish.extend(raw.publish);
+    pipeline.executor = match (pipeline.executor.take(), raw.executor) {
+        (Some((parent, _)), Some((child, loc))) => Some((merge_tables(parent, child), loc)),
+        (parent, child) => child.or(parent),
+    };
     for child in raw.aggregates {
         match pipeline
             .aggregates
@@ -427,6 +438,23 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
         }
     }
     Ok(pipeline)
+}
+
+/// `child` over `parent`: tables merged key by key, anything else replaced.
+fn merge_tables(parent: Value, child: Value) -> Value {
+    match (parent, child) {
+        (Value::Table(mut p), Value::Table(c)) => {
+            for (k, v) in c {
+                let merged = match p.remove(&k) {
+                    Some(old) => merge_tables(old, v),
+                    None => v,
+                };
+                p.insert(k, merged);
+            }
+            Value::Table(p)
+        }
+        (_, c) => c,
+    }
 }
 
 /// Byte offset -> (line, column) conversion for one file.
@@ -522,6 +550,7 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
         sweep_each: Vec::new(),
         aggregates: Vec::new(),
         publish: BTreeMap::new(),
+        executor: None,
     };
     for (key, item) in root.iter() {
         let loc = cx.key_loc(root, key);
@@ -662,10 +691,22 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
                     }
                 }
             },
+            "executor" => match item_to_value(item, &loc, cx.lines) {
+                Ok(v @ Value::Table(_)) => {
+                    match crate::slurm::ExecutorConfig::from_value(&v, &loc.to_string()) {
+                        Ok(_) => out.executor = Some((v, loc)),
+                        Err(crate::slurm::SlurmError::Config { message, .. }) => errors
+                            .push(PipelineError::at(&loc, format!("[executor]: {message}"))),
+                        Err(e) => errors.push(PipelineError::at(&loc, e.to_string())),
+                    }
+                }
+                Ok(_) => errors.push(PipelineError::at(&loc, "`executor` must be a table")),
+                Err(e) => errors.push(e),
+            },
             other => errors.push(PipelineError::at(
                 &loc,
                 format!(
-                    "unknown field `{other}` (expected `extends`, `[pipeline]`, `[stages.NAME]`, `[sweep]`, `[aggregate.NAME]` or `[publish]`)"
+                    "unknown field `{other}` (expected `extends`, `[pipeline]`, `[stages.NAME]`, `[sweep]`, `[aggregate.NAME]`, `[publish]` or `[executor]`)"
                 ),
             )),
         }

@@ -338,6 +338,29 @@ pub fn run_sweep(
         ..opts.clone()
     };
     let mut rows = Vec::new();
+    if opts.executor.is_remote() {
+        // Variants run at once, their stages as jobs (the executor bounds
+        // the jobs in flight; a key shared by variants is computed once).
+        let reports: Vec<RunReport> = std::thread::scope(|s| {
+            let handles: Vec<_> = plans
+                .iter()
+                .map(|plan| {
+                    let opts = &opts;
+                    s.spawn(move || exec::run(plan, cache, opts))
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                .collect()
+        });
+        for ((v, plan), report) in variants.iter().zip(&plans).zip(reports) {
+            let row = make_row(v, plan, report, cache);
+            on_row(&row);
+            rows.push(row);
+        }
+        return Ok(rows);
+    }
     for (v, plan) in variants.iter().zip(&plans) {
         let report = exec::run(plan, cache, &opts);
         let row = make_row(v, plan, report, cache);
@@ -758,6 +781,7 @@ pub fn plan_aggregates(
         sweep_each: Vec::new(),
         aggregates: Vec::new(),
         publish: BTreeMap::new(),
+        executor: None,
     };
     let mut plan = engine.plan(&agg)?;
     // Show the record by its place in out/, not by an absolute path.
