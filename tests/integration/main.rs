@@ -7,4 +7,5 @@ mod engine;
 mod engine_trust;
 mod groom;
 mod method;
+mod slurm;
 mod sweep;
