@@ -33,6 +33,7 @@ pub mod corrupt;
 pub mod defur;
 pub mod demo;
 pub mod evaluate;
+pub mod fit_template;
 pub mod frosting;
 pub mod groom;
 pub mod learn;
@@ -61,6 +62,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(demo::DemoSleep),
         Box::new(demo::DemoSum),
         Box::new(evaluate::Evaluate),
+        Box::new(fit_template::FitTemplate),
         Box::new(frosting::FrostingStage),
         Box::new(groom::ExportGroom),
         Box::new(learn::CodecStrands),

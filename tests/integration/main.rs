@@ -5,6 +5,7 @@ mod bad_input;
 mod capture;
 mod engine;
 mod engine_trust;
+mod fit_template;
 mod groom;
 mod method;
 mod slurm;
