@@ -947,6 +947,17 @@ pub fn fit_gaussians(
     s: &FitSettings,
     progress: &dyn fure_stage_api::Progress,
 ) -> Result<(Gaussians, FitReport), StageError> {
+    fit_gaussians_on(&render::device::Renderer::Cpu, mesh, views, s, progress)
+}
+
+/// [`fit_gaussians`] with the renderer on `device` (the `device` parameter).
+pub fn fit_gaussians_on(
+    device: &render::device::Renderer,
+    mesh: &Mesh,
+    views: &[TrainView],
+    s: &FitSettings,
+    progress: &dyn fure_stage_api::Progress,
+) -> Result<(Gaussians, FitReport), StageError> {
     let t0 = std::time::Instant::now();
     if views.is_empty() {
         return Err(StageError::failed("no training views to fit Gaussians to"));
@@ -1012,7 +1023,7 @@ pub fn fit_gaussians(
             }
         }
         let v = &views[order[k]];
-        let (out, state) = render::render(&g, &v.camera, &settings)?;
+        let (out, state) = device.render(&g, &v.camera, &settings)?;
         let (l_rgb, g_rgb) = losses::l1_dssim(&out.rgb, &v.rgb, None, s.lambda_dssim)?;
         let (l_sil, mut g_sil) = losses::silhouette(&out.alpha, &v.mask, None)?;
         for x in &mut g_sil.data {
@@ -1028,7 +1039,7 @@ pub fn fit_gaussians(
             alpha: Some(g_sil),
             ..Default::default()
         };
-        let gr = render::backward(&g, &v.camera, &settings, &state, &dl)?;
+        let gr = device.backward(&g, &v.camera, &settings, &state, &dl)?;
         // View-space positional gradient, in loss per pixel of displacement
         // summed over the image (so independent of the resolution's pixel
         // count): |dL/dmu| * (distance / focal) * pixels.
@@ -1132,7 +1143,7 @@ pub fn fit_gaussians(
     // Training PSNR (all views, RGB).
     let mut ps = 0.0;
     for v in views {
-        let (out, _) = render::render(&kept, &v.camera, &settings)?;
+        let (out, _) = device.render(&kept, &v.camera, &settings)?;
         ps += psnr(&out.rgb, &v.rgb);
     }
     report.psnr_train = ps / views.len() as f32;
@@ -1279,6 +1290,9 @@ struct Metrics {
     width_truth_pearson: Option<f32>,
     seconds_widths: f64,
     seconds: f64,
+    /// `{"device", "adapter"}` that rendered, when the `device` parameter is set.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    device: Option<serde_json::Value>,
 }
 
 /// Per-part shell widths against the synthetic ground truth (optional `gt_scene`).
@@ -1503,6 +1517,7 @@ impl Stage for FrostingStage {
     }
     fn params(&self) -> Vec<ParamSpec> {
         vec![
+            render::device::device_param(),
             ParamSpec::int("gaussians", 12000, "Gaussians fitted (fixed budget, no densification)").range(1.0, 5_000_000.0),
             ParamSpec::int("iterations", 400, "fitting iterations (one training view each)").range(0.0, 1_000_000.0),
             ParamSpec::int("seed", 0, "seed of the initial placement and the view order").min(0.0),
@@ -1599,6 +1614,7 @@ impl Stage for FrostingStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let t0 = std::time::Instant::now();
+        let device = render::device::Renderer::from_params(ctx.params)?;
         let mesh_path = ctx.input("mesh")?;
         let mut mesh = crate::formats::obj::read_obj(mesh_path)?;
         if mesh.triangles.is_empty() {
@@ -1660,7 +1676,7 @@ impl Stage for FrostingStage {
                 let train = read_train_views(dir)?;
                 ctx.progress.message("fitting Gaussians");
                 let fs = fit_settings(ctx.params)?;
-                let (g, rep) = fit_gaussians(&mesh, &train, &fs, ctx.progress)?;
+                let (g, rep) = fit_gaussians_on(&device, &mesh, &train, &fs, ctx.progress)?;
                 ctx.progress.note(&format!(
                         "fitted {} Gaussians ({} kept) in {} iterations, loss {:.4} -> {:.4}, train PSNR {:.2} dB, {:.1} s",
                         rep.gaussians_init, rep.gaussians_kept, rep.iterations, rep.loss_first, rep.loss_last, rep.psnr_train, rep.seconds_fit
@@ -1773,6 +1789,7 @@ impl Stage for FrostingStage {
             gt_vertex,
             seconds_widths,
             seconds: t0.elapsed().as_secs_f64(),
+            device: ctx.params.get("device").map(|_| device.metrics()),
         };
         crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
         Ok(())

@@ -51,6 +51,8 @@ pub struct ImageConfig {
     pub seed: u64,
     /// Normalised confidence below which a pixel has no orientation target.
     pub ori_min_confidence: f32,
+    /// Where the renderer runs (the stage's `device` parameter).
+    pub device: render::device::Renderer,
 }
 
 /// One training view's targets.
@@ -271,6 +273,11 @@ impl ImageLosses {
         &self.colors
     }
 
+    /// The device that rendered, for metrics.json.
+    pub fn device_metrics(&self) -> serde_json::Value {
+        self.cfg.device.metrics()
+    }
+
     pub fn appearance_parameters(&self) -> usize {
         self.colors.len() * 3 + self.body.len() * 3
     }
@@ -307,7 +314,7 @@ impl ImageLosses {
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
         for (i, cam) in self.test_cameras.iter().enumerate() {
-            let (out, _) = render::render(&g, cam, &self.settings)?;
+            let (out, _) = self.cfg.device.render(&g, cam, &self.settings)?;
             let (w, h) = (cam.width, cam.height);
             let mut straight = ImageF32::new(w, h, 4);
             let mut pre = ImageF32::new(w, h, 4);
@@ -488,7 +495,7 @@ impl ImageTerm for ImageLosses {
         let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
         for &vi in &vids {
             let view = &self.views[vi];
-            let (out, state) = render::render(&g, &view.camera, &self.settings)?;
+            let (out, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
             let (t, dl) = view_losses(&out, view, &self.cfg)?;
             for (name, v) in t {
                 match terms.iter_mut().find(|x| x.0 == name) {
@@ -496,7 +503,10 @@ impl ImageTerm for ImageLosses {
                     None => terms.push((name, inv * v)),
                 }
             }
-            let gg = render::backward(&g, &view.camera, &self.settings, &state, &dl)?;
+            let gg = self
+                .cfg
+                .device
+                .backward(&g, &view.camera, &self.settings, &state, &dl)?;
             let sg = render::strands_backward(points, &starts, &widths, &head(&gg, segs))?;
             for (a, b) in grad.iter_mut().zip(&sg.points) {
                 *a += inv * *b;

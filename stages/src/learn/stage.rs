@@ -31,6 +31,7 @@ const CHAMFER_MODES: &[&str] = &["inside", "surface"];
 /// Parameters both stages share.
 fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
     vec![
+        crate::render::device::device_param(),
         ParamSpec::int("iterations", iterations, "Optimisation iterations.").min(0.0),
         ParamSpec::int(
             "strands_per_iteration",
@@ -302,6 +303,9 @@ pub struct LearnMetrics {
     pub mean_length: f32,
     /// Loss after every iteration.
     pub loss_history: Vec<f32>,
+    /// `{"device", "adapter"}` that rendered, when the `device` parameter is set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device: Option<serde_json::Value>,
 }
 
 /// Checks the roots' arrays agree and are finite.
@@ -669,6 +673,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
                 body_gaussians: p.usize("body_gaussians")?,
                 seed,
                 ori_min_confidence: p.f32("ori_min_confidence")?,
+                device: crate::render::device::Renderer::from_params(p)?,
             };
             let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
             Some(ImageLosses::new(
@@ -747,6 +752,10 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         strands_per_iteration: cfg.subset.min(s.keep.len()),
         mean_length: s.prep.mean_length(),
         loss_history: report.history.clone(),
+        device: p
+            .get("device")
+            .and(image.as_ref())
+            .map(|i| i.device_metrics()),
     };
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;

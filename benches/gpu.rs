@@ -1,0 +1,235 @@
+//! GPU against CPU renderer: forward + backward timings
+//! (`cargo bench --features gpu --bench gpu`).
+//!
+//! The scenes are `render.rs`'s fur balls (strands of 8 segments on a unit
+//! sphere, one Gaussian per segment, an L1 RGB + alpha loss gradient). Cases:
+//! 256^2 with 200k segments and 1024^2 with 1M segments. For each it prints
+//! the median forward and forward + backward time on the CPU reference and on
+//! the GPU (deterministic mode, and the atomic mode's forward + backward), the
+//! CPU/GPU ratio, the largest image difference, and the adapter's name.
+//! The GPU time includes the upload of the Gaussians, the readback of the
+//! images and of the gradients: what a learner pays per view.
+//!
+//! Environment: `FURE_BENCH_GPU_CASES=128x20000,256x200000` replaces the
+//! cases (SIZExSEGMENTS; lavapipe, the software adapter, is slow for the big
+//! ones); `FURE_BENCH_REPS` sets the timed runs (default 3);
+//! `FURE_BENCH_JSON=path` writes the records as JSON there;
+//! `FURE_GPU_ADAPTER=substring` picks the adapter by name.
+
+use std::time::Instant;
+
+use fure_stages::camera::Camera;
+use fure_stages::image::ImageF32;
+use fure_stages::render::gpu::{GpuMode, GpuRenderer};
+use fure_stages::render::{
+    backward, render, strands_to_gaussians, Gaussians, Mat4, OutputGrads, RenderSettings, Vec3,
+};
+
+mod common;
+use common::Rng;
+
+const SEGS_PER_STRAND: usize = 8;
+
+fn fur_ball(segments: usize, seed: u64) -> Gaussians {
+    let mut rng = Rng(seed);
+    let strands = segments / SEGS_PER_STRAND;
+    let mut points = Vec::with_capacity(strands * (SEGS_PER_STRAND + 1));
+    let mut starts = vec![0u32];
+    let mut widths = Vec::with_capacity(strands);
+    let mut colors = Vec::with_capacity(strands);
+    for _ in 0..strands {
+        let z = 2.0 * rng.next() - 1.0;
+        let phi = std::f32::consts::TAU * rng.next();
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let n = Vec3::new(r * phi.cos(), r * phi.sin(), z);
+        let lean = Vec3::new(rng.next() - 0.5, rng.next() - 0.5, rng.next() - 0.5);
+        let len = 0.12 + 0.1 * rng.next();
+        let mut p = n;
+        let mut d = (n + 0.8 * lean).normalize();
+        let step = len / SEGS_PER_STRAND as f32;
+        for _ in 0..=SEGS_PER_STRAND {
+            points.push(p);
+            p += d * step;
+            d = (d - Vec3::new(0.0, 0.15, 0.0)).normalize();
+        }
+        starts.push(points.len() as u32);
+        widths.push(0.004);
+        let t = rng.next();
+        colors.push([0.6 + 0.3 * t, 0.4 + 0.2 * t, 0.2]);
+    }
+    strands_to_gaussians(&points, &starts, &widths, &colors, true).expect("valid strands")
+}
+
+fn camera(size: u32) -> Camera {
+    let w2c = Mat4::look_at_rh(Vec3::new(0.0, 0.6, 3.2), Vec3::ZERO, Vec3::Y);
+    Camera {
+        file_path: String::new(),
+        c2w: w2c.inverse(),
+        fx: size as f32 * 1.1,
+        fy: size as f32 * 1.1,
+        cx: size as f32 * 0.5,
+        cy: size as f32 * 0.5,
+        width: size,
+        height: size,
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+fn loss_grads(out: &fure_stages::render::RenderOutput, size: u32) -> OutputGrads {
+    let mut grgb = ImageF32::new(size, size, 3);
+    for (gv, v) in grgb.data.iter_mut().zip(&out.rgb.data) {
+        *gv = if *v > 0.5 { 1.0 } else { -1.0 } / (3 * size * size) as f32;
+    }
+    let mut galpha = ImageF32::new(size, size, 1);
+    for (gv, v) in galpha.data.iter_mut().zip(&out.alpha.data) {
+        *gv = if *v > 0.5 { -1.0 } else { 1.0 } / (size * size) as f32;
+    }
+    OutputGrads {
+        rgb: Some(grgb),
+        alpha: Some(galpha),
+        ..Default::default()
+    }
+}
+
+fn bench(
+    gpu: &GpuRenderer,
+    atomic: &GpuRenderer,
+    size: u32,
+    segments: usize,
+    reps: usize,
+) -> serde_json::Value {
+    let g = fur_ball(segments, 1234 + segments as u64);
+    let cam = camera(size);
+    let s = RenderSettings {
+        background: Vec3::splat(1.0),
+        ..Default::default()
+    };
+    let (out, st) = render(&g, &cam, &s).expect("cpu render");
+    let dl = loss_grads(&out, size);
+    let (cf, mut cb) = (Vec::new(), Vec::new());
+    let mut cf = cf;
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let (o, st2) = render(&g, &cam, &s).expect("cpu render");
+        cf.push(ms(t0));
+        let gr = backward(&g, &cam, &s, &st2, &dl).expect("cpu backward");
+        cb.push(ms(t0));
+        std::hint::black_box((&o, &gr));
+    }
+    let cpu_grads = backward(&g, &cam, &s, &st, &dl).expect("cpu backward");
+    // GPU: one warm-up (pipeline caches, allocations), then timed runs.
+    let (go, gst) = gpu.render(&g, &cam, &s).expect("gpu render");
+    let gg = gpu.backward(&g, &cam, &s, &gst, &dl).expect("gpu backward");
+    let max_img = out
+        .rgb
+        .data
+        .iter()
+        .zip(&go.rgb.data)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    let scale = cpu_grads
+        .means
+        .iter()
+        .fold(0.0f32, |m, v| m.max(v.abs().max_element()));
+    let dmax = cpu_grads
+        .means
+        .iter()
+        .zip(&gg.means)
+        .fold(0.0f32, |m, (a, b)| m.max((*a - *b).abs().max_element()));
+    let (mut gf, mut gb, mut ab) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let (o, st2) = gpu.render(&g, &cam, &s).expect("gpu render");
+        gf.push(ms(t0));
+        let gr = gpu.backward(&g, &cam, &s, &st2, &dl).expect("gpu backward");
+        gb.push(ms(t0));
+        std::hint::black_box((&o, &gr));
+        let t0 = Instant::now();
+        let (o, st2) = atomic.render(&g, &cam, &s).expect("gpu render");
+        let gr = atomic
+            .backward(&g, &cam, &s, &st2, &dl)
+            .expect("gpu backward");
+        ab.push(ms(t0));
+        std::hint::black_box((&o, &gr));
+    }
+    let (cf, cb, gf, gb, ab) = (median(cf), median(cb), median(gf), median(gb), median(ab));
+    println!(
+        "{size:>4}^2 {:>8} segs {:>9} inst | cpu fwd {cf:>8.1} ms fwd+bwd {cb:>8.1} ms | gpu fwd {gf:>8.1} ms \
+         fwd+bwd {gb:>8.1} ms (atomic {ab:>8.1} ms) | cpu/gpu fwd+bwd {:>6.2}x | max |rgb diff| {max_img:.1e}, \
+         max |dmean diff| {:.1e} of {scale:.1e}",
+        g.len(),
+        st.instance_count(),
+        cb / gb,
+        dmax
+    );
+    serde_json::json!({
+        "size": size,
+        "segments": g.len(),
+        "instances": st.instance_count(),
+        "gpu_instances": gst.instance_count(),
+        "evaluations": st.evaluations,
+        "cpu_forward_ms": cf,
+        "cpu_forward_backward_ms": cb,
+        "gpu_forward_ms": gf,
+        "gpu_forward_backward_ms": gb,
+        "gpu_atomic_forward_backward_ms": ab,
+        "cpu_over_gpu_forward_backward": cb / gb,
+        "max_abs_rgb_difference": max_img,
+        "max_abs_mean_gradient_difference": dmax,
+        "max_abs_mean_gradient": scale,
+    })
+}
+
+fn main() {
+    let gpu = match GpuRenderer::new(GpuMode::Deterministic) {
+        Ok(r) => r,
+        Err(e) => {
+            println!("gpu benchmark SKIPPED: {e}");
+            return;
+        }
+    };
+    let atomic = GpuRenderer::new(GpuMode::Atomic).expect("second device");
+    let adapter = gpu.adapter_description();
+    let threads = rayon::current_num_threads();
+    println!("gpu benchmark: adapter {adapter}; cpu: {threads} rayon threads; median of runs");
+    let cases: Vec<(u32, usize)> = match std::env::var("FURE_BENCH_GPU_CASES") {
+        Ok(v) => v
+            .split(',')
+            .map(|c| {
+                let (a, b) = c.trim().split_once('x').expect("SIZExSEGMENTS");
+                (a.parse().expect("size"), b.parse().expect("segments"))
+            })
+            .collect(),
+        Err(_) => vec![(256, 200_000), (1024, 1_000_000)],
+    };
+    let reps: usize = std::env::var("FURE_BENCH_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3)
+        .max(1);
+    let records: Vec<serde_json::Value> = cases
+        .iter()
+        .map(|&(size, segs)| bench(&gpu, &atomic, size, segs, reps))
+        .collect();
+    if let Ok(path) = std::env::var("FURE_BENCH_JSON") {
+        let doc = serde_json::json!({
+            "bench": "gpu",
+            "adapter": gpu.adapter_name(),
+            "adapter_description": adapter,
+            "cpu_threads": threads,
+            "reps": reps,
+            "records": records,
+        });
+        let text = serde_json::to_string_pretty(&doc).expect("json");
+        std::fs::write(&path, text + "\n").expect("write FURE_BENCH_JSON");
+        println!("wrote {path}");
+    }
+}
