@@ -65,6 +65,8 @@ pub enum Command {
         /// Keep running independent stages after a failure.
         #[arg(long)]
         keep_going: bool,
+        #[command(flatten)]
+        executor: ExecutorArgs,
         /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
         #[arg(long, value_name = "DEVICE")]
         device: Option<String>,
@@ -112,6 +114,8 @@ pub enum Command {
         /// and what would run; run nothing, write nothing.
         #[arg(long)]
         dry_run: bool,
+        #[command(flatten)]
+        executor: ExecutorArgs,
         /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
         #[arg(long, value_name = "DEVICE")]
         device: Option<String>,
@@ -145,6 +149,30 @@ pub enum Command {
         /// Show only this kind.
         kind: Option<String>,
     },
+    /// Compute the one stage of a Slurm job spec against the cache (what
+    /// `--executor slurm` submits; see docs/cluster.md).
+    #[command(hide = true)]
+    Worker { spec: PathBuf },
+}
+
+/// Where the stages that must run are computed.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ExecutorArgs {
+    /// `local` (this machine) or `slurm` (one batch job per stage that must
+    /// run, on nodes sharing the cache; see docs/cluster.md).
+    #[arg(long, value_enum, env = "FURE_EXECUTOR", default_value = "local")]
+    pub executor: ExecutorKind,
+    /// A file whose `[executor]` table sets partition, account, time, cpus,
+    /// mem, sbatch flags (the pipeline's `[executor]` overrides it); default
+    /// $FURE_EXECUTOR_CONFIG, else ~/.config/fure/config.toml if present.
+    #[arg(long, value_name = "FILE")]
+    pub executor_config: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ExecutorKind {
+    Local,
+    Slurm,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -282,6 +310,40 @@ fn jobs_or_default(jobs: Option<usize>) -> Result<usize, Failure> {
     }
 }
 
+/// The executor of a run or sweep (local for dry runs) and the default
+/// `--jobs` that goes with it.
+fn executor(
+    args: &ExecutorArgs,
+    pipeline: Option<&(fure_stage_api::Value, crate::pipeline::Loc)>,
+    cache: &Cache,
+    dry_run: bool,
+) -> Result<(exec::Executor, Option<usize>), Failure> {
+    use crate::slurm::{ExecutorConfig, Slurm};
+    if args.executor == ExecutorKind::Local || dry_run {
+        return Ok((exec::Executor::Local, None));
+    }
+    let user = match ExecutorConfig::user_file(args.executor_config.as_deref()) {
+        Some(f) => {
+            ExecutorConfig::from_file(&f).map_err(|e| Failure::Usage(format!("error: {e}")))?
+        }
+        None => ExecutorConfig::default(),
+    };
+    let config = match pipeline {
+        Some((v, loc)) => user.overlaid(
+            &ExecutorConfig::from_value(v, &loc.to_string())
+                .map_err(|e| Failure::Usage(format!("error: {e}")))?,
+        ),
+        None => user,
+    };
+    let jobs = config.max_jobs();
+    let slurm = Slurm::new(config, cache.root(), true)
+        .map_err(|e| Failure::Failed(format!("error: --executor slurm: {e}")))?;
+    Ok((
+        exec::Executor::Slurm(std::sync::Arc::new(slurm)),
+        Some(jobs),
+    ))
+}
+
 fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
     match &cli.command {
         Command::Run {
@@ -294,6 +356,7 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             out,
             plain,
             keep_going,
+            executor: exec_args,
             device,
         } => {
             let sets = &param_sets(engine, pipeline, sets, "device", device.as_deref())?;
@@ -301,8 +364,17 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             let plan = load_plan(engine, pipeline, sets, until.as_deref())?;
             let t_plan = t0.elapsed();
             let cache = open_cache(&cli.cache, Access::Shared)?;
+            let (executor, remote_jobs) = if exec_args.executor == ExecutorKind::Local {
+                (exec::Executor::Local, None)
+            } else {
+                let p = engine.load(pipeline, sets)?;
+                executor(exec_args, p.executor.as_ref(), &cache, *dry_run)?
+            };
             let opts = RunOptions {
-                jobs: jobs_or_default(*jobs)?,
+                jobs: match (jobs, remote_jobs) {
+                    (None, Some(j)) => j,
+                    _ => jobs_or_default(*jobs)?,
+                },
                 cores: exec::available_cores(),
                 out_root: Some(out.clone()),
                 dry_run: *dry_run,
@@ -312,6 +384,7 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                     UiMode::detect()
                 },
                 keep_going: *keep_going,
+                executor,
             };
             let rep = exec::run(&plan, &cache, &opts);
             let json = serde_json::to_vec_pretty(&rep).unwrap_or_default();
@@ -402,6 +475,7 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             out,
             table,
             dry_run,
+            executor: exec_args,
             device,
         } => {
             let sets = &param_sets(engine, pipeline, sets, "device", device.as_deref())?;
@@ -426,13 +500,19 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
             let variants = axes.variants();
             crate::publish::check(&p).map_err(|e| Failure::Usage(format!("error: {e}")))?;
             let cache = open_cache(&cli.cache, Access::Shared)?;
+            let (executor, remote_jobs) =
+                executor(exec_args, p.executor.as_ref(), &cache, *dry_run)?;
             let opts = RunOptions {
-                jobs: jobs_or_default(*jobs)?,
+                jobs: match (jobs, remote_jobs) {
+                    (None, Some(j)) => j,
+                    _ => jobs_or_default(*jobs)?,
+                },
                 cores: exec::available_cores(),
                 out_root: if *dry_run { None } else { Some(out.clone()) },
                 dry_run: *dry_run,
                 ui: UiMode::Quiet,
                 keep_going: true,
+                executor,
             };
             println!("sweep {}: {} variants", p.name, variants.len());
             let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
@@ -679,6 +759,45 @@ fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
                 prefix.with_extension("md").display()
             );
             Ok(ExitCode::SUCCESS)
+        }
+        Command::Worker { spec } => {
+            let result_path = crate::slurm::result_path(spec);
+            let host = cache::host_name();
+            let outcome = (|| -> Result<bool, String> {
+                let s = crate::slurm::read_spec(spec).map_err(|e| e.to_string())?;
+                println!(
+                    "fure worker: pipeline {}, stage {} ({}), key {}, on {host}",
+                    s.pipeline,
+                    s.stage,
+                    s.kind,
+                    cache::short(&s.key)
+                );
+                let cache = Cache::open(&cli.cache, Access::Shared).map_err(|e| e.to_string())?;
+                let ui = crate::ui::Ui::new(UiMode::Plain);
+                crate::slurm::worker(&engine.registry, &cache, &s, &ui).map_err(|e| e.to_string())
+            })();
+            let result = crate::slurm::JobResult {
+                ok: outcome.is_ok(),
+                computed: outcome.as_ref().is_ok_and(|c| *c),
+                error: outcome.as_ref().err().cloned(),
+                host,
+            };
+            crate::slurm::write_result(&result_path, &result)
+                .map_err(|e| Failure::Failed(format!("error: {}: {e}", result_path.display())))?;
+            match outcome {
+                Ok(computed) => {
+                    println!(
+                        "fure worker: {}",
+                        if computed {
+                            "computed and stored"
+                        } else {
+                            "another run had stored it"
+                        }
+                    );
+                    Ok(ExitCode::SUCCESS)
+                }
+                Err(e) => Err(Failure::Failed(format!("error: {e}"))),
+            }
         }
         Command::Stages { kind } => {
             let mut found = false;
