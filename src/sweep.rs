@@ -31,7 +31,11 @@
 //! Each variant is the pipeline with its settings applied, named
 //! `<pipeline>@v<N>` (outputs in `out/<pipeline>@v<N>/`), run on the same
 //! cache, so a stage upstream of every varied parameter is computed once and
-//! hit by every other variant. Every variant is checked (planned) before any
+//! hit by every other variant. Locally the variants run one after another;
+//! with a remote executor (`--executor slurm`, [`crate::slurm`]) they run at
+//! once, their stages as jobs, a key shared by variants being submitted once
+//! (the others wait for it and take the entry), and the rows follow in
+//! variant order when all are done. Every variant is checked (planned) before any
 //! runs: an invalid variant, or an invalid aggregate stage, is a pipeline
 //! error (exit 2) and nothing runs.
 //!
