@@ -640,24 +640,28 @@ impl Slurm {
             inner.say(&format!("slurm   {label}  job {id} completed"));
             return Ok(Outcome::Ran { computed });
         }
-        let mut msg = match result.and_then(|r| r.error) {
-            // The stage's own error first, as a local run gives it.
-            Some(e) => format!("{e}\n"),
-            None => String::new(),
-        };
-        msg.push_str(&format!("slurm job {id} {}", end.state));
+        let mut job = format!("slurm job {id} {}", end.state);
         if !end.reason.is_empty() && end.reason != "None" {
-            msg.push_str(&format!(" ({})", end.reason));
+            job.push_str(&format!(" ({})", end.reason));
         }
         if !end.exit_code.is_empty() {
-            msg.push_str(&format!(", exit code {}", end.exit_code));
+            job.push_str(&format!(", exit code {}", end.exit_code));
         }
         if !end.nodes.is_empty() && end.nodes != "(null)" {
-            msg.push_str(&format!(", on {}", end.nodes));
+            job.push_str(&format!(", on {}", end.nodes));
         }
         if inner.cancelled.load(Ordering::SeqCst) {
-            msg.push_str(": cancelled because fure was interrupted");
+            job.push_str(": cancelled because fure was interrupted");
         }
+        let mut msg = match result.and_then(|r| r.error) {
+            // A stage that failed by itself: its own error first, as a local
+            // run gives it (sweep reasons are its first line).
+            Some(e) if end.state.starts_with("FAILED") => format!("{e}\n{job}"),
+            // Slurm stopped it (time limit, memory, cancellation, node
+            // failure): that first, then what the worker saw.
+            Some(e) => format!("{job}\n{e}"),
+            None => job,
+        };
         msg.push_str(&format!("; log {}", log_path.display()));
         let t = tail(&log_path, LOG_TAIL);
         if !t.is_empty() {
