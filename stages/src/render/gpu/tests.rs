@@ -298,7 +298,7 @@ fn scenes() -> Vec<Scene> {
     let mut rng = ChaCha8Rng::seed_from_u64(17);
     let mut out = Vec::new();
     let cam = |size| test_camera(size, Vec3::new(0.4, 0.3, 4.0), Vec3::ZERO);
-    let mut s1 = RenderSettings {
+    let s1 = RenderSettings {
         sh_degree: 1,
         background: Vec3::new(0.2, 0.5, 0.9),
         ..Default::default()
@@ -307,9 +307,8 @@ fn scenes() -> Vec<Scene> {
         name: "random (overlapping), sh 1, background",
         g: random_gaussians(&mut rng, 300, 0.8),
         cam: cam(72),
-        s: s1.clone(),
+        s: s1,
     });
-    s1.sh_degree = 0;
     out.push(Scene {
         name: "random, smooth settings",
         g: random_gaussians(&mut rng, 200, 0.8),
