@@ -172,4 +172,19 @@ mod tests {
         assert!(Renderer::from_choice("tpu").is_err());
         assert_eq!(Renderer::Cpu.metrics()["device"], "cpu");
     }
+
+    #[test]
+    fn unset_parameter_is_the_cpu_and_is_declared_optional() {
+        let spec = device_param();
+        assert!(
+            spec.default.is_none() && spec.optional,
+            "unset must leave keys unchanged"
+        );
+        assert_eq!(spec.choices, DEVICE_CHOICES);
+        let unset = Params::default();
+        assert_eq!(Renderer::from_params(&unset).unwrap().name(), "cpu");
+        let mut p = Params::default();
+        p.0.insert("device".into(), fure_stage_api::Value::Str("cpu".into()));
+        assert_eq!(Renderer::from_params(&p).unwrap().name(), "cpu");
+    }
 }
