@@ -1076,7 +1076,13 @@ mod fuzz {
                 proptest::collection::vec(inner.clone(), 0..4)
                     .prop_map(|v| format!("[{}]", v.join(", "))),
                 proptest::collection::vec(("[a-z_]{1,10}", inner), 0..4).prop_map(|kv| {
-                    let body: Vec<String> = kv.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+                    // A key twice in one inline table is a TOML error: keep the first.
+                    let mut seen = std::collections::BTreeSet::new();
+                    let body: Vec<String> = kv
+                        .iter()
+                        .filter(|(k, _)| seen.insert(k.clone()))
+                        .map(|(k, v)| format!("{k} = {v}"))
+                        .collect();
                     format!("{{ {} }}", body.join(", "))
                 }),
             ]
