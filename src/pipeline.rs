@@ -404,9 +404,19 @@ fn load_rec(path: &Path, stack: &mut Vec<PathBuf>) -> Result<Pipeline, PipelineE
     if let Some(d) = raw.description {
         pipeline.description = d;
     }
+    // Name -> position, so that merging n stages is not n^2 comparisons.
+    let mut index: std::collections::HashMap<String, usize> = pipeline
+        .stages
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.name.clone(), i))
+        .collect();
     for child in raw.stages {
-        match pipeline.stages.iter_mut().find(|s| s.name == child.name) {
-            None => pipeline.stages.push(child),
+        match index.get(&child.name).map(|&i| &mut pipeline.stages[i]) {
+            None => {
+                index.insert(child.name.clone(), pipeline.stages.len());
+                pipeline.stages.push(child)
+            }
             Some(parent) => {
                 if child.kind.is_some() {
                     parent.kind = child.kind;
