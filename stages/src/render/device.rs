@@ -48,8 +48,9 @@ pub enum Renderer {
 #[derive(Debug)]
 pub enum State {
     Cpu(RenderState),
+    /// Boxed: the GPU state (buffers, readbacks) is much larger than the CPU's.
     #[cfg(feature = "gpu")]
-    Gpu(super::gpu::GpuState),
+    Gpu(Box<super::gpu::GpuState>),
 }
 
 impl State {
@@ -125,7 +126,9 @@ impl Renderer {
         match self {
             Renderer::Cpu => super::render(g, cam, s).map(|(o, st)| (o, State::Cpu(st))),
             #[cfg(feature = "gpu")]
-            Renderer::Gpu(r) => r.render(g, cam, s).map(|(o, st)| (o, State::Gpu(st))),
+            Renderer::Gpu(r) => r
+                .render(g, cam, s)
+                .map(|(o, st)| (o, State::Gpu(Box::new(st)))),
         }
     }
 
