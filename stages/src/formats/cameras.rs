@@ -32,10 +32,12 @@
 //! (pixel centres at half-integers, see [`Camera`]) is exactly the middle of the image. `w` and `h`
 //! come from the frame, then the file, then the image header (PNG, EXR or JPEG) when missing.
 //!
-//! Extra keys (distortion `k1 k2 p1 p2`, `aabb_scale`, `sharpness`, `scale`, `offset`, `colmap_im_id`,
-//! ...) are ignored: distortion is not modelled (COLMAP conversions for NeRF are normally
-//! undistorted first), and instant-ngp's `scale`/`offset` only move its own training box, so the
-//! cameras stay in the file's world frame.
+//! nerfstudio's distortion `k1 k2 k3 k4 p1 p2` and `camera_model` are checked at either level:
+//! distortion is not modelled, so a non-zero coefficient or a model other than `PINHOLE`,
+//! `SIMPLE_PINHOLE` or `OPENCV` (with zero distortion) is an error naming the field and how to
+//! undistort. Other extra keys (`aabb_scale`, `sharpness`, `scale`, `offset`, `colmap_im_id`, ...)
+//! are ignored: instant-ngp's `scale`/`offset` only move its own training box, so the cameras stay
+//! in the file's world frame.
 //!
 //! `file_path` is normalised when read: backslashes become `/`, a leading `./` is dropped, and a
 //! path without an image extension gets one (`./train/r_0` -> `train/r_0.png`): the first of `.png`,
@@ -308,6 +310,11 @@ fn join_field(prefix: &str, key: &str) -> String {
     }
 }
 
+/// nerfstudio's distortion coefficients (OpenCV's radial `k`, tangential `p`).
+const DISTORTION_KEYS: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
+/// nerfstudio `camera_model` values that are a pinhole when the distortion is zero.
+const PINHOLE_MODELS: [&str; 3] = ["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"];
+
 /// Intrinsics as found at one level (the file or a frame); every entry optional.
 #[derive(Default)]
 struct Level {
@@ -401,6 +408,39 @@ impl Level {
                 other => Ok(other),
             }
         };
+        // nerfstudio writes its COLMAP conversion's distortion and model here. A
+        // pinhole model is all fure renders: non-zero distortion or a fisheye
+        // model would be a silently wrong camera, so it is refused.
+        for key in DISTORTION_KEYS {
+            if let Some(v) = num(key)? {
+                if v != 0.0 {
+                    return Err(FormatError::at(
+                        path,
+                        field(&join_field(prefix, key)),
+                        format!(
+                            "lens distortion {key} = {v}: fure models pinhole cameras; undistort the \
+                             images first (nerfstudio: `ns-process-data` with an undistorting COLMAP \
+                             run; COLMAP: `colmap image_undistorter`) and write the undistorted intrinsics"
+                        ),
+                    ));
+                }
+            }
+        }
+        match obj.get("camera_model") {
+            None | Some(Value::Null) => {}
+            Some(Value::String(m)) if PINHOLE_MODELS.contains(&m.as_str()) => {}
+            Some(other) => {
+                return Err(FormatError::at(
+                    path,
+                    field(&join_field(prefix, "camera_model")),
+                    format!(
+                        "camera model {other}: expected one of {} (a pinhole camera, distortion zero); \
+                         undistort fisheye or equirectangular captures first",
+                        PINHOLE_MODELS.join(", ")
+                    ),
+                ))
+            }
+        }
         Ok(Level {
             w: size("w")?,
             h: size("h")?,
@@ -835,7 +875,23 @@ mod tests {
 
     #[test]
     fn instant_ngp_colmap_capture_reads() {
-        let dir = data("ngp_capture");
+        // colmap2nerf.py copies COLMAP's OPENCV distortion into the file: refused, naming it.
+        let e = read_views(data("ngp_capture")).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::Field("k1".into())), "{e}");
+        assert!(e.to_string().contains("undistort"), "{e}");
+        // The same capture undistorted (coefficients zeroed) reads.
+        let tmp = tempfile::tempdir().unwrap();
+        let mut v: Value = serde_json::from_slice(
+            &std::fs::read(data("ngp_capture").join("transforms.json")).unwrap(),
+        )
+        .unwrap();
+        for k in DISTORTION_KEYS {
+            if let Some(x) = v.get_mut(k) {
+                *x = serde_json::json!(0.0);
+            }
+        }
+        std::fs::write(tmp.path().join("transforms.json"), v.to_string()).unwrap();
+        let dir = tmp.path().to_path_buf();
         let set = read_views(&dir).unwrap();
         assert_eq!(set.train.len(), 4);
         assert!(set.test.is_empty());
@@ -996,6 +1052,23 @@ mod tests {
                 "frames[0].file_path",
             ),
             (r#"{"fl_x": 5, "w": 4, "h": 4}"#.to_string(), "frames"),
+            // nerfstudio's distortion and camera model: a pinhole only.
+            (
+                format!(r#"{{"fl_x": 5, "w": 4, "h": 4, "k1": 0.02, "frames": [{frame_ok}]}}"#),
+                "k1",
+            ),
+            (
+                format!(
+                    r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{{"file_path": "b.png", "p2": -1e-3, "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}}]}}"#
+                ),
+                "frames[0].p2",
+            ),
+            (
+                format!(
+                    r#"{{"fl_x": 5, "w": 4, "h": 4, "camera_model": "OPENCV_FISHEYE", "frames": [{frame_ok}]}}"#
+                ),
+                "camera_model",
+            ),
         ];
         for (text, fieldname) in cases {
             std::fs::write(&p, &text).unwrap();
@@ -1007,6 +1080,15 @@ mod tests {
             );
             assert!(e.to_string().contains("transforms.json"), "{e}");
         }
+        // nerfstudio's own undistorted output (OPENCV, zero distortion) reads.
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"camera_model": "OPENCV", "fl_x": 5, "fl_y": 5, "cx": 2, "cy": 2, "w": 4, "h": 4, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": [{frame_ok}]}}"#
+            ),
+        )
+        .unwrap();
+        assert_eq!(read_transforms(&p).unwrap().len(), 1);
         // Syntax errors and truncation: line and column.
         std::fs::write(&p, "{\n  \"frames\": [\n    {\"file_path\": \"a.png\",\n").unwrap();
         let e = read_views(dir.path()).unwrap_err();
