@@ -63,12 +63,23 @@ fn random_gaussians(rng: &mut ChaCha8Rng, n: usize) -> Gaussians {
     g
 }
 
-fn random_image(rng: &mut ChaCha8Rng, w: u32, h: u32, c: u32, amp: f32) -> ImageF32 {
+pub(crate) fn random_image(rng: &mut ChaCha8Rng, w: u32, h: u32, c: u32, amp: f32) -> ImageF32 {
     let mut im = ImageF32::new(w, h, c);
     for v in im.data.iter_mut() {
         *v = rng.gen_range(-amp..amp);
     }
     im
+}
+
+/// Random gradients of every output (depth at a smaller amplitude).
+pub(crate) fn random_output_grads(rng: &mut ChaCha8Rng, w: u32, h: u32) -> OutputGrads {
+    OutputGrads {
+        rgb: Some(random_image(rng, w, h, 3, 1.0)),
+        alpha: Some(random_image(rng, w, h, 1, 1.0)),
+        depth: Some(random_image(rng, w, h, 1, 0.3)),
+        orientation: Some(random_image(rng, w, h, 2, 1.0)),
+        fur: Some(random_image(rng, w, h, 1, 1.0)),
+    }
 }
 
 /// A scalar loss that is linear in every output, and its output gradients.
@@ -79,13 +90,7 @@ struct LinearLoss {
 impl LinearLoss {
     fn new(rng: &mut ChaCha8Rng, w: u32, h: u32) -> Self {
         LinearLoss {
-            dl: OutputGrads {
-                rgb: Some(random_image(rng, w, h, 3, 1.0)),
-                alpha: Some(random_image(rng, w, h, 1, 1.0)),
-                depth: Some(random_image(rng, w, h, 1, 0.3)),
-                orientation: Some(random_image(rng, w, h, 2, 1.0)),
-                fur: Some(random_image(rng, w, h, 1, 1.0)),
-            },
+            dl: random_output_grads(rng, w, h),
         }
     }
     fn eval(&self, o: &RenderOutput) -> f64 {

@@ -15,7 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use super::{GpuMode, GpuRenderer};
 use crate::camera::Camera;
 use crate::image::ImageF32;
-use crate::render::tests::test_camera;
+use crate::render::tests::{random_output_grads, test_camera};
 use crate::render::{
     backward, render, strands_to_gaussians, GaussianGrads, Gaussians, OutputGrads, RenderOutput,
     RenderSettings,
@@ -35,24 +35,6 @@ fn gpu(mode: GpuMode) -> Option<GpuRenderer> {
             eprintln!("SKIPPED: GPU parity test needs a GPU adapter: {e}");
             None
         }
-    }
-}
-
-fn random_image(rng: &mut ChaCha8Rng, w: u32, h: u32, c: u32, amp: f32) -> ImageF32 {
-    let mut im = ImageF32::new(w, h, c);
-    for v in im.data.iter_mut() {
-        *v = rng.gen_range(-amp..amp);
-    }
-    im
-}
-
-fn all_grads(rng: &mut ChaCha8Rng, w: u32, h: u32) -> OutputGrads {
-    OutputGrads {
-        rgb: Some(random_image(rng, w, h, 3, 1.0)),
-        alpha: Some(random_image(rng, w, h, 1, 1.0)),
-        depth: Some(random_image(rng, w, h, 1, 0.3)),
-        orientation: Some(random_image(rng, w, h, 2, 1.0)),
-        fur: Some(random_image(rng, w, h, 1, 1.0)),
     }
 }
 
@@ -458,7 +440,7 @@ fn parity(mode: GpuMode) {
             gs.evaluations
         );
         check_images(sc.name, &co, &go);
-        let dl = all_grads(&mut rng, sc.cam.width, sc.cam.height);
+        let dl = random_output_grads(&mut rng, sc.cam.width, sc.cam.height);
         let cg = backward(&sc.g, &sc.cam, &sc.s, &cs, &dl).unwrap();
         let gg = r.backward(&sc.g, &sc.cam, &sc.s, &gs, &dl).unwrap();
         check_grads(sc.name, &cg, &gg, GRAD_TOL);
@@ -496,7 +478,7 @@ fn gpu_deterministic_mode_reruns_bit_identical() {
     append(&mut g, &random_gaussians(&mut rng, 200, 0.7));
     let cam = test_camera(128, Vec3::new(0.4, 0.3, 4.0), Vec3::ZERO);
     let s = RenderSettings::default();
-    let dl = all_grads(&mut rng, 128, 128);
+    let dl = random_output_grads(&mut rng, 128, 128);
     let mut first: Option<Vec<u32>> = None;
     for _ in 0..3 {
         let (o, st) = r.render(&g, &cam, &s).unwrap();
@@ -533,7 +515,7 @@ fn gpu_empty_and_fully_culled_scenes() {
         let (go, gs) = r.render(&g, &cam, &s).unwrap();
         assert_eq!(co, go);
         assert_eq!(gs.instance_count(), 0);
-        let dl = all_grads(&mut ChaCha8Rng::seed_from_u64(1), 40, 40);
+        let dl = random_output_grads(&mut ChaCha8Rng::seed_from_u64(1), 40, 40);
         let cg = backward(&g, &cam, &s, &cs, &dl).unwrap();
         let gg = r.backward(&g, &cam, &s, &gs, &dl).unwrap();
         assert_eq!(cg, gg);
