@@ -26,6 +26,7 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use super::raster::check_image;
 use super::RenderError;
 use crate::image::ImageF32;
 
@@ -38,6 +39,7 @@ const SSIM_C2: f64 = 0.03 * 0.03;
 const SSIM_RADIUS: usize = 5;
 const SSIM_SIGMA: f64 = 1.5;
 
+/// The renderer's shape check, plus finiteness: loss inputs come from files.
 fn check(
     what: &'static str,
     img: &ImageF32,
@@ -45,25 +47,7 @@ fn check(
     height: u32,
     channels: u32,
 ) -> Result<(), RenderError> {
-    if img.width != width
-        || img.height != height
-        || img.channels != channels
-        || img.data.len() != (width * height * channels) as usize
-    {
-        return Err(RenderError::Image {
-            what,
-            width,
-            height,
-            channels,
-            found: format!(
-                "{}x{}x{} ({} values)",
-                img.width,
-                img.height,
-                img.channels,
-                img.data.len()
-            ),
-        });
-    }
+    check_image(what, img, width, height, channels)?;
     if let Some(i) = img.data.iter().position(|v| !v.is_finite()) {
         return Err(RenderError::NonFinite { what, index: i });
     }

@@ -204,7 +204,9 @@ fn eval(sp: &Splat, x: i32, y: i32, s: &RenderSettings) -> Option<(f32, f32, f32
     Some((alpha, gauss, dx, dy, clamped))
 }
 
-fn check_image(
+/// `img` must be `w` x `h` x `ch` with that many values (the renderer's
+/// inputs and output gradients; the losses' images).
+pub(super) fn check_image(
     what: &'static str,
     img: &ImageF32,
     w: u32,

@@ -39,7 +39,7 @@ use wgpu::util::DeviceExt;
 
 use super::gaussians::{GaussianGrads, Gaussians};
 use super::project::CamData;
-use super::raster::{OutputGrads, RenderOutput};
+use super::raster::{check_image, OutputGrads, RenderOutput};
 use super::{RenderError, RenderSettings, TILE};
 use crate::camera::Camera;
 use crate::image::ImageF32;
@@ -781,35 +781,6 @@ fn pack_gaussians(g: &Gaussians) -> Vec<f32> {
         }
     });
     v
-}
-
-fn check_image(
-    what: &'static str,
-    img: &ImageF32,
-    w: u32,
-    h: u32,
-    ch: u32,
-) -> Result<(), RenderError> {
-    if img.width != w
-        || img.height != h
-        || img.channels != ch
-        || img.data.len() != (w * h * ch) as usize
-    {
-        return Err(RenderError::Image {
-            what,
-            width: w,
-            height: h,
-            channels: ch,
-            found: format!(
-                "{}x{}x{} ({} values)",
-                img.width,
-                img.height,
-                img.channels,
-                img.data.len()
-            ),
-        });
-    }
-    Ok(())
 }
 
 impl Kernels {
