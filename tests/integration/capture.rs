@@ -39,7 +39,7 @@ fn read_json(path: &Path) -> Json {
 }
 
 /// An OBJ's text with every `v` and `vn` line mapped through `f`.
-fn map_obj(text: &str, f: impl Fn([f64; 3]) -> [f64; 3]) -> String {
+pub(crate) fn map_obj(text: &str, f: impl Fn([f64; 3]) -> [f64; 3]) -> String {
     let mut out = String::new();
     for line in text.lines() {
         let mut w = line.split_whitespace();

@@ -160,19 +160,7 @@ fn capture_auto_needs_nothing_but_the_views() {
             &std::fs::read_to_string(repo.join(f)).unwrap(),
         );
     }
-    let r = p.run(
-        "cap/capture_auto.toml",
-        &[
-            "--set",
-            "frosting.gaussians=1500",
-            "--set",
-            "frosting.iterations=40",
-            "--set",
-            "roots.default_density=0.1",
-            "--set",
-            "codec.iterations=10",
-        ],
-    );
+    let r = p.run("cap/capture_auto.toml", &crate::method::TINY_CAPTURE);
     r.ok();
     let out = p.path("out/capture_auto");
     for f in [

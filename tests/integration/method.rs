@@ -283,28 +283,8 @@ fn write_capture(p: &Project, dir: &str, scale: f64) {
             std::fs::copy(src, dst).unwrap();
         }
     }
-    let labels = p.read("out/tiny/scene/skin.obj");
-    let mut scaled = String::new();
-    for line in labels.lines() {
-        match line.strip_prefix("v ") {
-            Some(rest) => {
-                let v: Vec<f64> = rest
-                    .split_whitespace()
-                    .map(|x| x.parse().unwrap())
-                    .collect();
-                scaled.push_str(&format!(
-                    "v {} {} {}\n",
-                    v[0] * scale,
-                    v[1] * scale,
-                    v[2] * scale
-                ));
-            }
-            None => {
-                scaled.push_str(line);
-                scaled.push('\n');
-            }
-        }
-    }
+    let scaled =
+        crate::capture::map_obj(&p.read("out/tiny/scene/skin.obj"), |v| v.map(|x| x * scale));
     p.write(&format!("{dir}/labels.obj"), &scaled);
     let gt = read_json(&scene.join("scene.json"));
     let parts: serde_json::Map<String, Json> = gt["parts"]
@@ -339,7 +319,7 @@ fn write_capture(p: &Project, dir: &str, scale: f64) {
 }
 
 /// The tiny capture's settings for `capture.toml`.
-const TINY_CAPTURE: [&str; 8] = [
+pub(crate) const TINY_CAPTURE: [&str; 8] = [
     "--set",
     "frosting.gaussians=1500",
     "--set",
