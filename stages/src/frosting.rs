@@ -1042,15 +1042,15 @@ pub fn fit_gaussians_on(
         let gr = device.backward(&g, &v.camera, &settings, &state, &dl)?;
         // View-space positional gradient, in loss per pixel of displacement
         // summed over the image (so independent of the resolution's pixel
-        // count): |dL/dmu| * (distance / focal) * pixels.
-        let (centre, per_px) = (
-            v.camera.center(),
-            (v.camera.width as f32 * v.camera.height as f32) / v.camera.fx.max(1e-6),
-        );
-        for i in 0..p.len() {
-            if gr.opacities[i] != 0.0 {
-                grad_sum[i] += gr.means[i].length() * (g.means[i] - centre).length() * per_px;
-                grad_views[i] += 1;
+        // count): |dL/dmu| * (distance / focal) * pixels. Only when densifying.
+        if s.densify_every > 0 {
+            let centre = v.camera.center();
+            let per_px = (v.camera.width as f32 * v.camera.height as f32) / v.camera.fx.max(1e-6);
+            for i in 0..p.len() {
+                if gr.opacities[i] != 0.0 {
+                    grad_sum[i] += gr.means[i].length() * (g.means[i] - centre).length() * per_px;
+                    grad_views[i] += 1;
+                }
             }
         }
         // Chain through the activations.
