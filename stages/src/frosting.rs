@@ -28,7 +28,7 @@
 //! gradient) or whose opacity fell below `prune_opacity` are dropped: the
 //! images say nothing about them.
 //!
-//! Optional (off by default, see "Densification" below for why):
+//! Optional (off by default, see "Why these defaults" below):
 //! - `init_band = "both"`: the band spans both sides of M_outer (`u` in
 //!   [-1, 1]), so the images, not the initialisation, decide where the
 //!   surface is; Gaussians left outside the silhouette turn transparent and
@@ -55,8 +55,8 @@
 //! - `sigma_n` = mean over the `sigma_k` (4) Gaussians nearest to x of their
 //!   standard deviation along n, `sqrt(n^T Sigma n)` (Frosting's code, the
 //!   default `sigma_n = "gaussians"`); `"fixed"` uses `sigma_n_frac * D`
-//!   instead and `"max"` the larger of the two (see "What the widths measure
-//!   at 256 px" below for measurements).
+//!   instead and `"max"` the larger of the two (see "Why these defaults"
+//!   below).
 //! - `samples` (21) points x + t n, t from +`range_sigmas` sigma_n (outside)
 //!   to -`range_sigmas` sigma_n (inside), evenly spaced;
 //! - density at a point = min(1, sum over its `knn` (16) nearest Gaussians of
@@ -90,117 +90,20 @@
 //!   dropped (Frosting's Gaussians come from a vanilla 3DGS fit, which has no
 //!   unseen interior Gaussians; ours start in a band under M_outer).
 //!
-//! # What the widths measure at 256 px (diagnosis on the synthetic tiger)
+//! # Why these defaults
 //!
-//! `fure run pipelines/tiger.toml --until defur --set frosting.X=...` with
-//! the `offsets` output and the ignored `defur::tests::diagnose_pipeline_output`
-//! (per-vertex comparison with the true outer-to-skin distance):
-//! - **The window saturates.** With the defaults, the innermost sample is
-//!   still above the level at 98.7 % of the vertices
-//!   (`saturated_inner_fraction`), so Frosting's width is the outer crossing
-//!   plus the window's inner half, `3 sigma_n`, not the fur's extent.
-//! - **`sigma_n` is the initialisation's, not the images'.** `init_flatness`
-//!   0.2 -> 0.1 halves every width (torso median 1.12 -> 0.59 cm, ears 2.7 ->
-//!   2.2 cm) at the same training PSNR (28.76 dB): at this resolution and
-//!   budget (12k Gaussians, about 1.9 cm apart) the images do not constrain
-//!   the Gaussians' extent along the normal. `init_depth_frac` 0.0025 or 0.01
-//!   instead of 0.005 changes the widths by under 6 %.
-//! - A wider window (`range_sigmas = 8`, 81 samples) still saturates at
-//!   87.6 % (the level-0.01 tails of 16 summed overlapping Gaussians reach
-//!   several sigma_n): widths 3-5 cm, M_root 166 % of the GT fur thickness.
-//!   Level 0.5 with that window: 27 % saturated, widths 1.3-2.7 cm, M_root
-//!   66 %. `prune_visibility = 0.1` removes only 52 of 12,000 Gaussians: the
-//!   unseen interior is not what fills the window.
-//! - **Resolution alone does not help**: the scene at 512 px (same fit)
-//!   gives widths 1.4-2.6 cm, M_root 57.5 % (56 % at 256 px), length errors
-//!   up to 277 %, for scene 90 s + frosting 224 s instead of 10 + 28 s: the
-//!   Gaussian count, not the pixel, sets `sigma_n`.
-//! - **Per vertex** (Pearson correlation with the true outer-to-skin distance
-//!   over fur vertices): Frosting width -0.15, depth of the outer crossing
-//!   under M_outer +0.60 (the visual hull's inflation in concavities is
-//!   visible: the fitted surface sinks under M_outer there), `3 sigma_n`
-//!   +0.49, depth of the inner crossing +0.43. Per part the widths are about
-//!   1.1-1.4 cm everywhere except thin parts (ears 2.6, muzzle 2.0, paws 1.7,
-//!   tail 1.9 cm), where `sigma_n` is larger (ears 0.61 cm against 0.4) and
-//!   the outer crossing lies 0.5-0.7 cm *outside* M_outer: the window spans
-//!   the whole part, whose GT fur is the thinnest (0.36-0.49 cm). This is the
-//!   negative correlation with the GT part thicknesses.
-//! - `width_reading = "inner_depth"` with `medial_clamp` on the tiger:
-//!   M_root 53.2 % (56.1 % with the defaults), per-part length errors at most
-//!   155 % (295 %), but torso/belly/neck lengths 27-36 % short, mean strand
-//!   length 3.16 cm (GT 3.70, defaults 3.78) and codec F-scores 45.0 / 65.0 /
-//!   79.2 % against 51.7 / 68.5 / 81.7 % (2/3/4 cm); on the fox preset M_root
-//!   109 % against 105 %. Not a clear gain, so `pipelines/tiger.toml` keeps
-//!   Frosting's definition. `medial_clamp` alone changes only the ears
-//!   (median 2.0 -> 1.8 cm with `inner_depth`).
-//! - `medial_clamp` alone (Frosting's reading), with the codec's present
-//!   rates: ear length error 295 -> 256 % on the tiger (fox 74 -> 61 %),
-//!   every other part within a point, M_root unchanged (56.1 %, fox 104.7 %).
-//!   Codec F-scores over seeds 0-2 (`--set codec.seed=S`): 55.35 / 76.87 /
-//!   88.43 against 55.59 / 77.01 / 88.47 without it; the fixed-length
-//!   ablation loses more (its one length is the mean over parts, which the
-//!   ears' length pulled up), so at seed 0 the codec leads it at all three
-//!   thresholds with the clamp and not without. A gain on one small part, no
-//!   gain for the codec: not adopted.
-//!
-//! # More, smaller Gaussians (measured; not adopted)
-//!
-//! The initial scales follow the spacing `sqrt(area / n)`, so a larger
-//! budget means smaller Gaussians and a finer sampling of the fur layer.
-//! Measured with `fure run pipelines/tiger.toml --until defur --set
-//! frosting.gaussians=N --set frosting.iterations=I` on a private cache
-//! (per-part median widths from `metrics.json`, per-vertex correlation from
-//! `defur::tests::diagnose_pipeline_output`; GT fur thickness in brackets):
-//!
-//! | tiger, 256 px | 12k / 400 (default) | 48k / 400 | 48k / 800 | 48k / 1600 | 48k / 800 at 512 px |
-//! |---|---|---|---|---|---|
-//! | frosting seconds (2 cores, shared) | 27 | 43 | 94 | 258 | 264 |
-//! | train PSNR (dB) | 28.76 | 29.03 | 29.21 | 29.24 | 28.90 |
-//! | `saturated_inner_fraction` | 0.987 | 0.807 | 0.774 | 0.627 | 0.889 |
-//! | torso median width (0.86 cm) | 1.12 | 0.36 | 0.39 | 0.33 | 0.73 |
-//! | belly (2.06) / neck (1.14) | 1.21 / 1.31 | 0.36 / 0.54 | 0.51 / 0.63 | 0.44 / 0.43 | 0.76 / 0.92 |
-//! | ears (0.49) / muzzle (0.43) | 2.71 / 1.82 | 1.19 / 1.04 | 1.10 / 0.85 | 0.93 / 0.86 | 1.36 / 1.25 |
-//! | width vs outer-to-skin, Pearson | -0.15 | | -0.12 | | -0.19 |
-//! | M_root, % of GT thickness | 56.1 | 79.3 | 77.5 (72.9 in cm) | 81.0 | 64.2 |
-//! | largest part length error (%) | 295 (ears) | 114 (ears) | 105 (ears) | 68 (torso) | 108 (ears) |
-//!
-//! Four times the budget divides every width by about three, thin parts
-//! (ears, muzzle, paws, tail) stay the widest, and the per-vertex
-//! correlation stays negative: the widths still measure the Gaussians'
-//! size, not the fur (sub-pixel at 256 px: a pixel is about 1.1 cm, the fur
-//! 0.8 cm). Training longer only flattens them further. The fox preset
-//! behaves the same (`--set scene.preset=fox`): 12k -> 48k/800 shrinks the
-//! torso width 0.53 -> 0.18 cm (GT 1.30) and M_root goes 105 % -> 127 %.
-//! So the budget is, in effect, a thickness prior; 12,000 stays the default
-//! (its M_root is the better one on both presets, and choosing the count
-//! that best matches the tiger's GT would be calibrating on it). The 512 px
-//! run is also over the 5-minute preprocessing budget on its own (and its
-//! scene differs: its M_outer is at 146 % of the GT thickness, not 132 %).
-//!
-//! # Densification and a two-sided band (measured; not adopted)
-//!
-//! `probe`-style runs, `fure run pipelines/tiger.toml --until defur --set
-//! scene.preset=P --set scene.seed=S --set frosting.seed=S` on the dev
-//! split, seeds 0 and 1 (per-vertex Pearson of the widths with the true
-//! outer-to-skin distance; M_root's mean distance to the GT skin over fur
-//! parts, fraction of the GT thickness; mean per-part length error):
-//!
-//! | dev scene | setting | Pearson | M_root | length error % |
-//! |---|---|---|---|---|
-//! | tiger | defaults | -0.15 / -0.04 | 0.58 / 0.57 | 72 / 78 |
-//! | tiger | densify (every 100, grad 0.1, both sides) | -0.14 | 0.59 | 66 |
-//! | tiger | `inner_depth` | +0.44 / +0.46 | 0.59 / 0.59 | 44 / 45 |
-//! | tiger | `inner_depth` + densify | +0.42 / +0.43 | 0.60 / 0.60 | 42 / 43 |
-//! | fox | defaults | +0.27 / +0.22 | 1.14 / 1.12 | 51 / 53 |
-//! | fox | `inner_depth` | +0.21 / +0.22 | 1.18 / 1.16 | 45 / 46 |
-//! | fox | `inner_depth` + densify | +0.23 | 1.19 | 43 |
-//!
-//! Densification grows 12,000 Gaussians to about 17,000 (tiger; 4,700
-//! clones, 290 splits with `densify_grad = 0.1`, about the 85th percentile)
-//! and changes no figure by more than the seed spread, at up to twice the
-//! fitting time: at 256 px the fur (tiger 0.8 cm) is thinner than a pixel
-//! (about 1.05 cm), so no placement of Gaussians can read its thickness
-//! from the images, however they are densified. Both stay options.
+//! At 256 px the fur (about 0.8 cm on the tiger) is thinner than a pixel
+//! (about 1.1 cm), so the fitted widths measure the Gaussians' extent along
+//! the normal, set by their initialisation and count, rather than the fur:
+//! the window saturates inside the Gaussians, `sigma_n` is the
+//! initialisation's, and more and smaller Gaussians, a higher resolution,
+//! densification, a two-sided band, a wider window or pruning unseen
+//! Gaussians did not bring the widths closer to the true outer-to-skin
+//! distance by more than the seed spread. So the stage keeps Frosting's
+//! definition and 12,000 Gaussians (choosing the count that best matches the
+//! tiger's ground truth would be calibrating on it), and the options stay
+//! off. The measurements are in docs/history.md, section "Frosting: what the
+//! widths measure".
 //!
 //! # Imported widths
 //!

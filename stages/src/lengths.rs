@@ -34,11 +34,11 @@
 //! 0.8 to 3.9, and the fox's torso ratio (7.4) would put the tiger's torso
 //! at +118 %. At 256 px `T_p` follows the fitted Gaussians' thickness along
 //! the normal (set by their initialisation and the animal's size, see the
-//! `frosting` docs), not the fur, so no per-part multiplier transfers between
+//! `frosting` docs and docs/history.md), not the fur, so no per-part multiplier transfers between
 //! presets; the physical defaults above stay.
 //!
 //! With *oracle* widths (the true outer-to-skin distance per vertex, the
-//! ignored `defur::tests::oracle_decomposition_on_a_pipeline_output`), the
+//! `oracle` mode of the `defur_diagnostics` example), the
 //! multiplier each part needs (GT mean length / `T_p`) is 1.9-4.2 on the
 //! tiger (torso 2.81, belly 2.11, neck 3.11, head 4.15, muzzle 2.74, ears
 //! 1.87, front legs 3.45, hind legs 3.16, paws 3.72, tail 3.48) and 1.9-3.9

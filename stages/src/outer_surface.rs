@@ -56,7 +56,7 @@
 //! How far the hull is from the skin (synthetic tiger, 36 views at 256 px):
 //! on average 1.06 cm, 132 % of the GT fur thickness, of which about 0.24-0.48
 //! cm per part is the gap between the hull and the fur (concavities a visual
-//! hull cannot carve; `defur` module docs). A finer grid does not close it:
+//! hull cannot carve; docs/history.md, "Defurring: where the error comes from"). A finer grid does not close it:
 //! `--set outer.max_resolution=320 --set outer.voxel_pixels=0.75` (voxel 0.8
 //! cm, 94,060 vertices instead of 23,100) gives 134 %, and M_root 64 %
 //! instead of 56 % (the solve smooths over more, shorter edges, and the

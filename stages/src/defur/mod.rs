@@ -51,88 +51,23 @@
 //!   objective is not invariant to the scene's length unit: `a_ij = 1 /
 //!   |x_i - x_j|` has units of 1/length, so measuring lengths in units k
 //!   times smaller multiplies the data terms by k^2 but the smoothness term
-//!   only by k. The smoothing length is about `sqrt(lambda h / c)` for edge
-//!   length h: on the tiger (scene units, D = 2.8, h = 1.4 cm) about 30 cm,
-//!   wider than a leg; in centimetres about 3 cm. `units = "cm"` solves in
-//!   centimetres (via `s_cm`; the same minimiser as scene units with
-//!   `lambda / s_cm`), which makes M_root independent of the scene's unit.
+//!   only by k, and the smoothing length is about `sqrt(lambda h / c)` for
+//!   edge length h (on the tiger in scene units about 30 cm, wider than a
+//!   leg; in centimetres about 3 cm). `units = "cm"` solves in centimetres
+//!   (via `s_cm`; the same minimiser as scene units with `lambda / s_cm`);
 //!   `units = "diagonal"` measures lengths in diagonals `D` of M_outer's
-//!   bounding box: invariant to the capture's unit like `cm`, and needs no
-//!   metric scale; its smoothing length is a fixed fraction of the animal's
-//!   size (about `sqrt(lambda h / D)` diagonals). **Default `diagonal`.**
-//!   The literal reading is not invariant to the capture's unit (a capture
-//!   in millimetres would be smoothed 30x less than the same in metres),
-//!   which the project does not accept; between the two invariant forms
-//!   the benchmark's dev split chose (M_root's mean distance to the GT
-//!   skin over the GT fur thickness, seeds 0-2, `--until defur`): tiger
-//!   diagonal 0.58 ± 0.02 against cm 0.77 ± 0.01, fox 1.14 ± 0.04 against
-//!   1.05 ± 0.01; dev mean 0.86 against 0.91. The literal reading scored
-//!   0.56 ± 0.01 (tiger) and 1.06 ± 0.02 (fox), dev mean 0.81: the unit
-//!   invariance costs 0.05 on the dev mean, the price of not depending on
-//!   the unit a capture happens to be in. `units = "scene"` is kept for
-//!   the record.
+//!   bounding box, invariant to the capture's unit like `cm` but needing no
+//!   metric scale, its smoothing length a fixed fraction of the animal's
+//!   size. The literal reading (`units = "scene"`, kept for the record)
+//!   would smooth a capture in millimetres 30x less than the same in metres,
+//!   which the project does not accept; between the two invariant forms the
+//!   benchmark's dev split chose `diagonal`.
 //!
-//! # Where the error comes from (synthetic tiger, 256 px)
-//!
-//! Two ignored diagnostics in `tests.rs` read a pipeline's output directory
-//! (`FURE_ORACLE_DIR=<out>/<pipeline> cargo test -p fure-stages --release
-//! --lib oracle -- --ignored --nocapture`, and `diagnose` for the
-//! per-part and per-reading table). Mean distance to the GT skin as a
-//! fraction of the mean GT fur thickness (0.80 cm; M_outer is at 132 %):
-//!
-//! | widths \ defurring | direct `d = w` | solve, scene units | `units = "cm"` | `eta = 0` | `lambda = 0` |
-//! |---|---|---|---|---|---|
-//! | oracle: true closest outer-to-skin distance | 8.5 | 47.9 | 28.4 | 49.6 | 21.1 |
-//! | oracle: ray distance along `-n` | 6.9 | 47.7 | 28.6 | 48.9 | 21.2 |
-//! | GT part thickness (constant per part) | 47.2 | 59.4 | 47.2 | | |
-//! | fitted Frosting widths, 12k Gaussians (default) | 85.9 | **56.1** | 77.1 | | |
-//! | fitted, 48k Gaussians / 800 iterations | 82.5 | 77.5 | 72.9 | | |
-//!
-//! - **The solve, with perfect widths.** The geometry (normals, the visual
-//!   hull) is not the limit (8.5 % direct). The literal solve loses 40
-//!   points to its smoothing: `lambda sum a_ij (d_i - d_j)^2` with `a_ij = 1
-//!   / |x_i - x_j|` against data terms of weight about 1 smooths over a
-//!   length of about `sqrt(lambda h)` for edge length `h`: about 33 cm in
-//!   the tiger's scene units (mean edge h = 0.0147 units = 1.4 cm, D = 2.8
-//!   units = 266 cm), wider than a leg, and about 3.4 cm in centimetres. Solving in cm leaves 28.4
-//!   % (25.8 % before the post-check), without smoothing 21.1 %; `eta`
-//!   matters little (49.6 % without it). On the fox preset (`--set
-//!   scene.preset=fox`) the same oracle gives 35.0 % direct, 76.2 % in scene
-//!   units, 66.8 % in cm and 63.7 % without smoothing: thick fur (tail 2.9
-//!   cm) on thin parts leaves no room along the normals.
-//! - **The widths.** Even exact per-part constants stop at 47.2 %: the
-//!   outer-to-skin distance varies within parts (hull inflation in
-//!   concavities; M_outer is 0.26 cm outside the fur on average). The
-//!   fitted widths carry no per-vertex information (Pearson -0.15 with the
-//!   true distance; 85.9 % displacing by them directly): at 256 px a pixel
-//!   is about 1.1 cm and the fur 0.8 cm, and the widths follow the
-//!   Gaussians' size, set by the budget (see the `frosting` docs: four
-//!   times the budget divides them by three and M_root rises to 77-81 %).
-//!   The best per-vertex cue found is the depth of Frosting's outer crossing
-//!   under M_outer (Pearson +0.60 at 12k, +0.27 at 48k), and even the GT part
-//!   thickness plus that depth only reaches 39.2 % directly.
-//!   `width_reading = "inner_depth"` (Pearson +0.43): 53.2 %.
-//! - **Both halves of the distance vary.** `diagnose` splits the
-//!   outer-to-skin distance into the hull's gap down to the fur (distance to
-//!   the nearest GT strand point, strands resampled every 1 mm; this
-//!   includes the spaces between strands) and the rest: over fur vertices
-//!   the variances are 0.45 cm^2 (total), 0.22 (gap), 0.17 (rest); the gap
-//!   averages 0.24-0.48 cm per part. A perfect envelope plus the exact GT
-//!   part thickness would give 37.4 % directly, the gap plus one global
-//!   constant 42.4 %: reaching 25 % needs the fur's own thickness per
-//!   vertex, to a few millimetres.
-//! - **Every (budget, reading, units) combination measured** through the
-//!   solve (the `diagnose` readings: Frosting width, inner-crossing depth,
-//!   outer-crossing depth, `3 sigma_n`, `1.5 sigma_n` + outer depth; at 12k
-//!   and 48k Gaussians; scene units and cm) lies between 53.2 % (12k,
-//!   inner-crossing depth or `3 sigma_n`, scene units) and 121 %; the
-//!   default's 56.1 % is within 3 points of the best, and the best is worse
-//!   on the fox (see the `frosting` docs).
-//! - So the 25 % target needs both an unsmoothed (or unit-consistent)
-//!   solve *and* widths within a few millimetres per vertex; the second is
-//!   beyond what 36 views at 256 px show. With the fitted widths the
-//!   literal scene-unit smoothing is what hides their noise (56.1 % against
-//!   77.1 % in cm), so the default stays `units = "scene"`.
+//! The error budget (oracle widths, the solve's smoothing, the widths'
+//! per-vertex information) and the dev-split figures behind these choices
+//! are in docs/history.md, section "Defurring: where the error comes from";
+//! `cargo run -p fure-stages --release --example defur_diagnostics` measures
+//! them on a run's outputs.
 //!
 //! Metrics (only with the optional `gt_skin` input): distances from each
 //! mesh to the GT skin are closest-point distances from the mesh's
@@ -574,7 +509,7 @@ pub fn distances_to(skin: &MeshQuery, mesh: &Mesh) -> Vec<f32> {
 }
 
 /// Mean GT fur thickness (cm) from `scene` parts and the GT skin's part areas.
-fn gt_mean_thickness_cm(skin: &Mesh, scene: &SceneInfo) -> Option<f64> {
+pub fn gt_mean_thickness_cm(skin: &Mesh, scene: &SceneInfo) -> Option<f64> {
     let areas = vertex_areas(skin);
     let mut num = 0.0f64;
     let mut den = 0.0f64;
