@@ -39,120 +39,149 @@ pub struct Cli {
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Run a pipeline (only what is not cached).
-    Run {
-        pipeline: PathBuf,
-        /// Override a parameter: STAGE.PARAM=VALUE (VALUE is TOML; bare words are strings).
-        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
-        sets: Vec<String>,
-        /// Stages running at once (default: number of cores).
-        #[arg(long, short)]
-        jobs: Option<usize>,
-        /// Run only this stage and what it depends on.
-        #[arg(long)]
-        until: Option<String>,
-        /// Write the run report (JSON) here.
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Show what would run, run nothing.
-        #[arg(long)]
-        dry_run: bool,
-        /// Where outputs are materialised (`<out>/<pipeline>/<stage>/`).
-        #[arg(long, default_value = "out")]
-        out: PathBuf,
-        /// Plain lines even on a terminal.
-        #[arg(long)]
-        plain: bool,
-        /// Keep running independent stages after a failure.
-        #[arg(long)]
-        keep_going: bool,
-        #[command(flatten)]
-        executor: ExecutorArgs,
-        /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
-        #[arg(long, value_name = "DEVICE")]
-        device: Option<String>,
-    },
+    Run(RunArgs),
     /// For every stage: cached, or will run and why.
-    Status {
-        pipeline: PathBuf,
-        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
-        sets: Vec<String>,
-        #[arg(long)]
-        until: Option<String>,
-        /// Print the report as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Status(StatusArgs),
     /// Print the stage graph.
-    Dag {
-        pipeline: PathBuf,
-        #[arg(long, value_enum, default_value = "text")]
-        format: DagFormat,
-        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
-        sets: Vec<String>,
-    },
+    Dag(DagArgs),
     /// Run every variant of a parameter grid ([sweep], [sweep.each], --grid, --each), then
     /// the [aggregate.NAME] stages on the sweep record.
-    Sweep {
-        pipeline: PathBuf,
-        /// A crossed axis: STAGE.PARAM=V1,V2,... (or a TOML array); replaces a
-        /// [sweep] or [sweep.each] axis's values.
-        #[arg(long = "grid", value_name = "STAGE.PARAM=V1,V2,...")]
-        grids: Vec<String>,
-        /// A one-at-a-time axis (like [sweep.each]): STAGE.PARAM=V1,V2,...
-        #[arg(long = "each", value_name = "STAGE.PARAM=V1,V2,...")]
-        eaches: Vec<String>,
-        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
-        sets: Vec<String>,
-        #[arg(long, short)]
-        jobs: Option<usize>,
-        #[arg(long, default_value = "out")]
-        out: PathBuf,
-        /// Table path prefix (writes PREFIX.md and PREFIX.csv); default `<out>/<pipeline>/sweep`.
-        #[arg(long)]
-        table: Option<PathBuf>,
-        /// Check every variant and aggregate, show per variant what is cached
-        /// and what would run; run nothing, write nothing.
-        #[arg(long)]
-        dry_run: bool,
-        #[command(flatten)]
-        executor: ExecutorArgs,
-        /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
-        #[arg(long, value_name = "DEVICE")]
-        device: Option<String>,
-    },
+    Sweep(SweepArgs),
     /// Remove cache entries and objects.
-    Gc {
-        /// Keep only the entries these pipelines currently resolve to (repeatable).
-        #[arg(long = "keep", value_name = "PIPELINE")]
-        keep: Vec<PathBuf>,
-        /// Evict entries (not kept ones) until the cache fits: 500M, 10G, ...
-        #[arg(long)]
-        max_size: Option<String>,
-    },
+    Gc(GcArgs),
     /// Rehash every object; drop corrupted entries.
     Verify,
     /// Reproducible benchmark: N runs on fresh temporary caches.
-    Bench {
-        pipeline: PathBuf,
-        #[arg(long, default_value_t = 3)]
-        repeat: usize,
-        #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
-        sets: Vec<String>,
-        #[arg(long, short)]
-        jobs: Option<usize>,
-        /// Output prefix (writes PREFIX.json and PREFIX.md); default `out/<pipeline>/bench`.
-        #[arg(long)]
-        output: Option<PathBuf>,
-    },
+    Bench(BenchArgs),
     /// List the stage kinds with their parameters and ports.
-    Stages {
-        /// Show only this kind.
-        kind: Option<String>,
-    },
+    Stages(StagesArgs),
     /// Compute the one stage of a Slurm job spec against the cache (what
     /// `--executor slurm` submits; see docs/cluster.md).
     #[command(hide = true)]
-    Worker { spec: PathBuf },
+    Worker(WorkerArgs),
+}
+
+// The subcommands' arguments. Their help text is the variant's doc comment
+// in `Command`, so these structs carry none of their own.
+
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    pub pipeline: PathBuf,
+    /// Override a parameter: STAGE.PARAM=VALUE (VALUE is TOML; bare words are strings).
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+    pub sets: Vec<String>,
+    /// Stages running at once (default: number of cores).
+    #[arg(long, short)]
+    pub jobs: Option<usize>,
+    /// Run only this stage and what it depends on.
+    #[arg(long)]
+    pub until: Option<String>,
+    /// Write the run report (JSON) here.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Show what would run, run nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Where outputs are materialised (`<out>/<pipeline>/<stage>/`).
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Plain lines even on a terminal.
+    #[arg(long)]
+    pub plain: bool,
+    /// Keep running independent stages after a failure.
+    #[arg(long)]
+    pub keep_going: bool,
+    #[command(flatten)]
+    pub executor: ExecutorArgs,
+    /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
+    #[arg(long, value_name = "DEVICE")]
+    pub device: Option<String>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct StatusArgs {
+    pub pipeline: PathBuf,
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+    pub sets: Vec<String>,
+    #[arg(long)]
+    pub until: Option<String>,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct DagArgs {
+    pub pipeline: PathBuf,
+    #[arg(long, value_enum, default_value = "text")]
+    pub format: DagFormat,
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+    pub sets: Vec<String>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SweepArgs {
+    pub pipeline: PathBuf,
+    /// A crossed axis: STAGE.PARAM=V1,V2,... (or a TOML array); replaces a
+    /// [sweep] or [sweep.each] axis's values.
+    #[arg(long = "grid", value_name = "STAGE.PARAM=V1,V2,...")]
+    pub grids: Vec<String>,
+    /// A one-at-a-time axis (like [sweep.each]): STAGE.PARAM=V1,V2,...
+    #[arg(long = "each", value_name = "STAGE.PARAM=V1,V2,...")]
+    pub eaches: Vec<String>,
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+    pub sets: Vec<String>,
+    #[arg(long, short)]
+    pub jobs: Option<usize>,
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Table path prefix (writes PREFIX.md and PREFIX.csv); default `<out>/<pipeline>/sweep`.
+    #[arg(long)]
+    pub table: Option<PathBuf>,
+    /// Check every variant and aggregate, show per variant what is cached
+    /// and what would run; run nothing, write nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    #[command(flatten)]
+    pub executor: ExecutorArgs,
+    /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
+    #[arg(long, value_name = "DEVICE")]
+    pub device: Option<String>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct GcArgs {
+    /// Keep only the entries these pipelines currently resolve to (repeatable).
+    #[arg(long = "keep", value_name = "PIPELINE")]
+    pub keep: Vec<PathBuf>,
+    /// Evict entries (not kept ones) until the cache fits: 500M, 10G, ...
+    #[arg(long)]
+    pub max_size: Option<String>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct BenchArgs {
+    pub pipeline: PathBuf,
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE")]
+    pub sets: Vec<String>,
+    #[arg(long, short)]
+    pub jobs: Option<usize>,
+    /// Output prefix (writes PREFIX.json and PREFIX.md); default `out/<pipeline>/bench`.
+    #[arg(long)]
+    pub output: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct StagesArgs {
+    /// Show only this kind.
+    pub kind: Option<String>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct WorkerArgs {
+    pub spec: PathBuf,
 }
 
 /// Where the stages that must run are computed.
@@ -346,477 +375,484 @@ fn executor(
 
 fn dispatch(engine: &Engine, cli: &Cli) -> Result<ExitCode, Failure> {
     match &cli.command {
-        Command::Run {
-            pipeline,
-            sets,
-            jobs,
-            until,
-            report,
-            dry_run,
-            out,
-            plain,
-            keep_going,
-            executor: exec_args,
-            device,
-        } => {
-            let sets = &param_sets(engine, pipeline, sets, "device", device.as_deref())?;
-            let t0 = std::time::Instant::now();
-            let plan = load_plan(engine, pipeline, sets, until.as_deref())?;
-            let t_plan = t0.elapsed();
-            let cache = open_cache(&cli.cache, Access::Shared)?;
-            let (executor, remote_jobs) = if exec_args.executor == ExecutorKind::Local {
-                (exec::Executor::Local, None)
-            } else {
-                let p = engine.load(pipeline, sets)?;
-                executor(exec_args, p.executor.as_ref(), &cache, *dry_run)?
-            };
-            let opts = RunOptions {
-                jobs: match (jobs, remote_jobs) {
-                    (None, Some(j)) => j,
-                    _ => jobs_or_default(*jobs)?,
-                },
-                cores: exec::available_cores(),
-                out_root: Some(out.clone()),
-                dry_run: *dry_run,
-                ui: if *plain {
-                    UiMode::Plain
-                } else {
-                    UiMode::detect()
-                },
-                keep_going: *keep_going,
-                executor,
-            };
-            let rep = exec::run(&plan, &cache, &opts);
-            let json = serde_json::to_vec_pretty(&rep).unwrap_or_default();
-            if !dry_run {
-                cache.save_run_report(&plan.name, &json);
-            }
-            if let Some(path) = report {
-                write_file(path, &json)?;
-            }
-            print_summary(&rep, *dry_run, out);
-            if std::env::var_os("FURE_TIMING").is_some() {
-                eprintln!(
-                    "timing: load+plan {:.1} ms, run {:.1} ms, total {:.1} ms",
-                    t_plan.as_secs_f64() * 1e3,
-                    rep.seconds * 1e3,
-                    t0.elapsed().as_secs_f64() * 1e3
-                );
-            }
-            Ok(if rep.ok() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::from(EXIT_FAILED)
-            })
-        }
-        Command::Status {
-            pipeline,
-            sets,
-            until,
-            json,
-        } => {
-            let plan = load_plan(engine, pipeline, sets, until.as_deref())?;
-            let cache = open_cache(&cli.cache, Access::Shared)?;
-            let opts = RunOptions {
-                dry_run: true,
-                out_root: None,
-                ui: UiMode::Quiet,
-                ..RunOptions::default()
-            };
-            let rep = exec::run(&plan, &cache, &opts);
-            if *json {
-                println!("{}", serde_json::to_string_pretty(&rep).unwrap_or_default());
-            } else {
-                let w = rep.stages.iter().map(|s| s.name.len()).max().unwrap_or(0);
-                for s in &rep.stages {
-                    let (state, reason) = match s.status {
-                        Status::Cached => (
-                            "cached",
-                            if s.reason.is_empty() {
-                                "up to date".to_string()
-                            } else {
-                                s.reason.clone()
-                            },
-                        ),
-                        Status::WillRun => ("will run", s.reason.clone()),
-                        Status::Failed => ("error", s.error.clone().unwrap_or_default()),
-                        _ => ("blocked", s.reason.clone()),
-                    };
-                    println!("{:<w$}  {:<8}  {}", s.name, state, reason, w = w);
-                }
-                println!(
-                    "{}: {} cached, {} will run",
-                    rep.pipeline,
-                    rep.count(Status::Cached),
-                    rep.count(Status::WillRun)
-                );
-            }
-            Ok(if rep.count(Status::Failed) > 0 {
-                ExitCode::from(EXIT_FAILED)
-            } else {
-                ExitCode::SUCCESS
-            })
-        }
-        Command::Dag {
-            pipeline,
-            format,
-            sets,
-        } => {
-            let plan = load_plan(engine, pipeline, sets, None)?;
-            print!("{}", dag(&plan, *format));
+        Command::Run(a) => cmd_run(engine, &cli.cache, a),
+        Command::Status(a) => cmd_status(engine, &cli.cache, a),
+        Command::Dag(a) => {
+            let plan = load_plan(engine, &a.pipeline, &a.sets, None)?;
+            print!("{}", dag(&plan, a.format));
             Ok(ExitCode::SUCCESS)
         }
-        Command::Sweep {
-            pipeline,
-            grids,
-            eaches,
-            sets,
-            jobs,
-            out,
-            table,
-            dry_run,
-            executor: exec_args,
-            device,
-        } => {
-            let sets = &param_sets(engine, pipeline, sets, "device", device.as_deref())?;
-            let p = engine.load(pipeline, sets)?;
-            let axis_list = |opt: &str, list: &[String]| -> Result<Vec<_>, Failure> {
-                list.iter()
-                    .map(|g| {
-                        let (k, v) = g.split_once('=').ok_or_else(|| {
-                            Failure::Usage(format!(
-                                "error: {opt} `{g}`: expected STAGE.PARAM=V1,V2,..."
-                            ))
-                        })?;
-                        Ok((k.trim().to_string(), parse_cli_list(v)))
-                    })
-                    .collect()
-            };
-            let axes = sweep::Axes::new(
-                &p,
-                &axis_list("--grid", grids)?,
-                &axis_list("--each", eaches)?,
-            );
-            let variants = axes.variants();
-            crate::publish::check(&p).map_err(|e| Failure::Usage(format!("error: {e}")))?;
-            let cache = open_cache(&cli.cache, Access::Shared)?;
-            let (executor, remote_jobs) =
-                executor(exec_args, p.executor.as_ref(), &cache, *dry_run)?;
-            let opts = RunOptions {
-                jobs: match (jobs, remote_jobs) {
-                    (None, Some(j)) => j,
-                    _ => jobs_or_default(*jobs)?,
-                },
-                cores: exec::available_cores(),
-                out_root: if *dry_run { None } else { Some(out.clone()) },
-                dry_run: *dry_run,
-                ui: UiMode::Quiet,
-                keep_going: true,
-                executor,
-            };
-            println!("sweep {}: {} variants", p.name, variants.len());
-            let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
-                if *dry_run {
-                    println!(
-                        "variant {} ({}){}: {} cached, {} will run",
-                        row.variant.index,
-                        sweep::describe(&row.variant),
-                        row.variant
-                            .varied
-                            .as_ref()
-                            .map(|k| format!(" varying {k}"))
-                            .unwrap_or_default(),
-                        row.report.count(Status::Cached),
-                        row.report.count(Status::WillRun)
-                    );
-                    return;
-                }
-                println!(
-                    "variant {} ({}): {} ran, {} cached, {} failed, {:.2}s: {}{}",
-                    row.variant.index,
-                    sweep::describe(&row.variant),
-                    row.report.count(Status::Ran),
-                    row.report.count(Status::Cached),
-                    row.report.count(Status::Failed),
-                    row.report.seconds,
-                    row.status.as_str(),
-                    if row.reason.is_empty() {
-                        String::new()
+        Command::Sweep(a) => cmd_sweep(engine, &cli.cache, a),
+        Command::Gc(a) => cmd_gc(engine, &cli.cache, a),
+        Command::Verify => cmd_verify(&cli.cache),
+        Command::Bench(a) => cmd_bench(engine, a),
+        Command::Worker(a) => cmd_worker(engine, &cli.cache, &a.spec),
+        Command::Stages(a) => cmd_stages(engine, a.kind.as_deref()),
+    }
+}
+
+/// `--jobs`, else the remote executor's default, else the number of cores.
+fn jobs_for(jobs: Option<usize>, remote_jobs: Option<usize>) -> Result<usize, Failure> {
+    match (jobs, remote_jobs) {
+        (None, Some(j)) => Ok(j),
+        _ => jobs_or_default(jobs),
+    }
+}
+
+/// Options of a run that only looks (`status`, `gc --keep`).
+fn inspect_options() -> RunOptions {
+    RunOptions {
+        dry_run: true,
+        out_root: None,
+        ui: UiMode::Quiet,
+        ..RunOptions::default()
+    }
+}
+
+fn exit_code(ok: bool) -> ExitCode {
+    if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_FAILED)
+    }
+}
+
+fn cmd_run(engine: &Engine, cache_dir: &Path, a: &RunArgs) -> Result<ExitCode, Failure> {
+    let sets = &param_sets(engine, &a.pipeline, &a.sets, "device", a.device.as_deref())?;
+    let t0 = std::time::Instant::now();
+    let plan = load_plan(engine, &a.pipeline, sets, a.until.as_deref())?;
+    let t_plan = t0.elapsed();
+    let cache = open_cache(cache_dir, Access::Shared)?;
+    let (executor, remote_jobs) = if a.executor.executor == ExecutorKind::Local {
+        (exec::Executor::Local, None)
+    } else {
+        let p = engine.load(&a.pipeline, sets)?;
+        executor(&a.executor, p.executor.as_ref(), &cache, a.dry_run)?
+    };
+    let opts = RunOptions {
+        jobs: jobs_for(a.jobs, remote_jobs)?,
+        cores: exec::available_cores(),
+        out_root: Some(a.out.clone()),
+        dry_run: a.dry_run,
+        ui: if a.plain {
+            UiMode::Plain
+        } else {
+            UiMode::detect()
+        },
+        keep_going: a.keep_going,
+        executor,
+    };
+    let rep = exec::run(&plan, &cache, &opts);
+    let json = serde_json::to_vec_pretty(&rep).unwrap_or_default();
+    if !a.dry_run {
+        cache.save_run_report(&plan.name, &json);
+    }
+    if let Some(path) = &a.report {
+        write_file(path, &json)?;
+    }
+    print_summary(&rep, a.dry_run, &a.out);
+    if std::env::var_os("FURE_TIMING").is_some() {
+        eprintln!(
+            "timing: load+plan {:.1} ms, run {:.1} ms, total {:.1} ms",
+            t_plan.as_secs_f64() * 1e3,
+            rep.seconds * 1e3,
+            t0.elapsed().as_secs_f64() * 1e3
+        );
+    }
+    Ok(exit_code(rep.ok()))
+}
+
+fn cmd_status(engine: &Engine, cache_dir: &Path, a: &StatusArgs) -> Result<ExitCode, Failure> {
+    let plan = load_plan(engine, &a.pipeline, &a.sets, a.until.as_deref())?;
+    let cache = open_cache(cache_dir, Access::Shared)?;
+    let rep = exec::run(&plan, &cache, &inspect_options());
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&rep).unwrap_or_default());
+    } else {
+        let w = rep.stages.iter().map(|s| s.name.len()).max().unwrap_or(0);
+        for s in &rep.stages {
+            let (state, reason) = match s.status {
+                Status::Cached => (
+                    "cached",
+                    if s.reason.is_empty() {
+                        "up to date".to_string()
                     } else {
-                        format!(" ({})", row.reason)
-                    }
-                );
-                if let Ok(json) = serde_json::to_vec_pretty(&row.report) {
-                    cache.save_run_report(&row.name, &json);
-                }
-            })?;
-            if *dry_run {
-                if !p.aggregates.is_empty() {
-                    println!(
-                        "aggregates (run after the variants): {}",
-                        p.aggregates
-                            .iter()
-                            .map(|a| a.name.as_str())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    );
-                }
-                return Ok(ExitCode::SUCCESS);
-            }
-            let prefix = table
-                .clone()
-                .unwrap_or_else(|| out.join(&p.name).join("sweep"));
-            let md = sweep::markdown(&rows);
-            write_file(&prefix.with_extension("md"), md.as_bytes())?;
-            write_file(&prefix.with_extension("csv"), sweep::csv(&rows).as_bytes())?;
-            println!("\n{md}");
-            println!(
-                "table: {} and {}",
-                prefix.with_extension("md").display(),
-                prefix.with_extension("csv").display()
-            );
-            let record_path = out.join(&p.name).join("sweep.json");
-            let record = sweep::record(&p.name, &axes, &rows);
-            sweep::write_if_changed(&record_path, &sweep::record_bytes(&record))
-                .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
-            println!("record: {}", record_path.display());
-            let failed = rows
-                .iter()
-                .filter(|r| r.status == sweep::VariantStatus::Failed)
-                .count();
-            let degraded = rows
-                .iter()
-                .filter(|r| r.status == sweep::VariantStatus::Degraded)
-                .count();
-            println!(
-                "{failed} of {} variants failed, {degraded} degraded",
-                rows.len()
-            );
-            // Aggregates read the record through an absolute path (it is not
-            // part of any key: only its content is).
-            let abs = std::path::absolute(&record_path)
-                .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
-            let mut code = ExitCode::SUCCESS;
-            if let Some(rep) = sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
-                if let Ok(json) = serde_json::to_vec_pretty(&rep) {
-                    cache.save_run_report(&rep.pipeline, &json);
-                }
-                for s in &rep.stages {
-                    println!(
-                        "aggregate {}: {}{}",
-                        s.name,
-                        match s.status {
-                            Status::Ran => "ran",
-                            Status::Cached => "cached",
-                            Status::Failed => "failed",
-                            _ => "skipped",
-                        },
-                        match s.status {
-                            Status::Ran | Status::Cached => format!(
-                                "; outputs in {}",
-                                out.join(&p.name).join(&s.name).display()
-                            ),
-                            _ => String::new(),
-                        }
-                    );
-                }
-                if !rep.ok() {
-                    for s in rep.stages.iter().filter(|s| s.status == Status::Failed) {
-                        eprintln!(
-                            "error: aggregate stage `{}` ({}) failed: {}",
-                            s.name,
-                            s.kind,
-                            s.error.clone().unwrap_or_default()
-                        );
-                    }
-                    code = ExitCode::from(EXIT_FAILED);
-                } else if !p.publish.is_empty() {
-                    let command: Vec<String> = std::env::args()
-                        .enumerate()
-                        .map(|(i, a)| if i == 0 { "fure".into() } else { a })
-                        .collect();
-                    let repo = p.file.parent().unwrap_or(Path::new("."));
-                    let stamp = crate::publish::provenance(&command.join(" "), repo);
-                    let written = crate::publish::publish(&p, &rep, &stamp)
-                        .map_err(|e| Failure::Failed(format!("error: {e}")))?;
-                    for w in written {
-                        println!("published {}", w.display());
-                    }
-                }
-            }
-            Ok(code)
-        }
-        Command::Gc { keep, max_size } => {
-            let max_size = match max_size {
-                Some(s) => Some(
-                    cache::parse_size(s)
-                        .map_err(|e| Failure::Usage(format!("error: --max-size {e}")))?,
+                        s.reason.clone()
+                    },
                 ),
-                None => None,
+                Status::WillRun => ("will run", s.reason.clone()),
+                Status::Failed => ("error", s.error.clone().unwrap_or_default()),
+                _ => ("blocked", s.reason.clone()),
             };
-            let keep_keys = if keep.is_empty() {
-                None
-            } else {
-                // Keys the kept pipelines resolve to now (as far as the cache can tell).
-                let mut keys = BTreeSet::new();
-                let cache = open_cache(&cli.cache, Access::Shared)?;
-                for k in keep {
-                    let plan = load_plan(engine, k, &[], None)?;
-                    let opts = RunOptions {
-                        dry_run: true,
-                        out_root: None,
-                        ui: UiMode::Quiet,
-                        ..RunOptions::default()
-                    };
-                    let rep = exec::run(&plan, &cache, &opts);
-                    keys.extend(
-                        rep.stages
-                            .into_iter()
-                            .filter(|s| s.status == Status::Cached)
-                            .map(|s| s.key),
-                    );
-                }
-                drop(cache);
-                Some(keys)
-            };
-            let cache = open_cache(&cli.cache, Access::Exclusive)?;
-            let rep = cache.gc(&GcOptions {
-                keep: keep_keys,
-                max_size,
-            });
-            println!(
-                "gc: kept {} entries ({:.1} MiB), removed {} entries and {} objects ({:.1} MiB), {} stale staging dirs",
-                rep.entries_kept,
-                rep.bytes_kept as f64 / 1048576.0,
-                rep.entries_removed,
-                rep.objects_removed,
-                rep.bytes_freed as f64 / 1048576.0,
-                rep.tmp_removed
-            );
-            Ok(ExitCode::SUCCESS)
+            println!("{:<w$}  {:<8}  {}", s.name, state, reason, w = w);
         }
-        Command::Verify => {
-            let cache = open_cache(&cli.cache, Access::Exclusive)?;
-            let rep = cache.verify();
-            for o in &rep.corrupted_objects {
-                println!("corrupted object {o} (removed)");
-            }
-            for e in &rep.dropped_entries {
-                println!("dropped entry {e}");
-            }
-            for m in &rep.broken_manifests {
-                println!("invalid manifest: {m} (removed)");
-            }
-            for v in &rep.violations {
-                println!("not fure's: {v}");
-            }
+        println!(
+            "{}: {} cached, {} will run",
+            rep.pipeline,
+            rep.count(Status::Cached),
+            rep.count(Status::WillRun)
+        );
+    }
+    Ok(exit_code(rep.count(Status::Failed) == 0))
+}
+
+/// `--grid`/`--each` values: STAGE.PARAM=V1,V2,...
+fn axis_list(
+    opt: &str,
+    list: &[String],
+) -> Result<Vec<(String, Vec<fure_stage_api::Value>)>, Failure> {
+    list.iter()
+        .map(|g| {
+            let (k, v) = g.split_once('=').ok_or_else(|| {
+                Failure::Usage(format!(
+                    "error: {opt} `{g}`: expected STAGE.PARAM=V1,V2,..."
+                ))
+            })?;
+            Ok((k.trim().to_string(), parse_cli_list(v)))
+        })
+        .collect()
+}
+
+fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCode, Failure> {
+    let sets = &param_sets(engine, &a.pipeline, &a.sets, "device", a.device.as_deref())?;
+    let p = engine.load(&a.pipeline, sets)?;
+    let axes = sweep::Axes::new(
+        &p,
+        &axis_list("--grid", &a.grids)?,
+        &axis_list("--each", &a.eaches)?,
+    );
+    let variants = axes.variants();
+    crate::publish::check(&p).map_err(|e| Failure::Usage(format!("error: {e}")))?;
+    let cache = open_cache(cache_dir, Access::Shared)?;
+    let (executor, remote_jobs) = executor(&a.executor, p.executor.as_ref(), &cache, a.dry_run)?;
+    let opts = RunOptions {
+        jobs: jobs_for(a.jobs, remote_jobs)?,
+        cores: exec::available_cores(),
+        out_root: if a.dry_run { None } else { Some(a.out.clone()) },
+        dry_run: a.dry_run,
+        ui: UiMode::Quiet,
+        keep_going: true,
+        executor,
+    };
+    println!("sweep {}: {} variants", p.name, variants.len());
+    let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
+        print_variant(row, a.dry_run, &cache)
+    })?;
+    if a.dry_run {
+        if !p.aggregates.is_empty() {
             println!(
-                "verify: {} objects, {} entries checked; {} corrupted objects, {} entries dropped, {} invalid manifests, {} stray paths{}",
-                rep.objects_checked,
-                rep.entries_checked,
-                rep.corrupted_objects.len(),
-                rep.dropped_entries.len(),
-                rep.broken_manifests.len(),
-                rep.violations.len(),
-                if rep.clean() { "; clean" } else { "" }
+                "aggregates (run after the variants): {}",
+                p.aggregates
+                    .iter()
+                    .map(|a| a.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
             );
-            Ok(if rep.clean() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::from(EXIT_FAILED)
-            })
         }
-        Command::Bench {
-            pipeline,
-            repeat,
-            sets,
-            jobs,
-            output,
-        } => {
-            let plan = load_plan(engine, pipeline, sets, None)?;
-            let opts = RunOptions {
-                jobs: jobs_or_default(*jobs)?,
-                ui: UiMode::Quiet,
-                ..RunOptions::default()
-            };
-            let rep = bench::bench(&plan, *repeat, &opts, &mut |r, s| {
-                println!("run {}/{}: {:.3}s", r + 1, repeat, s);
-            })
+        return Ok(ExitCode::SUCCESS);
+    }
+    let record_path = write_sweep_results(&p, &axes, &rows, a)?;
+    // Aggregates read the record through an absolute path (it is not
+    // part of any key: only its content is).
+    let abs = std::path::absolute(&record_path)
+        .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+    match sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
+        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out),
+        None => Ok(ExitCode::SUCCESS),
+    }
+}
+
+/// One line per finished (or, dry run, inspected) sweep variant; the
+/// variant's run report goes to the cache.
+fn print_variant(row: &sweep::Row, dry_run: bool, cache: &Cache) {
+    if dry_run {
+        println!(
+            "variant {} ({}){}: {} cached, {} will run",
+            row.variant.index,
+            sweep::describe(&row.variant),
+            row.variant
+                .varied
+                .as_ref()
+                .map(|k| format!(" varying {k}"))
+                .unwrap_or_default(),
+            row.report.count(Status::Cached),
+            row.report.count(Status::WillRun)
+        );
+        return;
+    }
+    println!(
+        "variant {} ({}): {} ran, {} cached, {} failed, {:.2}s: {}{}",
+        row.variant.index,
+        sweep::describe(&row.variant),
+        row.report.count(Status::Ran),
+        row.report.count(Status::Cached),
+        row.report.count(Status::Failed),
+        row.report.seconds,
+        row.status.as_str(),
+        if row.reason.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", row.reason)
+        }
+    );
+    if let Ok(json) = serde_json::to_vec_pretty(&row.report) {
+        cache.save_run_report(&row.name, &json);
+    }
+}
+
+/// Writes the sweep's tables and its record; returns the record's path.
+fn write_sweep_results(
+    p: &crate::pipeline::Pipeline,
+    axes: &sweep::Axes,
+    rows: &[sweep::Row],
+    a: &SweepArgs,
+) -> Result<PathBuf, Failure> {
+    let prefix = a
+        .table
+        .clone()
+        .unwrap_or_else(|| a.out.join(&p.name).join("sweep"));
+    let md = sweep::markdown(rows);
+    write_file(&prefix.with_extension("md"), md.as_bytes())?;
+    write_file(&prefix.with_extension("csv"), sweep::csv(rows).as_bytes())?;
+    println!("\n{md}");
+    println!(
+        "table: {} and {}",
+        prefix.with_extension("md").display(),
+        prefix.with_extension("csv").display()
+    );
+    let record_path = a.out.join(&p.name).join("sweep.json");
+    let record = sweep::record(&p.name, axes, rows);
+    sweep::write_if_changed(&record_path, &sweep::record_bytes(&record))
+        .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+    println!("record: {}", record_path.display());
+    let failed = rows
+        .iter()
+        .filter(|r| r.status == sweep::VariantStatus::Failed)
+        .count();
+    let degraded = rows
+        .iter()
+        .filter(|r| r.status == sweep::VariantStatus::Degraded)
+        .count();
+    println!(
+        "{failed} of {} variants failed, {degraded} degraded",
+        rows.len()
+    );
+    Ok(record_path)
+}
+
+/// Prints the aggregate stages' outcome and, when all succeeded, publishes
+/// the pipeline's `[publish]` files.
+fn report_aggregates(
+    p: &crate::pipeline::Pipeline,
+    rep: &RunReport,
+    cache: &Cache,
+    out: &Path,
+) -> Result<ExitCode, Failure> {
+    if let Ok(json) = serde_json::to_vec_pretty(rep) {
+        cache.save_run_report(&rep.pipeline, &json);
+    }
+    for s in &rep.stages {
+        println!(
+            "aggregate {}: {}{}",
+            s.name,
+            match s.status {
+                Status::Ran => "ran",
+                Status::Cached => "cached",
+                Status::Failed => "failed",
+                _ => "skipped",
+            },
+            match s.status {
+                Status::Ran | Status::Cached =>
+                    format!("; outputs in {}", out.join(&p.name).join(&s.name).display()),
+                _ => String::new(),
+            }
+        );
+    }
+    if !rep.ok() {
+        for s in rep.stages.iter().filter(|s| s.status == Status::Failed) {
+            eprintln!(
+                "error: aggregate stage `{}` ({}) failed: {}",
+                s.name,
+                s.kind,
+                s.error.clone().unwrap_or_default()
+            );
+        }
+        return Ok(ExitCode::from(EXIT_FAILED));
+    }
+    if !p.publish.is_empty() {
+        let command: Vec<String> = std::env::args()
+            .enumerate()
+            .map(|(i, a)| if i == 0 { "fure".into() } else { a })
+            .collect();
+        let repo = p.file.parent().unwrap_or(Path::new("."));
+        let stamp = crate::publish::provenance(&command.join(" "), repo);
+        let written = crate::publish::publish(p, rep, &stamp)
             .map_err(|e| Failure::Failed(format!("error: {e}")))?;
-            let prefix = output
-                .clone()
-                .unwrap_or_else(|| Path::new("out").join(&plan.name).join("bench"));
-            let md = bench::markdown(&rep);
-            write_file(
-                &prefix.with_extension("json"),
-                &serde_json::to_vec_pretty(&rep).unwrap_or_default(),
-            )?;
-            write_file(&prefix.with_extension("md"), md.as_bytes())?;
-            println!("\n{md}");
-            println!(
-                "written: {} and {}",
-                prefix.with_extension("json").display(),
-                prefix.with_extension("md").display()
-            );
-            Ok(ExitCode::SUCCESS)
-        }
-        Command::Worker { spec } => {
-            let result_path = crate::slurm::result_path(spec);
-            let host = cache::host_name();
-            let outcome = (|| -> Result<bool, String> {
-                let s = crate::slurm::read_spec(spec).map_err(|e| e.to_string())?;
-                println!(
-                    "fure worker: pipeline {}, stage {} ({}), key {}, on {host}",
-                    s.pipeline,
-                    s.stage,
-                    s.kind,
-                    cache::short(&s.key)
-                );
-                let cache = Cache::open(&cli.cache, Access::Shared).map_err(|e| e.to_string())?;
-                let ui = crate::ui::Ui::new(UiMode::Plain);
-                crate::slurm::worker(&engine.registry, &cache, &s, &ui).map_err(|e| e.to_string())
-            })();
-            let result = crate::slurm::JobResult {
-                ok: outcome.is_ok(),
-                computed: outcome.as_ref().is_ok_and(|c| *c),
-                error: outcome.as_ref().err().cloned(),
-                host,
-            };
-            crate::slurm::write_result(&result_path, &result)
-                .map_err(|e| Failure::Failed(format!("error: {}: {e}", result_path.display())))?;
-            match outcome {
-                Ok(computed) => {
-                    println!(
-                        "fure worker: {}",
-                        if computed {
-                            "computed and stored"
-                        } else {
-                            "another run had stored it"
-                        }
-                    );
-                    Ok(ExitCode::SUCCESS)
-                }
-                Err(e) => Err(Failure::Failed(format!("error: {e}"))),
-            }
-        }
-        Command::Stages { kind } => {
-            let mut found = false;
-            for s in engine.registry.iter() {
-                if kind.as_deref().map(|k| k != s.kind()).unwrap_or(false) {
-                    continue;
-                }
-                found = true;
-                print!("{}", describe_kind(s.as_ref()));
-            }
-            if !found {
-                return Err(Failure::Usage(format!(
-                    "error: no stage kind `{}`",
-                    kind.clone().unwrap_or_default()
-                )));
-            }
-            Ok(ExitCode::SUCCESS)
+        for w in written {
+            println!("published {}", w.display());
         }
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_gc(engine: &Engine, cache_dir: &Path, a: &GcArgs) -> Result<ExitCode, Failure> {
+    let max_size = match &a.max_size {
+        Some(s) => Some(
+            cache::parse_size(s).map_err(|e| Failure::Usage(format!("error: --max-size {e}")))?,
+        ),
+        None => None,
+    };
+    let keep_keys = if a.keep.is_empty() {
+        None
+    } else {
+        // Keys the kept pipelines resolve to now (as far as the cache can tell).
+        let mut keys = BTreeSet::new();
+        let cache = open_cache(cache_dir, Access::Shared)?;
+        for k in &a.keep {
+            let plan = load_plan(engine, k, &[], None)?;
+            let rep = exec::run(&plan, &cache, &inspect_options());
+            keys.extend(
+                rep.stages
+                    .into_iter()
+                    .filter(|s| s.status == Status::Cached)
+                    .map(|s| s.key),
+            );
+        }
+        drop(cache);
+        Some(keys)
+    };
+    let cache = open_cache(cache_dir, Access::Exclusive)?;
+    let rep = cache.gc(&GcOptions {
+        keep: keep_keys,
+        max_size,
+    });
+    println!(
+        "gc: kept {} entries ({:.1} MiB), removed {} entries and {} objects ({:.1} MiB), {} stale staging dirs",
+        rep.entries_kept,
+        rep.bytes_kept as f64 / 1048576.0,
+        rep.entries_removed,
+        rep.objects_removed,
+        rep.bytes_freed as f64 / 1048576.0,
+        rep.tmp_removed
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_verify(cache_dir: &Path) -> Result<ExitCode, Failure> {
+    let cache = open_cache(cache_dir, Access::Exclusive)?;
+    let rep = cache.verify();
+    for o in &rep.corrupted_objects {
+        println!("corrupted object {o} (removed)");
+    }
+    for e in &rep.dropped_entries {
+        println!("dropped entry {e}");
+    }
+    for m in &rep.broken_manifests {
+        println!("invalid manifest: {m} (removed)");
+    }
+    for v in &rep.violations {
+        println!("not fure's: {v}");
+    }
+    println!(
+        "verify: {} objects, {} entries checked; {} corrupted objects, {} entries dropped, {} invalid manifests, {} stray paths{}",
+        rep.objects_checked,
+        rep.entries_checked,
+        rep.corrupted_objects.len(),
+        rep.dropped_entries.len(),
+        rep.broken_manifests.len(),
+        rep.violations.len(),
+        if rep.clean() { "; clean" } else { "" }
+    );
+    Ok(exit_code(rep.clean()))
+}
+
+fn cmd_bench(engine: &Engine, a: &BenchArgs) -> Result<ExitCode, Failure> {
+    let plan = load_plan(engine, &a.pipeline, &a.sets, None)?;
+    let opts = RunOptions {
+        jobs: jobs_or_default(a.jobs)?,
+        ui: UiMode::Quiet,
+        ..RunOptions::default()
+    };
+    let repeat = a.repeat;
+    let rep = bench::bench(&plan, repeat, &opts, &mut |r, s| {
+        println!("run {}/{}: {:.3}s", r + 1, repeat, s);
+    })
+    .map_err(|e| Failure::Failed(format!("error: {e}")))?;
+    let prefix = a
+        .output
+        .clone()
+        .unwrap_or_else(|| Path::new("out").join(&plan.name).join("bench"));
+    let md = bench::markdown(&rep);
+    write_file(
+        &prefix.with_extension("json"),
+        &serde_json::to_vec_pretty(&rep).unwrap_or_default(),
+    )?;
+    write_file(&prefix.with_extension("md"), md.as_bytes())?;
+    println!("\n{md}");
+    println!(
+        "written: {} and {}",
+        prefix.with_extension("json").display(),
+        prefix.with_extension("md").display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn cmd_worker(engine: &Engine, cache_dir: &Path, spec: &Path) -> Result<ExitCode, Failure> {
+    let result_path = crate::slurm::result_path(spec);
+    let host = cache::host_name();
+    let outcome = (|| -> Result<bool, String> {
+        let s = crate::slurm::read_spec(spec).map_err(|e| e.to_string())?;
+        println!(
+            "fure worker: pipeline {}, stage {} ({}), key {}, on {host}",
+            s.pipeline,
+            s.stage,
+            s.kind,
+            cache::short(&s.key)
+        );
+        let cache = Cache::open(cache_dir, Access::Shared).map_err(|e| e.to_string())?;
+        let ui = crate::ui::Ui::new(UiMode::Plain);
+        crate::slurm::worker(&engine.registry, &cache, &s, &ui).map_err(|e| e.to_string())
+    })();
+    let result = crate::slurm::JobResult {
+        ok: outcome.is_ok(),
+        computed: outcome.as_ref().is_ok_and(|c| *c),
+        error: outcome.as_ref().err().cloned(),
+        host,
+    };
+    crate::slurm::write_result(&result_path, &result)
+        .map_err(|e| Failure::Failed(format!("error: {}: {e}", result_path.display())))?;
+    match outcome {
+        Ok(computed) => {
+            println!(
+                "fure worker: {}",
+                if computed {
+                    "computed and stored"
+                } else {
+                    "another run had stored it"
+                }
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => Err(Failure::Failed(format!("error: {e}"))),
+    }
+}
+
+fn cmd_stages(engine: &Engine, kind: Option<&str>) -> Result<ExitCode, Failure> {
+    let mut found = false;
+    for s in engine.registry.iter() {
+        if kind.map(|k| k != s.kind()).unwrap_or(false) {
+            continue;
+        }
+        found = true;
+        print!("{}", describe_kind(s.as_ref()));
+    }
+    if !found {
+        return Err(Failure::Usage(format!(
+            "error: no stage kind `{}`",
+            kind.unwrap_or_default()
+        )));
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn print_summary(rep: &RunReport, dry_run: bool, out: &Path) {

@@ -205,350 +205,403 @@ pub fn run(plan: &Plan, cache: &Cache, opts: &RunOptions) -> RunReport {
     if !opts.dry_run {
         cache.clean_tmp();
     }
-    let old_index = cache.load_index(&plan.name);
-    let mut new_index = old_index.clone();
-    let n = plan.stages.len();
-    let mut states: Vec<State> = (0..n).map(|_| State::Pending).collect();
-    let mut reports: Vec<Option<StageReport>> = vec![None; n];
-    let mut keyed: Vec<Option<Keyed>> = (0..n).map(|_| None).collect();
-    let mut queue: VecDeque<(usize, String)> = VecDeque::new();
-    let mut run_reasons: Vec<String> = vec![String::new(); n];
-    let jobs = opts.jobs.max(1);
-    let cores = opts.cores.max(1);
     let inproc_running = AtomicUsize::new(0);
-    let mut failed = false;
-
+    let mut sched = Scheduler::new(plan, cache, opts, &ui);
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::channel::<WorkDone>();
-        let mut running = 0usize;
-        let mut free_tokens = cores;
         loop {
-            // Resolve every stage whose upstream stages are resolved (one
-            // pass suffices: the plan is in topological order).
-            for i in 0..n {
-                if !matches!(states[i], State::Pending) {
-                    continue;
-                }
-                let st = &plan.stages[i];
-                let mut blocked_by = None;
-                let mut all_done = true;
-                for &u in &st.upstream {
-                    match &states[u] {
-                        State::Done(_) => {}
-                        State::Blocked => {
-                            blocked_by = Some(u);
-                        }
-                        _ => all_done = false,
-                    }
-                }
-                if let Some(u) = blocked_by {
-                    let up = &plan.stages[u].name;
-                    let (status, reason) = match reports[u].as_ref().map(|r| r.status) {
-                        Some(Status::WillRun) => {
-                            let mut why = match old_index.get(&st.name) {
-                                None => vec!["new stage".to_string()],
-                                Some(o) => {
-                                    explain_params(o, &st.kind, st.version, &keyed_params(st).0)
-                                }
-                            };
-                            why.push(format!("input from `{up}`, which will run"));
-                            (Status::WillRun, why.join("; "))
-                        }
-                        Some(Status::Failed) => {
-                            (Status::Skipped, format!("upstream `{up}` failed"))
-                        }
-                        _ => (Status::Skipped, format!("upstream `{up}` did not run")),
-                    };
-                    if status == Status::WillRun {
-                        ui.will_run(&st.name, &reason);
-                    } else {
-                        ui.skipped(&st.name, &reason);
-                    }
-                    reports[i] = Some(report_without_outputs(st, "", status, reason, None));
-                    states[i] = State::Blocked;
-                    continue;
-                }
-                if !all_done {
-                    continue;
-                }
-                let k = match key_stage(plan, i, &states, cache) {
-                    Ok(k) => k,
-                    Err(e) => {
-                        ui.failed(&st.name, &e, None);
-                        reports[i] = Some(report_without_outputs(
-                            st,
-                            "",
-                            Status::Failed,
-                            String::new(),
-                            Some(e),
-                        ));
-                        states[i] = State::Blocked;
-                        failed = true;
-                        continue;
-                    }
-                };
-                let (hit, damage) = match cache.lookup_checked(&k.key) {
-                    Ok(Some(m)) => {
-                        let d = entry_fits(st, &m)
-                            .and_then(|()| cache.check_entry(&m))
-                            .err();
-                        (Some(m), d)
-                    }
-                    Ok(None) => (None, None),
-                    // Present but invalid: damaged, recomputed and rewritten.
-                    Err(e) => (None, Some(e)),
-                };
-                match (hit, damage) {
-                    (Some(m), None) => {
-                        let reason = cutoff_reason(plan, i, &reports);
-                        ui.cached(&st.name, &k.key, &reason);
-                        let outputs = if opts.dry_run {
-                            Ok(output_reports(cache, &m, None))
-                        } else {
-                            materialise_outputs(cache, opts, plan, st, &m)
-                        };
-                        let outputs = match outputs {
-                            Ok(o) => o,
-                            Err(e) => {
-                                ui.failed(&st.name, &e, None);
-                                reports[i] = Some(report_without_outputs(
-                                    st,
-                                    &k.key,
-                                    Status::Failed,
-                                    reason,
-                                    Some(e),
-                                ));
-                                states[i] = State::Blocked;
-                                failed = true;
-                                continue;
-                            }
-                        };
-                        reports[i] = Some(StageReport {
-                            name: st.name.clone(),
-                            kind: st.kind.clone(),
-                            key: k.key.clone(),
-                            status: Status::Cached,
-                            reason,
-                            seconds: 0.0,
-                            peak_rss_bytes: m.peak_rss_bytes,
-                            outputs,
-                            error: None,
-                        });
-                        new_index.insert(st.name.clone(), k.entry.clone());
-                        states[i] = State::Done(m.outputs);
-                        keyed[i] = Some(k);
-                    }
-                    (_, damage) => {
-                        let reason = match damage {
-                            Some(d) => {
-                                ui.line(&format!(
-                                    "warning: {}: cached entry {} is damaged ({d}); recomputing",
-                                    st.name,
-                                    cache::short(&k.key)
-                                ));
-                                format!("cached entry damaged: {d}")
-                            }
-                            _ => explain(old_index.get(&st.name), &k.entry),
-                        };
-                        if opts.dry_run {
-                            ui.will_run(&st.name, &reason);
-                            reports[i] = Some(report_without_outputs(
-                                st,
-                                &k.key,
-                                Status::WillRun,
-                                reason,
-                                None,
-                            ));
-                            states[i] = State::Blocked;
-                        } else {
-                            queue.push_back((i, reason));
-                            states[i] = State::Queued;
-                        }
-                        keyed[i] = Some(k);
-                    }
-                }
-            }
-            // Start queued stages.
-            // After SIGINT/SIGTERM/SIGHUP nothing new starts (see `signals`).
-            let remote = opts.executor.is_remote();
-            while running < jobs
-                && (free_tokens > 0 || remote)
-                && (opts.keep_going || !failed)
-                && crate::signals::received().is_none()
-            {
-                let Some((i, reason)) = queue.pop_front() else {
-                    break;
-                };
-                let st = &plan.stages[i];
-                let share = (jobs - running).min(queue.len() + 1).max(1);
-                let tokens = if remote {
-                    0
-                } else if st.kind == command::KIND {
-                    1
-                } else {
-                    (free_tokens / share).max(1)
-                };
-                free_tokens -= tokens.min(free_tokens);
-                running += 1;
-                states[i] = State::Running;
-                let progress = ui.started(&st.name, &reason);
-                run_reasons[i] = reason;
-                let k = keyed[i].as_ref().expect("queued stages are keyed");
-                let key = k.key.clone();
-                let preimage = k.preimage.clone();
-                let inputs = stage_inputs(plan, i, &states);
-                let job = match &opts.executor {
-                    Executor::Local => None,
-                    Executor::Slurm(s) => Some((s.clone(), job_spec(plan, i, &states, &keyed))),
-                };
-                let tx = tx.clone();
-                let ui_ref = &ui;
-                let inproc = &inproc_running;
-                let pipeline = plan.name.clone();
-                let spawned = std::thread::Builder::new()
-                    .name(format!("fure-stage-{}", st.name))
-                    .spawn_scoped(scope, move || {
-                        let result = match job {
-                            None => execute(
-                                cache, &pipeline, st, &key, preimage, inputs, tokens, &progress,
-                                ui_ref, inproc,
-                            ),
-                            Some((slurm, spec)) => execute_remote(&slurm, cache, st, &spec),
-                        };
-                        let _ = tx.send(WorkDone {
-                            index: i,
-                            result,
-                            progress,
-                            tokens,
-                        });
-                    });
-                if let Err(e) = spawned {
-                    running -= 1;
-                    free_tokens += tokens;
-                    let msg = format!("cannot start a thread: {e}");
-                    ui.failed(&st.name, &msg, None);
-                    reports[i] = Some(report_without_outputs(
-                        st,
-                        "",
-                        Status::Failed,
-                        String::new(),
-                        Some(msg),
-                    ));
-                    states[i] = State::Blocked;
-                    failed = true;
-                }
-            }
-            if running == 0 {
-                if queue.is_empty() {
+            sched.resolve_ready();
+            sched.launch(scope, &tx, &inproc_running);
+            if sched.running == 0 {
+                if sched.queue.is_empty() {
                     // The resolution pass is in topological order, so nothing
                     // is pending any more.
                     break;
                 }
                 // Not started because of a failure: skip them, then mark
                 // their dependents in one more pass.
-                for (i, reason) in queue.drain(..) {
-                    let st = &plan.stages[i];
-                    let why = match crate::signals::received() {
-                        Some(sig) => format!(
-                            "not started: fure was interrupted by {} ({reason})",
-                            crate::signals::name(sig)
-                        ),
-                        None => format!("not started after a failure ({reason})"),
-                    };
-                    ui.skipped(&st.name, &why);
-                    let key = keyed[i].as_ref().map(|k| k.key.as_str()).unwrap_or("");
-                    reports[i] = Some(report_without_outputs(st, key, Status::Skipped, why, None));
-                    states[i] = State::Blocked;
-                }
+                sched.skip_queued();
                 continue;
             }
             let Ok(done) = rx.recv() else { break };
-            running -= 1;
-            free_tokens += done.tokens;
-            let i = done.index;
-            let st = &plan.stages[i];
-            let k = keyed[i].as_ref().expect("ran stages are keyed");
-            match done.result {
-                Ok((m, computed)) => {
-                    let (status, seconds, reason) = if computed {
-                        ui.done(&st.name, m.seconds, done.progress);
-                        (Status::Ran, m.seconds, std::mem::take(&mut run_reasons[i]))
-                    } else {
-                        drop(done.progress);
-                        ui.cached(&st.name, &k.key, "computed by a concurrent run");
-                        (
-                            Status::Cached,
-                            0.0,
-                            "computed by a concurrent run".to_string(),
-                        )
-                    };
-                    new_index.insert(st.name.clone(), k.entry.clone());
-                    match materialise_outputs(cache, opts, plan, st, &m) {
-                        Ok(outputs) => {
-                            reports[i] = Some(StageReport {
-                                name: st.name.clone(),
-                                kind: st.kind.clone(),
-                                key: k.key.clone(),
-                                status,
-                                reason,
-                                seconds,
-                                peak_rss_bytes: m.peak_rss_bytes,
-                                outputs,
-                                error: None,
-                            });
-                            states[i] = State::Done(m.outputs);
-                        }
-                        Err(e) => {
-                            // Cached, but the run did not deliver its outputs.
-                            ui.failed(&st.name, &e, None);
-                            reports[i] = Some(report_without_outputs(
-                                st,
-                                &k.key,
-                                Status::Failed,
-                                reason,
-                                Some(e),
-                            ));
-                            states[i] = State::Blocked;
-                            failed = true;
-                        }
-                    }
-                }
-                Err(e) => {
-                    ui.failed(&st.name, &e, Some(done.progress));
-                    let reason = std::mem::take(&mut run_reasons[i]);
-                    reports[i] = Some(report_without_outputs(
-                        st,
-                        &k.key,
-                        Status::Failed,
-                        reason,
-                        Some(e),
-                    ));
-                    states[i] = State::Blocked;
-                    failed = true;
-                }
-            }
+            sched.collect(done);
         }
     });
-    let stages: Vec<StageReport> = reports
-        .into_iter()
-        .zip(&plan.stages)
-        .map(|(r, st)| {
-            r.unwrap_or_else(|| {
-                report_without_outputs(st, "", Status::Skipped, "not reached".into(), None)
-            })
-        })
-        .collect();
-    if !opts.dry_run {
-        if new_index != old_index {
-            cache.save_index(&plan.name, &new_index);
+    sched.finish(t0)
+}
+
+/// The scheduler's state over one run: resolve ([`Scheduler::resolve_ready`]),
+/// launch ([`Scheduler::launch`]), collect ([`Scheduler::collect`]).
+struct Scheduler<'a> {
+    plan: &'a Plan,
+    cache: &'a Cache,
+    opts: &'a RunOptions,
+    ui: &'a Ui,
+    old_index: BTreeMap<String, IndexEntry>,
+    new_index: BTreeMap<String, IndexEntry>,
+    states: Vec<State>,
+    reports: Vec<Option<StageReport>>,
+    keyed: Vec<Option<Keyed>>,
+    queue: VecDeque<(usize, String)>,
+    run_reasons: Vec<String>,
+    jobs: usize,
+    running: usize,
+    free_tokens: usize,
+    failed: bool,
+}
+
+impl<'a> Scheduler<'a> {
+    fn new(plan: &'a Plan, cache: &'a Cache, opts: &'a RunOptions, ui: &'a Ui) -> Self {
+        let old_index = cache.load_index(&plan.name);
+        let n = plan.stages.len();
+        Scheduler {
+            plan,
+            cache,
+            opts,
+            ui,
+            new_index: old_index.clone(),
+            old_index,
+            states: (0..n).map(|_| State::Pending).collect(),
+            reports: vec![None; n],
+            keyed: (0..n).map(|_| None).collect(),
+            queue: VecDeque::new(),
+            run_reasons: vec![String::new(); n],
+            jobs: opts.jobs.max(1),
+            running: 0,
+            free_tokens: opts.cores.max(1),
+            failed: false,
         }
-        cache.save_hints();
     }
-    RunReport {
-        pipeline: plan.name.clone(),
-        fure_version: FURE_VERSION.to_string(),
-        seconds: t0.elapsed().as_secs_f64(),
-        stages,
+
+    /// Stage `i` failed: reported, blocked, and the run marked failed.
+    fn fail(
+        &mut self,
+        i: usize,
+        key: &str,
+        reason: String,
+        error: String,
+        progress: Option<StageProgress>,
+    ) {
+        let st = &self.plan.stages[i];
+        self.ui.failed(&st.name, &error, progress);
+        self.reports[i] = Some(report_without_outputs(
+            st,
+            key,
+            Status::Failed,
+            reason,
+            Some(error),
+        ));
+        self.states[i] = State::Blocked;
+        self.failed = true;
+    }
+
+    /// Resolves every stage whose upstream stages are resolved (one pass
+    /// suffices: the plan is in topological order).
+    fn resolve_ready(&mut self) {
+        for i in 0..self.plan.stages.len() {
+            if !matches!(self.states[i], State::Pending) {
+                continue;
+            }
+            let st = &self.plan.stages[i];
+            let mut blocked_by = None;
+            let mut all_done = true;
+            for &u in &st.upstream {
+                match &self.states[u] {
+                    State::Done(_) => {}
+                    State::Blocked => {
+                        blocked_by = Some(u);
+                    }
+                    _ => all_done = false,
+                }
+            }
+            if let Some(u) = blocked_by {
+                self.block(i, u);
+            } else if all_done {
+                self.resolve(i);
+            }
+        }
+    }
+
+    /// Stage `i` cannot resolve because upstream stage `u` is blocked.
+    fn block(&mut self, i: usize, u: usize) {
+        let st = &self.plan.stages[i];
+        let up = &self.plan.stages[u].name;
+        let (status, reason) = match self.reports[u].as_ref().map(|r| r.status) {
+            Some(Status::WillRun) => {
+                let mut why = match self.old_index.get(&st.name) {
+                    None => vec!["new stage".to_string()],
+                    Some(o) => explain_params(o, &st.kind, st.version, &keyed_params(st).0),
+                };
+                why.push(format!("input from `{up}`, which will run"));
+                (Status::WillRun, why.join("; "))
+            }
+            Some(Status::Failed) => (Status::Skipped, format!("upstream `{up}` failed")),
+            _ => (Status::Skipped, format!("upstream `{up}` did not run")),
+        };
+        if status == Status::WillRun {
+            self.ui.will_run(&st.name, &reason);
+        } else {
+            self.ui.skipped(&st.name, &reason);
+        }
+        self.reports[i] = Some(report_without_outputs(st, "", status, reason, None));
+        self.states[i] = State::Blocked;
+    }
+
+    /// Keys stage `i` (its upstream stages are done) and takes its cache
+    /// entry, or queues it (dry run: reports it as will run).
+    fn resolve(&mut self, i: usize) {
+        let (plan, cache, opts, ui) = (self.plan, self.cache, self.opts, self.ui);
+        let st = &plan.stages[i];
+        let k = match key_stage(plan, i, &self.states, cache) {
+            Ok(k) => k,
+            Err(e) => return self.fail(i, "", String::new(), e, None),
+        };
+        let (hit, damage) = match cache.lookup_checked(&k.key) {
+            Ok(Some(m)) => {
+                let d = entry_fits(st, &m)
+                    .and_then(|()| cache.check_entry(&m))
+                    .err();
+                (Some(m), d)
+            }
+            Ok(None) => (None, None),
+            // Present but invalid: damaged, recomputed and rewritten.
+            Err(e) => (None, Some(e)),
+        };
+        match (hit, damage) {
+            (Some(m), None) => {
+                let reason = cutoff_reason(plan, i, &self.reports);
+                ui.cached(&st.name, &k.key, &reason);
+                let outputs = if opts.dry_run {
+                    Ok(output_reports(cache, &m, None))
+                } else {
+                    materialise_outputs(cache, opts, plan, st, &m)
+                };
+                let outputs = match outputs {
+                    Ok(o) => o,
+                    Err(e) => return self.fail(i, &k.key, reason, e, None),
+                };
+                self.reports[i] = Some(StageReport {
+                    name: st.name.clone(),
+                    kind: st.kind.clone(),
+                    key: k.key.clone(),
+                    status: Status::Cached,
+                    reason,
+                    seconds: 0.0,
+                    peak_rss_bytes: m.peak_rss_bytes,
+                    outputs,
+                    error: None,
+                });
+                self.new_index.insert(st.name.clone(), k.entry.clone());
+                self.states[i] = State::Done(m.outputs);
+                self.keyed[i] = Some(k);
+            }
+            (_, damage) => {
+                let reason = match damage {
+                    Some(d) => {
+                        ui.line(&format!(
+                            "warning: {}: cached entry {} is damaged ({d}); recomputing",
+                            st.name,
+                            cache::short(&k.key)
+                        ));
+                        format!("cached entry damaged: {d}")
+                    }
+                    _ => explain(self.old_index.get(&st.name), &k.entry),
+                };
+                if opts.dry_run {
+                    ui.will_run(&st.name, &reason);
+                    self.reports[i] = Some(report_without_outputs(
+                        st,
+                        &k.key,
+                        Status::WillRun,
+                        reason,
+                        None,
+                    ));
+                    self.states[i] = State::Blocked;
+                } else {
+                    self.queue.push_back((i, reason));
+                    self.states[i] = State::Queued;
+                }
+                self.keyed[i] = Some(k);
+            }
+        }
+    }
+
+    /// Starts queued stages while jobs and CPU tokens allow. After
+    /// SIGINT/SIGTERM/SIGHUP nothing new starts (see `signals`).
+    fn launch<'scope>(
+        &mut self,
+        scope: &'scope std::thread::Scope<'scope, '_>,
+        tx: &mpsc::Sender<WorkDone>,
+        inproc: &'scope AtomicUsize,
+    ) where
+        'a: 'scope,
+    {
+        let (plan, cache, opts, ui) = (self.plan, self.cache, self.opts, self.ui);
+        let remote = opts.executor.is_remote();
+        while self.running < self.jobs
+            && (self.free_tokens > 0 || remote)
+            && (opts.keep_going || !self.failed)
+            && crate::signals::received().is_none()
+        {
+            let Some((i, reason)) = self.queue.pop_front() else {
+                break;
+            };
+            let st = &plan.stages[i];
+            let share = (self.jobs - self.running).min(self.queue.len() + 1).max(1);
+            let tokens = if remote {
+                0
+            } else if st.kind == command::KIND {
+                1
+            } else {
+                (self.free_tokens / share).max(1)
+            };
+            self.free_tokens -= tokens.min(self.free_tokens);
+            self.running += 1;
+            self.states[i] = State::Running;
+            let progress = ui.started(&st.name, &reason);
+            self.run_reasons[i] = reason;
+            let k = self.keyed[i].as_ref().expect("queued stages are keyed");
+            let key = k.key.clone();
+            let preimage = k.preimage.clone();
+            let inputs = stage_inputs(plan, i, &self.states);
+            let job = match &opts.executor {
+                Executor::Local => None,
+                Executor::Slurm(s) => {
+                    Some((s.clone(), job_spec(plan, i, &self.states, &self.keyed)))
+                }
+            };
+            let tx = tx.clone();
+            let pipeline = plan.name.clone();
+            let spawned = std::thread::Builder::new()
+                .name(format!("fure-stage-{}", st.name))
+                .spawn_scoped(scope, move || {
+                    let result = match job {
+                        None => execute(
+                            cache, &pipeline, st, &key, preimage, inputs, tokens, &progress, ui,
+                            inproc,
+                        ),
+                        Some((slurm, spec)) => execute_remote(&slurm, cache, st, &spec),
+                    };
+                    let _ = tx.send(WorkDone {
+                        index: i,
+                        result,
+                        progress,
+                        tokens,
+                    });
+                });
+            if let Err(e) = spawned {
+                self.running -= 1;
+                self.free_tokens += tokens;
+                let msg = format!("cannot start a thread: {e}");
+                self.fail(i, "", String::new(), msg, None);
+            }
+        }
+    }
+
+    /// Skips the queued stages that were not started (after a failure or a
+    /// signal).
+    fn skip_queued(&mut self) {
+        for (i, reason) in std::mem::take(&mut self.queue) {
+            let st = &self.plan.stages[i];
+            let why = match crate::signals::received() {
+                Some(sig) => format!(
+                    "not started: fure was interrupted by {} ({reason})",
+                    crate::signals::name(sig)
+                ),
+                None => format!("not started after a failure ({reason})"),
+            };
+            self.ui.skipped(&st.name, &why);
+            let key = self.keyed[i].as_ref().map(|k| k.key.as_str()).unwrap_or("");
+            self.reports[i] = Some(report_without_outputs(st, key, Status::Skipped, why, None));
+            self.states[i] = State::Blocked;
+        }
+    }
+
+    /// Takes in a finished stage: its report, index entry and outputs.
+    fn collect(&mut self, done: WorkDone) {
+        let (plan, cache, opts, ui) = (self.plan, self.cache, self.opts, self.ui);
+        self.running -= 1;
+        self.free_tokens += done.tokens;
+        let i = done.index;
+        let st = &plan.stages[i];
+        let key = self.keyed[i]
+            .as_ref()
+            .expect("ran stages are keyed")
+            .key
+            .clone();
+        let (m, computed) = match done.result {
+            Ok(r) => r,
+            Err(e) => {
+                let reason = std::mem::take(&mut self.run_reasons[i]);
+                return self.fail(i, &key, reason, e, Some(done.progress));
+            }
+        };
+        let (status, seconds, reason) = if computed {
+            ui.done(&st.name, m.seconds, done.progress);
+            (
+                Status::Ran,
+                m.seconds,
+                std::mem::take(&mut self.run_reasons[i]),
+            )
+        } else {
+            drop(done.progress);
+            ui.cached(&st.name, &key, "computed by a concurrent run");
+            (
+                Status::Cached,
+                0.0,
+                "computed by a concurrent run".to_string(),
+            )
+        };
+        let entry = self.keyed[i]
+            .as_ref()
+            .expect("ran stages are keyed")
+            .entry
+            .clone();
+        self.new_index.insert(st.name.clone(), entry);
+        match materialise_outputs(cache, opts, plan, st, &m) {
+            Ok(outputs) => {
+                self.reports[i] = Some(StageReport {
+                    name: st.name.clone(),
+                    kind: st.kind.clone(),
+                    key,
+                    status,
+                    reason,
+                    seconds,
+                    peak_rss_bytes: m.peak_rss_bytes,
+                    outputs,
+                    error: None,
+                });
+                self.states[i] = State::Done(m.outputs);
+            }
+            // Cached, but the run did not deliver its outputs.
+            Err(e) => self.fail(i, &key, reason, e, None),
+        }
+    }
+
+    /// The run's report; saves the status index and hash hints.
+    fn finish(self, t0: Instant) -> RunReport {
+        let stages: Vec<StageReport> = self
+            .reports
+            .into_iter()
+            .zip(&self.plan.stages)
+            .map(|(r, st)| {
+                r.unwrap_or_else(|| {
+                    report_without_outputs(st, "", Status::Skipped, "not reached".into(), None)
+                })
+            })
+            .collect();
+        if !self.opts.dry_run {
+            if self.new_index != self.old_index {
+                self.cache.save_index(&self.plan.name, &self.new_index);
+            }
+            self.cache.save_hints();
+        }
+        RunReport {
+            pipeline: self.plan.name.clone(),
+            fure_version: FURE_VERSION.to_string(),
+            seconds: t0.elapsed().as_secs_f64(),
+            stages,
+        }
     }
 }
 
