@@ -12,7 +12,19 @@
 //! trainable colour each. They never move; both methods get the same ones.
 //!
 //! Strand appearance: one trainable RGB colour per strand (degree-0 SH), lazy
-//! Adam on the sampled strands; identical for codec and dense.
+//! Adam on the sampled strands; identical for codec and dense. Colours start
+//! from the views ([`ImageLosses::fit_colors`], `fit_colors = "start"`): every
+//! strand and body occluder takes the mean of the training pixels it makes,
+//! weighted by its blending weight `alpha_i T_i` there, so the renderer itself
+//! decides what is visible (occlusion by the body and by other strands). The
+//! two sums are colour gradients of two linear losses (the masked straight
+//! colour, then the mask) at a grey that no clamp touches. Why: a strand is
+//! sampled only ~8 times in the codec's 100 iterations, so from one common
+//! starting colour Adam leaves the coat a washed-out brown, and L_rgb then
+//! pulls geometry to explain colour errors. The fit renders every strand, so it
+//! costs about one training iteration per view per strand subset; 12 evenly
+//! spaced views are the default, and a second fit after training
+//! (`start_end`) gave no further gain on the dev scenes (docs/history.md).
 //!
 //! Views: each iteration renders `views_per_iteration` distinct training
 //! views drawn with a seeded generator; the losses are averaged over them.
@@ -51,6 +63,8 @@ pub struct ImageConfig {
     pub seed: u64,
     /// Normalised confidence below which a pixel has no orientation target.
     pub ori_min_confidence: f32,
+    /// Training views the colour fit uses, evenly spaced (0 = all).
+    pub fit_color_views: usize,
     /// Where the renderer runs (the stage's `device` parameter).
     pub device: render::device::Renderer,
 }
@@ -266,6 +280,103 @@ impl ImageLosses {
             color_adam: RowAdam::new(n, 3),
             settings: RenderSettings::default(),
         })
+    }
+
+    /// Sets every strand's colour and every body occluder's colour to the
+    /// blending-weighted mean of the training pixels it makes (see the module
+    /// doc): all `points` (every strand, `l` points each) are rendered with
+    /// the body in each training view; two colour backward passes give, per
+    /// Gaussian, `sum_p w(p) target(p)` and `sum_p w(p)` over the pixels inside
+    /// the view's mask. Strands or occluders no view shows keep their colour.
+    /// Returns the fraction of strands that got a colour.
+    pub fn fit_colors(&mut self, points: &[Vec3], l: usize) -> Result<f32, StageError> {
+        let n = self.colors.len();
+        if n == 0 || l < 2 || points.len() != n * l {
+            return Ok(0.0);
+        }
+        let grey = vec![[0.5f32; 3]; n];
+        let (mut g, segs) = self.scene(points, l, &self.widths, &grey)?;
+        for sh in &mut g.sh[segs..] {
+            *sh = [Vec3::ZERO; 4];
+        }
+        let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
+        let nb = self.body.len();
+        // Per strand / occluder: weighted colour sum (3) and weight.
+        let mut strand_acc = vec![[0.0f64; 4]; n];
+        let mut body_acc = vec![[0.0f64; 4]; nb];
+        let nv = self.views.len();
+        let used = match self.cfg.fit_color_views {
+            0 => nv,
+            k => k.min(nv),
+        };
+        for view in (0..used).map(|j| &self.views[j * nv / used]) {
+            let (w, h) = (view.camera.width, view.camera.height);
+            let mut target = ImageF32::new(w, h, 3);
+            let mut weight = ImageF32::new(w, h, 3);
+            for p in 0..(w * h) as usize {
+                let a = view.mask.as_ref().map_or(1.0, |m| m.data[p]);
+                if a < 0.5 {
+                    continue;
+                }
+                for k in 0..3 {
+                    target.data[3 * p + k] = (view.rgb.data[3 * p + k] / a).clamp(0.0, 1.0);
+                    weight.data[3 * p + k] = 1.0;
+                }
+            }
+            let (_, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
+            let mut sums = Vec::with_capacity(2);
+            for img in [target, weight] {
+                let dl = OutputGrads {
+                    rgb: Some(img),
+                    ..Default::default()
+                };
+                let gg = self
+                    .cfg
+                    .device
+                    .backward(&g, &view.camera, &self.settings, &state, &dl)?;
+                let sg = render::strands_backward(points, &starts, &self.widths, &head(&gg, segs))?;
+                let body: Vec<Vec3> = gg.sh[segs..].iter().map(|s| s[0] / render::SH_C0).collect();
+                sums.push((sg.colors, body));
+            }
+            let (wsum, bw) = (&sums[1].0, &sums[1].1);
+            for (i, acc) in strand_acc.iter_mut().enumerate() {
+                let c = sums[0].0[i];
+                for k in 0..3 {
+                    acc[k] += c[k] as f64;
+                }
+                acc[3] += (wsum[i].iter().sum::<f32>() / 3.0) as f64;
+            }
+            for (b, acc) in body_acc.iter_mut().enumerate() {
+                let c = sums[0].1[b];
+                for k in 0..3 {
+                    acc[k] += c[k] as f64;
+                }
+                acc[3] += ((bw[b].x + bw[b].y + bw[b].z) / 3.0) as f64;
+            }
+        }
+        // Below this many pixels of blending weight over all views a
+        // colour is noise: keep the previous one.
+        const MIN_WEIGHT: f64 = 0.05;
+        let mean = |a: &[f64; 4]| -> Option<[f32; 3]> {
+            (a[3] > MIN_WEIGHT).then(|| [0, 1, 2].map(|k| ((a[k] / a[3]) as f32).clamp(0.0, 1.0)))
+        };
+        let mut coloured = 0usize;
+        for (c, a) in self.colors.iter_mut().zip(&strand_acc) {
+            if let Some(m) = mean(a) {
+                *c = m;
+                coloured += 1;
+            }
+        }
+        for (sh, a) in self.body.sh.iter_mut().zip(&body_acc) {
+            if let Some(m) = mean(a) {
+                sh[0] = render::gaussians::rgb_to_sh0(Vec3::from_array(m));
+            }
+        }
+        fure_stage_api::ensure_finite(
+            "fitted strand colours",
+            self.colors.iter().flat_map(|c| *c),
+        )?;
+        Ok(coloured as f32 / n as f32)
     }
 
     /// The learned strand colours (one per strand).

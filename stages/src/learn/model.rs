@@ -166,14 +166,25 @@ pub struct Rates {
 }
 
 /// The codec: encoder E_theta and fine-tuned decoder D_psi.
+///
+/// With `rotation`, the encoder has one more output, an angle
+/// `theta_i = ANGLE_SCALE * out_K` that turns strand `i`'s root frame about
+/// its normal before placement: the in-plane growth direction becomes a
+/// learned field (zero at the start, as the output layer starts at zero)
+/// instead of being fixed by the roots' tangents, which the basis can bend
+/// only as far as its corpus leans (about 25 degrees either way).
 #[derive(Debug, Clone)]
 pub struct Codec {
     pub mlp: Mlp,
     pub decoder: Decoder,
     pub finetune_decoder: bool,
+    pub rotation: bool,
     adam_theta: Adam,
     adam_psi: Adam,
 }
+
+/// Radians per unit of the encoder's rotation output.
+pub const ANGLE_SCALE: f32 = 1.0;
 
 /// The dense baseline: the L - 1 non-root points of every strand, free, in
 /// the strand's canonical root frame (the root point is the origin). They go
@@ -215,14 +226,31 @@ pub enum Grads {
 }
 
 impl Codec {
-    pub fn new(mlp: Mlp, decoder: Decoder, finetune_decoder: bool) -> Self {
+    /// `mlp` must have `decoder.k` outputs, one more with `rotation`.
+    pub fn new(mlp: Mlp, decoder: Decoder, finetune_decoder: bool, rotation: bool) -> Self {
         let (nt, np) = (mlp.param_count(), decoder.params.len());
         Codec {
             mlp,
             decoder,
             finetune_decoder,
+            rotation,
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
+        }
+    }
+
+    /// Encoder outputs per strand: K coefficients, then the angle if any.
+    fn stride(&self) -> usize {
+        self.decoder.k + self.rotation as usize
+    }
+
+    /// Strand `j`'s frame: the root's, turned by its learned angle.
+    fn frame(&self, base: Mat3, out: &[f32], j: usize) -> Mat3 {
+        if self.rotation {
+            let st = self.stride();
+            base * Mat3::from_rotation_z(ANGLE_SCALE * out[j * st + st - 1])
+        } else {
+            base
         }
     }
 }
@@ -278,7 +306,7 @@ impl Model {
         match self {
             Model::Codec(c) => {
                 let dim = prep.feature_dim;
-                let k = c.decoder.k;
+                let (k, st) = (c.decoder.k, c.stride());
                 let parts: Vec<(Vec<Vec3>, CodecChunk)> = subset
                     .par_chunks(CHUNK)
                     .map(|ids| {
@@ -293,11 +321,11 @@ impl Model {
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
                             let loc = &mut local[j * l..(j + 1) * l];
-                            c.decoder.decode(&z[j * k..(j + 1) * k], loc);
+                            c.decoder.decode(&z[j * st..j * st + k], loc);
                             placement::place(
                                 loc,
                                 prep.roots[i],
-                                prep.frames[i],
+                                c.frame(prep.frames[i], &z, j),
                                 prep.lengths[i],
                                 &mut world[j * l..(j + 1) * l],
                             );
@@ -337,7 +365,7 @@ impl Model {
         let l = prep.points;
         match (self, cache) {
             (Model::Codec(c), Cache::Codec(chunks)) => {
-                let k = c.decoder.k;
+                let (k, st) = (c.decoder.k, c.stride());
                 let nt = c.mlp.param_count();
                 let np = c.decoder.params.len();
                 let per_chunk: Vec<(Vec<f32>, Vec<f32>)> = subset
@@ -345,23 +373,31 @@ impl Model {
                     .zip(chunks.par_iter())
                     .zip(grad.par_chunks(CHUNK * l))
                     .map(|((ids, ch), g)| {
-                        let mut gz = vec![0.0f32; ids.len() * k];
+                        let mut gz = vec![0.0f32; ids.len() * st];
                         let mut gpsi = vec![0.0f32; np];
                         let mut gl = vec![Vec3::ZERO; l];
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
                             let loc = &ch.local[j * l..(j + 1) * l];
-                            placement::place_backward(
-                                loc,
-                                prep.frames[i],
-                                prep.lengths[i],
-                                &g[j * l..(j + 1) * l],
-                                &mut gl,
-                            );
+                            let f = c.frame(prep.frames[i], &ch.z, j);
+                            let gj = &g[j * l..(j + 1) * l];
+                            placement::place_backward(loc, f, prep.lengths[i], gj, &mut gl);
+                            if c.rotation {
+                                // d world_k / d angle = F' (e_z x local offset), scaled
+                                // as placement scales the offsets.
+                                let scale = prep.lengths[i]
+                                    / (placement::arc_length(loc) + placement::PLACEMENT_EPS);
+                                let dangle: f32 = loc
+                                    .iter()
+                                    .zip(gj)
+                                    .map(|(q, gk)| gk.dot(f * (scale * Vec3::Z.cross(*q - loc[0]))))
+                                    .sum();
+                                gz[j * st + st - 1] = ANGLE_SCALE * dangle;
+                            }
                             c.decoder.backward(
-                                &ch.z[j * k..(j + 1) * k],
+                                &ch.z[j * st..j * st + k],
                                 &gl,
-                                &mut gz[j * k..(j + 1) * k],
+                                &mut gz[j * st..j * st + k],
                                 c.finetune_decoder.then_some(&mut gpsi[..]),
                             );
                         }
@@ -442,9 +478,18 @@ mod tests {
     use super::*;
 
     #[test]
+    fn codec_backward_matches_finite_differences() {
+        check_codec_gradients(false);
+    }
+
+    #[test]
+    fn codec_backward_with_learned_rotation_matches_finite_differences() {
+        check_codec_gradients(true);
+    }
+
     // Finite differences perturb parameter i and read gradient i.
     #[allow(clippy::needless_range_loop)]
-    fn codec_backward_matches_finite_differences() {
+    fn check_codec_gradients(rotation: bool) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
         let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 3.0).collect();
@@ -471,11 +516,11 @@ mod tests {
             &[0.1, 0.5, 0.9],
             &pe,
         );
-        let mut mlp = Mlp::new(prep.feature_dim, 6, 2, 2, 9);
-        for (i, w) in mlp.params.iter_mut().enumerate().rev().take(14) {
+        let mut mlp = Mlp::new(prep.feature_dim, 6, 2, 2 + rotation as usize, 9);
+        for (i, w) in mlp.params.iter_mut().enumerate().rev().take(21) {
             *w = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
         }
-        let mut model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true));
+        let mut model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation));
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)
             .map(|i| Vec3::new((i % 3) as f32 - 1.0, 0.5, (i % 2) as f32))
@@ -575,7 +620,7 @@ mod sized {
         for (i, w) in mlp.params.iter_mut().enumerate().rev().take(64 * 21) {
             *w = ((i * 7919) % 13) as f32 / 130.0 - 0.05;
         }
-        let model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true));
+        let model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true, false));
         (prep, model)
     }
 

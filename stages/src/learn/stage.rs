@@ -7,7 +7,7 @@ use std::path::Path;
 use fure_stage_api::{
     ensure_finite, ParamSpec, ParamType, Params, PortSpec, Stage, StageContext, StageError,
 };
-use glam::Vec3;
+use glam::{Mat3, Vec3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -27,6 +27,7 @@ use crate::strands::Strands;
 
 const LENGTH_MODES: &[&str] = &["defurred", "fixed", "shape_prior"];
 const CHAMFER_MODES: &[&str] = &["inside", "surface"];
+const FIT_COLORS: &[&str] = &["none", "start", "start_end"];
 
 /// Parameters both stages share.
 fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
@@ -126,6 +127,28 @@ fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
             "Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).",
         )
         .min(0.0),
+        ParamSpec::string(
+            "fit_colors",
+            "start",
+            "Strand and body colours set to the blending-weighted mean of the training pixels \
+             they make (learn::image): before training (start), also after it (start_end), or \
+             never (none: every strand starts grey-brown and only Adam moves it).",
+        )
+        .choices(FIT_COLORS),
+        ParamSpec::float(
+            "frame_rotation_deg",
+            0.0,
+            "Turn every root frame about its normal by this angle before training: a wrong start \
+             for stability tests (0 = the roots' frames).",
+        )
+        .range(-180.0, 180.0),
+        ParamSpec::int(
+            "fit_color_views",
+            12,
+            "Training views the colour fit renders, evenly spaced in the views' order (0 = all; \
+             each costs a render of every strand and two backward passes).",
+        )
+        .min(0.0),
     ]
 }
 
@@ -183,7 +206,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        6
+        7
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -211,6 +234,12 @@ impl Stage for CodecStrands {
             )
             .min(0.0),
             ParamSpec::bool("finetune_decoder", true, "Fine-tune the PCA decoder (psi)."),
+            ParamSpec::bool(
+                "learn_rotation",
+                false,
+                "The encoder also outputs an angle per strand that turns its root frame about the \
+                 normal (a learned growth-direction field, zero at the start; learn::model).",
+            ),
             ParamSpec::int("pe_frequencies", 10, "Positional-encoding frequencies.")
                 .range(0.0, 20.0),
             ParamSpec::int("mlp_width", 64, "Hidden width of the encoder.").range(1.0, 1024.0),
@@ -240,7 +269,7 @@ impl Stage for DenseStrands {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        4
+        5
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
@@ -303,6 +332,12 @@ pub struct LearnMetrics {
     pub mean_length: f32,
     /// Loss after every iteration.
     pub loss_history: Vec<f32>,
+    /// Fraction of strands given a colour by each colour fit (before and
+    /// after training, per `fit_colors`).
+    pub colors_fitted: Vec<f32>,
+    /// Seconds of the colour fits (the one before training is also inside
+    /// `train_seconds` and the snapshot times).
+    pub color_fit_seconds: f64,
     /// `{"device", "adapter"}` that rendered, when the `device` parameter is set.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device: Option<serde_json::Value>,
@@ -523,9 +558,14 @@ fn setup(
     let prep = Prepared::new(
         basis.points,
         keep.iter().map(|&i| roots.positions[i]).collect(),
-        keep.iter()
-            .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]))
-            .collect(),
+        {
+            // A deliberately wrong start for stability tests: every frame
+            // turned about its normal.
+            let turn = Mat3::from_rotation_z(p.f32("frame_rotation_deg")?.to_radians());
+            keep.iter()
+                .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
+                .collect()
+        },
         lengths.clone(),
         &keep.iter().map(|&i| roots.part[i]).collect::<Vec<_>>(),
         part_count,
@@ -628,7 +668,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             s.prep.feature_dim,
             p.usize("mlp_width")?,
             p.usize("mlp_depth")?,
-            s.decoder.k,
+            s.decoder.k + p.bool("learn_rotation")? as usize,
             seed,
         )
     };
@@ -636,6 +676,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         mlp,
         s.decoder.clone(),
         !dense && p.bool("finetune_decoder")?,
+        !dense && p.bool("learn_rotation")?,
     ));
     let mut model = if dense {
         Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len()))
@@ -647,7 +688,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         decoder: if dense { 0.0 } else { p.f32("lr_decoder")? },
         points: if dense { p.f32("lr_points")? } else { 0.0 },
     };
-    let cfg = TrainConfig {
+    let mut cfg = TrainConfig {
         iterations: p.usize("iterations")?,
         subset: p.usize("strands_per_iteration")?,
         seed,
@@ -657,6 +698,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         w_sdf: p.f32("l_sdf")?,
         snapshot_first: p.f64("snapshot_first_seconds")?,
         snapshot_growth: p.f64("snapshot_growth")?,
+        clock_start: 0.0,
     };
 
     // Image losses when views are connected.
@@ -673,6 +715,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
                 body_gaussians: p.usize("body_gaussians")?,
                 seed,
                 ori_min_confidence: p.f32("ori_min_confidence")?,
+                fit_color_views: p.usize("fit_color_views")?,
                 device: crate::render::device::Renderer::from_params(p)?,
             };
             let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
@@ -686,6 +729,19 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         }
         None => None,
     };
+
+    let fit_colors = p.str("fit_colors")?;
+    let mut colors_fitted = Vec::new();
+    let mut color_fit_seconds = 0.0f64;
+    if let Some(img) = image.as_mut() {
+        if fit_colors != "none" {
+            ctx.progress.message("colours from the views");
+            let t0 = std::time::Instant::now();
+            colors_fitted.push(img.fit_colors(&model.all_points(&s.prep), l)?);
+            cfg.clock_start = t0.elapsed().as_secs_f64();
+            color_fit_seconds = cfg.clock_start;
+        }
+    }
 
     // Snapshots.
     let snap_dir = ctx.output("snapshots")?.to_path_buf();
@@ -725,6 +781,15 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     // Final strands.
     let pts = model.all_points(&s.prep);
     ensure_finite("final strands", pts.iter().flat_map(|v| v.to_array()))?;
+    if let Some(img) = image.as_mut() {
+        if fit_colors == "start_end" {
+            ctx.progress
+                .message("colours from the views (final strands)");
+            let t0 = std::time::Instant::now();
+            colors_fitted.push(img.fit_colors(&pts, l)?);
+            color_fit_seconds += t0.elapsed().as_secs_f64();
+        }
+    }
     let colors = image.as_ref().map(|i| i.colors().to_vec());
     let strands = to_strands(&pts, l, &s, colors.as_deref());
     formats::hair::write_hair(ctx.output("strands")?, &strands)?;
@@ -752,6 +817,8 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         strands_per_iteration: cfg.subset.min(s.keep.len()),
         mean_length: s.prep.mean_length(),
         loss_history: report.history.clone(),
+        colors_fitted,
+        color_fit_seconds,
         device: p
             .get("device")
             .and(image.as_ref())
@@ -1065,25 +1132,22 @@ mod tests {
         (views, tips)
     }
 
-    #[test]
-    fn image_losses_drive_the_codec_and_test_views_are_rendered() {
-        let d = tempfile::tempdir().unwrap();
-        let (views, gt_tips) = write_views(d.path());
+    /// Runs the codec on the [`write_views`] scene with `extra` parameters;
+    /// returns the output folder.
+    fn run_with_views(d: &Path, views: PathBuf, extra: &[(&str, Value)]) -> PathBuf {
         let stage = CodecStrands;
         let mut over = small();
         over.extend([
-            ("iterations", Value::Int(60)),
             ("l_chm", Value::Float(0.0)),
             ("body_gaussians", Value::Int(2000)),
             ("views_per_iteration", Value::Int(2)),
-            ("lr_encoder", Value::Float(2e-3)),
-            // Constant rates: 60 iterations are too few for the schedule's tail.
-            ("lr_decay", Value::Float(1.0)),
         ]);
+        over.extend(extra.iter().cloned());
         let params = params(&stage, &over);
-        let mut inputs = write_inputs(d.path());
+        std::fs::create_dir_all(d).unwrap();
+        let mut inputs = write_inputs(d);
         inputs.insert("views".into(), views);
-        let out = d.path().join("out");
+        let out = d.join("out");
         let mut outputs = BTreeMap::new();
         for port in stage.outputs(&params) {
             let path = out.join(port.file_name());
@@ -1100,6 +1164,58 @@ mod tests {
             progress: &NoProgress,
         };
         stage.run(&ctx).unwrap();
+        out
+    }
+
+    #[test]
+    fn the_colour_fit_gives_strands_the_colour_the_views_show() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, _) = write_views(d.path());
+        let colours = |fit: &str| -> (Vec<[f32; 3]>, LearnMetrics) {
+            let dir = d.path().join(fit);
+            let out = run_with_views(
+                &dir,
+                views.clone(),
+                &[
+                    ("iterations", Value::Int(0)),
+                    ("fit_colors", Value::Str(fit.into())),
+                    ("fit_color_views", Value::Int(0)),
+                ],
+            );
+            let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+            let m = formats::json::read_json(out.join("metrics.json")).unwrap();
+            (st.color, m)
+        };
+        // The views show orange strands (0.9, 0.6, 0.2) over a dark body.
+        let (fitted, m) = colours("start");
+        assert_eq!(m.colors_fitted.len(), 1);
+        assert!(m.colors_fitted[0] > 0.5, "{:?}", m.colors_fitted);
+        let n = fitted.len() as f32;
+        let mean = [0, 1, 2].map(|k| fitted.iter().map(|c| c[k]).sum::<f32>() / n);
+        for (k, want) in [0.9f32, 0.6, 0.2].iter().enumerate() {
+            assert!((mean[k] - want).abs() < 0.12, "mean fitted colour {mean:?}");
+        }
+        // Without the fit every strand keeps the starting colour.
+        let (constant, m) = colours("none");
+        assert!(m.colors_fitted.is_empty());
+        assert!(constant.iter().all(|c| *c == constant[0]));
+        assert!((constant[0][0] - 0.9).abs() > 0.3);
+    }
+
+    #[test]
+    fn image_losses_drive_the_codec_and_test_views_are_rendered() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let out = run_with_views(
+            d.path(),
+            views,
+            &[
+                ("iterations", Value::Int(60)),
+                ("lr_encoder", Value::Float(2e-3)),
+                // Constant rates: 60 iterations are too few for the schedule's tail.
+                ("lr_decay", Value::Float(1.0)),
+            ],
+        );
         let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
         assert!(m.final_losses.contains_key("rgb") && m.final_losses.contains_key("sil"));
         let h = &m.loss_history;

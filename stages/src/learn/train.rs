@@ -50,6 +50,10 @@ pub struct TrainConfig {
     pub snapshot_first: f64,
     /// Ratio between consecutive snapshot times (> 1).
     pub snapshot_growth: f64,
+    /// Seconds already spent before the first iteration (the colour fit):
+    /// the training clock starts there, so snapshot times are wall time of
+    /// the whole method.
+    pub clock_start: f64,
 }
 
 /// Image losses (rendering) plugged into the loop.
@@ -138,7 +142,7 @@ pub fn train(
     let n = prep.len();
     let lbar = prep.mean_length();
     let mut report = TrainReport::default();
-    let mut trained = 0.0f64;
+    let mut trained = cfg.clock_start.max(0.0);
     let growth = if cfg.snapshot_growth.is_finite() && cfg.snapshot_growth > 1.0 {
         cfg.snapshot_growth
     } else {
@@ -147,7 +151,7 @@ pub fn train(
     let mut next_snap = cfg.snapshot_first;
     progress.set_total(cfg.iterations as u64);
     if cfg.iterations > 0 {
-        snapshot(model, 0, 0.0)?;
+        snapshot(model, 0, trained)?;
     }
     for it in 0..cfg.iterations {
         let t0 = Instant::now();
@@ -287,6 +291,7 @@ mod tests {
             w_sdf: 1.0,
             snapshot_first: 0.0,
             snapshot_growth: 1.25,
+            clock_start: 0.0,
         }
     }
 
@@ -304,7 +309,7 @@ mod tests {
         let (prep, geo, dec) = sphere_scene(300);
         let run = || {
             let mlp = Mlp::new(prep.feature_dim, 32, 2, dec.k, 1);
-            let mut model = Model::Codec(Codec::new(mlp, dec.clone(), true));
+            let mut model = Model::Codec(Codec::new(mlp, dec.clone(), true, false));
             let mut snaps = 0;
             let rep = train(
                 &mut model,
@@ -399,7 +404,7 @@ mod tests {
             let mut model = if dense {
                 Model::Dense(Dense::from_local(&dec.mean(), prep.len()))
             } else {
-                Model::Codec(Codec::new(mlp, dec.clone(), true))
+                Model::Codec(Codec::new(mlp, dec.clone(), true, false))
             };
             let mut c = cfg(100, 120);
             c.lr_decay = decay;
@@ -447,7 +452,7 @@ mod tests {
         let (prep, geo, dec) = sphere_scene(200);
         let mlp = Mlp::new(prep.feature_dim, 16, 1, dec.k, 1);
         let mean = dec.mean();
-        let codec = Model::Codec(Codec::new(mlp, dec, false));
+        let codec = Model::Codec(Codec::new(mlp, dec, false, false));
         let init = codec.all_points(&prep);
         let mut model = Model::Dense(Dense::from_local(&mean, prep.len()));
         // The same initial strands as the codec (its encoder starts at z = 0).
