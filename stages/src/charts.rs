@@ -23,7 +23,7 @@
 //! those queries: unbiased, with a sampling error of about `sqrt(0.25 / n)` = 0.25 percentage points at
 //! most (one standard deviation, n = 40,000). `max_queries = 0` scores every point. The `evaluate`
 //! stages score the final strands exactly; the final snapshots (the same strands) show the measured
-//! effect (README).
+//! effect (docs/history.md, "Speed against accuracy").
 //!
 //! `speedup_to_dense_final_fscore` = `t_dense / t_codec`, with `F*` the dense baseline's final F-score
 //! (its last snapshot), `t_dense` the training time of the FIRST dense snapshot whose F-score reaches `F*`
