@@ -116,7 +116,7 @@ fn main() {
     for w in &mut mlp.params[n - (64 + 1) * COMPONENTS..] {
         *w = 0.1 * (rng.next() - 0.5);
     }
-    let mut codec = Model::Codec(Codec::new(mlp, dec, true));
+    let mut codec = Model::Codec(Codec::new(mlp, dec, true, false));
     let mut dense = Model::Dense(Dense::from_local(&mean, STRANDS));
 
     let c = time_model(&mut codec, &prep, &mut rng);
