@@ -13,7 +13,8 @@
 //! variance ratio of each component (non-increasing, summing to at most 1). Eigenvector signs are fixed
 //! (largest-magnitude entry positive) so the output is deterministic.
 //!
-//! # The corpus (stand-in for PERM's human-hair basis, which cannot be downloaded here)
+//! # The fur corpus (`domain = "fur"`)
+//! A stand-in for PERM's human-hair basis (which cannot be downloaded here), fur-like by construction.
 //! Strands are integrated along arc length with a rotating frame (tangent t, bending direction n):
 //! `t' = kappa(s) n`, and n turns about t at the torsion rate `tau`. Every strand starts at the origin
 //! with its tangent at an elevation `phi` above the surface (uniform 12..65 degrees) and an azimuth `psi`
@@ -32,6 +33,42 @@
 //!   Parameters are drawn from a ChaCha8 generator seeded with `seed`, strand `i` from its own stream
 //!   (`seed`, `i`), so the corpus does not depend on threads. Each strand is integrated with 256 equal steps
 //!   and resampled to `L` points equally spaced in arc length (unit length).
+//!
+//! # The human-hairstyle corpus (`domain = "human"`, the paper's transfer claim)
+//! PERM's basis is fitted to human hair; the fur corpus above is fur-like by construction. The human
+//! corpus grows long strands on a head-like scalp and maps them into the same root-local frame, so
+//! the same PCA (and the same `k`, `variance_target`, held-out error) applies. Every number below is
+//! a guess at a plausible human head and hairstyle, not measured from a hair data set.
+//! - Head: a sphere of radius 8.5 cm ([`HEAD_RADIUS_CM`]), head frame y up, face +z. Roots are
+//!   uniform on the scalp: above the ears (`y > -0.2 R`), down to `-0.55 R` at the nape
+//!   (`z < -0.3 R`), not on the face (`z > 0.35 R` and `y < 0.5 R` excluded).
+//! - Growth tangent T: away from a crown whorl at direction (0, 0.87, -0.5), projected on the scalp,
+//!   turned about the normal by +-20 degrees; N is the sphere's normal and B = N x T (our frame).
+//! - Length: uniform in `human_length_cm` (default 10..60 cm).
+//! - Drape (the centreline): leaves the scalp at an elevation of 20..60 degrees above T, then
+//!   bends toward gravity (-y) at 0.15..0.6 rad per cm (times the sine of its angle to the
+//!   vertical), integrated in 0.5 mm steps; a hair layer 0.3..1.5 cm thick over the skull (reached
+//!   over the first 2 cm) stops it, the strand sliding on it. So in the root frame a strand rises
+//!   briefly, lies down along +x, follows the skull (bending toward -z) and hangs along gravity
+//!   below it; short strands mostly follow the skull, long ones mostly hang. No neck or shoulders.
+//! - Styles (weights `human_mix`: straight, wavy, curly, clumped; default 0.3, 0.3, 0.2, 0.2),
+//!   offsets about the centreline in its transported frame, ramping in over the first 1..4 cm:
+//!   straight none; wavy a planar sine of amplitude 0.3..1.2 cm and wavelength 3..8 cm in a random
+//!   plane; curly a helix of radius 0.3..1.0 cm and pitch 1..3 cm, either handedness; clumped a
+//!   mild wave (0..0.6 cm) plus convergence toward a neighbour's centreline (a root 0.5..2 cm away in
+//!   a random direction, same drape): the strand moves a fraction 0.5..0.95 of the way to it,
+//!   reached over 30..80% of the length, i.e. a lateral bend toward the neighbour direction.
+//!   The styled strand is cut at its length in arc length (curls use length up).
+//! - Sampling: a 50 cm strand with 1 cm curls cannot be held by `L` points; sampled directly, the
+//!   curls alias into random zig-zags. The strand (root frame) is resampled to 16 points per output
+//!   segment and low-passed with two box passes of half-width 10 (about a Gaussian of half a segment),
+//!   what `L` samples can represent, then shifted to a root at the origin, scaled to unit arc
+//!   length (of the filtered curve) and resampled to `L` points. Unresolved curls become a straight
+//!   envelope, as they do in views whose pixel footprint sets `L`.
+//! - Randomness: ChaCha8 seeded with `seed`, strand `i` from stream `i`, as the fur corpus.
+//!
+//! `metrics.json` says `source`: `corpus` (fur), `human_corpus` (with `human_mix` and
+//! `human_length_cm`) or `perm`. Which default and why: see "Default domain" below.
 //!
 //! # Choosing L and K
 //! - `points` (L): with `points = 0` the stage picks the segment length near the pixel footprint for the
@@ -207,21 +244,26 @@ pub enum Family {
     Curly,
 }
 
-/// Resamples a polyline to exactly `n >= 2` points equally spaced in arc length.
-pub fn resample_count(points: &[Vec3], n: usize) -> Vec<Vec3> {
-    if points.len() < 2 || n < 2 {
-        return vec![points.first().copied().unwrap_or(Vec3::ZERO); n.max(1)];
-    }
-    let mut cum = vec![0.0f32];
+/// Cumulative arc length along a polyline (first entry 0), summed in point order.
+fn arc_lengths(points: &[Vec3]) -> Vec<f32> {
+    let mut cum = Vec::with_capacity(points.len());
+    cum.push(0.0f32);
     for w in points.windows(2) {
-        let l = cum[cum.len() - 1] + (w[1] - w[0]).length();
-        cum.push(l);
+        let last = cum[cum.len() - 1];
+        cum.push(last + (w[1] - w[0]).length());
     }
+    cum
+}
+
+/// The one polyline resampler of the crate (the corpora here, `evaluate`'s common spacing):
+/// `segments + 1` points at equal arc-length steps along `points` (at least 2 points, `cum` their
+/// [`arc_lengths`]), linear between vertices, the last point exactly the last vertex.
+fn resample_segments(points: &[Vec3], cum: &[f32], segments: usize) -> Vec<Vec3> {
     let total = cum[cum.len() - 1];
-    let mut out = Vec::with_capacity(n);
-    let mut seg = 0;
-    for i in 0..n {
-        let s = total * i as f32 / (n - 1) as f32;
+    let mut out = Vec::with_capacity(segments + 1);
+    let mut seg = 0usize;
+    for i in 0..=segments {
+        let s = total * i as f32 / segments as f32;
         while seg + 2 < cum.len() && cum[seg + 1] < s {
             seg += 1;
         }
@@ -233,8 +275,33 @@ pub fn resample_count(points: &[Vec3], n: usize) -> Vec<Vec3> {
         };
         out.push(points[seg].lerp(points[seg + 1], t));
     }
-    out[n - 1] = points[points.len() - 1];
+    out[segments] = points[points.len() - 1];
     out
+}
+
+/// Resamples a polyline to exactly `n >= 2` points equally spaced in arc length (fewer than two
+/// input points, or `n < 2`: `n` copies of the first point).
+pub fn resample_count(points: &[Vec3], n: usize) -> Vec<Vec3> {
+    if points.len() < 2 || n < 2 {
+        return vec![points.first().copied().unwrap_or(Vec3::ZERO); n.max(1)];
+    }
+    resample_segments(points, &arc_lengths(points), n - 1)
+}
+
+/// Resamples a polyline to `n = max(1, round(length / spacing))` equal arc-length segments
+/// (`n + 1` points, first and last kept). Returns the input unchanged when it has fewer than two
+/// points or zero length.
+pub fn resample_polyline(points: &[Vec3], spacing: f32) -> Vec<Vec3> {
+    if points.len() < 2 || !(spacing > 0.0) {
+        return points.to_vec();
+    }
+    let cum = arc_lengths(points);
+    let total = cum[cum.len() - 1];
+    if !(total > 0.0) || !total.is_finite() {
+        return points.to_vec();
+    }
+    let n = ((total / spacing).round() as usize).max(1);
+    resample_segments(points, &cum, n)
 }
 
 /// One corpus strand of family `fam` from random stream `rng`: `points` points, unit arc length.
@@ -333,6 +400,271 @@ pub fn corpus(n: usize, points: usize, mix: [f64; 3], seed: u64) -> Vec<(Family,
                 Family::Curly
             };
             (fam, corpus_strand(fam, points, &mut rng))
+        })
+        .collect()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Human-hairstyle corpus.
+
+/// The styles of the human-hairstyle corpus (module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum HairStyle {
+    Straight,
+    Wavy,
+    Curly,
+    Clumped,
+}
+
+/// Radius (cm) of the scalp sphere the human corpus grows on.
+pub const HEAD_RADIUS_CM: f64 = 8.5;
+/// Step (cm) of the drape integration.
+const DRAPE_STEP_CM: f64 = 0.05;
+/// Fine samples per output segment before the anti-aliasing filter.
+const FINE_PER_SEGMENT: usize = 16;
+/// Half-width (fine samples) of each of the two box passes: a Gaussian of about half a segment.
+const BOX_HALF_WIDTH: usize = 10;
+
+/// Whether unit direction `u` (head frame: y up, face +z) lies on the scalp: above the ears, lower
+/// at the nape, and not on the face below the forehead hairline.
+fn on_scalp(u: DVec3) -> bool {
+    let above = u.y > -0.2 || (u.z < -0.3 && u.y > -0.55);
+    let face = u.z > 0.35 && u.y < 0.5;
+    above && !face
+}
+
+/// Rotates `v` about unit axis `a` by `angle` (Rodrigues).
+fn rotate_about(v: DVec3, a: DVec3, angle: f64) -> DVec3 {
+    v * angle.cos() + a.cross(v) * angle.sin() + a * a.dot(v) * (1.0 - angle.cos())
+}
+
+/// The growth tangent at scalp direction `u`: away from the crown whorl, tangent to the sphere,
+/// turned by `jitter` radians about the normal.
+fn scalp_tangent(u: DVec3, jitter: f64) -> DVec3 {
+    let whorl = DVec3::new(0.0, 0.87, -0.5).normalize();
+    let away = |d: DVec3| d - u * d.dot(u);
+    let mut v = away(u - whorl);
+    if v.length() < 1e-6 {
+        v = away(DVec3::NEG_Z);
+    }
+    rotate_about(v.normalize(), u, jitter)
+}
+
+/// The drape parameters one strand (and its clump neighbour) share.
+struct Drape {
+    elevation: f64,
+    gravity: f64,
+    layer: f64,
+    jitter: f64,
+}
+
+/// A strand's centreline from scalp direction `u` over `length` cm in steps of [`DRAPE_STEP_CM`]:
+/// points (head frame, cm) and a transported unit normal of the centreline at each point.
+fn drape(u: DVec3, length: f64, d: &Drape) -> (Vec<DVec3>, Vec<DVec3>) {
+    let tangent = scalp_tangent(u, d.jitter);
+    let mut p = u * HEAD_RADIUS_CM;
+    let mut dir = tangent * d.elevation.cos() + u * d.elevation.sin();
+    let mut e1 = (u - dir * dir.dot(u)).normalize();
+    let steps = (length / DRAPE_STEP_CM).ceil() as usize;
+    let (mut pts, mut nrm) = (Vec::with_capacity(steps + 1), Vec::with_capacity(steps + 1));
+    pts.push(p);
+    nrm.push(e1);
+    for i in 0..steps {
+        // Gravity bends the strand toward -y at `gravity` radians per cm (times the sine of the angle
+        // between the strand and the vertical).
+        let g = DVec3::NEG_Y;
+        dir = (dir + (g - dir * g.dot(dir)) * (d.gravity * DRAPE_STEP_CM)).normalize();
+        p += dir * DRAPE_STEP_CM;
+        // The hair layer over the head (reached over the first 2 cm): strands slide on it.
+        let s = (i + 1) as f64 * DRAPE_STEP_CM;
+        let layer = HEAD_RADIUS_CM + d.layer * (s / 2.0).min(1.0);
+        let r = p.length();
+        if r < layer {
+            let n = p / r;
+            p = n * layer;
+            dir = (dir - n * dir.dot(n).min(0.0)).normalize();
+        }
+        e1 = (e1 - dir * e1.dot(dir)).normalize_or_zero();
+        if e1 == DVec3::ZERO {
+            e1 = dir.any_orthonormal_vector();
+        }
+        pts.push(p);
+        nrm.push(e1);
+    }
+    (pts, nrm)
+}
+
+fn smoothstep(edge: f64, x: f64) -> f64 {
+    let t = (x / edge).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Two passes of a centred moving average of half-width `r`, truncated at the ends.
+fn box_filter(p: &[Vec3], r: usize) -> Vec<Vec3> {
+    let pass = |p: &[DVec3]| -> Vec<DVec3> {
+        let mut pre = vec![DVec3::ZERO; p.len() + 1];
+        for (i, x) in p.iter().enumerate() {
+            pre[i + 1] = pre[i] + *x;
+        }
+        (0..p.len())
+            .map(|i| {
+                let (a, b) = (i.saturating_sub(r), (i + r + 1).min(p.len()));
+                (pre[b] - pre[a]) / (b - a) as f64
+            })
+            .collect()
+    };
+    let d: Vec<DVec3> = p.iter().map(|x| x.as_dvec3()).collect();
+    pass(&pass(&d)).into_iter().map(|x| x.as_vec3()).collect()
+}
+
+/// One human-hair strand of style `style`, `points` points, unit arc length, root-local frame
+/// (module doc). `lengths` is the range of strand lengths in cm.
+fn human_strand(
+    style: HairStyle,
+    points: usize,
+    lengths: [f64; 2],
+    rng: &mut ChaCha8Rng,
+) -> Vec<Vec3> {
+    use std::f64::consts::PI;
+    let u = loop {
+        let y: f64 = rng.gen_range(-1.0..1.0);
+        let a: f64 = rng.gen_range(0.0..2.0 * PI);
+        let r = (1.0 - y * y).sqrt();
+        let u = DVec3::new(r * a.cos(), y, r * a.sin());
+        if on_scalp(u) {
+            break u;
+        }
+    };
+    let length = if lengths[1] > lengths[0] {
+        rng.gen_range(lengths[0]..lengths[1])
+    } else {
+        lengths[0]
+    };
+    let d = Drape {
+        elevation: rng.gen_range(20f64..60.0).to_radians(),
+        gravity: rng.gen_range(0.15..0.6),
+        layer: rng.gen_range(0.3..1.5),
+        jitter: rng.gen_range(-20f64..20.0).to_radians(),
+    };
+    let (centre, e1) = drape(u, length, &d);
+    // Style offsets about the centreline, ramping in from the root.
+    let ramp_cm = rng.gen_range(1.0..4.0);
+    let phase = rng.gen_range(0.0..2.0 * PI);
+    let (amp, wavelength, beta, hand) = match style {
+        HairStyle::Straight => (0.0, 1.0, 0.0, 1.0),
+        HairStyle::Wavy => (
+            rng.gen_range(0.3..1.2),
+            rng.gen_range(3.0..8.0),
+            rng.gen_range(0.0..PI),
+            0.0,
+        ),
+        HairStyle::Curly => (
+            rng.gen_range(0.3..1.0),
+            rng.gen_range(1.0..3.0),
+            0.0,
+            if rng.gen_bool(0.5) { 1.0 } else { -1.0 },
+        ),
+        HairStyle::Clumped => (
+            rng.gen_range(0.0..0.6),
+            rng.gen_range(3.0..8.0),
+            rng.gen_range(0.0..PI),
+            0.0,
+        ),
+    };
+    // Clumping: converge toward the centreline of a neighbour root `gap` cm away.
+    let clump = (style == HairStyle::Clumped).then(|| {
+        let gap = rng.gen_range(0.5..2.0) / HEAD_RADIUS_CM;
+        let side = rotate_about(scalp_tangent(u, 0.0), u, rng.gen_range(0.0..2.0 * PI));
+        let un = (u + side * gap).normalize();
+        let strength = rng.gen_range(0.5..0.95);
+        let reach = rng.gen_range(0.3..0.8) * length;
+        (drape(un, length, &d).0, strength, reach)
+    });
+    let dense: Vec<Vec3> = centre
+        .iter()
+        .zip(&e1)
+        .enumerate()
+        .map(|(i, (c, n1))| {
+            let s = i as f64 * DRAPE_STEP_CM;
+            let dir = if i + 1 < centre.len() {
+                centre[i + 1] - *c
+            } else {
+                *c - centre[i - 1]
+            }
+            .normalize();
+            let n2 = dir.cross(*n1);
+            let a = amp * smoothstep(ramp_cm, s);
+            let th = 2.0 * PI * s / wavelength + phase;
+            let off = if style == HairStyle::Curly {
+                (*n1 * th.cos() + n2 * (hand * th.sin())) * a
+            } else {
+                (*n1 * beta.cos() + n2 * beta.sin()) * (a * th.sin())
+            };
+            let mut p = *c + off;
+            if let Some((other, strength, reach)) = &clump {
+                p += (other[i] - *c) * (strength * smoothstep(*reach, s));
+            }
+            p.as_vec3()
+        })
+        .collect();
+    // Cut at the strand's arc length (curls use up length), then the root-local frame.
+    let cum = arc_lengths(&dense);
+    let cut = cum
+        .iter()
+        .position(|&c| c as f64 >= length)
+        .unwrap_or(dense.len() - 1);
+    let root = (u * HEAD_RADIUS_CM).as_vec3();
+    let t = scalp_tangent(u, d.jitter).as_vec3();
+    let nn = u.as_vec3();
+    let b = nn.cross(t);
+    let local: Vec<Vec3> = dense[..=cut.max(1)]
+        .iter()
+        .map(|p| {
+            let q = *p - root;
+            Vec3::new(q.dot(t), q.dot(b), q.dot(nn))
+        })
+        .collect();
+    // Anti-aliasing: what `points` samples can hold (module doc), then unit arc length.
+    let fine = resample_count(&local, FINE_PER_SEGMENT * (points - 1) + 1);
+    let smooth = box_filter(&fine, BOX_HALF_WIDTH);
+    let arc = arc_lengths(&smooth);
+    let total = arc[arc.len() - 1].max(1e-12);
+    let shifted: Vec<Vec3> = smooth.iter().map(|p| (*p - smooth[0]) / total).collect();
+    resample_count(&shifted, points)
+}
+
+/// The human-hairstyle corpus: `n` strands of `points` points, styles drawn with weights `mix`
+/// (straight, wavy, curly, clumped), lengths uniform in `lengths` cm. Deterministic in `seed`.
+pub fn human_corpus(
+    n: usize,
+    points: usize,
+    mix: [f64; 4],
+    lengths: [f64; 2],
+    seed: u64,
+) -> Vec<(HairStyle, Vec<Vec3>)> {
+    let total: f64 = mix.iter().sum();
+    let w = if total > 0.0 {
+        mix.map(|m| m / total)
+    } else {
+        [0.25; 4]
+    };
+    let points = points.max(2);
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            rng.set_stream(i as u64);
+            let u: f64 = rng.gen();
+            let style = if u < w[0] {
+                HairStyle::Straight
+            } else if u < w[0] + w[1] {
+                HairStyle::Wavy
+            } else if u < w[0] + w[1] + w[2] {
+                HairStyle::Curly
+            } else {
+                HairStyle::Clumped
+            };
+            (style, human_strand(style, points, lengths, &mut rng))
         })
         .collect()
 }
@@ -838,6 +1170,9 @@ fn parse_axis(s: &str) -> Option<(usize, f64)> {
     Some((i, sign))
 }
 
+/// The corpora of parameter `domain`.
+pub const DOMAINS: &[&str] = &["fur", "human"];
+
 /// Default PERM axis mapping (our x, y, z from PERM's signed axes).
 pub const PERM_AXES: [&str; 3] = ["-y", "-x", "-z"];
 
@@ -1073,8 +1408,8 @@ impl Stage for StrandBasisStage {
     }
     fn doc(&self) -> &'static str {
         "PCA strand basis (mean + K components) in the root-local canonical frame (x tangent, y \
-         bitangent, z normal; unit arc length), fitted to a generated straight/wavy/curly corpus, or \
-         decoded from PERM's fft-strands-blend-shapes.npz when `perm` is connected."
+         bitangent, z normal; unit arc length), fitted to a generated corpus (`domain`: fur-like \
+         straight/wavy/curly strands, or human hairstyles draped on a scalp), or decoded from PERM's fft-strands-blend-shapes.npz when `perm` is connected."
     }
     fn params(&self) -> Vec<ParamSpec> {
         vec![
@@ -1111,6 +1446,25 @@ impl Stage for StrandBasisStage {
             )
             .min(0.0),
             ParamSpec::str_list("perm_axes", &PERM_AXES, "our x, y, z from signed PERM axes"),
+            ParamSpec::string(
+                "domain",
+                "fur",
+                "corpus the basis is fitted to: fur (straight/wavy/curly fur-like strands) or human \
+                 (long hair draped on a head-like scalp, see docs); ignored when `perm` is connected",
+            )
+            .choices(DOMAINS),
+            ParamSpec::float_list(
+                "human_mix",
+                &[0.3, 0.3, 0.2, 0.2],
+                "human corpus style weights: straight, wavy, curly, clumped",
+            )
+            .min(0.0),
+            ParamSpec::float_list(
+                "human_length_cm",
+                &[10.0, 60.0],
+                "human corpus strand lengths, uniform in [min, max] cm",
+            )
+            .range(1.0, 200.0),
         ]
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
@@ -1152,6 +1506,20 @@ impl Stage for StrandBasisStage {
             return Err(StageError::param(
                 "mix",
                 "expected 3 non-negative weights with a positive sum",
+            ));
+        }
+        let hmix = params.f64_list("human_mix")?;
+        if hmix.len() != 4 || !(hmix.iter().sum::<f64>() > 0.0) {
+            return Err(StageError::param(
+                "human_mix",
+                "expected 4 non-negative weights (straight, wavy, curly, clumped) with a positive sum",
+            ));
+        }
+        let hl = params.f64_list("human_length_cm")?;
+        if hl.len() != 2 || hl[0] > hl[1] {
+            return Err(StageError::param(
+                "human_length_cm",
+                "expected [min, max] in cm with min <= max",
             ));
         }
         let axes = params.str_list("perm_axes")?;
@@ -1212,17 +1580,37 @@ impl Stage for StrandBasisStage {
             let b = perm_basis(perm, l, axes, std.as_deref(), k)?;
             (b, "perm", None)
         } else {
-            ctx.progress.message("generating the corpus");
-            let mixv = p.f64_list("mix")?;
             let n = p.usize("corpus")?;
-            let all = corpus(n, l, [mixv[0], mixv[1], mixv[2]], p.u64("seed")?);
-            let strands: Vec<Vec<Vec3>> = all.into_iter().map(|(_, s)| s).collect();
+            let human = p.str("domain")? == "human";
+            let strands: Vec<Vec<Vec3>> = if human {
+                ctx.progress
+                    .message("generating the human-hairstyle corpus");
+                let m = p.f64_list("human_mix")?;
+                let hl = p.f64_list("human_length_cm")?;
+                human_corpus(
+                    n,
+                    l,
+                    [m[0], m[1], m[2], m[3]],
+                    [hl[0], hl[1]],
+                    p.u64("seed")?,
+                )
+                .into_iter()
+                .map(|(_, s)| s)
+                .collect()
+            } else {
+                ctx.progress.message("generating the corpus");
+                let mixv = p.f64_list("mix")?;
+                corpus(n, l, [mixv[0], mixv[1], mixv[2]], p.u64("seed")?)
+                    .into_iter()
+                    .map(|(_, s)| s)
+                    .collect()
+            };
             let hold = (n / 10).max(1);
             let (fit, held) = strands.split_at(n - hold);
             ctx.progress.message("PCA");
             let b = fit_pca(fit, k, p.f64("variance_target")?, p.usize("k_max")?)?;
             let rms = reconstruction_rms(&b, held);
-            (b, "corpus", Some(rms))
+            (b, if human { "human_corpus" } else { "corpus" }, Some(rms))
         };
         fure_stage_api::ensure_finite(
             "strand basis",
@@ -1247,7 +1635,7 @@ impl Stage for StrandBasisStage {
                 cum
             })
             .collect();
-        let metrics = serde_json::json!({
+        let mut metrics = serde_json::json!({
             "source": source,
             "points": l,
             "points_rule": choice.rule,
@@ -1258,6 +1646,10 @@ impl Stage for StrandBasisStage {
             "cumulative_variance": cumulative,
             "heldout_rms_error_unit_length": heldout_rms,
         });
+        if source == "human_corpus" {
+            metrics["human_mix"] = serde_json::json!(p.f64_list("human_mix")?);
+            metrics["human_length_cm"] = serde_json::json!(p.f64_list("human_length_cm")?);
+        }
         crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
         Ok(())
     }
@@ -1288,6 +1680,88 @@ mod tests {
         assert!(fams.iter().all(|&n| n > 5), "{fams:?}");
         let mean_x: f32 = a.iter().map(|(_, s)| s[19].x).sum::<f32>() / 60.0;
         assert!(mean_x > 0.2);
+    }
+
+    #[test]
+    fn human_corpus_hangs_from_a_scalp_deterministically() {
+        let mix = [1.0; 4];
+        let a = human_corpus(400, 16, mix, [10.0, 60.0], 5);
+        assert_eq!(a, human_corpus(400, 16, mix, [10.0, 60.0], 5));
+        assert_ne!(a, human_corpus(400, 16, mix, [10.0, 60.0], 6));
+        let mut styles = [0; 4];
+        let mut mean = [Vec3::ZERO; 16];
+        for (st, s) in &a {
+            styles[*st as usize] += 1;
+            assert_eq!(s.len(), 16);
+            assert_eq!(s[0], Vec3::ZERO);
+            assert!(s.iter().all(|p| p.is_finite()), "{st:?} {s:?}");
+            let len: f32 = s.windows(2).map(|w| (w[1] - w[0]).length()).sum();
+            assert!(len > 0.8 && len <= 1.0 + 1e-4, "{st:?} length {len}");
+            for (m, p) in mean.iter_mut().zip(s) {
+                *m += *p / a.len() as f32;
+            }
+        }
+        assert!(styles.iter().all(|&n| n > 60), "{styles:?}");
+        // On average: leaves the scalp rising, along the growth tangent, then falls back below the
+        // root's tangent plane under gravity; no side preferred.
+        assert!(mean[1].z > 0.0 && mean[1].x > 0.0, "{mean:?}");
+        assert!(mean[15].x > 0.4 && mean[15].z < -0.05, "{mean:?}");
+        assert!(mean[15].y.abs() < 0.05, "{mean:?}");
+        // Curls and waves bend more than straight hair (mean turning angle per point); the
+        // anti-aliasing keeps every style smooth at the sampling (no hairpin turns).
+        let turning = |st: HairStyle| {
+            let (mut sum, mut n) = (0.0f32, 0);
+            for (_, s) in a.iter().filter(|x| x.0 == st) {
+                for w in s.windows(3) {
+                    let (d0, d1) = ((w[1] - w[0]).normalize(), (w[2] - w[1]).normalize());
+                    let ang = d0.dot(d1).clamp(-1.0, 1.0).acos();
+                    assert!(ang < 2.0, "{st:?}: turn of {ang} rad");
+                    sum += ang;
+                    n += 1;
+                }
+            }
+            sum / n as f32
+        };
+        let (straight, wavy, curly) = (
+            turning(HairStyle::Straight),
+            turning(HairStyle::Wavy),
+            turning(HairStyle::Curly),
+        );
+        assert!(
+            curly > straight && wavy > straight,
+            "{straight} {wavy} {curly}"
+        );
+        // Short hair lies on the skull, long hair hangs below it: in the unit-length frame the
+        // long strands end further from the root's tangent plane.
+        let tip_z = |lengths: [f64; 2]| {
+            let c = human_corpus(200, 16, [1.0, 0.0, 0.0, 0.0], lengths, 1);
+            c.iter().map(|x| x.1[15].z).sum::<f32>() / c.len() as f32
+        };
+        assert!(tip_z([50.0, 60.0]) < tip_z([10.0, 12.0]));
+        // A PCA fit holds held-out strands.
+        let all: Vec<Vec<Vec3>> = a.into_iter().map(|x| x.1).collect();
+        let (fit, held) = all.split_at(360);
+        let b = fit_pca(fit, 0, 0.999, 32).unwrap();
+        assert!(reconstruction_rms(&b, held) < 0.02);
+    }
+
+    #[test]
+    fn the_two_resamplers_share_one_implementation() {
+        // A zig-zag: the count resampler at n points equals the spacing resampler at the spacing
+        // that gives n - 1 segments, bit for bit.
+        let p: Vec<Vec3> = (0..9)
+            .map(|i| Vec3::new(i as f32 * 0.3, (i % 2) as f32 * 0.2, 0.05 * i as f32))
+            .collect();
+        let total: f32 = p.windows(2).map(|w| (w[1] - w[0]).length()).sum();
+        let a = resample_count(&p, 6);
+        let b = resample_polyline(&p, total / 5.0);
+        assert_eq!(a, b);
+        assert_eq!(a[0], p[0]);
+        assert_eq!(a[5], p[8]);
+        // Degenerate inputs keep their documented behaviours.
+        assert_eq!(resample_count(&p[..1], 3), vec![p[0]; 3]);
+        assert_eq!(resample_polyline(&p[..1], 0.1), p[..1].to_vec());
+        assert_eq!(resample_polyline(&[p[0], p[0]], 0.1), vec![p[0], p[0]]);
     }
 
     #[test]
@@ -1564,6 +2038,73 @@ mod tests {
         assert_eq!(c.points, 21, "{c:?}");
         assert!((c.footprint.unwrap() - 0.01).abs() < 1e-6);
         assert_eq!(choose_points(None, Some(&cams)).points, 24);
+    }
+
+    /// Runs the stage with its defaults and `set` overrides, no inputs.
+    fn run_with(set: &[(&str, fure_stage_api::Value)], out: &Path) -> Result<(), StageError> {
+        let st = StrandBasisStage;
+        let mut params = Params::default();
+        for spec in st.params() {
+            if let Some(d) = spec.default.clone() {
+                params.0.insert(spec.name.to_string(), d);
+            }
+        }
+        for (k, v) in set {
+            params.0.insert(k.to_string(), v.clone());
+        }
+        std::fs::create_dir_all(out).unwrap();
+        let ctx = StageContext {
+            name: "test",
+            params: &params,
+            inputs: Default::default(),
+            outputs: [
+                ("basis".to_string(), out.join("basis.json")),
+                ("metrics".to_string(), out.join("metrics.json")),
+            ]
+            .into_iter()
+            .collect(),
+            progress: &fure_stage_api::NoProgress,
+        };
+        st.run(&ctx)
+    }
+
+    #[test]
+    fn the_human_domain_fits_its_own_corpus_and_says_so() {
+        use fure_stage_api::Value;
+        let dir = tempfile::tempdir().unwrap();
+        let set = [
+            ("domain", Value::Str("human".into())),
+            ("corpus", Value::Int(600)),
+            ("points", Value::Int(12)),
+        ];
+        run_with(&set, &dir.path().join("h")).unwrap();
+        let m: serde_json::Value =
+            crate::formats::json::read_json(&dir.path().join("h/metrics.json")).unwrap();
+        assert_eq!(m["source"], "human_corpus", "{m}");
+        assert_eq!(m["human_length_cm"], serde_json::json!([10.0, 60.0]));
+        let h: StrandBasis =
+            crate::formats::json::read_json(&dir.path().join("h/basis.json")).unwrap();
+        h.validate("human").unwrap();
+        assert_eq!(h.points, 12);
+        // The fur domain (the default) gives another basis.
+        run_with(&set[1..], &dir.path().join("f")).unwrap();
+        let f: StrandBasis =
+            crate::formats::json::read_json(&dir.path().join("f/basis.json")).unwrap();
+        assert_ne!(f.mean, h.mean);
+        // Malformed human parameters are refused by name.
+        let bad = [("human_mix", Value::List(vec![Value::Float(1.0); 3]))];
+        let e = run_with(&bad, &dir.path().join("x"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("human_mix"), "{e}");
+        let bad = [(
+            "human_length_cm",
+            Value::List(vec![Value::Float(30.0), Value::Float(10.0)]),
+        )];
+        let e = run_with(&bad, &dir.path().join("y"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("human_length_cm"), "{e}");
     }
 
     #[test]

@@ -179,44 +179,8 @@ pub fn threshold_key(dist_cm: f32, angle_deg: f32) -> String {
     format!("{dist_cm}cm_{angle_deg}deg")
 }
 
-/// Resamples a polyline to `n = max(1, round(length / spacing))` equal arc-length segments
-/// (`n + 1` points, first and last kept). Returns the input unchanged when it has fewer than two
-/// points or zero length.
-pub fn resample_polyline(points: &[Vec3], spacing: f32) -> Vec<Vec3> {
-    if points.len() < 2 || !(spacing > 0.0) {
-        return points.to_vec();
-    }
-    let mut cum = Vec::with_capacity(points.len());
-    cum.push(0.0f32);
-    for w in points.windows(2) {
-        let last = *cum.last().unwrap_or(&0.0);
-        cum.push(last + (w[1] - w[0]).length());
-    }
-    let total = *cum.last().unwrap_or(&0.0);
-    if !(total > 0.0) || !total.is_finite() {
-        return points.to_vec();
-    }
-    let n = ((total / spacing).round() as usize).max(1);
-    let mut out = Vec::with_capacity(n + 1);
-    let mut seg = 0usize;
-    for i in 0..=n {
-        let s = total * i as f32 / n as f32;
-        while seg + 2 < cum.len() && cum[seg + 1] < s {
-            seg += 1;
-        }
-        let len = cum[seg + 1] - cum[seg];
-        let t = if len > 0.0 {
-            ((s - cum[seg]) / len).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        out.push(points[seg].lerp(points[seg + 1], t));
-    }
-    if let Some(last) = out.last_mut() {
-        *last = points[points.len() - 1];
-    }
-    out
-}
+/// The polyline resampler to a common spacing (one implementation, in `basis`).
+pub use crate::basis::resample_polyline;
 
 /// Oriented points (segment start, unit direction) of all strands, in centimetres, after resampling
 /// to `spacing_cm`.

@@ -2,6 +2,7 @@
 //! Tests drive the built `fure` binary on temporary directories.
 
 mod bad_input;
+mod basis;
 mod capture;
 mod engine;
 mod engine_trust;
