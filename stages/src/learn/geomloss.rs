@@ -24,7 +24,7 @@
 //!     where enough views graze it and lies outside the fur elsewhere
 //!     (concavities, and wherever the strands lie flatter than the shell is
 //!     thick). So "tips inside" is what the data guarantees; "tips on it" is
-//!     not. Measured on the synthetic tiger (README, speed against accuracy):
+//!     not. Measured on the synthetic tiger (docs/history.md, strand learning):
 //!     with the two-sided pull the codec's strands kept standing up toward the
 //!     hull for the whole run (3 cm F-score 74.5 at iteration 42, 71.5 at
 //!     300, precision 72 -> 57); without L_chm at all they settled (75 from

@@ -69,7 +69,17 @@
 //!   widths are the roots' widths, unscaled.
 //! - Appearance: one RGB colour per strand (lazy Adam on sampled strands) and
 //!   one per body occluder, the same for both methods; reported separately
-//!   from the geometry parameters (`optimised_parameters`).
+//!   from the geometry parameters (`optimised_parameters`). Both start from
+//!   the views (`fit_colors`, see [`image`]); the fit's time counts as
+//!   training time.
+//! - Learned growth direction (`learn_rotation`, codec, on by default): the
+//!   encoder's extra output turns each root frame about its normal
+//!   ([`model::Codec`]). The paper fixes the in-plane direction with the
+//!   roots' tangent field and lets the codes bend the strand; a fur corpus
+//!   leans only about 25 degrees either way, so a wrong tangent field could not
+//!   be corrected. It ties at the roots' own frames on both dev scenes and
+//!   recovers most of a 45-degree wrong start on the fox (not on the tiger,
+//!   whose Gabor maps follow the stripes): docs/history.md.
 //! - Dense optimiser: lazy Adam (per-strand step counts, only sampled strands
 //!   move), learning rate `lr_points` in strand lengths (the canonical points
 //!   of a strand have unit arc length at the start), 0.001 by default (the

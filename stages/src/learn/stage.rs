@@ -216,7 +216,7 @@ impl Stage for CodecStrands {
     }
     fn params(&self) -> Vec<ParamSpec> {
         // lr_decay 1e-3 with lr_encoder 1e-3: the best mean final F-score of a sweep on the
-        // synthetic tiger; 100 iterations: the benchmark's dev split (learn module doc).
+        // synthetic tiger; 100 iterations: the benchmark's dev split (docs/history.md, strand learning).
         let mut p = common_params(100, 1e-3);
         p.extend([
             ParamSpec::float(
@@ -229,14 +229,14 @@ impl Stage for CodecStrands {
                 "lr_decoder",
                 1e-5,
                 "Adam learning rate of the decoder fine-tuning, in strand lengths per step: every \
-                 strand shares the decoder, so it is a hundredth of the encoder's (learn module doc); \
+                 strand shares the decoder, so it is a hundredth of the encoder's (docs/history.md, strand learning); \
                  it decays with lr_decay.",
             )
             .min(0.0),
             ParamSpec::bool("finetune_decoder", true, "Fine-tune the PCA decoder (psi)."),
             ParamSpec::bool(
                 "learn_rotation",
-                false,
+                true,
                 "The encoder also outputs an angle per strand that turns its root frame about the \
                  normal (a learned growth-direction field, zero at the start; learn::model).",
             ),
@@ -288,7 +288,7 @@ impl Stage for DenseStrands {
                 0.001,
                 "Initial Adam learning rate of the points, in strand lengths per step (the best \
                  final F-score of 0.0003 / 0.001 / 0.003 with lr_decay 0.01 on the synthetic \
-                 tiger, learn module doc).",
+                 tiger, docs/history.md).",
             )
             .min(0.0),
         );
@@ -496,8 +496,8 @@ fn setup(
     let basis_path = ctx.input("basis")?;
     let basis: StrandBasis = formats::json::read_json(basis_path)?;
     check_basis(&basis, basis_path)?;
-    let outer = crate::defur::read_mesh(ctx, "outer")?;
-    let root_mesh = crate::defur::read_mesh(ctx, "root_mesh")?;
+    let outer = crate::formats::obj::read_mesh(ctx, "outer")?;
+    let root_mesh = crate::formats::obj::read_mesh(ctx, "root_mesh")?;
     let mode = p.str("length_mode")?.to_string();
     let fixed_cm = p.f64_opt("fixed_length_cm")?;
     let lengths_all = mode_lengths(&roots, &mode, fixed_cm)?;
@@ -1200,6 +1200,50 @@ mod tests {
         assert!(m.colors_fitted.is_empty());
         assert!(constant.iter().all(|c| *c == constant[0]));
         assert!((constant[0][0] - 0.9).abs() > 0.3);
+    }
+
+    #[test]
+    fn a_learned_rotation_turns_wrongly_framed_strands_back() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let r = roots(300);
+        let fur: Vec<usize> = (0..r.len()).filter(|&i| r.length[i] > 0.0).collect();
+        // Mean angle (degrees) between the in-plane root-to-tip directions of
+        // the trained strands and of the views' strands.
+        let error = |learn: bool| -> f32 {
+            let dir = d.path().join(format!("rotation_{learn}"));
+            let out = run_with_views(
+                &dir,
+                views.clone(),
+                &[
+                    ("iterations", Value::Int(60)),
+                    ("lr_encoder", Value::Float(2e-3)),
+                    ("lr_decay", Value::Float(1.0)),
+                    ("frame_rotation_deg", Value::Float(45.0)),
+                    ("learn_rotation", Value::Bool(learn)),
+                    // Only the lean along the tangent, as a fur corpus's
+                    // components: the codes cannot turn a strand sideways.
+                    ("components", Value::Int(1)),
+                ],
+            );
+            let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+            let flat = |v: Vec3, n: Vec3| (v - v.dot(n) * n).normalize_or_zero();
+            let sum: f32 = fur
+                .iter()
+                .enumerate()
+                .map(|(s, &i)| {
+                    let (root, n) = (r.positions[i], r.normals[i]);
+                    let got = flat(*st.strand(s).last().unwrap() - root, n);
+                    let want = flat(gt_tips[s] - root, n);
+                    got.dot(want).clamp(-1.0, 1.0).acos().to_degrees()
+                })
+                .sum();
+            sum / fur.len() as f32
+        };
+        let (fixed, learned) = (error(false), error(true));
+        eprintln!("in-plane direction error: fixed frames {fixed:.1} deg, learned {learned:.1} deg");
+        assert!(fixed > 15.0, "the 45 degree turn should show: {fixed}");
+        assert!(learned < 0.5 * fixed, "fixed {fixed} deg, learned {learned} deg");
     }
 
     #[test]
