@@ -31,8 +31,8 @@ use std::error::Error;
 use std::path::{Path, PathBuf};
 
 use fure_stages::defur::{
-    defur, distances_to, gt_mean_thickness_cm, postcheck, protected_parts, thickness, vertex_areas,
-    vertex_normals, DefurSettings, GtComparison, DEFAULT_PROTECTED,
+    defur, distances_to, gt_mean_thickness_cm, postcheck, thickness, vertex_areas, vertex_normals,
+    DefurSettings, GtComparison, DEFAULT_PROTECTED,
 };
 use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::json::read_json;
@@ -40,8 +40,10 @@ use fure_stages::formats::obj::read_obj;
 use fure_stages::frosting::Offsets;
 use fure_stages::geom::{MeshQuery, PointIndex};
 use fure_stages::mesh::Mesh;
+use fure_stages::parts::protected_parts;
 use fure_stages::scene::SceneInfo;
 use fure_stages::shell::ShellWidths;
+use fure_stages::stats::percentile;
 
 type Res = Result<(), Box<dyn Error>>;
 
@@ -208,7 +210,7 @@ fn oracle(run: Loaded) -> Res {
             .filter(|&i| outer.part[i] as usize == pi)
             .map(|i| closest[i])
             .collect();
-        let t_cm = scene.s_cm * thickness::percentile(&v, 75.0).unwrap_or(0.0);
+        let t_cm = scene.s_cm * percentile(&v, 75.0).unwrap_or(0.0);
         let m = defaults.get(name.as_str()).copied().unwrap_or(2.5);
         let l = m * t_cm;
         eprintln!(
@@ -314,7 +316,7 @@ fn diagnose(run: Loaded) -> Res {
         .collect();
     report("d = ray distance to skin along -n", &zero(&ray_d));
     report("d = raw Frosting width tau", &zero(&tau));
-    let med = thickness::percentile(&tau, 50.0).unwrap_or(0.0);
+    let med = percentile(&tau, 50.0).unwrap_or(0.0);
     report("d = global median tau", &zero(&vec![med; tau.len()]));
     let gmean = (gt.thickness_cm / s_cm) as f32;
     report(
@@ -384,7 +386,7 @@ fn diagnose(run: Loaded) -> Res {
         let gap_plus: Vec<f32> = gap.iter().zip(&gpart).map(|(a, b)| a + b).collect();
         report("d = hull-to-fur gap + GT part thickness", &zero(&gap_plus));
         report("d = hull-to-fur gap only", &zero(&gap));
-        let below_med = thickness::percentile(&below, 50.0).unwrap_or(0.0);
+        let below_med = percentile(&below, 50.0).unwrap_or(0.0);
         let gap_plus_c: Vec<f32> = gap.iter().map(|a| a + below_med).collect();
         report(
             "d = hull-to-fur gap + median(o2s - gap)",

@@ -773,21 +773,7 @@ fn check_pair(a: &ImageF32, b: &ImageF32) -> Result<(), EvalError> {
 /// PSNR in dB of two images in [0, 1] (all channels); infinity when identical.
 pub fn psnr(a: &ImageF32, b: &ImageF32) -> Result<f32, EvalError> {
     check_pair(a, b)?;
-    let se: f64 = a
-        .data
-        .iter()
-        .zip(&b.data)
-        .map(|(x, y)| {
-            let d = (*x - *y) as f64;
-            d * d
-        })
-        .sum();
-    let mse = se / a.data.len() as f64;
-    Ok(if mse <= 0.0 {
-        f32::INFINITY
-    } else {
-        (10.0 * (1.0 / mse).log10()) as f32
-    })
+    Ok(crate::stats::psnr(a, b))
 }
 
 /// The normalised 1D Gaussian of the SSIM window (11 taps, sigma 1.5).

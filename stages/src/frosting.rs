@@ -137,6 +137,7 @@ use crate::image::ImageF32;
 use crate::mesh::Mesh;
 use crate::render::{self, losses, Adam, Gaussians, OutputGrads, RenderSettings};
 use crate::shell::ShellWidths;
+use crate::stats::{percentile, psnr};
 
 /// How `sigma_n` (the sampling half-range unit) is defined.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -617,21 +618,6 @@ pub fn init_gaussians(
     g
 }
 
-fn psnr(a: &ImageF32, b: &ImageF32) -> f32 {
-    let mse: f64 = a
-        .data
-        .iter()
-        .zip(&b.data)
-        .map(|(x, y)| ((x - y) as f64).powi(2))
-        .sum::<f64>()
-        / a.data.len().max(1) as f64;
-    if mse <= 1e-20 {
-        100.0
-    } else {
-        (10.0 * (1.0 / mse).log10()) as f32
-    }
-}
-
 /// Total blending weight `sum_views sum_pixels alpha_i T_i` of every
 /// Gaussian (in pixels): how much of the training images it makes. Read off
 /// the colour gradient of an all-ones RGB loss with every colour set to the
@@ -989,8 +975,8 @@ pub fn fit_gaussians_on(
                 .collect();
             if report.densify_grad_p90 == 0.0 {
                 let seen: Vec<f32> = mean_grad.iter().copied().filter(|g| *g > 0.0).collect();
-                report.densify_grad_p50 = percentile(&seen, 0.5);
-                report.densify_grad_p90 = percentile(&seen, 0.9);
+                report.densify_grad_p50 = percentile(&seen, 50.0).unwrap_or(0.0);
+                report.densify_grad_p90 = percentile(&seen, 90.0).unwrap_or(0.0);
             }
             let cap = s.gaussians.saturating_mul(s.max_gaussians_factor.max(1));
             let sources = densify(&mut p, &mean_grad, s, d, cap, &mut split_rng, &mut report);
@@ -1047,7 +1033,8 @@ pub fn fit_gaussians_on(
     let mut ps = 0.0;
     for v in views {
         let (out, _) = device.render(&kept, &v.camera, &settings)?;
-        ps += psnr(&out.rgb, &v.rgb);
+        // Capped: identical images would give infinity.
+        ps += psnr(&out.rgb, &v.rgb).min(100.0);
     }
     report.psnr_train = ps / views.len() as f32;
     report.seconds_fit = t0.elapsed().as_secs_f64();
@@ -1067,18 +1054,6 @@ fn ramp(t: f32) -> Vec3 {
     let x = t * 4.0;
     let i = (x.floor() as usize).min(3);
     stops[i].lerp(stops[i + 1], x - i as f32)
-}
-
-fn percentile(v: &[f32], q: f32) -> f32 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mut s = v.to_vec();
-    s.sort_by(f32::total_cmp);
-    let pos = q * (s.len() - 1) as f32;
-    let lo = pos.floor() as usize;
-    let hi = (lo + 1).min(s.len() - 1);
-    s[lo] + (pos - lo as f32) * (s[hi] - s[lo])
 }
 
 /// A fixed three-quarter view of the mesh (used when there are no views).
@@ -1110,7 +1085,7 @@ fn default_camera(mesh: &Mesh) -> Camera {
 
 /// Thickness preview: vertices splatted with the width colour ramp.
 pub fn preview(mesh: &Mesh, widths: &[f32], cam: &Camera) -> Result<ImageF32, StageError> {
-    let p95 = percentile(widths, 0.95).max(1e-12);
+    let p95 = percentile(widths, 95.0).unwrap_or(0.0).max(1e-12);
     let edges = mesh.edges();
     let mean_edge = if edges.is_empty() {
         mesh.diagonal() * 0.005
@@ -1409,7 +1384,9 @@ impl Stage for FrostingStage {
         "frosting"
     }
     fn version(&self) -> u32 {
-        3
+        // 4: the reported width and gradient percentiles interpolate in f64
+        // (the one `stats::percentile`), which may change their last bits.
+        4
     }
     fn doc(&self) -> &'static str {
         "Gaussian Frosting shell widths on M_outer: fit unconstrained 3D Gaussians (initialised in a band \
@@ -1639,10 +1616,10 @@ impl Stage for FrostingStage {
         let n = widths.len().max(1) as f32;
         let stats = WidthStats {
             mean: widths.iter().sum::<f32>() / n,
-            p25: percentile(&widths, 0.25),
-            p50: percentile(&widths, 0.5),
-            p75: percentile(&widths, 0.75),
-            p95: percentile(&widths, 0.95),
+            p25: percentile(&widths, 25.0).unwrap_or(0.0),
+            p50: percentile(&widths, 50.0).unwrap_or(0.0),
+            p75: percentile(&widths, 75.0).unwrap_or(0.0),
+            p95: percentile(&widths, 95.0).unwrap_or(0.0),
             min: widths.iter().copied().fold(f32::INFINITY, f32::min),
             max: widths.iter().copied().fold(0.0, f32::max),
             mean_frac_d: widths.iter().sum::<f32>() / n / d.max(1e-12),
@@ -1657,7 +1634,7 @@ impl Stage for FrostingStage {
         };
         let part_median_width: BTreeMap<String, f32> = by_part
             .iter()
-            .map(|(k, v)| (k.clone(), percentile(v, 0.5)))
+            .map(|(k, v)| (k.clone(), percentile(v, 50.0).unwrap_or(0.0)))
             .collect();
         let gt_scene: Option<crate::scene::SceneInfo> = match ctx.input_opt("gt_scene") {
             Some(p) => Some(crate::formats::json::read_json(p)?),

@@ -65,12 +65,14 @@ use fure_stage_api::{ParamSpec, ParamType, Params, PortSpec, Stage, StageContext
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use crate::defur::thickness::{percentile, raw_widths};
-use crate::defur::{number_table, protected_parts, read_labelled_mesh, DEFAULT_PROTECTED};
+use crate::defur::thickness::raw_widths;
 use crate::formats::json::{read_json, write_json};
+use crate::formats::obj::read_labelled_mesh;
 use crate::geom::PointIndex;
+use crate::parts::{number_table, protected_parts, DEFAULT_PROTECTED};
 use crate::scene::SceneInfo;
 use crate::shell::ShellWidths;
+use crate::stats::percentile;
 
 /// Default multipliers `m_p` by part name.
 pub const DEFAULT_MULTIPLIERS: &[(&str, f32)] = &[
@@ -414,7 +416,7 @@ impl Stage for LengthsStage {
         let tau = raw_widths(&shell, &index, &outer.positions);
         // Fur flags come from the labelled mesh's parts and the protected set, never from the
         // scene file (whose per-part fields are ground truth for synthetic scenes).
-        let names = crate::defur::protected_names(ctx)?;
+        let names = crate::parts::protected_names(ctx)?;
         let prot = protected_parts(&outer.part_names, &names);
         let fur: Vec<bool> = prot.iter().map(|&pr| !pr).collect();
         let mut multipliers: BTreeMap<String, f32> = DEFAULT_MULTIPLIERS

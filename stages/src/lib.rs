@@ -24,6 +24,7 @@ pub mod formats;
 // Shared mathematics.
 pub mod geom;
 pub mod render;
+pub mod stats;
 
 // Stages.
 pub mod basis;

@@ -564,6 +564,46 @@ pub fn protected_in(
         .collect()
 }
 
+/// Whether each part of `names` is protected under `protected` (case-insensitive).
+pub fn protected_parts(names: &[String], protected: &[String]) -> Vec<bool> {
+    let set: BTreeSet<String> = protected.iter().map(|s| s.to_lowercase()).collect();
+    names
+        .iter()
+        .map(|n| set.contains(&n.to_lowercase()))
+        .collect()
+}
+
+/// A `part -> number` table parameter, every value finite and non-negative.
+pub fn number_table(params: &Params, name: &str) -> Result<BTreeMap<String, f32>, StageError> {
+    let mut out = BTreeMap::new();
+    for (k, v) in params.table(name)? {
+        let x = v.as_f64().ok_or_else(|| {
+            StageError::param(
+                name,
+                format!("`{k}`: expected a number, found {}", v.type_name()),
+            )
+        })?;
+        if !(x.is_finite() && x >= 0.0) {
+            return Err(StageError::param(
+                name,
+                format!("`{k}`: expected a non-negative number, found {x}"),
+            ));
+        }
+        out.insert(k, x as f32);
+    }
+    Ok(out)
+}
+
+/// Protected part names from the `protected_parts` parameter and the optional `protected` input.
+pub fn protected_names(ctx: &StageContext<'_>) -> Result<Vec<String>, StageError> {
+    let mut names = ctx.params.str_list("protected_parts")?;
+    if let Some(p) = ctx.input_opt("protected") {
+        let extra: Vec<String> = crate::formats::json::read_json(p)?;
+        names.extend(extra);
+    }
+    Ok(names)
+}
+
 /// The `parts` stage.
 pub struct PartsStage;
 

@@ -119,14 +119,16 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::defur::thickness::{percentile, raw_widths};
-use crate::defur::{number_table, protected_parts, read_labelled_mesh, DEFAULT_PROTECTED};
+use crate::defur::thickness::raw_widths;
 use crate::formats::json::{read_json, write_json};
+use crate::formats::obj::read_labelled_mesh;
 use crate::geom::PointIndex;
 use crate::lengths::LengthTable;
 use crate::mesh::Mesh;
+use crate::parts::{number_table, protected_parts, DEFAULT_PROTECTED};
 use crate::rootset::Roots;
 use crate::shell::ShellWidths;
+use crate::stats::percentile;
 
 /// Part of each triangle: the majority of its vertices' parts, ties to the first vertex's.
 pub fn triangle_parts(mesh: &Mesh) -> Vec<u16> {

@@ -39,14 +39,12 @@ use fure_stage_api::{
 };
 use glam::Vec3;
 
-use super::{
-    number_table, protected_names, protected_parts, read_mesh, scale_from, vertex_normals,
-    GtComparison, DEFAULT_PROTECTED,
-};
+use super::{scale_from, vertex_normals, GtComparison, DEFAULT_PROTECTED};
 use crate::formats::json::write_json;
-use crate::formats::obj::write_obj;
+use crate::formats::obj::{read_mesh, write_obj};
 use crate::geom::vertex_neighbours;
 use crate::mesh::Mesh;
+use crate::parts::{number_table, protected_names, protected_parts};
 
 /// NeuralFur's reference thicknesses (cm) on our part names.
 pub const DEFAULT_THICKNESS_CM: &[(&str, f32)] = &[

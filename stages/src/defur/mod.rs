@@ -85,7 +85,7 @@ pub mod objective;
 pub mod postcheck;
 pub mod thickness;
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Instant;
 
@@ -96,12 +96,14 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::formats::json::{read_json, write_json};
-use crate::formats::obj::{read_obj, write_obj};
+use crate::formats::obj::{read_mesh, read_obj, write_obj};
 use crate::formats::scalars::write_scalars;
 use crate::geom::{GeomError, MeshQuery, PointIndex};
 use crate::mesh::Mesh;
+use crate::parts::{number_table, protected_names, protected_parts};
 use crate::scene::SceneInfo;
 use crate::shell::ShellWidths;
+use crate::stats::percentile;
 
 use objective::{DefurProblem, ProblemInput};
 use postcheck::{PostCheckReport, PostCheckSettings};
@@ -251,15 +253,6 @@ pub fn vertex_normals(mesh: &Mesh) -> Vec<Vec3> {
     }
 }
 
-/// Whether each part of `names` is protected under `protected` (case-insensitive).
-pub fn protected_parts(names: &[String], protected: &[String]) -> Vec<bool> {
-    let set: BTreeSet<String> = protected.iter().map(|s| s.to_lowercase()).collect();
-    names
-        .iter()
-        .map(|n| set.contains(&n.to_lowercase()))
-        .collect()
-}
-
 fn check_shell(shell: &ShellWidths) -> Result<(), DefurError> {
     let (p, n, w) = (
         shell.positions.len(),
@@ -331,7 +324,7 @@ pub fn defur(
     let shell_part = thickness::shell_labels(shell, &outer_index, &outer.part);
 
     // 2. Supported local thickness.
-    let width_threshold = thickness::percentile(&shell.widths, s.width_percentile).unwrap_or(0.0);
+    let width_threshold = percentile(&shell.widths, s.width_percentile).unwrap_or(0.0);
     let support = thickness::supported_thickness(
         &outer.positions,
         &normals,
@@ -560,37 +553,6 @@ pub fn scale_from(ctx: &StageContext<'_>) -> Result<Option<f32>, StageError> {
     Ok(ctx.params.f64_opt("s_cm")?.map(|x| x as f32))
 }
 
-/// A `part -> number` table parameter, every value finite and non-negative.
-pub fn number_table(params: &Params, name: &str) -> Result<BTreeMap<String, f32>, StageError> {
-    let mut out = BTreeMap::new();
-    for (k, v) in params.table(name)? {
-        let x = v.as_f64().ok_or_else(|| {
-            StageError::param(
-                name,
-                format!("`{k}`: expected a number, found {}", v.type_name()),
-            )
-        })?;
-        if !(x.is_finite() && x >= 0.0) {
-            return Err(StageError::param(
-                name,
-                format!("`{k}`: expected a non-negative number, found {x}"),
-            ));
-        }
-        out.insert(k, x as f32);
-    }
-    Ok(out)
-}
-
-/// Protected part names from the `protected_parts` parameter and the optional `protected` input.
-pub fn protected_names(ctx: &StageContext<'_>) -> Result<Vec<String>, StageError> {
-    let mut names = ctx.params.str_list("protected_parts")?;
-    if let Some(p) = ctx.input_opt("protected") {
-        let extra: Vec<String> = read_json(p)?;
-        names.extend(extra);
-    }
-    Ok(names)
-}
-
 /// Warns (as a note) about table keys that name no part of the mesh.
 fn note_unknown_parts(
     ctx: &StageContext<'_>,
@@ -611,33 +573,6 @@ fn note_unknown_parts(
 #[cfg(test)]
 fn protected_default() -> Vec<String> {
     DEFAULT_PROTECTED.iter().map(|s| s.to_string()).collect()
-}
-
-/// Reads a mesh input, naming the port on failure.
-pub fn read_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
-    let path = ctx.input(port)?;
-    let mesh = read_obj(path)?;
-    if mesh.positions.is_empty() || mesh.triangles.is_empty() {
-        return Err(StageError::input(
-            port,
-            path,
-            "the mesh has no vertices or no triangles",
-        ));
-    }
-    Ok(mesh)
-}
-
-/// Reads a mesh input that must carry one part label per vertex.
-pub fn read_labelled_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
-    let mesh = read_mesh(ctx, port)?;
-    if mesh.part.len() != mesh.positions.len() {
-        return Err(StageError::input(
-            port,
-            ctx.input(port)?,
-            "part labels do not match the vertices",
-        ));
-    }
-    Ok(mesh)
 }
 
 /// Mesh-to-skin figures for metrics.
@@ -854,34 +789,7 @@ impl Stage for DefurStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;
-        let settings = DefurSettings {
-            eta: p.f64("eta")?,
-            lambda: p.f64("lambda")?,
-            unit_scale: 1.0,
-            cross_part_weight: p.f64("cross_part_weight")?,
-            support_radius_frac: p.f32("support_radius_frac")?,
-            support_sigma_frac: p.f32("support_sigma_frac")?,
-            max_neighbours: p.usize("max_neighbours")?,
-            normal_min: p.f32("normal_min")?,
-            width_percentile: p.f64("width_percentile")?,
-            bound_hit_frac: p.f32("bound_hit_frac")?,
-            bound_max_frac: p.f32("bound_max_frac")?,
-            bound_miss_frac: p.f32("bound_miss_frac")?,
-            solver: lbfgsb::Settings {
-                memory: p.usize("memory")?,
-                max_iterations: p.usize("max_iterations")?,
-                ftol: p.f64("ftol")?,
-                gtol: p.f64("gtol")?,
-                ..lbfgsb::Settings::default()
-            },
-            precondition: p.bool("precondition")?,
-            postcheck: PostCheckSettings {
-                collapse_ratio: p.f32("collapse_ratio")?,
-                reduce_factor: p.f32("reduce_factor")?,
-                max_rounds: p.usize("max_rounds")?,
-                check_intersections: p.bool("check_intersections")?,
-            },
-        };
+        let mut settings = settings_from(p)?;
         ctx.progress.message("reading inputs");
         let outer = read_mesh(ctx, "outer")?;
         let shell_path = ctx.input("shell")?;
@@ -897,22 +805,8 @@ impl Stage for DefurStage {
             &outer,
         );
         let s_cm = scale_from(ctx)?;
-        let mut settings = settings;
-        match p.str("units")? {
-            "cm" => {
-                let s = s_cm.ok_or_else(|| {
-                    StageError::param(
-                        "units",
-                        "units = \"cm\" needs the metric scale: connect the `scale` input (the lengths stage) or set `s_cm`",
-                    )
-                })?;
-                settings.unit_scale = s as f64;
-            }
-            // Lengths in diagonals of M_outer's bounding box: 1 / D objective units per scene unit.
-            "diagonal" => {
-                settings.unit_scale = 1.0 / f64::from(outer.diagonal().max(f32::MIN_POSITIVE))
-            }
-            _ => {}
+        if let Some(u) = unit_scale(p.str("units")?, s_cm, &outer)? {
+            settings.unit_scale = u;
         }
         let reference_h: BTreeMap<String, f32> = if refs_cm.is_empty() {
             BTreeMap::new()
@@ -947,87 +841,7 @@ impl Stage for DefurStage {
         write_obj(ctx.output("root_mesh")?, &r.root)?;
         write_scalars(ctx.output("displacement")?, &r.d)?;
 
-        // Metrics.
-        let mut m = serde_json::Map::new();
-        let put =
-            |m: &mut serde_json::Map<String, serde_json::Value>, k: &str, v: serde_json::Value| {
-                m.insert(k.to_string(), v);
-            };
-        let nv = r.d.len();
-        let fur_count = r.protected.iter().filter(|&&b| !b).count();
-        let supported = r.support.c.iter().filter(|&&c| c > 0.0).count();
-        let mean = |v: &[f32], keep: &dyn Fn(usize) -> bool| {
-            let (s, n) = v
-                .iter()
-                .enumerate()
-                .filter(|(i, _)| keep(*i))
-                .fold((0.0f64, 0usize), |(s, n), (_, &x)| (s + x as f64, n + 1));
-            if n > 0 {
-                s / n as f64
-            } else {
-                0.0
-            }
-        };
-        let fur = |i: usize| !r.protected[i];
-        put(&mut m, "vertices", nv.into());
-        put(&mut m, "protected_vertices", (nv - fur_count).into());
-        put(&mut m, "scene_scale_d", r.scale.into());
-        put(&mut m, "width_threshold", r.width_threshold.into());
-        put(
-            &mut m,
-            "supported_fraction",
-            (supported as f64 / nv as f64).into(),
-        );
-        put(
-            &mut m,
-            "mean_support_c",
-            mean(&r.support.c, &|_| true).into(),
-        );
-        put(&mut m, "inward_hit_fraction", r.hit_fraction.into());
-        put(&mut m, "mean_bound", mean(&r.upper, &fur).into());
-        put(&mut m, "mean_displacement", mean(&r.d, &fur).into());
-        put(
-            &mut m,
-            "max_displacement",
-            r.d.iter().fold(0.0f32, |a, &b| a.max(b)).into(),
-        );
-        put(
-            &mut m,
-            "mean_displacement_solved",
-            mean(&r.d_solved, &fur).into(),
-        );
-        put(&mut m, "at_upper_bound_fraction", {
-            let k = (0..nv)
-                .filter(|&i| fur(i) && r.upper[i] > 0.0 && r.d_solved[i] >= r.upper[i] * 0.999)
-                .count();
-            (k as f64 / fur_count.max(1) as f64).into()
-        });
-        if let Some(s) = s_cm {
-            put(&mut m, "s_cm", s.into());
-            put(
-                &mut m,
-                "mean_displacement_cm",
-                (mean(&r.d, &fur) * s as f64).into(),
-            );
-        }
-        put(&mut m, "units", p.str("units")?.into());
-        put(&mut m, "seconds_solve", r.seconds_solve.into());
-        put(&mut m, "seconds_total", seconds_total.into());
-        put(
-            &mut m,
-            "solver",
-            serde_json::to_value(&r.solver).map_err(StageError::failed)?,
-        );
-        put(
-            &mut m,
-            "postcheck",
-            serde_json::to_value(&r.postcheck).map_err(StageError::failed)?,
-        );
-        put(
-            &mut m,
-            "parts",
-            serde_json::to_value(&r.calibration).map_err(StageError::failed)?,
-        );
+        let mut m = run_metrics(&r, s_cm, p.str("units")?, seconds_total)?;
         if let Some(gt) = GtComparison::load(ctx, &outer, &part_protected)? {
             ctx.progress.message("measuring against the GT skin");
             let root = gt.measure(&r.root, &part_protected);
@@ -1038,50 +852,19 @@ impl Stage for DefurStage {
                 "gt_fur_thickness_source",
                 gt.thickness_source.into(),
             );
-            put(&mut m, "root_to_skin_mean_cm", root.mean_cm.into());
-            put(&mut m, "root_to_skin_p95_cm", root.p95_cm.into());
-            put(&mut m, "root_to_skin_mean_frac", root.mean_frac.into());
-            put(&mut m, "root_to_skin_p95_frac", root.p95_frac.into());
-            put(
-                &mut m,
-                "root_to_skin_fur_mean_frac",
-                root.fur_mean_frac.into(),
-            );
+            put_to_skin(&mut m, "root", &root);
             put(&mut m, "root_inside_body_frac", root.fur_inside_frac.into());
             put(
                 &mut m,
                 "outer_inside_body_frac",
                 outer_d.fur_inside_frac.into(),
             );
-            put(&mut m, "outer_to_skin_mean_cm", outer_d.mean_cm.into());
-            put(&mut m, "outer_to_skin_p95_cm", outer_d.p95_cm.into());
-            put(&mut m, "outer_to_skin_mean_frac", outer_d.mean_frac.into());
-            put(&mut m, "outer_to_skin_p95_frac", outer_d.p95_frac.into());
-            put(
-                &mut m,
-                "outer_to_skin_fur_mean_frac",
-                outer_d.fur_mean_frac.into(),
-            );
-            if let Some(bp) = ctx.input_opt("baseline") {
-                let base = read_obj(bp)?;
-                if base.positions.is_empty() || base.triangles.is_empty() {
-                    return Err(StageError::input(
-                        "baseline",
-                        bp,
-                        "the mesh has no vertices or no triangles",
-                    ));
-                }
+            put_to_skin(&mut m, "outer", &outer_d);
+            if ctx.input_opt("baseline").is_some() {
+                let base = read_mesh(ctx, "baseline")?;
                 let prot = protected_parts(&base.part_names, &names);
                 let b = gt.measure(&base, &prot);
-                put(&mut m, "baseline_to_skin_mean_cm", b.mean_cm.into());
-                put(&mut m, "baseline_to_skin_p95_cm", b.p95_cm.into());
-                put(&mut m, "baseline_to_skin_mean_frac", b.mean_frac.into());
-                put(&mut m, "baseline_to_skin_p95_frac", b.p95_frac.into());
-                put(
-                    &mut m,
-                    "baseline_to_skin_fur_mean_frac",
-                    b.fur_mean_frac.into(),
-                );
+                put_to_skin(&mut m, "baseline", &b);
                 put(
                     &mut m,
                     "baseline_inside_body_frac",
@@ -1092,6 +875,167 @@ impl Stage for DefurStage {
         write_json(ctx.output("metrics")?, &serde_json::Value::Object(m))?;
         Ok(())
     }
+}
+
+/// The `defur` stage's settings from its parameters (`unit_scale` 1: see
+/// [`unit_scale`]).
+fn settings_from(p: &Params) -> Result<DefurSettings, StageError> {
+    Ok(DefurSettings {
+        eta: p.f64("eta")?,
+        lambda: p.f64("lambda")?,
+        unit_scale: 1.0,
+        cross_part_weight: p.f64("cross_part_weight")?,
+        support_radius_frac: p.f32("support_radius_frac")?,
+        support_sigma_frac: p.f32("support_sigma_frac")?,
+        max_neighbours: p.usize("max_neighbours")?,
+        normal_min: p.f32("normal_min")?,
+        width_percentile: p.f64("width_percentile")?,
+        bound_hit_frac: p.f32("bound_hit_frac")?,
+        bound_max_frac: p.f32("bound_max_frac")?,
+        bound_miss_frac: p.f32("bound_miss_frac")?,
+        solver: lbfgsb::Settings {
+            memory: p.usize("memory")?,
+            max_iterations: p.usize("max_iterations")?,
+            ftol: p.f64("ftol")?,
+            gtol: p.f64("gtol")?,
+            ..lbfgsb::Settings::default()
+        },
+        precondition: p.bool("precondition")?,
+        postcheck: PostCheckSettings {
+            collapse_ratio: p.f32("collapse_ratio")?,
+            reduce_factor: p.f32("reduce_factor")?,
+            max_rounds: p.usize("max_rounds")?,
+            check_intersections: p.bool("check_intersections")?,
+        },
+    })
+}
+
+/// Objective units per scene unit for parameter `units`; `None` for
+/// `scene` (1).
+fn unit_scale(units: &str, s_cm: Option<f32>, outer: &Mesh) -> Result<Option<f64>, StageError> {
+    Ok(match units {
+        "cm" => {
+            let s = s_cm.ok_or_else(|| {
+                StageError::param(
+                    "units",
+                    "units = \"cm\" needs the metric scale: connect the `scale` input (the lengths stage) or set `s_cm`",
+                )
+            })?;
+            Some(s as f64)
+        }
+        // Lengths in diagonals of M_outer's bounding box: 1 / D objective units per scene unit.
+        "diagonal" => Some(1.0 / f64::from(outer.diagonal().max(f32::MIN_POSITIVE))),
+        _ => None,
+    })
+}
+
+type Metrics = serde_json::Map<String, serde_json::Value>;
+
+fn put(m: &mut Metrics, k: &str, v: serde_json::Value) {
+    m.insert(k.to_string(), v);
+}
+
+/// `<prefix>_to_skin_*` figures of a mesh measured against the GT skin.
+fn put_to_skin(m: &mut Metrics, prefix: &str, d: &SkinDistance) {
+    put(m, &format!("{prefix}_to_skin_mean_cm"), d.mean_cm.into());
+    put(m, &format!("{prefix}_to_skin_p95_cm"), d.p95_cm.into());
+    put(
+        m,
+        &format!("{prefix}_to_skin_mean_frac"),
+        d.mean_frac.into(),
+    );
+    put(m, &format!("{prefix}_to_skin_p95_frac"), d.p95_frac.into());
+    put(
+        m,
+        &format!("{prefix}_to_skin_fur_mean_frac"),
+        d.fur_mean_frac.into(),
+    );
+}
+
+/// The `defur` stage's metrics without ground truth.
+fn run_metrics(
+    r: &DefurResult,
+    s_cm: Option<f32>,
+    units: &str,
+    seconds_total: f64,
+) -> Result<Metrics, StageError> {
+    let mut m = Metrics::new();
+    let nv = r.d.len();
+    let fur_count = r.protected.iter().filter(|&&b| !b).count();
+    let supported = r.support.c.iter().filter(|&&c| c > 0.0).count();
+    let mean = |v: &[f32], keep: &dyn Fn(usize) -> bool| {
+        let (s, n) = v
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| keep(*i))
+            .fold((0.0f64, 0usize), |(s, n), (_, &x)| (s + x as f64, n + 1));
+        if n > 0 {
+            s / n as f64
+        } else {
+            0.0
+        }
+    };
+    let fur = |i: usize| !r.protected[i];
+    put(&mut m, "vertices", nv.into());
+    put(&mut m, "protected_vertices", (nv - fur_count).into());
+    put(&mut m, "scene_scale_d", r.scale.into());
+    put(&mut m, "width_threshold", r.width_threshold.into());
+    put(
+        &mut m,
+        "supported_fraction",
+        (supported as f64 / nv as f64).into(),
+    );
+    put(
+        &mut m,
+        "mean_support_c",
+        mean(&r.support.c, &|_| true).into(),
+    );
+    put(&mut m, "inward_hit_fraction", r.hit_fraction.into());
+    put(&mut m, "mean_bound", mean(&r.upper, &fur).into());
+    put(&mut m, "mean_displacement", mean(&r.d, &fur).into());
+    put(
+        &mut m,
+        "max_displacement",
+        r.d.iter().fold(0.0f32, |a, &b| a.max(b)).into(),
+    );
+    put(
+        &mut m,
+        "mean_displacement_solved",
+        mean(&r.d_solved, &fur).into(),
+    );
+    put(&mut m, "at_upper_bound_fraction", {
+        let k = (0..nv)
+            .filter(|&i| fur(i) && r.upper[i] > 0.0 && r.d_solved[i] >= r.upper[i] * 0.999)
+            .count();
+        (k as f64 / fur_count.max(1) as f64).into()
+    });
+    if let Some(s) = s_cm {
+        put(&mut m, "s_cm", s.into());
+        put(
+            &mut m,
+            "mean_displacement_cm",
+            (mean(&r.d, &fur) * s as f64).into(),
+        );
+    }
+    put(&mut m, "units", units.into());
+    put(&mut m, "seconds_solve", r.seconds_solve.into());
+    put(&mut m, "seconds_total", seconds_total.into());
+    put(
+        &mut m,
+        "solver",
+        serde_json::to_value(&r.solver).map_err(StageError::failed)?,
+    );
+    put(
+        &mut m,
+        "postcheck",
+        serde_json::to_value(&r.postcheck).map_err(StageError::failed)?,
+    );
+    put(
+        &mut m,
+        "parts",
+        serde_json::to_value(&r.calibration).map_err(StageError::failed)?,
+    );
+    Ok(m)
 }
 
 #[cfg(test)]

@@ -26,30 +26,7 @@ use serde::Serialize;
 
 use crate::geom::{MeshQuery, PointIndex};
 use crate::shell::ShellWidths;
-
-/// The `q`-th percentile (`q` in [0, 100]) by linear interpolation; `None`
-/// for an empty slice. NaNs must have been rejected by the caller.
-pub fn percentile(values: &[f32], q: f64) -> Option<f32> {
-    if values.is_empty() {
-        return None;
-    }
-    let mut v = values.to_vec();
-    v.sort_by(f32::total_cmp);
-    Some(percentile_sorted(&v, q))
-}
-
-/// [`percentile`] on values sorted ascending (non-empty).
-pub fn percentile_sorted(sorted: &[f32], q: f64) -> f32 {
-    let n = sorted.len();
-    if n == 1 {
-        return sorted[0];
-    }
-    let pos = (q.clamp(0.0, 100.0) / 100.0) * (n - 1) as f64;
-    let lo = pos.floor() as usize;
-    let hi = (lo + 1).min(n - 1);
-    let frac = pos - lo as f64;
-    (sorted[lo] as f64 + frac * (sorted[hi] as f64 - sorted[lo] as f64)) as f32
-}
+use crate::stats::percentile_sorted;
 
 /// Index of the nearest shell vertex for every query point (in parallel, order kept).
 pub fn nearest_shell(index: &PointIndex, points: &[Vec3]) -> Vec<usize> {
@@ -277,16 +254,6 @@ pub fn displacement_bounds(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn percentile_interpolates_like_numpy() {
-        let v = [4.0, 1.0, 3.0, 2.0];
-        assert_eq!(percentile(&v, 0.0), Some(1.0));
-        assert_eq!(percentile(&v, 100.0), Some(4.0));
-        // numpy.percentile([1,2,3,4], 75) == 3.25
-        assert!((percentile(&v, 75.0).unwrap() - 3.25).abs() < 1e-6);
-        assert_eq!(percentile(&[], 50.0), None);
-    }
 
     #[test]
     fn calibration_follows_the_appendix() {

@@ -41,6 +41,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
+use fure_stage_api::{StageContext, StageError};
 use glam::Vec3;
 
 use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
@@ -56,6 +57,33 @@ pub fn read_obj(path: impl AsRef<Path>) -> Result<Mesh, FormatError> {
     parse(path, &text)
 }
 
+/// Reads a mesh input, naming the port on failure.
+pub fn read_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
+    let path = ctx.input(port)?;
+    let mesh = read_obj(path)?;
+    if mesh.positions.is_empty() || mesh.triangles.is_empty() {
+        return Err(StageError::input(
+            port,
+            path,
+            "the mesh has no vertices or no triangles",
+        ));
+    }
+    Ok(mesh)
+}
+
+/// Reads a mesh input that must carry one part label per vertex.
+pub fn read_labelled_mesh(ctx: &StageContext<'_>, port: &str) -> Result<Mesh, StageError> {
+    let mesh = read_mesh(ctx, port)?;
+    if mesh.part.len() != mesh.positions.len() {
+        return Err(StageError::input(
+            port,
+            ctx.input(port)?,
+            "part labels do not match the vertices",
+        ));
+    }
+    Ok(mesh)
+}
+
 /// A face corner: vertex index and optional normal index, both 0-based.
 #[derive(Clone, Copy)]
 struct Corner {
@@ -69,37 +97,115 @@ struct Face {
     line: usize,
 }
 
-fn parse(path: &Path, text: &str) -> Result<Mesh, FormatError> {
-    let mut positions: Vec<Vec3> = Vec::new();
-    let mut normals: Vec<Vec3> = Vec::new();
-    let mut faces: Vec<Face> = Vec::new();
+/// What the statements of an OBJ file say, before parts are decided.
+#[derive(Default)]
+struct Statements {
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    faces: Vec<Face>,
     // Group and object names in order of first appearance, and which is current.
-    let mut g_names: Vec<String> = Vec::new();
-    let mut o_names: Vec<String> = Vec::new();
-    let mut cur_g: Option<usize> = None;
-    let mut cur_o: Option<usize> = None;
+    g_names: Vec<String>,
+    o_names: Vec<String>,
+    cur_g: Option<usize>,
+    cur_o: Option<usize>,
     // Faces remember both their group and object; which one names parts is decided at the end.
-    let mut face_o: Vec<Option<usize>> = Vec::new();
-    let mut face_g: Vec<Option<usize>> = Vec::new();
-    let mut label_runs: Vec<(usize, usize, usize, usize)> = Vec::new(); // first, count, part, line
+    face_g: Vec<Option<usize>>,
+    face_o: Vec<Option<usize>>,
+    /// `# fure-vertex-parts` runs: first, count, part, line.
+    label_runs: Vec<(usize, usize, usize, usize)>,
+}
 
+fn parse(path: &Path, text: &str) -> Result<Mesh, FormatError> {
+    let mut st = Statements::default();
     for (li, raw_line) in text.lines().enumerate() {
-        let line_no = li + 1;
-        let line = raw_line.trim_end_matches('\r');
+        st.read_line(path, li + 1, raw_line.trim_end_matches('\r'))?;
+    }
+    let Statements {
+        positions,
+        normals,
+        mut faces,
+        g_names,
+        o_names,
+        face_g,
+        face_o,
+        label_runs,
+        ..
+    } = st;
+    check_indices(path, &faces, positions.len(), normals.len())?;
+
+    // Part names: groups if the file has any, else objects, else none.
+    let (names, per_face) = if !g_names.is_empty() {
+        (g_names, face_g)
+    } else {
+        (o_names, face_o)
+    };
+    let mut part_names = names;
+    let labelled = !part_names.is_empty() || !label_runs.is_empty();
+    if labelled && per_face.iter().any(Option::is_none) {
+        // Faces before the first group statement: the OBJ default group.
+        let idx = name_index(&mut part_names, "default");
+        for (f, g) in faces.iter_mut().zip(&per_face) {
+            f.group = g.unwrap_or(idx);
+        }
+    } else {
+        for (f, g) in faces.iter_mut().zip(&per_face) {
+            f.group = g.unwrap_or(0);
+        }
+    }
+
+    let nv = positions.len();
+    let part = if labelled {
+        vertex_parts(path, &faces, nv, &part_names, &label_runs)?
+    } else {
+        vec![0u16; nv]
+    };
+
+    let triangles: Vec<[u32; 3]> = faces
+        .iter()
+        .map(|f| f.corners.map(|c| c.v as u32))
+        .collect();
+    if nv > u32::MAX as usize {
+        return Err(FormatError::invalid(path, "more than 2^32 - 1 vertices"));
+    }
+    let mut mesh = Mesh {
+        positions,
+        normals: Vec::new(),
+        triangles,
+        part,
+        part_names,
+    };
+    mesh.normals = vertex_normals(&mesh, &faces, &normals);
+    Ok(mesh)
+}
+
+/// The index of `name` in `names`, appended when absent.
+fn name_index(names: &mut Vec<String>, name: &str) -> usize {
+    match names.iter().position(|n| n == name) {
+        Some(i) => i,
+        None => {
+            names.push(name.to_string());
+            names.len() - 1
+        }
+    }
+}
+
+impl Statements {
+    /// Reads one line (without its line end).
+    fn read_line(&mut self, path: &Path, line_no: usize, line: &str) -> Result<(), FormatError> {
         if let Some(rest) = line.strip_prefix(LABEL_COMMENT) {
             let nums: Vec<Option<usize>> =
                 rest.split_whitespace().map(|t| t.parse().ok()).collect();
-            match nums.as_slice() {
-                [Some(a), Some(b), Some(c)] => label_runs.push((*a, *b, *c, line_no)),
-                _ => {
-                    return Err(FormatError::at(
-                        path,
-                        Position::Line(line_no),
-                        "expected `# fure-vertex-parts <first> <count> <part>` with three non-negative integers",
-                    ))
+            return match nums.as_slice() {
+                [Some(a), Some(b), Some(c)] => {
+                    self.label_runs.push((*a, *b, *c, line_no));
+                    Ok(())
                 }
-            }
-            continue;
+                _ => Err(FormatError::at(
+                    path,
+                    Position::Line(line_no),
+                    "expected `# fure-vertex-parts <first> <count> <part>` with three non-negative integers",
+                )),
+            };
         }
         let content = match line.find('#') {
             Some(i) => &line[..i],
@@ -107,7 +213,7 @@ fn parse(path: &Path, text: &str) -> Result<Mesh, FormatError> {
         };
         let mut tokens = Tokens::new(content);
         let Some((keyword, _)) = tokens.next() else {
-            continue;
+            return Ok(());
         };
         let at = |column: usize| Position::LineColumn {
             line: line_no,
@@ -137,164 +243,131 @@ fn parse(path: &Path, text: &str) -> Result<Mesh, FormatError> {
         match keyword {
             "v" => {
                 let p = Vec3::new(float("x")?, float("y")?, float("z")?);
-                positions.push(p);
+                self.positions.push(p);
             }
             "vn" => {
                 let n = Vec3::new(float("normal x")?, float("normal y")?, float("normal z")?);
-                normals.push(n);
+                self.normals.push(n);
             }
             "g" | "o" => {
                 let name = content.trim_start()[1..].trim();
                 let name = if name.is_empty() { "default" } else { name };
-                let (names, cur) = if keyword == "g" {
-                    (&mut g_names, &mut cur_g)
+                if keyword == "g" {
+                    self.cur_g = Some(name_index(&mut self.g_names, name));
                 } else {
-                    (&mut o_names, &mut cur_o)
-                };
-                let idx = match names.iter().position(|n| n == name) {
-                    Some(i) => i,
-                    None => {
-                        names.push(name.to_string());
-                        names.len() - 1
-                    }
-                };
-                *cur = Some(idx);
-            }
-            "f" => {
-                let mut corners: Vec<Corner> = Vec::with_capacity(4);
-                for (t, col) in tokens.by_ref() {
-                    corners.push(parse_corner(
-                        path,
-                        t,
-                        line_no,
-                        col,
-                        positions.len(),
-                        normals.len(),
-                    )?);
-                }
-                if corners.len() < 3 {
-                    return Err(FormatError::at(
-                        path,
-                        Position::Line(line_no),
-                        format!("a face needs at least 3 vertices, found {}", corners.len()),
-                    ));
-                }
-                for k in 1..corners.len() - 1 {
-                    faces.push(Face {
-                        corners: [corners[0], corners[k], corners[k + 1]],
-                        group: 0,
-                        line: line_no,
-                    });
-                    face_g.push(cur_g);
-                    face_o.push(cur_o);
+                    self.cur_o = Some(name_index(&mut self.o_names, name));
                 }
             }
+            "f" => self.read_face(path, line_no, tokens)?,
             _ => {} // vt, vp, l, p, s, usemtl, mtllib, curves...: not ours.
         }
+        Ok(())
     }
 
-    // Validate indices (forward references are tolerated while reading, checked here).
-    for f in &faces {
+    /// An `f` statement's corners (after the keyword), fan-triangulated.
+    fn read_face(
+        &mut self,
+        path: &Path,
+        line_no: usize,
+        tokens: Tokens<'_>,
+    ) -> Result<(), FormatError> {
+        let mut corners: Vec<Corner> = Vec::with_capacity(4);
+        for (t, col) in tokens {
+            corners.push(parse_corner(
+                path,
+                t,
+                line_no,
+                col,
+                self.positions.len(),
+                self.normals.len(),
+            )?);
+        }
+        if corners.len() < 3 {
+            return Err(FormatError::at(
+                path,
+                Position::Line(line_no),
+                format!("a face needs at least 3 vertices, found {}", corners.len()),
+            ));
+        }
+        for k in 1..corners.len() - 1 {
+            self.faces.push(Face {
+                corners: [corners[0], corners[k], corners[k + 1]],
+                group: 0,
+                line: line_no,
+            });
+            self.face_g.push(self.cur_g);
+            self.face_o.push(self.cur_o);
+        }
+        Ok(())
+    }
+}
+
+/// Validates the faces' indices (forward references are tolerated while
+/// reading, checked here).
+fn check_indices(path: &Path, faces: &[Face], nv: usize, nn: usize) -> Result<(), FormatError> {
+    for f in faces {
         for c in f.corners {
-            if c.v >= positions.len() {
+            if c.v >= nv {
                 return Err(FormatError::at(
                     path,
                     Position::Line(f.line),
                     format!(
                         "face uses vertex {} but the file has {} vertices",
                         c.v + 1,
-                        positions.len()
+                        nv
                     ),
                 ));
             }
             if let Some(n) = c.n {
-                if n >= normals.len() {
+                if n >= nn {
                     return Err(FormatError::at(
                         path,
                         Position::Line(f.line),
-                        format!(
-                            "face uses normal {} but the file has {} normals",
-                            n + 1,
-                            normals.len()
-                        ),
+                        format!("face uses normal {} but the file has {} normals", n + 1, nn),
                     ));
                 }
             }
         }
     }
+    Ok(())
+}
 
-    // Part names: groups if the file has any, else objects, else none.
-    let (names, per_face) = if !g_names.is_empty() {
-        (g_names, face_g)
-    } else {
-        (o_names, face_o)
-    };
-    let mut part_names = names;
-    let labelled = !part_names.is_empty() || !label_runs.is_empty();
-    if labelled && per_face.iter().any(Option::is_none) {
-        // Faces before the first group statement: the OBJ default group.
-        let idx = match part_names.iter().position(|n| n == "default") {
-            Some(i) => i,
-            None => {
-                part_names.push("default".to_string());
-                part_names.len() - 1
-            }
-        };
-        for (f, g) in faces.iter_mut().zip(&per_face) {
-            f.group = g.unwrap_or(idx);
-        }
-    } else {
-        for (f, g) in faces.iter_mut().zip(&per_face) {
-            f.group = g.unwrap_or(0);
-        }
-    }
-
-    let nv = positions.len();
+/// Per-vertex parts of a labelled file: the group of the first face using
+/// the vertex, then the `# fure-vertex-parts` runs.
+fn vertex_parts(
+    path: &Path,
+    faces: &[Face],
+    nv: usize,
+    part_names: &[String],
+    label_runs: &[(usize, usize, usize, usize)],
+) -> Result<Vec<u16>, FormatError> {
     let mut part = vec![0u16; nv];
-    if labelled {
-        if part_names.len() > u16::MAX as usize + 1 {
-            return Err(FormatError::invalid(path, "more than 65536 groups"));
-        }
-        let mut seen = vec![false; nv];
-        for f in &faces {
-            for c in f.corners {
-                if !seen[c.v] {
-                    seen[c.v] = true;
-                    part[c.v] = f.group as u16;
-                }
+    if part_names.len() > u16::MAX as usize + 1 {
+        return Err(FormatError::invalid(path, "more than 65536 groups"));
+    }
+    let mut seen = vec![false; nv];
+    for f in faces {
+        for c in f.corners {
+            if !seen[c.v] {
+                seen[c.v] = true;
+                part[c.v] = f.group as u16;
             }
         }
-        for &(first, count, p, line) in &label_runs {
-            if first.checked_add(count).is_none_or(|e| e > nv) || p >= part_names.len().max(1) {
-                return Err(FormatError::at(
-                    path,
-                    Position::Line(line),
-                    format!(
-                        "label run {first}+{count} -> part {p} is out of range ({nv} vertices, {} parts)",
-                        part_names.len()
-                    ),
-                ));
-            }
-            part[first..first + count].fill(p as u16);
+    }
+    for &(first, count, p, line) in label_runs {
+        if first.checked_add(count).is_none_or(|e| e > nv) || p >= part_names.len().max(1) {
+            return Err(FormatError::at(
+                path,
+                Position::Line(line),
+                format!(
+                    "label run {first}+{count} -> part {p} is out of range ({nv} vertices, {} parts)",
+                    part_names.len()
+                ),
+            ));
         }
+        part[first..first + count].fill(p as u16);
     }
-
-    let triangles: Vec<[u32; 3]> = faces
-        .iter()
-        .map(|f| f.corners.map(|c| c.v as u32))
-        .collect();
-    if nv > u32::MAX as usize {
-        return Err(FormatError::invalid(path, "more than 2^32 - 1 vertices"));
-    }
-    let mut mesh = Mesh {
-        positions,
-        normals: Vec::new(),
-        triangles,
-        part,
-        part_names,
-    };
-    mesh.normals = vertex_normals(&mesh, &faces, &normals);
-    Ok(mesh)
+    Ok(part)
 }
 
 /// Per-vertex normals from the file's normals and the faces' references (see the module doc).
