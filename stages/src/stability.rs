@@ -200,40 +200,7 @@ impl SweepRecord {
             }
         };
         let crossed = axes(path, root, "crossed", false)?;
-        let mut each = axes(path, root, "each", true)?;
-        // `each_order` (when present) restores the declaration order the sorted object loses.
-        match root.get("each_order") {
-            None | Some(Json::Null) => {}
-            Some(Json::Array(order)) => {
-                let mut sorted = Vec::with_capacity(each.len());
-                for (j, k) in order.iter().enumerate() {
-                    let k = k.as_str().ok_or_else(|| {
-                        bad(
-                            path,
-                            &format!("each_order[{j}]"),
-                            "expected a key of `each`",
-                        )
-                    })?;
-                    let pos = each.iter().position(|(e, _)| e == k).ok_or_else(|| {
-                        bad(
-                            path,
-                            &format!("each_order[{j}]"),
-                            format!("`{k}` is not a key of `each`"),
-                        )
-                    })?;
-                    sorted.push(each.remove(pos));
-                }
-                sorted.append(&mut each);
-                each = sorted;
-            }
-            Some(o) => {
-                return Err(bad(
-                    path,
-                    "each_order",
-                    format!("expected an array of keys, found {}", json_kind(o)),
-                ))
-            }
-        }
+        let each = each_in_order(path, root, axes(path, root, "each", true)?)?;
         let list = match root.get("variants") {
             Some(Json::Array(a)) => a,
             None => {
@@ -251,166 +218,208 @@ impl SweepRecord {
                 ))
             }
         };
-        let mut variants = Vec::with_capacity(list.len());
-        for (i, v) in list.iter().enumerate() {
-            let at = |k: &str| format!("variants[{i}].{k}");
-            let obj = v.as_object().ok_or_else(|| {
-                bad(
-                    path,
-                    &format!("variants[{i}]"),
-                    format!("expected an object, found {}", json_kind(v)),
-                )
-            })?;
-            let settings = match obj.get("settings") {
-                Some(Json::Object(m)) => m.clone(),
-                None => return Err(bad(path, &at("settings"), "missing")),
-                Some(o) => {
-                    return Err(bad(
-                        path,
-                        &at("settings"),
-                        format!("expected an object, found {}", json_kind(o)),
-                    ))
-                }
-            };
-            let status = match obj.get("status") {
-                Some(Json::String(s)) => match s.as_str() {
-                    "ok" => EngineStatus::Ok,
-                    "degraded" => EngineStatus::Degraded,
-                    "failed" => EngineStatus::Failed,
-                    other => {
-                        return Err(bad(
-                            path,
-                            &at("status"),
-                            format!("expected ok, degraded or failed, found `{other}`"),
-                        ))
-                    }
-                },
-                None => {
-                    return Err(bad(
-                        path,
-                        &at("status"),
-                        "missing (expected ok, degraded or failed)",
-                    ))
-                }
-                Some(o) => {
-                    return Err(bad(
-                        path,
-                        &at("status"),
-                        format!("expected a string, found {}", json_kind(o)),
-                    ))
-                }
-            };
-            let opt_str = |k: &str| -> Result<Option<String>, StageError> {
-                match obj.get(k) {
-                    None | Some(Json::Null) => Ok(None),
-                    Some(Json::String(s)) => Ok(Some(s.clone())),
-                    Some(o) => Err(bad(
-                        path,
-                        &at(k),
-                        format!("expected a string or null, found {}", json_kind(o)),
-                    )),
-                }
-            };
-            let varied = opt_str("varied")?;
-            if let Some(k) = &varied {
-                if !each.iter().any(|(e, _)| e == k) {
-                    return Err(bad(
-                        path,
-                        &at("varied"),
-                        format!("`{k}` is not a key of `each`"),
-                    ));
-                }
-            }
-            let warnings = match obj.get("warnings") {
-                None | Some(Json::Null) => Vec::new(),
-                Some(Json::Array(a)) => a
-                    .iter()
-                    .enumerate()
-                    .map(|(j, w)| match w {
-                        Json::String(s) => Ok(s.clone()),
-                        o => Err(bad(
-                            path,
-                            &format!("variants[{i}].warnings[{j}]"),
-                            format!("expected a string, found {}", json_kind(o)),
-                        )),
-                    })
-                    .collect::<Result<_, _>>()?,
-                Some(o) => {
-                    return Err(bad(
-                        path,
-                        &at("warnings"),
-                        format!("expected an array of strings, found {}", json_kind(o)),
-                    ))
-                }
-            };
-            let mut metrics = BTreeMap::new();
-            match obj.get("metrics") {
-                Some(m @ Json::Object(_)) => flatten("", m, &mut metrics),
-                None => {
-                    return Err(bad(
-                        path,
-                        &at("metrics"),
-                        "missing (expected an object of numbers)",
-                    ))
-                }
-                Some(o) => {
-                    return Err(bad(
-                        path,
-                        &at("metrics"),
-                        format!("expected an object, found {}", json_kind(o)),
-                    ))
-                }
-            }
-            let mut costs = BTreeMap::new();
-            match obj.get("costs") {
-                None | Some(Json::Null) => {}
-                Some(c @ Json::Object(_)) => flatten("", c, &mut costs),
-                Some(o) => {
-                    return Err(bad(
-                        path,
-                        &at("costs"),
-                        format!("expected an object, found {}", json_kind(o)),
-                    ))
-                }
-            }
-            let index = match obj.get("index") {
-                None | Some(Json::Null) => i,
-                Some(x) => x.as_u64().ok_or_else(|| {
-                    bad(
-                        path,
-                        &at("index"),
-                        format!("expected a non-negative integer, found {}", json_kind(x)),
-                    )
-                })? as usize,
-            };
-            // Every crossed and each key must be set.
-            for (k, _) in crossed.iter().chain(&each) {
-                if !settings.contains_key(k) {
-                    return Err(bad(
-                        path,
-                        &format!("variants[{i}].settings.{k}"),
-                        "missing (every sweep key must be set)",
-                    ));
-                }
-            }
-            variants.push(VariantRecord {
-                index,
-                name: opt_str("name")?.unwrap_or_else(|| format!("v{index}")),
-                settings,
-                varied,
-                status,
-                reason: opt_str("reason")?.unwrap_or_default(),
-                failed_stage: opt_str("failed_stage")?,
-                warnings,
-                metrics,
-                costs,
-            });
-        }
+        let variants = list
+            .iter()
+            .enumerate()
+            .map(|(i, v)| VariantRecord::from_json(path, i, v, &crossed, &each))
+            .collect::<Result<Vec<_>, _>>()?;
         Ok(SweepRecord {
             pipeline,
             crossed,
             each,
             variants,
+        })
+    }
+}
+
+/// The `each` axes in `each_order` (when present), which restores the
+/// declaration order the sorted object loses.
+fn each_in_order(
+    path: &Path,
+    root: &Map<String, Json>,
+    mut each: Vec<(String, Vec<Json>)>,
+) -> Result<Vec<(String, Vec<Json>)>, StageError> {
+    match root.get("each_order") {
+        None | Some(Json::Null) => Ok(each),
+        Some(Json::Array(order)) => {
+            let mut sorted = Vec::with_capacity(each.len());
+            for (j, k) in order.iter().enumerate() {
+                let k = k.as_str().ok_or_else(|| {
+                    bad(
+                        path,
+                        &format!("each_order[{j}]"),
+                        "expected a key of `each`",
+                    )
+                })?;
+                let pos = each.iter().position(|(e, _)| e == k).ok_or_else(|| {
+                    bad(
+                        path,
+                        &format!("each_order[{j}]"),
+                        format!("`{k}` is not a key of `each`"),
+                    )
+                })?;
+                sorted.push(each.remove(pos));
+            }
+            sorted.append(&mut each);
+            Ok(sorted)
+        }
+        Some(o) => Err(bad(
+            path,
+            "each_order",
+            format!("expected an array of keys, found {}", json_kind(o)),
+        )),
+    }
+}
+
+/// The fields of variant `i` of a record, each read with its key path in
+/// errors (`variants[3].status`).
+struct VariantFields<'a> {
+    path: &'a Path,
+    i: usize,
+    obj: &'a Map<String, Json>,
+}
+
+impl VariantFields<'_> {
+    fn at(&self, k: &str) -> String {
+        format!("variants[{}].{k}", self.i)
+    }
+
+    fn bad(&self, k: &str, msg: impl std::fmt::Display) -> StageError {
+        bad(self.path, &self.at(k), msg)
+    }
+
+    fn opt_str(&self, k: &str) -> Result<Option<String>, StageError> {
+        match self.obj.get(k) {
+            None | Some(Json::Null) => Ok(None),
+            Some(Json::String(s)) => Ok(Some(s.clone())),
+            Some(o) => Err(self.bad(
+                k,
+                format!("expected a string or null, found {}", json_kind(o)),
+            )),
+        }
+    }
+
+    fn status(&self) -> Result<EngineStatus, StageError> {
+        match self.obj.get("status") {
+            Some(Json::String(s)) => match s.as_str() {
+                "ok" => Ok(EngineStatus::Ok),
+                "degraded" => Ok(EngineStatus::Degraded),
+                "failed" => Ok(EngineStatus::Failed),
+                other => Err(self.bad(
+                    "status",
+                    format!("expected ok, degraded or failed, found `{other}`"),
+                )),
+            },
+            None => Err(self.bad("status", "missing (expected ok, degraded or failed)")),
+            Some(o) => Err(self.bad(
+                "status",
+                format!("expected a string, found {}", json_kind(o)),
+            )),
+        }
+    }
+
+    fn warnings(&self) -> Result<Vec<String>, StageError> {
+        match self.obj.get("warnings") {
+            None | Some(Json::Null) => Ok(Vec::new()),
+            Some(Json::Array(a)) => a
+                .iter()
+                .enumerate()
+                .map(|(j, w)| match w {
+                    Json::String(s) => Ok(s.clone()),
+                    o => Err(self.bad(
+                        &format!("warnings[{j}]"),
+                        format!("expected a string, found {}", json_kind(o)),
+                    )),
+                })
+                .collect(),
+            Some(o) => Err(self.bad(
+                "warnings",
+                format!("expected an array of strings, found {}", json_kind(o)),
+            )),
+        }
+    }
+
+    /// An object of (nested) numbers, flattened; `required` or null/absent.
+    fn numbers(&self, k: &str, required: bool) -> Result<BTreeMap<String, f64>, StageError> {
+        let mut out = BTreeMap::new();
+        match (self.obj.get(k), required) {
+            (Some(m @ Json::Object(_)), _) => flatten("", m, &mut out),
+            (None, true) => return Err(self.bad(k, "missing (expected an object of numbers)")),
+            (None | Some(Json::Null), false) => {}
+            (Some(o), _) => {
+                return Err(self.bad(k, format!("expected an object, found {}", json_kind(o))))
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl VariantRecord {
+    /// Checks variant `i` of a record against its axes.
+    fn from_json(
+        path: &Path,
+        i: usize,
+        v: &Json,
+        crossed: &[(String, Vec<Json>)],
+        each: &[(String, Vec<Json>)],
+    ) -> Result<VariantRecord, StageError> {
+        let obj = v.as_object().ok_or_else(|| {
+            bad(
+                path,
+                &format!("variants[{i}]"),
+                format!("expected an object, found {}", json_kind(v)),
+            )
+        })?;
+        let f = VariantFields { path, i, obj };
+        let settings = match obj.get("settings") {
+            Some(Json::Object(m)) => m.clone(),
+            None => return Err(f.bad("settings", "missing")),
+            Some(o) => {
+                return Err(f.bad(
+                    "settings",
+                    format!("expected an object, found {}", json_kind(o)),
+                ))
+            }
+        };
+        let status = f.status()?;
+        let varied = f.opt_str("varied")?;
+        if let Some(k) = &varied {
+            if !each.iter().any(|(e, _)| e == k) {
+                return Err(f.bad("varied", format!("`{k}` is not a key of `each`")));
+            }
+        }
+        let warnings = f.warnings()?;
+        let metrics = f.numbers("metrics", true)?;
+        let costs = f.numbers("costs", false)?;
+        let index = match obj.get("index") {
+            None | Some(Json::Null) => i,
+            Some(x) => x.as_u64().ok_or_else(|| {
+                f.bad(
+                    "index",
+                    format!("expected a non-negative integer, found {}", json_kind(x)),
+                )
+            })? as usize,
+        };
+        // Every crossed and each key must be set.
+        for (k, _) in crossed.iter().chain(each) {
+            if !settings.contains_key(k) {
+                return Err(f.bad(
+                    &format!("settings.{k}"),
+                    "missing (every sweep key must be set)",
+                ));
+            }
+        }
+        Ok(VariantRecord {
+            index,
+            name: f.opt_str("name")?.unwrap_or_else(|| format!("v{index}")),
+            settings,
+            varied,
+            status,
+            reason: f.opt_str("reason")?.unwrap_or_default(),
+            failed_stage: f.opt_str("failed_stage")?,
+            warnings,
+            metrics,
+            costs,
         })
     }
 }

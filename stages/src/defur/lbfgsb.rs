@@ -213,47 +213,7 @@ where
     F: FnMut(&[f64], &mut [f64]) -> f64,
 {
     let n = x0.len();
-    let mut lens = vec![("lower bounds", lower.len()), ("upper bounds", upper.len())];
-    if let Some(h) = h0 {
-        lens.push(("preconditioner", h.len()));
-    }
-    for (what, len) in lens {
-        if len != n {
-            return Err(SolverError::Length {
-                what,
-                found: len,
-                expected: n,
-            });
-        }
-    }
-    for i in 0..n {
-        let (l, u) = (lower[i], upper[i]);
-        if l.is_nan() || u.is_nan() || l > u {
-            return Err(SolverError::Bounds {
-                index: i,
-                lower: l,
-                upper: u,
-            });
-        }
-    }
-    if settings.memory == 0 {
-        return Err(SolverError::Settings("memory must be at least 1"));
-    }
-    if settings.max_line_search == 0 {
-        return Err(SolverError::Settings("max_line_search must be at least 1"));
-    }
-    if !(settings.ftol >= 0.0 && settings.gtol >= 0.0) {
-        return Err(SolverError::Settings("tolerances must be non-negative"));
-    }
-    let h0: Vec<f64> = match h0 {
-        Some(h) => {
-            if let Some(i) = h.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
-                return Err(SolverError::Preconditioner { index: i });
-            }
-            h.to_vec()
-        }
-        None => vec![1.0; n],
-    };
+    let h0 = check_inputs(x0, lower, upper, h0, settings)?;
     let preconditioned = h0.iter().any(|&v| v != 1.0);
     if !all_finite(x0) {
         return Err(SolverError::NonFinite { iteration: 0 });
@@ -300,26 +260,7 @@ where
             return Ok(finish(x, fx, &g, iterations, evaluations, t));
         }
 
-        // Free set.
-        let mut changed = false;
-        for i in 0..n {
-            let at_lower = x[i] <= lower[i] && g[i] > 0.0;
-            let at_upper = x[i] >= upper[i] && g[i] < 0.0;
-            let is_free = lower[i] < upper[i] && !at_lower && !at_upper;
-            let m = if is_free { 1.0 } else { 0.0 };
-            changed |= free[i] != m;
-            free[i] = m;
-        }
-        for (c, (s, y)) in curv.iter_mut().zip(&pairs) {
-            if changed || c.is_nan() {
-                let sy = masked_dot(s, y, &free);
-                *c = if sy > f64::EPSILON * masked_dot(y, y, &free) {
-                    sy
-                } else {
-                    -1.0
-                };
-            }
-        }
+        update_free_set(&x, &g, lower, upper, &mut free, &mut curv, &pairs);
 
         // Direction and line search; retried once with steepest descent.
         let mut accepted: Option<f64> = None;
@@ -331,9 +272,7 @@ where
             if !(use_memory && two_loop(&mut d, &pairs, &curv, &free, &h0, &mut alphas, &mut rhos))
             {
                 // No memory, or curvature lost on the free set: (scaled) steepest descent.
-                for i in 0..n {
-                    d[i] = -g[i] * free[i] * h0[i];
-                }
+                steepest_descent(&mut d, &g, &free, &h0);
             }
             let gd = dot(&g, &d);
             let dnorm = dot(&d, &d).sqrt();
@@ -345,35 +284,20 @@ where
                 }
                 break;
             }
-            let mut step = if pairs.is_empty() && !preconditioned {
+            let step = if pairs.is_empty() && !preconditioned {
                 (1.0 / dnorm).min(1.0)
             } else {
                 1.0
             };
-            for _ in 0..settings.max_line_search {
-                for i in 0..n {
-                    xn[i] = (x[i] + step * d[i]).clamp(lower[i], upper[i]);
-                }
-                let fnew = f(&xn, &mut gn);
-                evaluations += 1;
-                let mut dec = 0.0;
-                for i in 0..n {
-                    dec += g[i] * (xn[i] - x[i]);
-                }
-                if fnew.is_finite() && all_finite(&gn) && dec < 0.0 && fnew <= fx + 1e-4 * dec {
-                    accepted = Some(fnew);
-                    break;
-                }
-                // Safeguarded quadratic interpolation of phi(a) along the path.
-                let slope = dec / step;
-                let denom = 2.0 * (fnew - fx - slope * step);
-                let next = if fnew.is_finite() && denom > 0.0 && slope < 0.0 {
-                    -slope * step * step / denom
-                } else {
-                    0.5 * step
-                };
-                step = next.clamp(0.1 * step, 0.5 * step);
-            }
+            accepted = line_search(
+                &mut f,
+                (&x, &g, fx),
+                (&d, step),
+                (lower, upper),
+                (&mut xn, &mut gn),
+                settings.max_line_search,
+                &mut evaluations,
+            );
             if accepted.is_some() || !use_memory {
                 break;
             }
@@ -387,23 +311,7 @@ where
             return Ok(finish(x, fx, &g, iterations, evaluations, t));
         };
 
-        // Reuse the oldest pair's storage when the memory is full.
-        let (mut s, mut y) = if pairs.len() == settings.memory {
-            curv.pop_front();
-            pairs
-                .pop_front()
-                .unwrap_or_else(|| (vec![0.0; n], vec![0.0; n]))
-        } else {
-            (vec![0.0; n], vec![0.0; n])
-        };
-        for i in 0..n {
-            s[i] = xn[i] - x[i];
-            y[i] = gn[i] - g[i];
-        }
-        if dot(&s, &y) > f64::EPSILON * dot(&y, &y) {
-            pairs.push_back((s, y));
-            curv.push_back(f64::NAN);
-        }
+        push_pair(&mut pairs, &mut curv, (&x, &xn), (&g, &gn), settings.memory);
         iterations += 1;
         let rel = (fx - fnew) / fx.abs().max(fnew.abs()).max(1.0);
         std::mem::swap(&mut x, &mut xn);
@@ -414,6 +322,170 @@ where
             return Ok(finish(x, fx, &g, iterations, evaluations, t));
         }
     }
+}
+
+/// The correction pair `(x_new - x, g_new - g)` when its curvature is
+/// positive, reusing the oldest pair's storage when the memory is full.
+fn push_pair(
+    pairs: &mut VecDeque<(Vec<f64>, Vec<f64>)>,
+    curv: &mut VecDeque<f64>,
+    (x, xn): (&[f64], &[f64]),
+    (g, gn): (&[f64], &[f64]),
+    memory: usize,
+) {
+    let n = x.len();
+    let (mut s, mut y) = if pairs.len() == memory {
+        curv.pop_front();
+        pairs
+            .pop_front()
+            .unwrap_or_else(|| (vec![0.0; n], vec![0.0; n]))
+    } else {
+        (vec![0.0; n], vec![0.0; n])
+    };
+    for i in 0..n {
+        s[i] = xn[i] - x[i];
+        y[i] = gn[i] - g[i];
+    }
+    if dot(&s, &y) > f64::EPSILON * dot(&y, &y) {
+        pairs.push_back((s, y));
+        curv.push_back(f64::NAN);
+    }
+}
+
+/// `d = -g h0` on the free set, zero elsewhere.
+fn steepest_descent(d: &mut [f64], g: &[f64], free: &[f64], h0: &[f64]) {
+    for i in 0..d.len() {
+        d[i] = -g[i] * free[i] * h0[i];
+    }
+}
+
+/// Checks lengths, bounds and settings; the preconditioner (ones without one).
+fn check_inputs(
+    x0: &[f64],
+    lower: &[f64],
+    upper: &[f64],
+    h0: Option<&[f64]>,
+    settings: &Settings,
+) -> Result<Vec<f64>, SolverError> {
+    let n = x0.len();
+    let mut lens = vec![("lower bounds", lower.len()), ("upper bounds", upper.len())];
+    if let Some(h) = h0 {
+        lens.push(("preconditioner", h.len()));
+    }
+    for (what, len) in lens {
+        if len != n {
+            return Err(SolverError::Length {
+                what,
+                found: len,
+                expected: n,
+            });
+        }
+    }
+    for i in 0..n {
+        let (l, u) = (lower[i], upper[i]);
+        if l.is_nan() || u.is_nan() || l > u {
+            return Err(SolverError::Bounds {
+                index: i,
+                lower: l,
+                upper: u,
+            });
+        }
+    }
+    if settings.memory == 0 {
+        return Err(SolverError::Settings("memory must be at least 1"));
+    }
+    if settings.max_line_search == 0 {
+        return Err(SolverError::Settings("max_line_search must be at least 1"));
+    }
+    if !(settings.ftol >= 0.0 && settings.gtol >= 0.0) {
+        return Err(SolverError::Settings("tolerances must be non-negative"));
+    }
+    Ok(match h0 {
+        Some(h) => {
+            if let Some(i) = h.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(SolverError::Preconditioner { index: i });
+            }
+            h.to_vec()
+        }
+        None => vec![1.0; n],
+    })
+}
+
+/// The free set (variables not held at a bound by the gradient) as a 0/1
+/// mask, and the pairs' restricted curvature when it changed.
+fn update_free_set(
+    x: &[f64],
+    g: &[f64],
+    lower: &[f64],
+    upper: &[f64],
+    free: &mut [f64],
+    curv: &mut VecDeque<f64>,
+    pairs: &VecDeque<(Vec<f64>, Vec<f64>)>,
+) {
+    let n = x.len();
+    let mut changed = false;
+    for i in 0..n {
+        let at_lower = x[i] <= lower[i] && g[i] > 0.0;
+        let at_upper = x[i] >= upper[i] && g[i] < 0.0;
+        let is_free = lower[i] < upper[i] && !at_lower && !at_upper;
+        let m = if is_free { 1.0 } else { 0.0 };
+        changed |= free[i] != m;
+        free[i] = m;
+    }
+    for (c, (s, y)) in curv.iter_mut().zip(pairs) {
+        if changed || c.is_nan() {
+            let sy = masked_dot(s, y, free);
+            *c = if sy > f64::EPSILON * masked_dot(y, y, free) {
+                sy
+            } else {
+                -1.0
+            };
+        }
+    }
+}
+
+/// Backtracking along the projected path `P(x + a d)` from step `step`
+/// (the direction and first step):
+/// the first point with sufficient decrease (Armijo on the path, `1e-4`),
+/// written into `xn`/`gn`, and its objective; `None` after `max_steps`
+/// evaluations without one.
+fn line_search<F>(
+    f: &mut F,
+    (x, g, fx): (&[f64], &[f64], f64),
+    (d, mut step): (&[f64], f64),
+    (lower, upper): (&[f64], &[f64]),
+    (xn, gn): (&mut [f64], &mut [f64]),
+    max_steps: usize,
+    evaluations: &mut usize,
+) -> Option<f64>
+where
+    F: FnMut(&[f64], &mut [f64]) -> f64,
+{
+    let n = x.len();
+    for _ in 0..max_steps {
+        for i in 0..n {
+            xn[i] = (x[i] + step * d[i]).clamp(lower[i], upper[i]);
+        }
+        let fnew = f(xn, gn);
+        *evaluations += 1;
+        let mut dec = 0.0;
+        for i in 0..n {
+            dec += g[i] * (xn[i] - x[i]);
+        }
+        if fnew.is_finite() && all_finite(gn) && dec < 0.0 && fnew <= fx + 1e-4 * dec {
+            return Some(fnew);
+        }
+        // Safeguarded quadratic interpolation of phi(a) along the path.
+        let slope = dec / step;
+        let denom = 2.0 * (fnew - fx - slope * step);
+        let next = if fnew.is_finite() && denom > 0.0 && slope < 0.0 {
+            -slope * step * step / denom
+        } else {
+            0.5 * step
+        };
+        step = next.clamp(0.1 * step, 0.5 * step);
+    }
+    None
 }
 
 /// The two-loop recursion on `d` (holding the masked negative gradient),

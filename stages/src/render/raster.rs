@@ -245,9 +245,30 @@ pub fn render(
     g.validate()?;
     let cd = CamData::new(cam)?;
     let (w, h) = (cd.width, cd.height);
-    let n = g.len();
-    // 1. Project (independent per Gaussian).
-    let mut splats = vec![Splat::default(); n];
+    let splats = project_all(g, &cd, s);
+    let bins = bin_by_tile(&splats, w, h);
+    let tiles: Vec<TileOut> = (0..bins.tile_ranges.len())
+        .into_par_iter()
+        .map(|t| composite_tile(t, &bins, &splats, w, h, s))
+        .collect();
+    let (out, t_final, n_contrib, evaluations) = scatter(&tiles, bins.tiles_x, w, h, s);
+    let state = RenderState {
+        width: w,
+        height: h,
+        n_gaussians: g.len(),
+        splats,
+        instances: bins.instances,
+        tile_ranges: bins.tile_ranges,
+        t_final,
+        n_contrib,
+        evaluations,
+    };
+    Ok((out, state))
+}
+
+/// 1. Projects every Gaussian (independent per Gaussian).
+fn project_all(g: &Gaussians, cd: &CamData, s: &RenderSettings) -> Vec<Splat> {
+    let mut splats = vec![Splat::default(); g.len()];
     splats
         .par_chunks_mut(CHUNK)
         .enumerate()
@@ -261,7 +282,7 @@ pub fn render(
                     g.opacities[i],
                     &g.sh[i],
                     g.fur[i],
-                    &cd,
+                    cd,
                     s,
                 );
                 if sp.visible {
@@ -269,7 +290,21 @@ pub fn render(
                 }
             }
         });
-    // 2. Global depth order: key (depth bits, index) is unique, so the order is total.
+    splats
+}
+
+/// The visible splats binned by tile: per tile a range of `instances`
+/// (Gaussian indices in depth order).
+struct TileBins {
+    tiles_x: u32,
+    instances: Vec<u32>,
+    tile_ranges: Vec<(u32, u32)>,
+}
+
+/// 2.-3. The global depth order, then the tiles of every splat (in depth
+/// order) and a stable counting sort by tile.
+fn bin_by_tile(splats: &[Splat], w: u32, h: u32) -> TileBins {
+    // Key (depth bits, index) is unique, so the order is total.
     let mut order: Vec<u64> = splats
         .iter()
         .enumerate()
@@ -277,7 +312,6 @@ pub fn render(
         .map(|(i, sp)| ((sp.feat[F_DEPTH].to_bits() as u64) << 32) | i as u64)
         .collect();
     order.par_sort_unstable();
-    // 3. Tiles per splat (in depth order), then a stable counting sort by tile.
     let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
     let n_tiles = (tx * ty) as usize;
     // One pass per chunk of the depth order: tile ids and per-splat counts.
@@ -329,76 +363,99 @@ pub fn render(
             cursor[t as usize] += 1;
         }
     }
-    drop(inst_tile);
-    // 4. Composite per tile.
-    struct TileOut {
-        acc: Vec<[f32; NF]>,
-        t: Vec<f32>,
-        nc: Vec<u32>,
-        evals: u64,
+    TileBins {
+        tiles_x: tx,
+        instances,
+        tile_ranges,
     }
-    let tiles: Vec<TileOut> = (0..n_tiles)
-        .into_par_iter()
-        .map(|t| {
-            let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
-            let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
-            let (x0, y0) = (x0 as i32, y0 as i32);
-            let npix = ((x1 - x0) * (y1 - y0)) as usize;
-            let mut acc = vec![[0.0f32; NF]; TP];
-            let mut tr = vec![1.0f32; TP];
-            let mut nc = vec![0u32; TP];
-            let mut done = [false; TP];
-            let mut n_done = 0usize;
-            let mut evals = 0u64;
-            let (a, b) = tile_ranges[t];
-            // Gather the tile's splats first: independent loads overlap their
-            // cache misses, and the loop below then reads sequentially.
-            let recs: Vec<Splat> = instances[a as usize..b as usize]
-                .iter()
-                .map(|&gi| splats[gi as usize])
-                .collect();
-            for (k, sp) in recs.iter().enumerate() {
-                let (r0, r1) = sp.rows;
-                for y in r0.max(y0)..=r1.min(y1 - 1) {
-                    let Some((c0, c1)) = row_span(sp, y) else {
-                        continue;
-                    };
-                    for x in c0.max(x0)..=c1.min(x1 - 1) {
-                        let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
-                        if done[p] {
-                            continue;
-                        }
-                        evals += 1;
-                        let Some((alpha, ..)) = eval(sp, x, y, s) else {
-                            continue;
-                        };
-                        let tn = tr[p] * (1.0 - alpha);
-                        if tn < s.transmittance_min {
-                            done[p] = true;
-                            n_done += 1;
-                            continue;
-                        }
-                        let wgt = alpha * tr[p];
-                        for c in 0..NF {
-                            acc[p][c] += sp.feat[c] * wgt;
-                        }
-                        tr[p] = tn;
-                        nc[p] = k as u32 + 1;
-                    }
-                }
-                if n_done == npix {
-                    break;
-                }
-            }
-            TileOut {
-                acc,
-                t: tr,
-                nc,
-                evals,
-            }
-        })
+}
+
+/// One tile's accumulated features, transmittance and contributor counts
+/// (tile-local pixel order).
+struct TileOut {
+    acc: Vec<[f32; NF]>,
+    t: Vec<f32>,
+    nc: Vec<u32>,
+    evals: u64,
+}
+
+/// 4. Front-to-back compositing of tile `t`'s splats.
+fn composite_tile(
+    t: usize,
+    bins: &TileBins,
+    splats: &[Splat],
+    w: u32,
+    h: u32,
+    s: &RenderSettings,
+) -> TileOut {
+    let tx = bins.tiles_x;
+    let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
+    let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
+    let (x0, y0) = (x0 as i32, y0 as i32);
+    let npix = ((x1 - x0) * (y1 - y0)) as usize;
+    let mut acc = vec![[0.0f32; NF]; TP];
+    let mut tr = vec![1.0f32; TP];
+    let mut nc = vec![0u32; TP];
+    let mut done = [false; TP];
+    let mut n_done = 0usize;
+    let mut evals = 0u64;
+    let (a, b) = bins.tile_ranges[t];
+    // Gather the tile's splats first: independent loads overlap their
+    // cache misses, and the loop below then reads sequentially.
+    let recs: Vec<Splat> = bins.instances[a as usize..b as usize]
+        .iter()
+        .map(|&gi| splats[gi as usize])
         .collect();
-    // 5. Scatter into images.
+    for (k, sp) in recs.iter().enumerate() {
+        let (r0, r1) = sp.rows;
+        for y in r0.max(y0)..=r1.min(y1 - 1) {
+            let Some((c0, c1)) = row_span(sp, y) else {
+                continue;
+            };
+            for x in c0.max(x0)..=c1.min(x1 - 1) {
+                let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
+                if done[p] {
+                    continue;
+                }
+                evals += 1;
+                let Some((alpha, ..)) = eval(sp, x, y, s) else {
+                    continue;
+                };
+                let tn = tr[p] * (1.0 - alpha);
+                if tn < s.transmittance_min {
+                    done[p] = true;
+                    n_done += 1;
+                    continue;
+                }
+                let wgt = alpha * tr[p];
+                for c in 0..NF {
+                    acc[p][c] += sp.feat[c] * wgt;
+                }
+                tr[p] = tn;
+                nc[p] = k as u32 + 1;
+            }
+        }
+        if n_done == npix {
+            break;
+        }
+    }
+    TileOut {
+        acc,
+        t: tr,
+        nc,
+        evals,
+    }
+}
+
+/// 5. Scatters the tiles into the images; also the final transmittance,
+/// contributor count per pixel and the evaluation count.
+fn scatter(
+    tiles: &[TileOut],
+    tx: u32,
+    w: u32,
+    h: u32,
+    s: &RenderSettings,
+) -> (RenderOutput, Vec<f32>, Vec<u32>, u64) {
     let mut out = RenderOutput {
         rgb: ImageF32::new(w, h, 3),
         alpha: ImageF32::new(w, h, 1),
@@ -431,18 +488,7 @@ pub fn render(
             }
         }
     }
-    let state = RenderState {
-        width: w,
-        height: h,
-        n_gaussians: n,
-        splats,
-        instances,
-        tile_ranges,
-        t_final,
-        n_contrib,
-        evaluations,
-    };
-    Ok((out, state))
+    (out, t_final, n_contrib, evaluations)
 }
 
 /// Gradients of all Gaussian parameters given dL/d(outputs). `g`, `cam` and

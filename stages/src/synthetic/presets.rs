@@ -63,7 +63,7 @@ pub struct FurParams {
 }
 
 impl FurParams {
-    fn fur(
+    const fn fur(
         length_cm: f32,
         lift_deg: f32,
         curl: f32,
@@ -85,7 +85,7 @@ impl FurParams {
             color,
         }
     }
-    fn bare(color: [f32; 3]) -> Self {
+    const fn bare(color: [f32; 3]) -> Self {
         FurParams {
             fur: false,
             length_cm: 0.0,
@@ -218,27 +218,59 @@ fn flat(c: Vec3, r: Vec3) -> Shape {
     }
 }
 
-/// The quadruped's primitives and eye centres.
+/// The quadruped's primitives in order (their union is the body), eye
+/// centres, and tail base and tip.
 fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
-    let mut prims = Vec::new();
-    let x_chest = d.torso_len * 0.5;
-    let x_hip = -d.torso_len * 0.5;
-    let yc = d.torso_y;
-    let lat = Vec3::Z;
-    let push = |prims: &mut Vec<PrimSpec>, shape, part, blend, squash, flow: Vec3| {
-        prims.push(PrimSpec {
+    let mut p = Prims(Vec::new());
+    let (hip, head) = trunk(&mut p, d);
+    ears(&mut p, d, &head);
+    horns(&mut p, d, &head);
+    legs(&mut p, d);
+    let tail = tail(&mut p, d, hip);
+    let eyes = face(&mut p, d, &head);
+    let _ = d.body_length;
+    (p.0, eyes, tail)
+}
+
+/// The primitives of a body, in the order they are added.
+struct Prims(Vec<PrimSpec>);
+
+impl Prims {
+    fn push(
+        &mut self,
+        shape: Shape,
+        part: &'static str,
+        blend: f32,
+        squash: Option<(Vec3, f32)>,
+        flow: Vec3,
+    ) {
+        self.0.push(PrimSpec {
             shape,
             part,
             blend,
             squash,
             flow: flow.normalize_or_zero(),
         })
-    };
+    }
+}
+
+/// Where the head is: centre, semi-axes, and the muzzle tip.
+struct Head {
+    hc: Vec3,
+    hr: Vec3,
+    m_tip: Vec3,
+}
+
+/// Torso, hump, belly, neck, head and muzzle; the hip centre and the head.
+fn trunk(p: &mut Prims, d: &Dims) -> (Vec3, Head) {
+    let x_chest = d.torso_len * 0.5;
+    let x_hip = -d.torso_len * 0.5;
+    let yc = d.torso_y;
+    let lat = Vec3::Z;
     // Torso: chest -> hip (fur flows head to tail).
     let chest = Vec3::new(x_chest, yc, 0.0);
     let hip = Vec3::new(x_hip, yc + 0.05 * d.hip_r, 0.0);
-    push(
-        &mut prims,
+    p.push(
         Shape::RoundCone {
             a: chest,
             b: hip,
@@ -251,8 +283,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         hip - chest,
     );
     if d.hump {
-        push(
-            &mut prims,
+        p.push(
             flat(
                 Vec3::new(x_chest - 0.15 * d.torso_len, yc + 0.7 * d.chest_r, 0.0),
                 Vec3::new(
@@ -268,8 +299,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         );
     }
     // Belly under the torso.
-    push(
-        &mut prims,
+    p.push(
         flat(
             Vec3::new(0.05 * d.torso_len, yc - 0.42 * d.chest_r, 0.0),
             Vec3::new(
@@ -292,8 +322,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         )
         + Vec3::new(0.0, 0.2 * d.chest_r, 0.0);
     let neck_base = chest + Vec3::new(-0.1 * d.chest_r, 0.15 * d.chest_r, 0.0);
-    push(
-        &mut prims,
+    p.push(
         Shape::RoundCone {
             a: neck_top,
             b: neck_base,
@@ -308,8 +337,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
     // Head.
     let hc = neck_top + Vec3::new(0.35 * d.head_r, 0.15 * d.head_r, 0.0);
     let hr = Vec3::new(1.05 * d.head_r, 0.92 * d.head_r, 0.95 * d.head_r);
-    push(
-        &mut prims,
+    p.push(
         flat(hc, hr),
         "head",
         0.35 * d.head_r,
@@ -319,8 +347,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
     // Muzzle: tip -> base (fur flows back from the nose).
     let m_base = hc + Vec3::new(0.35 * d.head_r, -0.2 * d.head_r, 0.0);
     let m_tip = hc + Vec3::new(0.75 * d.head_r + d.muzzle_len, -0.3 * d.head_r, 0.0);
-    push(
-        &mut prims,
+    p.push(
         Shape::RoundCone {
             a: m_tip,
             b: m_base,
@@ -332,13 +359,18 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         None,
         m_base - m_tip,
     );
+    (hip, Head { hc, hr, m_tip })
+}
+
+/// The ears.
+fn ears(p: &mut Prims, d: &Dims, head: &Head) {
+    let Head { hc, hr, .. } = *head;
     // Ears: base -> tip, flattened front to back.
     for side in [1.0f32, -1.0] {
         let base = hc + Vec3::new(-0.1 * d.head_r, 0.7 * hr.y, side * 0.5 * hr.z);
         let dir = Vec3::new(-0.15, 1.0, side * 0.35).normalize();
         let tip = base + dir * d.ear_len;
-        push(
-            &mut prims,
+        p.push(
             Shape::RoundCone {
                 a: base,
                 b: tip,
@@ -351,14 +383,17 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
             tip - base,
         );
     }
-    // Horns (bison): from the head sides, out and up.
+}
+
+/// The horns, when the preset has them (bison): from the head sides, out and up.
+fn horns(p: &mut Prims, d: &Dims, head: &Head) {
+    let Head { hc, hr, .. } = *head;
     if d.horns {
         for side in [1.0f32, -1.0] {
             let a = hc + Vec3::new(0.1 * d.head_r, 0.45 * hr.y, side * 0.8 * hr.z);
             let b = a + Vec3::new(0.1, 0.6, side * 0.8).normalize() * 0.55 * d.head_r;
             let c = b + Vec3::new(0.2, 1.0, -side * 0.2).normalize() * 0.35 * d.head_r;
-            push(
-                &mut prims,
+            p.push(
                 Shape::RoundCone {
                     a,
                     b,
@@ -370,8 +405,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
                 None,
                 b - a,
             );
-            push(
-                &mut prims,
+            p.push(
                 Shape::RoundCone {
                     a: b,
                     b: c,
@@ -385,6 +419,13 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
             );
         }
     }
+}
+
+/// Legs, paws and pads, or hooves.
+fn legs(p: &mut Prims, d: &Dims) {
+    let x_chest = d.torso_len * 0.5;
+    let x_hip = -d.torso_len * 0.5;
+    let yc = d.torso_y;
     // Legs and paws.
     let zl = 0.6 * d.chest_r * d.torso_squash;
     let paw_y = 0.75 * d.paw_r;
@@ -396,8 +437,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         let s0 = Vec3::new(xf, yc - 0.1 * d.chest_r, z);
         let s1 = Vec3::new(xf - 0.05 * yc, 0.5 * yc, z);
         let s2 = Vec3::new(xf, 1.1 * paw_y, z);
-        push(
-            &mut prims,
+        p.push(
             Shape::RoundCone {
                 a: s0,
                 b: s1,
@@ -409,8 +449,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
             None,
             s1 - s0,
         );
-        push(
-            &mut prims,
+        p.push(
             Shape::RoundCone {
                 a: s1,
                 b: s2,
@@ -426,8 +465,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         let h0 = Vec3::new(xh, yc, z);
         let h1 = Vec3::new(xh - 0.18 * yc, 0.35 * yc, z);
         let h2 = Vec3::new(xh - 0.08 * yc, 1.1 * paw_y, z);
-        push(
-            &mut prims,
+        p.push(
             Shape::RoundCone {
                 a: h0,
                 b: h1,
@@ -439,8 +477,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
             None,
             h1 - h0,
         );
-        push(
-            &mut prims,
+        p.push(
             Shape::RoundCone {
                 a: h1,
                 b: h2,
@@ -455,8 +492,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         for foot in [s2, h2] {
             let pc = Vec3::new(foot.x + 0.3 * d.paw_r, paw_y, z);
             if d.hooves {
-                push(
-                    &mut prims,
+                p.push(
                     Shape::RoundCone {
                         a: Vec3::new(pc.x, paw_y * 1.1, z),
                         b: Vec3::new(pc.x + 0.2 * d.paw_r, 0.3 * d.paw_r, z),
@@ -469,16 +505,14 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
                     Vec3::new(0.0, -1.0, 0.0),
                 );
             } else {
-                push(
-                    &mut prims,
+                p.push(
                     flat(pc, Vec3::new(1.3 * d.paw_r, 0.75 * d.paw_r, d.paw_r)),
                     "paws",
                     0.3 * d.paw_r,
                     None,
                     Vec3::X,
                 );
-                push(
-                    &mut prims,
+                p.push(
                     flat(
                         Vec3::new(pc.x, 0.12 * d.paw_r, z),
                         Vec3::new(0.95 * d.paw_r, 0.2 * d.paw_r, 0.72 * d.paw_r),
@@ -491,6 +525,10 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
             }
         }
     }
+}
+
+/// The tail from the rump; its base and tip.
+fn tail(p: &mut Prims, d: &Dims, hip: Vec3) -> (Vec3, Vec3) {
     // Tail: three round cones from the rump, drooping and curving.
     let mut a = hip + Vec3::new(-0.8 * d.hip_r, 0.35 * d.hip_r, 0.0);
     let tail_base = a;
@@ -499,8 +537,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         let ang = d.tail_droop + i as f32 * d.tail_curve;
         let b = a + Vec3::new(-ang.cos(), -ang.sin(), 0.0) * (d.tail_len / 3.0);
         let rb = r * 0.8;
-        push(
-            &mut prims,
+        p.push(
             Shape::RoundCone { a, b, ra: r, rb },
             "tail",
             if i == 0 { 0.4 * d.tail_r } else { 0.2 * r },
@@ -510,10 +547,14 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         a = b;
         r = rb;
     }
-    let tail = (tail_base, a);
+    (tail_base, a)
+}
+
+/// Nose and eyes (hard unions, added last); the eye centres.
+fn face(p: &mut Prims, d: &Dims, head: &Head) -> [Vec3; 2] {
+    let Head { hc, hr, m_tip } = *head;
     // Nose at the muzzle tip, eyes on the head surface (hard unions, added last).
-    push(
-        &mut prims,
+    p.push(
         flat(
             m_tip + Vec3::new(0.55 * 0.72 * d.muzzle_r, 0.3 * d.muzzle_r, 0.0),
             Vec3::new(0.28, 0.24, 0.36) * d.muzzle_r,
@@ -531,8 +572,7 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
         let dx = hr.x * q.max(0.05).sqrt() - 0.45 * d.eye_r;
         let c = hc + Vec3::new(dx, dy, dz);
         eyes[k] = c;
-        push(
-            &mut prims,
+        p.push(
             Shape::Ellipsoid {
                 c,
                 r: Vec3::splat(d.eye_r),
@@ -544,330 +584,352 @@ fn build_body(d: &Dims) -> (Vec<PrimSpec>, [Vec3; 2], (Vec3, Vec3)) {
             Vec3::X,
         );
     }
-    let _ = d.body_length;
-    (prims, eyes, tail)
+    eyes
 }
+
+/// One preset's data: proportions, the fur of its parts (any order: the
+/// label order is the primitives') and colour pattern.
+struct PresetData {
+    name: &'static str,
+    dims: Dims,
+    parts: &'static [(&'static str, FurParams)],
+    pattern: Pattern,
+}
+
+/// Every preset's data, in [`PRESETS`] order.
+const PRESET_DATA: [&PresetData; 6] = [&TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF];
+
+const TIGER: PresetData = {
+    const O: [f32; 3] = [0.85, 0.42, 0.12];
+    const W: [f32; 3] = [0.9, 0.88, 0.82];
+    PresetData {
+        name: "tiger",
+        dims: Dims {
+            body_length: 190.0,
+            torso_y: 68.0,
+            torso_len: 85.0,
+            chest_r: 30.0,
+            hip_r: 25.0,
+            torso_squash: 0.78,
+            neck_len: 24.0,
+            neck_r: 18.0,
+            neck_rise: 0.45,
+            head_r: 15.0,
+            muzzle_len: 7.0,
+            muzzle_r: 8.5,
+            ear_len: 8.0,
+            ear_r: 4.0,
+            ear_taper: 0.6,
+            eye_r: 1.8,
+            eye_sep: 8.5,
+            leg_r: 8.5,
+            paw_r: 7.5,
+            tail_len: 90.0,
+            tail_r: 5.0,
+            tail_droop: 0.9,
+            tail_curve: -0.35,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(4.25, 16.0, 0.05, 0.3, 0.2, O)),
+            ("belly", FurParams::fur(5.0, 20.0, 0.08, 0.35, 0.35, W)),
+            ("neck", FurParams::fur(4.9, 20.0, 0.05, 0.3, 0.2, O)),
+            ("head", FurParams::fur(2.85, 14.0, 0.0, 0.2, 0.1, O)),
+            ("muzzle", FurParams::fur(1.5, 12.0, 0.0, 0.1, 0.05, W)),
+            ("ears", FurParams::fur(1.6, 12.0, 0.0, 0.1, 0.0, O)),
+            ("front_legs", FurParams::fur(3.05, 14.0, 0.0, 0.2, 0.1, O)),
+            ("hind_legs", FurParams::fur(3.05, 14.0, 0.0, 0.2, 0.1, O)),
+            ("paws", FurParams::fur(1.95, 12.0, 0.0, 0.1, 0.0, O)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(3.9, 18.0, 0.05, 0.3, 0.1, O)),
+            ("nose", FurParams::bare([0.55, 0.3, 0.3])),
+            ("eyes", FurParams::bare(EYE_COLOR)),
+        ],
+        pattern: Pattern::Stripes,
+    }
+};
+
+const FOX: PresetData = {
+    const O: [f32; 3] = [0.8, 0.3, 0.06];
+    const W: [f32; 3] = [0.92, 0.9, 0.86];
+    PresetData {
+        name: "fox",
+        dims: Dims {
+            body_length: 65.0,
+            torso_y: 28.0,
+            torso_len: 30.0,
+            chest_r: 9.5,
+            hip_r: 8.0,
+            torso_squash: 0.8,
+            neck_len: 9.0,
+            neck_r: 5.5,
+            neck_rise: 0.6,
+            head_r: 5.5,
+            muzzle_len: 6.0,
+            muzzle_r: 2.4,
+            ear_len: 6.5,
+            ear_r: 2.6,
+            ear_taper: 0.2,
+            eye_r: 0.8,
+            eye_sep: 4.0,
+            leg_r: 2.2,
+            paw_r: 2.2,
+            tail_len: 38.0,
+            tail_r: 3.2,
+            tail_droop: 0.5,
+            tail_curve: 0.1,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(4.35, 24.0, 0.1, 0.35, 0.25, O)),
+            ("belly", FurParams::fur(4.15, 24.0, 0.1, 0.35, 0.3, W)),
+            ("neck", FurParams::fur(5.0, 28.0, 0.1, 0.4, 0.25, O)),
+            ("head", FurParams::fur(2.2, 18.0, 0.0, 0.2, 0.1, O)),
+            ("muzzle", FurParams::fur(1.1, 12.0, 0.0, 0.1, 0.0, O)),
+            ("ears", FurParams::fur(1.3, 12.0, 0.0, 0.1, 0.0, O)),
+            ("front_legs", FurParams::fur(2.2, 14.0, 0.0, 0.2, 0.1, O)),
+            ("hind_legs", FurParams::fur(2.6, 16.0, 0.0, 0.2, 0.1, O)),
+            ("paws", FurParams::fur(1.3, 10.0, 0.0, 0.1, 0.0, O)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(7.1, 35.0, 0.12, 0.45, 0.25, O)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare(EYE_COLOR)),
+        ],
+        pattern: Pattern::Fox,
+    }
+};
+
+const CAT: PresetData = {
+    const G: [f32; 3] = [0.5, 0.45, 0.38];
+    PresetData {
+        name: "cat",
+        dims: Dims {
+            body_length: 46.0,
+            torso_y: 20.0,
+            torso_len: 21.0,
+            chest_r: 7.0,
+            hip_r: 6.3,
+            torso_squash: 0.8,
+            neck_len: 5.5,
+            neck_r: 4.2,
+            neck_rise: 0.55,
+            head_r: 4.6,
+            muzzle_len: 1.2,
+            muzzle_r: 2.2,
+            ear_len: 3.6,
+            ear_r: 1.7,
+            ear_taper: 0.25,
+            eye_r: 0.9,
+            eye_sep: 3.3,
+            leg_r: 1.6,
+            paw_r: 1.6,
+            tail_len: 28.0,
+            tail_r: 1.5,
+            tail_droop: 0.2,
+            tail_curve: -0.5,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(1.85, 10.0, 0.0, 0.2, 0.05, G)),
+            (
+                "belly",
+                FurParams::fur(2.05, 12.0, 0.05, 0.2, 0.1, [0.75, 0.7, 0.62]),
+            ),
+            ("neck", FurParams::fur(1.85, 10.0, 0.0, 0.2, 0.05, G)),
+            ("head", FurParams::fur(1.15, 8.0, 0.0, 0.1, 0.0, G)),
+            (
+                "muzzle",
+                FurParams::fur(0.6, 8.0, 0.0, 0.05, 0.0, [0.8, 0.78, 0.72]),
+            ),
+            ("ears", FurParams::fur(0.6, 8.0, 0.0, 0.05, 0.0, G)),
+            ("front_legs", FurParams::fur(1.35, 8.0, 0.0, 0.1, 0.05, G)),
+            ("hind_legs", FurParams::fur(1.45, 8.0, 0.0, 0.1, 0.05, G)),
+            ("paws", FurParams::fur(0.8, 8.0, 0.0, 0.05, 0.0, G)),
+            ("pads", FurParams::bare([0.45, 0.25, 0.28])),
+            ("tail", FurParams::fur(1.85, 12.0, 0.0, 0.2, 0.05, G)),
+            ("nose", FurParams::bare([0.55, 0.3, 0.32])),
+            ("eyes", FurParams::bare([0.45, 0.4, 0.05])),
+        ],
+        pattern: Pattern::Tabby,
+    }
+};
+
+const PANDA: PresetData = {
+    const W: [f32; 3] = [0.88, 0.87, 0.82];
+    const K: [f32; 3] = [0.05, 0.05, 0.05];
+    PresetData {
+        name: "panda",
+        dims: Dims {
+            body_length: 150.0,
+            torso_y: 50.0,
+            torso_len: 62.0,
+            chest_r: 29.0,
+            hip_r: 28.0,
+            torso_squash: 0.85,
+            neck_len: 12.0,
+            neck_r: 20.0,
+            neck_rise: 0.25,
+            head_r: 19.0,
+            muzzle_len: 3.0,
+            muzzle_r: 7.5,
+            ear_len: 4.0,
+            ear_r: 4.5,
+            ear_taper: 0.9,
+            eye_r: 1.6,
+            eye_sep: 10.0,
+            leg_r: 10.0,
+            paw_r: 9.0,
+            tail_len: 14.0,
+            tail_r: 5.0,
+            tail_droop: 0.9,
+            tail_curve: 0.2,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(5.8, 30.0, 0.15, 0.4, 0.3, W)),
+            ("belly", FurParams::fur(5.6, 30.0, 0.15, 0.4, 0.35, W)),
+            ("neck", FurParams::fur(5.8, 30.0, 0.15, 0.4, 0.3, W)),
+            ("head", FurParams::fur(4.4, 25.0, 0.1, 0.3, 0.2, W)),
+            ("muzzle", FurParams::fur(2.1, 15.0, 0.0, 0.1, 0.05, W)),
+            ("ears", FurParams::fur(3.1, 25.0, 0.1, 0.2, 0.1, K)),
+            ("front_legs", FurParams::fur(5.2, 25.0, 0.15, 0.4, 0.3, K)),
+            ("hind_legs", FurParams::fur(5.2, 25.0, 0.15, 0.4, 0.3, K)),
+            ("paws", FurParams::fur(3.1, 18.0, 0.1, 0.2, 0.1, K)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(4.2, 25.0, 0.1, 0.3, 0.2, W)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare([0.1, 0.07, 0.05])),
+        ],
+        pattern: Pattern::Panda,
+    }
+};
+
+const BISON: PresetData = {
+    const B: [f32; 3] = [0.06, 0.035, 0.02];
+    const G: [f32; 3] = [0.2, 0.11, 0.045];
+    PresetData {
+        name: "bison",
+        dims: Dims {
+            body_length: 300.0,
+            torso_y: 105.0,
+            torso_len: 130.0,
+            chest_r: 50.0,
+            hip_r: 38.0,
+            torso_squash: 0.75,
+            neck_len: 30.0,
+            neck_r: 34.0,
+            neck_rise: -0.35,
+            head_r: 28.0,
+            muzzle_len: 10.0,
+            muzzle_r: 14.0,
+            ear_len: 8.0,
+            ear_r: 5.0,
+            ear_taper: 0.5,
+            eye_r: 2.4,
+            eye_sep: 25.0,
+            leg_r: 11.0,
+            paw_r: 9.0,
+            tail_len: 50.0,
+            tail_r: 4.0,
+            tail_droop: 1.3,
+            tail_curve: 0.05,
+            hooves: true,
+            hump: true,
+            horns: true,
+        },
+        parts: &[
+            ("torso", FurParams::fur(4.0, 25.0, 0.3, 0.4, 0.3, B)),
+            ("shoulders", FurParams::fur(14.0, 45.0, 0.5, 0.6, 0.5, G)),
+            ("belly", FurParams::fur(5.0, 30.0, 0.4, 0.5, 0.5, B)),
+            ("neck", FurParams::fur(12.0, 45.0, 0.5, 0.6, 0.5, G)),
+            ("head", FurParams::fur(11.0, 45.0, 0.5, 0.6, 0.4, B)),
+            ("muzzle", FurParams::fur(2.5, 20.0, 0.2, 0.3, 0.2, B)),
+            ("ears", FurParams::fur(3.0, 20.0, 0.2, 0.3, 0.2, B)),
+            ("horns", FurParams::bare([0.12, 0.11, 0.1])),
+            ("front_legs", FurParams::fur(3.0, 20.0, 0.2, 0.3, 0.3, B)),
+            ("hind_legs", FurParams::fur(2.0, 15.0, 0.1, 0.2, 0.2, B)),
+            ("hooves", FurParams::bare([0.06, 0.05, 0.05])),
+            ("tail", FurParams::fur(8.0, 20.0, 0.4, 0.5, 0.6, B)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare([0.08, 0.05, 0.04])),
+        ],
+        pattern: Pattern::Bison,
+    }
+};
+
+const WOLF: PresetData = {
+    const G: [f32; 3] = [0.46, 0.43, 0.39];
+    const C: [f32; 3] = [0.86, 0.81, 0.72];
+    PresetData {
+        name: "wolf",
+        dims: Dims {
+            body_length: 120.0,
+            torso_y: 56.0,
+            torso_len: 52.0,
+            chest_r: 17.0,
+            hip_r: 12.5,
+            torso_squash: 0.7,
+            neck_len: 16.0,
+            neck_r: 10.0,
+            neck_rise: 0.5,
+            head_r: 9.0,
+            muzzle_len: 12.0,
+            muzzle_r: 3.8,
+            ear_len: 8.0,
+            ear_r: 3.2,
+            ear_taper: 0.25,
+            eye_r: 1.2,
+            eye_sep: 6.0,
+            leg_r: 4.0,
+            paw_r: 4.2,
+            tail_len: 45.0,
+            tail_r: 4.5,
+            tail_droop: 1.1,
+            tail_curve: 0.05,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(6.0, 28.0, 0.05, 0.35, 0.3, G)),
+            ("belly", FurParams::fur(4.0, 22.0, 0.05, 0.3, 0.3, C)),
+            ("neck", FurParams::fur(8.5, 35.0, 0.1, 0.45, 0.35, G)),
+            ("head", FurParams::fur(2.2, 14.0, 0.0, 0.15, 0.05, G)),
+            ("muzzle", FurParams::fur(0.9, 10.0, 0.0, 0.05, 0.0, C)),
+            ("ears", FurParams::fur(1.8, 14.0, 0.0, 0.1, 0.0, G)),
+            ("front_legs", FurParams::fur(1.8, 12.0, 0.0, 0.15, 0.1, C)),
+            ("hind_legs", FurParams::fur(2.4, 14.0, 0.0, 0.2, 0.1, G)),
+            ("paws", FurParams::fur(1.1, 10.0, 0.0, 0.05, 0.0, C)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(8.0, 30.0, 0.1, 0.45, 0.35, G)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare([0.55, 0.45, 0.1])),
+        ],
+        pattern: Pattern::Wolf,
+    }
+};
 
 /// Builds a preset by name.
 pub fn preset(name: &str) -> Result<Preset, StageError> {
-    let (dims, parts, pattern): (Dims, Vec<(&'static str, FurParams)>, Pattern) = match name {
-        "tiger" => {
-            let o = [0.85, 0.42, 0.12];
-            let w = [0.9, 0.88, 0.82];
-            (
-                Dims {
-                    body_length: 190.0,
-                    torso_y: 68.0,
-                    torso_len: 85.0,
-                    chest_r: 30.0,
-                    hip_r: 25.0,
-                    torso_squash: 0.78,
-                    neck_len: 24.0,
-                    neck_r: 18.0,
-                    neck_rise: 0.45,
-                    head_r: 15.0,
-                    muzzle_len: 7.0,
-                    muzzle_r: 8.5,
-                    ear_len: 8.0,
-                    ear_r: 4.0,
-                    ear_taper: 0.6,
-                    eye_r: 1.8,
-                    eye_sep: 8.5,
-                    leg_r: 8.5,
-                    paw_r: 7.5,
-                    tail_len: 90.0,
-                    tail_r: 5.0,
-                    tail_droop: 0.9,
-                    tail_curve: -0.35,
-                    hooves: false,
-                    hump: false,
-                    horns: false,
-                },
-                vec![
-                    ("torso", FurParams::fur(4.25, 16.0, 0.05, 0.3, 0.2, o)),
-                    ("belly", FurParams::fur(5.0, 20.0, 0.08, 0.35, 0.35, w)),
-                    ("neck", FurParams::fur(4.9, 20.0, 0.05, 0.3, 0.2, o)),
-                    ("head", FurParams::fur(2.85, 14.0, 0.0, 0.2, 0.1, o)),
-                    ("muzzle", FurParams::fur(1.5, 12.0, 0.0, 0.1, 0.05, w)),
-                    ("ears", FurParams::fur(1.6, 12.0, 0.0, 0.1, 0.0, o)),
-                    ("front_legs", FurParams::fur(3.05, 14.0, 0.0, 0.2, 0.1, o)),
-                    ("hind_legs", FurParams::fur(3.05, 14.0, 0.0, 0.2, 0.1, o)),
-                    ("paws", FurParams::fur(1.95, 12.0, 0.0, 0.1, 0.0, o)),
-                    ("pads", FurParams::bare(PAD_COLOR)),
-                    ("tail", FurParams::fur(3.9, 18.0, 0.05, 0.3, 0.1, o)),
-                    ("nose", FurParams::bare([0.55, 0.3, 0.3])),
-                    ("eyes", FurParams::bare(EYE_COLOR)),
-                ],
-                Pattern::Stripes,
-            )
-        }
-        "fox" => {
-            let o = [0.8, 0.3, 0.06];
-            let w = [0.92, 0.9, 0.86];
-            (
-                Dims {
-                    body_length: 65.0,
-                    torso_y: 28.0,
-                    torso_len: 30.0,
-                    chest_r: 9.5,
-                    hip_r: 8.0,
-                    torso_squash: 0.8,
-                    neck_len: 9.0,
-                    neck_r: 5.5,
-                    neck_rise: 0.6,
-                    head_r: 5.5,
-                    muzzle_len: 6.0,
-                    muzzle_r: 2.4,
-                    ear_len: 6.5,
-                    ear_r: 2.6,
-                    ear_taper: 0.2,
-                    eye_r: 0.8,
-                    eye_sep: 4.0,
-                    leg_r: 2.2,
-                    paw_r: 2.2,
-                    tail_len: 38.0,
-                    tail_r: 3.2,
-                    tail_droop: 0.5,
-                    tail_curve: 0.1,
-                    hooves: false,
-                    hump: false,
-                    horns: false,
-                },
-                vec![
-                    ("torso", FurParams::fur(4.35, 24.0, 0.1, 0.35, 0.25, o)),
-                    ("belly", FurParams::fur(4.15, 24.0, 0.1, 0.35, 0.3, w)),
-                    ("neck", FurParams::fur(5.0, 28.0, 0.1, 0.4, 0.25, o)),
-                    ("head", FurParams::fur(2.2, 18.0, 0.0, 0.2, 0.1, o)),
-                    ("muzzle", FurParams::fur(1.1, 12.0, 0.0, 0.1, 0.0, o)),
-                    ("ears", FurParams::fur(1.3, 12.0, 0.0, 0.1, 0.0, o)),
-                    ("front_legs", FurParams::fur(2.2, 14.0, 0.0, 0.2, 0.1, o)),
-                    ("hind_legs", FurParams::fur(2.6, 16.0, 0.0, 0.2, 0.1, o)),
-                    ("paws", FurParams::fur(1.3, 10.0, 0.0, 0.1, 0.0, o)),
-                    ("pads", FurParams::bare(PAD_COLOR)),
-                    ("tail", FurParams::fur(7.1, 35.0, 0.12, 0.45, 0.25, o)),
-                    ("nose", FurParams::bare(NOSE_COLOR)),
-                    ("eyes", FurParams::bare(EYE_COLOR)),
-                ],
-                Pattern::Fox,
-            )
-        }
-        "cat" => {
-            let g = [0.5, 0.45, 0.38];
-            (
-                Dims {
-                    body_length: 46.0,
-                    torso_y: 20.0,
-                    torso_len: 21.0,
-                    chest_r: 7.0,
-                    hip_r: 6.3,
-                    torso_squash: 0.8,
-                    neck_len: 5.5,
-                    neck_r: 4.2,
-                    neck_rise: 0.55,
-                    head_r: 4.6,
-                    muzzle_len: 1.2,
-                    muzzle_r: 2.2,
-                    ear_len: 3.6,
-                    ear_r: 1.7,
-                    ear_taper: 0.25,
-                    eye_r: 0.9,
-                    eye_sep: 3.3,
-                    leg_r: 1.6,
-                    paw_r: 1.6,
-                    tail_len: 28.0,
-                    tail_r: 1.5,
-                    tail_droop: 0.2,
-                    tail_curve: -0.5,
-                    hooves: false,
-                    hump: false,
-                    horns: false,
-                },
-                vec![
-                    ("torso", FurParams::fur(1.85, 10.0, 0.0, 0.2, 0.05, g)),
-                    (
-                        "belly",
-                        FurParams::fur(2.05, 12.0, 0.05, 0.2, 0.1, [0.75, 0.7, 0.62]),
-                    ),
-                    ("neck", FurParams::fur(1.85, 10.0, 0.0, 0.2, 0.05, g)),
-                    ("head", FurParams::fur(1.15, 8.0, 0.0, 0.1, 0.0, g)),
-                    (
-                        "muzzle",
-                        FurParams::fur(0.6, 8.0, 0.0, 0.05, 0.0, [0.8, 0.78, 0.72]),
-                    ),
-                    ("ears", FurParams::fur(0.6, 8.0, 0.0, 0.05, 0.0, g)),
-                    ("front_legs", FurParams::fur(1.35, 8.0, 0.0, 0.1, 0.05, g)),
-                    ("hind_legs", FurParams::fur(1.45, 8.0, 0.0, 0.1, 0.05, g)),
-                    ("paws", FurParams::fur(0.8, 8.0, 0.0, 0.05, 0.0, g)),
-                    ("pads", FurParams::bare([0.45, 0.25, 0.28])),
-                    ("tail", FurParams::fur(1.85, 12.0, 0.0, 0.2, 0.05, g)),
-                    ("nose", FurParams::bare([0.55, 0.3, 0.32])),
-                    ("eyes", FurParams::bare([0.45, 0.4, 0.05])),
-                ],
-                Pattern::Tabby,
-            )
-        }
-        "panda" => {
-            let w = [0.88, 0.87, 0.82];
-            let k = [0.05, 0.05, 0.05];
-            (
-                Dims {
-                    body_length: 150.0,
-                    torso_y: 50.0,
-                    torso_len: 62.0,
-                    chest_r: 29.0,
-                    hip_r: 28.0,
-                    torso_squash: 0.85,
-                    neck_len: 12.0,
-                    neck_r: 20.0,
-                    neck_rise: 0.25,
-                    head_r: 19.0,
-                    muzzle_len: 3.0,
-                    muzzle_r: 7.5,
-                    ear_len: 4.0,
-                    ear_r: 4.5,
-                    ear_taper: 0.9,
-                    eye_r: 1.6,
-                    eye_sep: 10.0,
-                    leg_r: 10.0,
-                    paw_r: 9.0,
-                    tail_len: 14.0,
-                    tail_r: 5.0,
-                    tail_droop: 0.9,
-                    tail_curve: 0.2,
-                    hooves: false,
-                    hump: false,
-                    horns: false,
-                },
-                vec![
-                    ("torso", FurParams::fur(5.8, 30.0, 0.15, 0.4, 0.3, w)),
-                    ("belly", FurParams::fur(5.6, 30.0, 0.15, 0.4, 0.35, w)),
-                    ("neck", FurParams::fur(5.8, 30.0, 0.15, 0.4, 0.3, w)),
-                    ("head", FurParams::fur(4.4, 25.0, 0.1, 0.3, 0.2, w)),
-                    ("muzzle", FurParams::fur(2.1, 15.0, 0.0, 0.1, 0.05, w)),
-                    ("ears", FurParams::fur(3.1, 25.0, 0.1, 0.2, 0.1, k)),
-                    ("front_legs", FurParams::fur(5.2, 25.0, 0.15, 0.4, 0.3, k)),
-                    ("hind_legs", FurParams::fur(5.2, 25.0, 0.15, 0.4, 0.3, k)),
-                    ("paws", FurParams::fur(3.1, 18.0, 0.1, 0.2, 0.1, k)),
-                    ("pads", FurParams::bare(PAD_COLOR)),
-                    ("tail", FurParams::fur(4.2, 25.0, 0.1, 0.3, 0.2, w)),
-                    ("nose", FurParams::bare(NOSE_COLOR)),
-                    ("eyes", FurParams::bare([0.1, 0.07, 0.05])),
-                ],
-                Pattern::Panda,
-            )
-        }
-        "bison" => {
-            let b = [0.06, 0.035, 0.02];
-            let g = [0.2, 0.11, 0.045];
-            (
-                Dims {
-                    body_length: 300.0,
-                    torso_y: 105.0,
-                    torso_len: 130.0,
-                    chest_r: 50.0,
-                    hip_r: 38.0,
-                    torso_squash: 0.75,
-                    neck_len: 30.0,
-                    neck_r: 34.0,
-                    neck_rise: -0.35,
-                    head_r: 28.0,
-                    muzzle_len: 10.0,
-                    muzzle_r: 14.0,
-                    ear_len: 8.0,
-                    ear_r: 5.0,
-                    ear_taper: 0.5,
-                    eye_r: 2.4,
-                    eye_sep: 25.0,
-                    leg_r: 11.0,
-                    paw_r: 9.0,
-                    tail_len: 50.0,
-                    tail_r: 4.0,
-                    tail_droop: 1.3,
-                    tail_curve: 0.05,
-                    hooves: true,
-                    hump: true,
-                    horns: true,
-                },
-                vec![
-                    ("torso", FurParams::fur(4.0, 25.0, 0.3, 0.4, 0.3, b)),
-                    ("shoulders", FurParams::fur(14.0, 45.0, 0.5, 0.6, 0.5, g)),
-                    ("belly", FurParams::fur(5.0, 30.0, 0.4, 0.5, 0.5, b)),
-                    ("neck", FurParams::fur(12.0, 45.0, 0.5, 0.6, 0.5, g)),
-                    ("head", FurParams::fur(11.0, 45.0, 0.5, 0.6, 0.4, b)),
-                    ("muzzle", FurParams::fur(2.5, 20.0, 0.2, 0.3, 0.2, b)),
-                    ("ears", FurParams::fur(3.0, 20.0, 0.2, 0.3, 0.2, b)),
-                    ("horns", FurParams::bare([0.12, 0.11, 0.1])),
-                    ("front_legs", FurParams::fur(3.0, 20.0, 0.2, 0.3, 0.3, b)),
-                    ("hind_legs", FurParams::fur(2.0, 15.0, 0.1, 0.2, 0.2, b)),
-                    ("hooves", FurParams::bare([0.06, 0.05, 0.05])),
-                    ("tail", FurParams::fur(8.0, 20.0, 0.4, 0.5, 0.6, b)),
-                    ("nose", FurParams::bare(NOSE_COLOR)),
-                    ("eyes", FurParams::bare([0.08, 0.05, 0.04])),
-                ],
-                Pattern::Bison,
-            )
-        }
-        "wolf" => {
-            let g = [0.46, 0.43, 0.39];
-            let c = [0.86, 0.81, 0.72];
-            (
-                Dims {
-                    body_length: 120.0,
-                    torso_y: 56.0,
-                    torso_len: 52.0,
-                    chest_r: 17.0,
-                    hip_r: 12.5,
-                    torso_squash: 0.7,
-                    neck_len: 16.0,
-                    neck_r: 10.0,
-                    neck_rise: 0.5,
-                    head_r: 9.0,
-                    muzzle_len: 12.0,
-                    muzzle_r: 3.8,
-                    ear_len: 8.0,
-                    ear_r: 3.2,
-                    ear_taper: 0.25,
-                    eye_r: 1.2,
-                    eye_sep: 6.0,
-                    leg_r: 4.0,
-                    paw_r: 4.2,
-                    tail_len: 45.0,
-                    tail_r: 4.5,
-                    tail_droop: 1.1,
-                    tail_curve: 0.05,
-                    hooves: false,
-                    hump: false,
-                    horns: false,
-                },
-                vec![
-                    ("torso", FurParams::fur(6.0, 28.0, 0.05, 0.35, 0.3, g)),
-                    ("belly", FurParams::fur(4.0, 22.0, 0.05, 0.3, 0.3, c)),
-                    ("neck", FurParams::fur(8.5, 35.0, 0.1, 0.45, 0.35, g)),
-                    ("head", FurParams::fur(2.2, 14.0, 0.0, 0.15, 0.05, g)),
-                    ("muzzle", FurParams::fur(0.9, 10.0, 0.0, 0.05, 0.0, c)),
-                    ("ears", FurParams::fur(1.8, 14.0, 0.0, 0.1, 0.0, g)),
-                    ("front_legs", FurParams::fur(1.8, 12.0, 0.0, 0.15, 0.1, c)),
-                    ("hind_legs", FurParams::fur(2.4, 14.0, 0.0, 0.2, 0.1, g)),
-                    ("paws", FurParams::fur(1.1, 10.0, 0.0, 0.05, 0.0, c)),
-                    ("pads", FurParams::bare(PAD_COLOR)),
-                    ("tail", FurParams::fur(8.0, 30.0, 0.1, 0.45, 0.35, g)),
-                    ("nose", FurParams::bare(NOSE_COLOR)),
-                    ("eyes", FurParams::bare([0.55, 0.45, 0.1])),
-                ],
-                Pattern::Wolf,
-            )
-        }
-        other => {
-            return Err(StageError::param(
-                "preset",
-                format!(
-                    "unknown preset `{other}`; expected one of {}",
-                    PRESETS.join(", ")
-                ),
-            ))
-        }
+    let Some(data) = PRESET_DATA.iter().find(|d| d.name == name) else {
+        return Err(StageError::param(
+            "preset",
+            format!(
+                "unknown preset `{name}`; expected one of {}",
+                PRESETS.join(", ")
+            ),
+        ));
     };
-    let (prims, eyes_cm, tail) = build_body(&dims);
+    let (dims, parts, pattern) = (&data.dims, data.parts, data.pattern);
+    let (prims, eyes_cm, tail) = build_body(dims);
     // Parts in label order: first appearance among the primitives.
     let mut ordered: Vec<(&'static str, FurParams)> = Vec::new();
     for p in &prims {
@@ -881,11 +943,7 @@ pub fn preset(name: &str) -> Result<Preset, StageError> {
         }
     }
     Ok(Preset {
-        name: PRESETS
-            .iter()
-            .copied()
-            .find(|p| *p == name)
-            .unwrap_or("tiger"),
+        name: data.name,
         body_length_cm: dims.body_length,
         eyes_cm,
         prims,
