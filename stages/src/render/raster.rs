@@ -266,7 +266,7 @@ pub fn render(
     Ok((out, state))
 }
 
-/// 1. Projects every Gaussian (independent per Gaussian).
+/// Step 1: projects every Gaussian (independent per Gaussian).
 fn project_all(g: &Gaussians, cd: &CamData, s: &RenderSettings) -> Vec<Splat> {
     let mut splats = vec![Splat::default(); g.len()];
     splats
@@ -301,7 +301,7 @@ struct TileBins {
     tile_ranges: Vec<(u32, u32)>,
 }
 
-/// 2.-3. The global depth order, then the tiles of every splat (in depth
+/// Steps 2 and 3: the global depth order, then the tiles of every splat (in depth
 /// order) and a stable counting sort by tile.
 fn bin_by_tile(splats: &[Splat], w: u32, h: u32) -> TileBins {
     // Key (depth bits, index) is unique, so the order is total.
@@ -370,6 +370,40 @@ fn bin_by_tile(splats: &[Splat], w: u32, h: u32) -> TileBins {
     }
 }
 
+/// Tile `t`'s pixel rectangle `[x0, x1) x [y0, y1)` in a `w` x `h` image
+/// `tx` tiles wide.
+fn tile_rect(t: usize, tx: u32, w: u32, h: u32) -> (i32, i32, i32, i32) {
+    let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
+    let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
+    (x0 as i32, y0 as i32, x1, y1)
+}
+
+/// A tile's splats, gathered first: independent loads overlap their cache
+/// misses, and the loops over them then read sequentially.
+fn gather(splats: &[Splat], instances: &[u32]) -> Vec<Splat> {
+    instances.iter().map(|&gi| splats[gi as usize]).collect()
+}
+
+/// Calls `f(x, y, p)` for every pixel of the tile rectangle `rect` (see
+/// [`tile_rect`]) in splat `sp`'s rows and row spans, row by row; `p` is the
+/// pixel's index in the tile.
+#[inline(always)]
+fn for_each_covered(
+    sp: &Splat,
+    (x0, y0, x1, y1): (i32, i32, i32, i32),
+    mut f: impl FnMut(i32, i32, usize),
+) {
+    let (r0, r1) = sp.rows;
+    for y in r0.max(y0)..=r1.min(y1 - 1) {
+        let Some((c0, c1)) = row_span(sp, y) else {
+            continue;
+        };
+        for x in c0.max(x0)..=c1.min(x1 - 1) {
+            f(x, y, ((y - y0) as u32 * TILE + (x - x0) as u32) as usize);
+        }
+    }
+}
+
 /// One tile's accumulated features, transmittance and contributor counts
 /// (tile-local pixel order).
 struct TileOut {
@@ -379,7 +413,7 @@ struct TileOut {
     evals: u64,
 }
 
-/// 4. Front-to-back compositing of tile `t`'s splats.
+/// Step 4: front-to-back compositing of tile `t`'s splats.
 fn composite_tile(
     t: usize,
     bins: &TileBins,
@@ -388,10 +422,8 @@ fn composite_tile(
     h: u32,
     s: &RenderSettings,
 ) -> TileOut {
-    let tx = bins.tiles_x;
-    let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
-    let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
-    let (x0, y0) = (x0 as i32, y0 as i32);
+    let rect = tile_rect(t, bins.tiles_x, w, h);
+    let (x0, y0, x1, y1) = rect;
     let npix = ((x1 - x0) * (y1 - y0)) as usize;
     let mut acc = vec![[0.0f32; NF]; TP];
     let mut tr = vec![1.0f32; TP];
@@ -400,41 +432,29 @@ fn composite_tile(
     let mut n_done = 0usize;
     let mut evals = 0u64;
     let (a, b) = bins.tile_ranges[t];
-    // Gather the tile's splats first: independent loads overlap their
-    // cache misses, and the loop below then reads sequentially.
-    let recs: Vec<Splat> = bins.instances[a as usize..b as usize]
-        .iter()
-        .map(|&gi| splats[gi as usize])
-        .collect();
+    let recs = gather(splats, &bins.instances[a as usize..b as usize]);
     for (k, sp) in recs.iter().enumerate() {
-        let (r0, r1) = sp.rows;
-        for y in r0.max(y0)..=r1.min(y1 - 1) {
-            let Some((c0, c1)) = row_span(sp, y) else {
-                continue;
-            };
-            for x in c0.max(x0)..=c1.min(x1 - 1) {
-                let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
-                if done[p] {
-                    continue;
-                }
-                evals += 1;
-                let Some((alpha, ..)) = eval(sp, x, y, s) else {
-                    continue;
-                };
-                let tn = tr[p] * (1.0 - alpha);
-                if tn < s.transmittance_min {
-                    done[p] = true;
-                    n_done += 1;
-                    continue;
-                }
-                let wgt = alpha * tr[p];
-                for c in 0..NF {
-                    acc[p][c] += sp.feat[c] * wgt;
-                }
-                tr[p] = tn;
-                nc[p] = k as u32 + 1;
+        for_each_covered(sp, rect, |x, y, p| {
+            if done[p] {
+                return;
             }
-        }
+            evals += 1;
+            let Some((alpha, ..)) = eval(sp, x, y, s) else {
+                return;
+            };
+            let tn = tr[p] * (1.0 - alpha);
+            if tn < s.transmittance_min {
+                done[p] = true;
+                n_done += 1;
+                return;
+            }
+            let wgt = alpha * tr[p];
+            for c in 0..NF {
+                acc[p][c] += sp.feat[c] * wgt;
+            }
+            tr[p] = tn;
+            nc[p] = k as u32 + 1;
+        });
         if n_done == npix {
             break;
         }
@@ -447,7 +467,7 @@ fn composite_tile(
     }
 }
 
-/// 5. Scatters the tiles into the images; also the final transmittance,
+/// Step 5: scatters the tiles into the images; also the final transmittance,
 /// contributor count per pixel and the evaluation count.
 fn scatter(
     tiles: &[TileOut],
@@ -553,9 +573,8 @@ pub fn backward(
             rest = tail;
         }
         slices.into_par_iter().enumerate().for_each(|(t, out)| {
-            let (x0, y0) = ((t as u32 % tx) * TILE, (t as u32 / tx) * TILE);
-            let (x1, y1) = ((x0 + TILE).min(w) as i32, (y0 + TILE).min(h) as i32);
-            let (x0, y0) = (x0 as i32, y0 as i32);
+            let rect = tile_rect(t, tx, w, h);
+            let (x0, y0, x1, y1) = rect;
             let mut tr = [0.0f32; TP];
             let mut sacc = [[0.0f32; NF]; TP];
             let mut gp = [[0.0f32; NF]; TP];
@@ -573,48 +592,41 @@ pub fn backward(
                 }
             }
             let (a, _) = st.tile_ranges[t];
-            let recs: Vec<Splat> = st.instances[a as usize..a as usize + out.len()]
-                .iter()
-                .map(|&gi| st.splats[gi as usize])
-                .collect();
+            let recs = gather(
+                &st.splats,
+                &st.instances[a as usize..a as usize + out.len()],
+            );
             for k in (0..recs.len()).rev() {
                 let sp = &recs[k];
                 let [ca, cb, cc] = sp.conic;
                 let mut gr = SplatGrad::default();
-                let (r0, r1) = sp.rows;
-                for y in r0.max(y0)..=r1.min(y1 - 1) {
-                    let Some((c0, c1)) = row_span(sp, y) else {
-                        continue;
-                    };
-                    for x in c0.max(x0)..=c1.min(x1 - 1) {
-                        let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
-                        if k as u32 >= nc[p] {
-                            continue;
-                        }
-                        let Some((alpha, gauss, dx, dy, clamped)) = eval(sp, x, y, s) else {
-                            continue;
-                        };
-                        let inv_one_m = 1.0 / (1.0 - alpha);
-                        let ti = tr[p] * inv_one_m;
-                        let wgt = alpha * ti;
-                        let mut dalpha = 0.0f32;
-                        for c in 0..NF {
-                            dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] * inv_one_m);
-                            gr.feat[c] += gp[p][c] * wgt;
-                            sacc[p][c] += sp.feat[c] * wgt;
-                        }
-                        tr[p] = ti;
-                        if !clamped {
-                            gr.opacity += dalpha * gauss;
-                            let dp = dalpha * alpha;
-                            gr.mean[0] += dp * (ca * dx + cb * dy);
-                            gr.mean[1] += dp * (cb * dx + cc * dy);
-                            gr.conic[0] += -0.5 * dp * dx * dx;
-                            gr.conic[1] += -dp * dx * dy;
-                            gr.conic[2] += -0.5 * dp * dy * dy;
-                        }
+                for_each_covered(sp, rect, |x, y, p| {
+                    if k as u32 >= nc[p] {
+                        return;
                     }
-                }
+                    let Some((alpha, gauss, dx, dy, clamped)) = eval(sp, x, y, s) else {
+                        return;
+                    };
+                    let inv_one_m = 1.0 / (1.0 - alpha);
+                    let ti = tr[p] * inv_one_m;
+                    let wgt = alpha * ti;
+                    let mut dalpha = 0.0f32;
+                    for c in 0..NF {
+                        dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] * inv_one_m);
+                        gr.feat[c] += gp[p][c] * wgt;
+                        sacc[p][c] += sp.feat[c] * wgt;
+                    }
+                    tr[p] = ti;
+                    if !clamped {
+                        gr.opacity += dalpha * gauss;
+                        let dp = dalpha * alpha;
+                        gr.mean[0] += dp * (ca * dx + cb * dy);
+                        gr.mean[1] += dp * (cb * dx + cc * dy);
+                        gr.conic[0] += -0.5 * dp * dx * dx;
+                        gr.conic[1] += -dp * dx * dy;
+                        gr.conic[2] += -0.5 * dp * dy * dy;
+                    }
+                });
                 out[k] = gr;
             }
         });
