@@ -26,6 +26,16 @@
 //! spaced views are the default, and a second fit after training
 //! (`start_end`) gave no further gain on the dev scenes (docs/history.md).
 //!
+//! Held-out renders (`held_out_coverage = "width"`): strand Gaussians are
+//! trained at opacity 1 on strand subsets, where a strand must show at all;
+//! rendered with every strand, the renderer's screen-space low-pass (0.3 px^2)
+//! makes each sub-pixel strand about a pixel wide and opaque, so the coat
+//! reads too dense and its silhouette about a pixel too wide. The held-out
+//! views therefore scale each segment's opacity so that its integrated
+//! coverage is that of its true width ([`width_coverage`], Mip-Splatting's
+//! compensation of its 2D filter, applied to the thin axis only). Both
+//! learners are rendered the same way; `opaque` keeps the training opacity.
+//!
 //! Views: each iteration renders `views_per_iteration` distinct training
 //! views drawn with a seeded generator; the losses are averaged over them.
 //! Targets: the photo composited over the renderer's black background with
@@ -65,6 +75,8 @@ pub struct ImageConfig {
     pub ori_min_confidence: f32,
     /// Training views the colour fit uses, evenly spaced (0 = all).
     pub fit_color_views: usize,
+    /// Strand coverage in the held-out renders.
+    pub held_out_coverage: Coverage,
     /// Where the renderer runs (the stage's `device` parameter).
     pub device: render::device::Renderer,
 }
@@ -421,10 +433,16 @@ impl ImageLosses {
         } else {
             strands.strand(0).len()
         };
-        let (g, _) = self.scene(&strands.points, l, &strands.width, &strands.color)?;
+        let (g, segs) = self.scene(&strands.points, l, &strands.width, &strands.color)?;
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
         for (i, cam) in self.test_cameras.iter().enumerate() {
+            let g = match self.cfg.held_out_coverage {
+                Coverage::Opaque => std::borrow::Cow::Borrowed(&g),
+                Coverage::Width => {
+                    std::borrow::Cow::Owned(width_coverage(&g, segs, cam, self.settings.low_pass))
+                }
+            };
             let (out, _) = self.cfg.device.render(&g, cam, &self.settings)?;
             let (w, h) = (cam.width, cam.height);
             let mut straight = ImageF32::new(w, h, 4);
@@ -449,6 +467,37 @@ impl ImageLosses {
         }
         Ok(())
     }
+}
+
+/// How held-out renders cover pixels with strands (see [`width_coverage`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coverage {
+    /// Every strand Gaussian at its training opacity (1).
+    Opaque,
+    /// Opacity scaled to the strand's true width in the view.
+    Width,
+}
+
+/// `g` with the opacity of each of its first `segs` Gaussians (strand
+/// segments) scaled by `sqrt(v / (v + low_pass))`, `v` the squared thin
+/// standard deviation in pixels at the segment's depth in `cam`: the
+/// renderer's screen-space low-pass widens a sub-pixel strand to about a
+/// pixel, and this keeps its integrated coverage that of its true width (the
+/// long axis, many pixels, is left alone). Mip-Splatting compensates its 2D
+/// filter the same way.
+pub fn width_coverage(g: &Gaussians, segs: usize, cam: &Camera, low_pass: f32) -> Gaussians {
+    let mut out = g.clone();
+    let w2c = cam.w2c();
+    for i in 0..segs.min(g.len()) {
+        let depth = -w2c.transform_point3(g.means[i]).z;
+        if depth <= 0.0 {
+            continue;
+        }
+        let sigma_px = g.scales[i].y * cam.fx / depth;
+        let v = sigma_px * sigma_px;
+        out.opacities[i] *= (v / (v + low_pass)).sqrt();
+    }
+    out
 }
 
 /// Reads the orientation angle and confidence maps of a view:
@@ -652,5 +701,75 @@ impl ImageTerm for ImageLosses {
             }
         }
         Ok(terms)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 64 px view of the origin from 5 units away.
+    fn camera() -> Camera {
+        Camera {
+            file_path: "c.png".into(),
+            c2w: glam::Mat4::look_at_rh(Vec3::new(0.0, 0.0, 5.0), Vec3::ZERO, Vec3::Y).inverse(),
+            fx: 64.0,
+            fy: 64.0,
+            cx: 32.0,
+            cy: 32.0,
+            width: 64,
+            height: 64,
+        }
+    }
+
+    /// One long horizontal segment Gaussian, `sigma_px` thick in a 64 px
+    /// view: the alpha summed down a column is the strand's coverage.
+    fn column_coverage(sigma_px: f32, coverage: Coverage) -> f32 {
+        let cam = camera();
+        let thin = sigma_px * 5.0 / cam.fx;
+        let mut g = Gaussians::default();
+        g.push(
+            Vec3::ZERO,
+            Vec3::new(2.0, thin, thin),
+            Quat::IDENTITY,
+            1.0,
+            Vec3::splat(0.5),
+            true,
+        );
+        let settings = RenderSettings::default();
+        let g = match coverage {
+            Coverage::Opaque => g,
+            Coverage::Width => width_coverage(&g, 1, &cam, settings.low_pass),
+        };
+        let (out, _) = render::render(&g, &cam, &settings).unwrap();
+        (0..64).map(|y| out.alpha.data[y * 64 + 32]).sum()
+    }
+
+    #[test]
+    fn width_coverage_keeps_a_thin_strands_true_coverage() {
+        let root_tau = (2.0 * std::f32::consts::PI).sqrt();
+        for sigma in [0.05f32, 0.1, 0.2] {
+            let want = root_tau * sigma;
+            let got = column_coverage(sigma, Coverage::Width);
+            assert!(
+                (got - want).abs() < 0.1 * want,
+                "sigma {sigma}: {got} vs {want}"
+            );
+            // Without it the low-pass makes the strand about a pixel wide.
+            let opaque = column_coverage(sigma, Coverage::Opaque);
+            assert!(opaque > 2.5 * want, "sigma {sigma}: opaque {opaque}");
+        }
+        // A strand many pixels thick keeps (nearly) its opacity.
+        let wide = width_coverage(
+            &{
+                let mut g = Gaussians::default();
+                g.push(Vec3::ZERO, Vec3::ONE, Quat::IDENTITY, 1.0, Vec3::ONE, true);
+                g
+            },
+            1,
+            &camera(),
+            0.3,
+        );
+        assert!(wide.opacities[0] > 0.99);
     }
 }

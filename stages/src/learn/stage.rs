@@ -13,7 +13,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::geomloss::DistanceGrid;
-use super::image::{ImageConfig, ImageLosses};
+use super::image::{Coverage, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
 use super::model::{Codec, Dense, Model, Prepared, Rates};
 use super::placement::{frame, Decoder};
@@ -142,6 +142,14 @@ fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
              for stability tests (0 = the roots' frames).",
         )
         .range(-180.0, 180.0),
+        ParamSpec::string(
+            "held_out_coverage",
+            "width",
+            "Strand coverage in the held-out renders: width = each strand segment's opacity \
+             scaled to its true width in the view (learn::image::width_coverage); opaque = the \
+             training opacity 1, which the renderer's low-pass widens to about a pixel.",
+        )
+        .choices(&["opaque", "width"]),
         ParamSpec::int(
             "fit_color_views",
             12,
@@ -206,7 +214,7 @@ impl Stage for CodecStrands {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        7
+        8
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -269,7 +277,7 @@ impl Stage for DenseStrands {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        5
+        6
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
@@ -716,6 +724,10 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
                 seed,
                 ori_min_confidence: p.f32("ori_min_confidence")?,
                 fit_color_views: p.usize("fit_color_views")?,
+                held_out_coverage: match p.str("held_out_coverage")? {
+                    "opaque" => Coverage::Opaque,
+                    _ => Coverage::Width,
+                },
                 device: crate::render::device::Renderer::from_params(p)?,
             };
             let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
@@ -1241,9 +1253,14 @@ mod tests {
             sum / fur.len() as f32
         };
         let (fixed, learned) = (error(false), error(true));
-        eprintln!("in-plane direction error: fixed frames {fixed:.1} deg, learned {learned:.1} deg");
+        eprintln!(
+            "in-plane direction error: fixed frames {fixed:.1} deg, learned {learned:.1} deg"
+        );
         assert!(fixed > 15.0, "the 45 degree turn should show: {fixed}");
-        assert!(learned < 0.5 * fixed, "fixed {fixed} deg, learned {learned} deg");
+        assert!(
+            learned < 0.5 * fixed,
+            "fixed {fixed} deg, learned {learned} deg"
+        );
     }
 
     #[test]
