@@ -31,6 +31,14 @@ const FIT_COLORS: &[&str] = &["none", "start", "start_end"];
 
 /// Parameters both stages share.
 fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
+    let mut p = schedule_params(iterations, lr_decay);
+    p.extend(loss_params());
+    p.extend(setup_params());
+    p
+}
+
+/// Device, budget, sampling and learning rates.
+fn schedule_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
     vec![
         crate::render::device::device_param(),
         ParamSpec::int("iterations", iterations, "Optimisation iterations.").min(0.0),
@@ -46,7 +54,12 @@ fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
             "Keep at most this many roots (seeded subsample; 0 = all fur roots).",
         )
         .min(0.0),
-        ParamSpec::int("views_per_iteration", 1, "Training views rendered per iteration.").min(1.0),
+        ParamSpec::int(
+            "views_per_iteration",
+            1,
+            "Training views rendered per iteration.",
+        )
+        .min(1.0),
         ParamSpec::float(
             "lr_decay",
             lr_decay,
@@ -55,10 +68,25 @@ fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
              (1 = constant rates; colours are not decayed).",
         )
         .range(1e-6, 1.0),
-        ParamSpec::float("lr_color", 0.02, "Adam learning rate of strand and body colours.")
-            .min(0.0),
+        ParamSpec::float(
+            "lr_color",
+            0.02,
+            "Adam learning rate of strand and body colours.",
+        )
+        .min(0.0),
+    ]
+}
+
+/// The loss weights and their options.
+fn loss_params() -> Vec<ParamSpec> {
+    vec![
         ParamSpec::float("l_rgb", 1.0, "Weight of L_rgb (L1 + D-SSIM on the photo).").min(0.0),
-        ParamSpec::float("l_sil", 0.1, "Weight of L_sil (rendered vs given silhouette).").min(0.0),
+        ParamSpec::float(
+            "l_sil",
+            0.1,
+            "Weight of L_sil (rendered vs given silhouette).",
+        )
+        .min(0.0),
         ParamSpec::float(
             "l_ori",
             0.1,
@@ -72,7 +100,12 @@ fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
              percentile, clamped to 1) is below this (0 = all pixels, confidence-weighted).",
         )
         .range(0.0, 1.0),
-        ParamSpec::float("l_chm", 0.1, "Weight of L_chm (strand tips toward M_outer).").min(0.0),
+        ParamSpec::float(
+            "l_chm",
+            0.1,
+            "Weight of L_chm (strand tips toward M_outer).",
+        )
+        .min(0.0),
         ParamSpec::string(
             "chamfer_mode",
             "inside",
@@ -89,7 +122,18 @@ fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
         )
         .min(0.0),
         ParamSpec::float("l_sdf", 1.0, "Weight of L_sdf (penetration of M_root).").min(0.0),
-        ParamSpec::float("l_mask", 0.1, "Weight of L_mask (rendered vs given fur mask).").min(0.0),
+        ParamSpec::float(
+            "l_mask",
+            0.1,
+            "Weight of L_mask (rendered vs given fur mask).",
+        )
+        .min(0.0),
+    ]
+}
+
+/// Snapshots, seed, lengths, distance grids, occluders and appearance.
+fn setup_params() -> Vec<ParamSpec> {
+    vec![
         ParamSpec::float(
             "snapshot_first_seconds",
             0.5,
