@@ -823,3 +823,37 @@ iterations = 30
     }
     assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 5);
 }
+
+/// `--device` sets the parameter on every stage that renders; the device
+/// that ran is recorded in the learner's metrics.json; a device that does not
+/// exist is refused before anything runs.
+#[test]
+fn the_device_flag_reaches_the_renderers_and_is_recorded() {
+    let p = Project::new();
+    p.write("tiny.toml", &tiny_pipeline());
+    let bad = p.run("tiny.toml", &["--until", "codec", "--device", "tpu"]);
+    assert_ne!(bad.code(), 0, "{}", bad.stdout());
+    let msg = format!("{}{}", bad.stdout(), bad.stderr());
+    assert!(msg.contains("tpu") && msg.contains("device"), "{msg}");
+    assert!(bad.with("ran").is_empty(), "{:?}", bad.stages);
+
+    let r = p.run("tiny.toml", &["--until", "codec", "--device", "cpu"]);
+    r.ok();
+    let codec = read_json(&p.path("out/tiny/codec/metrics.json"));
+    assert_eq!(codec["device"]["device"], "cpu", "{codec}");
+    // The same run with the parameter given per stage hits the cache: the
+    // flag is only a shorthand for the parameter.
+    let again = p.run(
+        "tiny.toml",
+        &[
+            "--until",
+            "codec",
+            "--set",
+            "codec.device=cpu",
+            "--set",
+            "frosting.device=cpu",
+        ],
+    );
+    again.ok();
+    assert_eq!(again.status("codec"), "cached", "{:?}", again.stages);
+}
