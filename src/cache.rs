@@ -238,6 +238,10 @@ pub struct Manifest {
     pub peak_rss_bytes: u64,
     pub fure_version: String,
     pub created_unix: u64,
+    /// The stage's notes (what it chose, which device rendered), in order;
+    /// informative only, outside the seal.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
     /// blake3 over the key and the outputs ([`Manifest::compute_seal`]):
     /// an edited or damaged manifest naming other (valid) objects is
     /// detected. It is a checksum, not a signature: the cache's writers are

@@ -150,6 +150,9 @@ pub struct StageReport {
     pub outputs: BTreeMap<String, OutputReport>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// The notes of the run that computed the entry (also for cache hits).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
 }
 
 /// The run report (`--report FILE`, and `runs/` in the cache).
@@ -390,6 +393,7 @@ impl<'a> Scheduler<'a> {
                     peak_rss_bytes: m.peak_rss_bytes,
                     outputs,
                     error: None,
+                    notes: m.notes.clone(),
                 });
                 self.new_index.insert(st.name.clone(), k.entry.clone());
                 self.states[i] = State::Done(m.outputs);
@@ -570,6 +574,7 @@ impl<'a> Scheduler<'a> {
                     peak_rss_bytes: m.peak_rss_bytes,
                     outputs,
                     error: None,
+                    notes: m.notes.clone(),
                 });
                 self.states[i] = State::Done(m.outputs);
             }
@@ -622,6 +627,7 @@ fn report_without_outputs(
         peak_rss_bytes: 0,
         outputs: BTreeMap::new(),
         error,
+        notes: Vec::new(),
     }
 }
 
@@ -1110,6 +1116,7 @@ fn execute(
         peak_rss_bytes: peak,
         fure_version: FURE_VERSION.to_string(),
         created_unix: cache::created_now(),
+        notes: progress.notes(),
         seal: String::new(),
     }
     .seal();

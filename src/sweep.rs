@@ -1038,6 +1038,7 @@ mod tests {
             peak_rss_bytes: 0,
             outputs: BTreeMap::new(),
             error: error.map(String::from),
+            notes: Vec::new(),
         }
     }
 

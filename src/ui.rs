@@ -110,6 +110,7 @@ impl Ui {
             name: name.to_string(),
             bar,
             ui_mode: self.mode,
+            notes: Default::default(),
         }
     }
 
@@ -141,6 +142,15 @@ pub struct StageProgress {
     name: String,
     bar: Option<ProgressBar>,
     ui_mode: UiMode,
+    /// Every note, in order, for the cache entry and the run report.
+    notes: std::sync::Mutex<Vec<String>>,
+}
+
+impl StageProgress {
+    /// The notes the stage wrote so far, in order.
+    pub fn notes(&self) -> Vec<String> {
+        self.notes.lock().map(|n| n.clone()).unwrap_or_default()
+    }
 }
 
 impl Progress for StageProgress {
@@ -167,6 +177,9 @@ impl Progress for StageProgress {
         }
     }
     fn note(&self, text: &str) {
+        if let Ok(mut n) = self.notes.lock() {
+            n.push(text.to_string());
+        }
         let line = format!("note    {}  {text}", self.name);
         match (&self.bar, self.ui_mode) {
             (Some(b), _) => b.println(line),

@@ -1495,6 +1495,8 @@ impl Stage for FrostingStage {
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let t0 = std::time::Instant::now();
         let device = render::device::Renderer::from_params(ctx.params)?;
+        ctx.progress
+            .note(&format!("renders on {}", device.describe()));
         let mesh_path = ctx.input("mesh")?;
         let mut mesh = crate::formats::obj::read_obj(mesh_path)?;
         if mesh.triangles.is_empty() {

@@ -841,6 +841,20 @@ fn the_device_flag_reaches_the_renderers_and_is_recorded() {
     r.ok();
     let codec = read_json(&p.path("out/tiny/codec/metrics.json"));
     assert_eq!(codec["device"]["device"], "cpu", "{codec}");
+    // ... and in the run report, as the stage's note, also for a cache hit.
+    let notes = |r: &crate::engine::Run, stage: &str| -> Vec<String> {
+        r.json["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == stage)
+            .map(|s| serde_json::from_value(s["notes"].clone()).unwrap_or_default())
+            .unwrap_or_default()
+    };
+    for stage in ["frosting", "codec"] {
+        let n = notes(&r, stage);
+        assert!(n.iter().any(|l| l == "renders on cpu"), "{stage}: {n:?}");
+    }
     // The same run with the parameter given per stage hits the cache: the
     // flag is only a shorthand for the parameter.
     let again = p.run(
@@ -856,4 +870,5 @@ fn the_device_flag_reaches_the_renderers_and_is_recorded() {
     );
     again.ok();
     assert_eq!(again.status("codec"), "cached", "{:?}", again.stages);
+    assert!(notes(&again, "codec").iter().any(|l| l == "renders on cpu"));
 }

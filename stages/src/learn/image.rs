@@ -396,6 +396,11 @@ impl ImageLosses {
         &self.colors
     }
 
+    /// The device that renders, for the run report's note.
+    pub fn device_description(&self) -> String {
+        self.cfg.device.describe()
+    }
+
     /// The device that rendered, for metrics.json.
     pub fn device_metrics(&self) -> serde_json::Value {
         self.cfg.device.metrics()

@@ -786,6 +786,10 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         None => None,
     };
 
+    if let Some(img) = image.as_ref() {
+        ctx.progress
+            .note(&format!("renders on {}", img.device_description()));
+    }
     let fit_colors = p.str("fit_colors")?;
     let mut colors_fitted = Vec::new();
     let mut color_fit_seconds = 0.0f64;

@@ -111,6 +111,14 @@ impl Renderer {
         }
     }
 
+    /// `cpu`, or `gpu (ADAPTER)`: the stages' note for the run report.
+    pub fn describe(&self) -> String {
+        match self.adapter() {
+            Some(a) => format!("{} ({a})", self.name()),
+            None => self.name().to_string(),
+        }
+    }
+
     /// `{"device": ..., "adapter": ...}` for metrics.json.
     pub fn metrics(&self) -> Value {
         json!({"device": self.name(), "adapter": self.adapter()})
