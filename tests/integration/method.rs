@@ -753,12 +753,15 @@ iterations = 10
 [stages.codec_prior]
 iterations = 10
 
+[stages.codec_human]
+iterations = 10
+
 [stages.dense]
 iterations = 30
 
 [sweep]
 "scene.preset,defur_baseline.species" = ["cat"]
-"scene.seed,frosting.seed,roots.seed,codec.seed,codec_fixed.seed,codec_prior.seed,dense.seed" = [0, 1]
+"scene.seed,frosting.seed,roots.seed,codec.seed,codec_fixed.seed,codec_prior.seed,codec_human.seed,dense.seed" = [0, 1]
 
 [publish]
 "report.results" = "docs/results.md"
@@ -787,6 +790,7 @@ iterations = 30
         "dense",
         "fixed length",
         "shape prior",
+        "human basis",
         "ceiling",
     ] {
         assert!(
@@ -821,7 +825,7 @@ iterations = 30
             "{f} not published"
         );
     }
-    assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 5);
+    assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 6);
 }
 
 /// `--device` sets the parameter on every stage that renders; the device
