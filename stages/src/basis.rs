@@ -1121,6 +1121,82 @@ pub fn read_zip(bytes: &[u8], path: &Path) -> Result<Vec<(String, Vec<u8>)>, Bas
     Ok(out)
 }
 
+/// The bytes of a `.npz` (what numpy's `savez` writes, or `savez_compressed` for the entries
+/// marked `deflate`) holding float32 arrays: (name without `.npy`, shape, C-order data,
+/// deflate). The inverse of [`read_npz`], for writing PERM-layout files.
+pub fn npz_bytes(arrays: &[(&str, &[usize], &[f32], bool)]) -> Vec<u8> {
+    use std::io::Write;
+    let (mut out, mut cd) = (Vec::new(), Vec::new());
+    for &(name, shape, data, deflate) in arrays {
+        let name = format!("{name}.npy");
+        let npy = npy_f32_bytes(shape, data);
+        let body = if deflate {
+            let mut e =
+                flate2::write::DeflateEncoder::new(Vec::new(), flate2::Compression::default());
+            e.write_all(&npy).expect("writing to memory");
+            e.finish().expect("writing to memory")
+        } else {
+            npy.clone()
+        };
+        let mut crc = flate2::Crc::new();
+        crc.update(&npy);
+        let offset = out.len() as u32;
+        // The fields local and central headers share, from "version needed" on.
+        let header = |v: &mut Vec<u8>| {
+            v.extend(20u16.to_le_bytes()); // version needed
+            v.extend(0u16.to_le_bytes()); // flags
+            v.extend((if deflate { 8u16 } else { 0 }).to_le_bytes());
+            v.extend([0u8; 4]); // time, date
+            v.extend(crc.sum().to_le_bytes());
+            v.extend((body.len() as u32).to_le_bytes());
+            v.extend((npy.len() as u32).to_le_bytes());
+            v.extend((name.len() as u16).to_le_bytes());
+            v.extend(0u16.to_le_bytes()); // extra length
+        };
+        out.extend(0x0403_4b50u32.to_le_bytes());
+        header(&mut out);
+        out.extend(name.as_bytes());
+        out.extend(&body);
+        cd.extend(0x0201_4b50u32.to_le_bytes());
+        cd.extend(20u16.to_le_bytes()); // version made by
+        header(&mut cd);
+        cd.extend([0u8; 10]); // comment length, disk, internal and external attributes
+        cd.extend(offset.to_le_bytes());
+        cd.extend(name.as_bytes());
+    }
+    let cd_offset = out.len() as u32;
+    out.extend(&cd);
+    out.extend(0x0605_4b50u32.to_le_bytes());
+    out.extend([0u8; 4]);
+    out.extend((arrays.len() as u16).to_le_bytes());
+    out.extend((arrays.len() as u16).to_le_bytes());
+    out.extend((cd.len() as u32).to_le_bytes());
+    out.extend(cd_offset.to_le_bytes());
+    out.extend(0u16.to_le_bytes());
+    out
+}
+
+/// A `.npy` (version 1, `<f4`, C order) of `shape`.
+fn npy_f32_bytes(shape: &[usize], data: &[f32]) -> Vec<u8> {
+    let dims: Vec<String> = shape.iter().map(|s| s.to_string()).collect();
+    let shape = match dims.len() {
+        1 => format!("({},)", dims[0]),
+        _ => format!("({})", dims.join(", ")),
+    };
+    let mut h = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + h.len() + 1) % 64 != 0 {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((h.len() as u16).to_le_bytes());
+    b.extend(h.as_bytes());
+    for v in data {
+        b.extend(v.to_le_bytes());
+    }
+    b
+}
+
 /// Reads the arrays of a `.npz` file by name (without the `.npy` suffix).
 pub fn read_npz(path: &Path) -> Result<Vec<(String, NpyArray)>, BasisError> {
     let bytes = std::fs::read(path).map_err(|e| file_err(path, e))?;
@@ -1841,88 +1917,6 @@ mod tests {
         }
     }
 
-    /// Writes a `.npy` (version 1, `<f4`) into bytes.
-    fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
-        let shape_s = match shape.len() {
-            1 => format!("({},)", shape[0]),
-            _ => format!(
-                "({})",
-                shape
-                    .iter()
-                    .map(|s| s.to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ),
-        };
-        let mut h = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_s}, }}");
-        while (10 + h.len() + 1) % 64 != 0 {
-            h.push(' ');
-        }
-        h.push('\n');
-        let mut b = b"\x93NUMPY\x01\x00".to_vec();
-        b.extend((h.len() as u16).to_le_bytes());
-        b.extend(h.as_bytes());
-        for v in data {
-            b.extend(v.to_le_bytes());
-        }
-        b
-    }
-
-    fn crc32(data: &[u8]) -> u32 {
-        let mut c = 0xffff_ffffu32;
-        for &b in data {
-            c ^= b as u32;
-            for _ in 0..8 {
-                c = if c & 1 != 0 {
-                    (c >> 1) ^ 0xedb8_8320
-                } else {
-                    c >> 1
-                };
-            }
-        }
-        !c
-    }
-
-    /// Writes a stored zip of (name, bytes) entries.
-    fn zip_stored(entries: &[(&str, Vec<u8>)]) -> Vec<u8> {
-        let mut out = Vec::new();
-        let mut cd = Vec::new();
-        for (name, data) in entries {
-            let off = out.len() as u32;
-            let crc = crc32(data);
-            let mut hdr = Vec::new();
-            hdr.extend(0x0403_4b50u32.to_le_bytes());
-            hdr.extend([20u8, 0, 0, 0, 0, 0, 0, 0, 0, 0]);
-            hdr.extend(crc.to_le_bytes());
-            hdr.extend((data.len() as u32).to_le_bytes());
-            hdr.extend((data.len() as u32).to_le_bytes());
-            hdr.extend((name.len() as u16).to_le_bytes());
-            hdr.extend(0u16.to_le_bytes());
-            out.extend(&hdr);
-            out.extend(name.as_bytes());
-            out.extend(data);
-            cd.extend(0x0201_4b50u32.to_le_bytes());
-            cd.extend([20u8, 0, 20, 0, 0, 0, 0, 0, 0, 0, 0, 0]);
-            cd.extend(crc.to_le_bytes());
-            cd.extend((data.len() as u32).to_le_bytes());
-            cd.extend((data.len() as u32).to_le_bytes());
-            cd.extend((name.len() as u16).to_le_bytes());
-            cd.extend([0u8; 12]);
-            cd.extend(off.to_le_bytes());
-            cd.extend(name.as_bytes());
-        }
-        let cd_off = out.len() as u32;
-        out.extend(&cd);
-        out.extend(0x0605_4b50u32.to_le_bytes());
-        out.extend([0u8; 4]);
-        out.extend((entries.len() as u16).to_le_bytes());
-        out.extend((entries.len() as u16).to_le_bytes());
-        out.extend((cd.len() as u32).to_le_bytes());
-        out.extend(cd_off.to_le_bytes());
-        out.extend(0u16.to_le_bytes());
-        out
-    }
-
     #[test]
     fn perm_loader_decodes_a_tiny_npz() {
         // 5 bins -> n = 9 samples, 10 points. Mean: a straight strand along PERM -y (DC of y only
@@ -1959,10 +1953,10 @@ mod tests {
             shape[i * 6] = *re as f32;
             shape[i * 6 + 3] = *im as f32;
         }
-        let zip = zip_stored(&[
-            ("mean_shape.npy", npy_f32(&[1, bins, 6], &mean)),
-            ("blend_shapes.npy", npy_f32(&[1, bins, 6], &shape)),
-            ("variance_ratio.npy", npy_f32(&[1], &[0.8])),
+        let zip = npz_bytes(&[
+            ("mean_shape", &[1, bins, 6], &mean, false),
+            ("blend_shapes", &[1, bins, 6], &shape, false),
+            ("variance_ratio", &[1], &[0.8], false),
         ]);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("tiny.npz");

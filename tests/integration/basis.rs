@@ -44,101 +44,6 @@ fn features(points: &[[f64; 3]]) -> Vec<f32> {
     f
 }
 
-/// A `.npy` (version 1, `<f4`, C order) of `shape`.
-fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
-    let dims: Vec<String> = shape.iter().map(|s| s.to_string()).collect();
-    let shape_s = if shape.len() == 1 {
-        format!("({},)", dims[0])
-    } else {
-        format!("({})", dims.join(", "))
-    };
-    let mut h = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_s}, }}");
-    while (10 + h.len() + 1) % 64 != 0 {
-        h.push(' ');
-    }
-    h.push('\n');
-    let mut b = b"\x93NUMPY\x01\x00".to_vec();
-    b.extend((h.len() as u16).to_le_bytes());
-    b.extend(h.as_bytes());
-    for v in data {
-        b.extend(v.to_le_bytes());
-    }
-    b
-}
-
-fn crc32(data: &[u8]) -> u32 {
-    let mut c = 0xffff_ffffu32;
-    for &b in data {
-        c ^= b as u32;
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                (c >> 1) ^ 0xedb8_8320
-            } else {
-                c >> 1
-            };
-        }
-    }
-    !c
-}
-
-/// A raw deflate stream of stored blocks (valid method-8 data without a compressor).
-fn deflate_stored(data: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    let chunks: Vec<&[u8]> = data.chunks(65_535).collect();
-    for (i, c) in chunks.iter().enumerate() {
-        out.push(u8::from(i + 1 == chunks.len()));
-        out.extend((c.len() as u16).to_le_bytes());
-        out.extend((!(c.len() as u16)).to_le_bytes());
-        out.extend(*c);
-    }
-    out
-}
-
-/// A zip of (name, bytes, deflated) entries, as numpy's `savez` / `savez_compressed` write them.
-fn zip(entries: &[(&str, Vec<u8>, bool)]) -> Vec<u8> {
-    let (mut out, mut cd) = (Vec::new(), Vec::new());
-    for (name, data, deflate) in entries {
-        let off = out.len() as u32;
-        let (method, body) = if *deflate {
-            (8u16, deflate_stored(data))
-        } else {
-            (0u16, data.clone())
-        };
-        let fixed = |sig: u32, v: &mut Vec<u8>| {
-            v.extend(sig.to_le_bytes());
-            if sig == 0x0201_4b50 {
-                v.extend(20u16.to_le_bytes()); // version made by
-            }
-            v.extend(20u16.to_le_bytes()); // version needed
-            v.extend(0u16.to_le_bytes()); // flags
-            v.extend(method.to_le_bytes());
-            v.extend([0u8; 4]); // time, date
-            v.extend(crc32(data).to_le_bytes());
-            v.extend((body.len() as u32).to_le_bytes());
-            v.extend((data.len() as u32).to_le_bytes());
-            v.extend((name.len() as u16).to_le_bytes());
-            v.extend(0u16.to_le_bytes()); // extra
-        };
-        fixed(0x0403_4b50, &mut out);
-        out.extend(name.as_bytes());
-        out.extend(&body);
-        fixed(0x0201_4b50, &mut cd);
-        cd.extend([0u8; 10]); // comment length, disk, internal and external attributes
-        cd.extend(off.to_le_bytes());
-        cd.extend(name.as_bytes());
-    }
-    let cd_off = out.len() as u32;
-    out.extend(&cd);
-    out.extend(0x0605_4b50u32.to_le_bytes());
-    out.extend([0u8; 4]);
-    out.extend((entries.len() as u16).to_le_bytes());
-    out.extend((entries.len() as u16).to_le_bytes());
-    out.extend((cd.len() as u32).to_le_bytes());
-    out.extend(cd_off.to_le_bytes());
-    out.extend(0u16.to_le_bytes());
-    out
-}
-
 /// A PERM-layout npz: a mean strand falling down the back of the head (PERM -y, bending toward
 /// -z) and `k` blend shapes of lateral and outward sways, in centimetres; `bins` frequency bins of
 /// the blend shapes (PERM: 50).
@@ -168,17 +73,9 @@ fn perm_npz(path: &Path, k: usize, shape_bins: usize) {
         fb.resize(shape_bins * 6, 0.0);
         blend.extend(fb);
     }
-    let bytes = zip(&[
-        (
-            "mean_shape.npy",
-            npy_f32(&[1, BINS, 6], &features(&mean)),
-            false,
-        ),
-        (
-            "blend_shapes.npy",
-            npy_f32(&[k, shape_bins, 6], &blend),
-            true,
-        ),
+    let bytes = fure_stages::basis::npz_bytes(&[
+        ("mean_shape", &[1, BINS, 6], &features(&mean), false),
+        ("blend_shapes", &[k, shape_bins, 6], &blend, true),
     ]);
     std::fs::write(path, bytes).unwrap();
 }
