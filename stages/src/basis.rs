@@ -385,28 +385,33 @@ fn corpus_strand(fam: Family, points: usize, rng: &mut ChaCha8Rng) -> Vec<Vec3> 
     resample_count(&pts, points)
 }
 
-/// The generated corpus: `n` strands of `points` points, families drawn with weights `mix`
-/// (straight, wavy, curly). Deterministic in `seed`.
-pub fn corpus(n: usize, points: usize, mix: [f64; 3], seed: u64) -> Vec<(Family, Vec<Vec3>)> {
+/// The index drawn by `u` in [0, 1) from weights `mix` (normalised; equal when they sum to 0).
+fn draw<const N: usize>(mix: [f64; N], u: f64) -> usize {
     let total: f64 = mix.iter().sum();
     let w = if total > 0.0 {
         mix.map(|m| m / total)
     } else {
-        [1.0 / 3.0; 3]
+        [1.0 / N as f64; N]
     };
+    let mut upto = 0.0;
+    for (k, wk) in w.iter().enumerate().take(N - 1) {
+        upto += wk;
+        if u < upto {
+            return k;
+        }
+    }
+    N - 1
+}
+
+/// The generated corpus: `n` strands of `points` points, families drawn with weights `mix`
+/// (straight, wavy, curly). Deterministic in `seed`.
+pub fn corpus(n: usize, points: usize, mix: [f64; 3], seed: u64) -> Vec<(Family, Vec<Vec3>)> {
     (0..n)
         .into_par_iter()
         .map(|i| {
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             rng.set_stream(i as u64);
-            let u: f64 = rng.gen();
-            let fam = if u < w[0] {
-                Family::Straight
-            } else if u < w[0] + w[1] {
-                Family::Wavy
-            } else {
-                Family::Curly
-            };
+            let fam = [Family::Straight, Family::Wavy, Family::Curly][draw(mix, rng.gen())];
             (fam, corpus_strand(fam, points, &mut rng))
         })
         .collect()
@@ -650,28 +655,18 @@ pub fn human_corpus(
     lengths: [f64; 2],
     seed: u64,
 ) -> Vec<(HairStyle, Vec<Vec3>)> {
-    let total: f64 = mix.iter().sum();
-    let w = if total > 0.0 {
-        mix.map(|m| m / total)
-    } else {
-        [0.25; 4]
-    };
     let points = points.max(2);
     (0..n)
         .into_par_iter()
         .map(|i| {
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             rng.set_stream(i as u64);
-            let u: f64 = rng.gen();
-            let style = if u < w[0] {
-                HairStyle::Straight
-            } else if u < w[0] + w[1] {
-                HairStyle::Wavy
-            } else if u < w[0] + w[1] + w[2] {
-                HairStyle::Curly
-            } else {
-                HairStyle::Clumped
-            };
+            let style = [
+                HairStyle::Straight,
+                HairStyle::Wavy,
+                HairStyle::Curly,
+                HairStyle::Clumped,
+            ][draw(mix, rng.gen())];
             (style, human_strand(style, points, lengths, &mut rng))
         })
         .collect()
