@@ -25,7 +25,9 @@
 //! (`LEARNER.optimised_parameters`, and the compute seconds `costs.LEARNER.seconds`). Preprocessing
 //! time is the sum of `costs.S.seconds` over the `preprocessing` stages; peak memory the largest
 //! `costs.*.peak_rss_bytes` of the variant. Fur thickness: `defur.{outer,root,baseline}_to_skin_mean_frac`,
-//! `frosting.gt_vertex.pearson`, `lengths.length_error_mean_pct`. Speed: `speed_accuracy.speedup_*`.
+//! `frosting.gt_vertex.pearson`, `lengths.length_error_mean_pct`, and for the V2 lengths (species
+//! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
+//! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`.
 //! A missing key is a missing figure (`-`), never a zero.
 
 use std::collections::BTreeMap;
@@ -87,6 +89,8 @@ pub struct Config {
     pub ceiling: String,
     pub preprocessing: Vec<String>,
     pub speedup: String,
+    /// The lengths stage with species reference lengths (V2), reported beside `lengths`.
+    pub v2_lengths: String,
     /// Where the published charts are, relative to the published document.
     pub charts_link: String,
 }
@@ -463,6 +467,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         let corr = g("frosting.gt_vertex.pearson");
         let inside = g("defur.root_inside_body_frac");
         let len_err = g("lengths.length_error_mean_pct");
+        let len_err_v2 = g(&format!("{}.length_error_mean_pct", cfg.v2_lengths));
         let pre = stat(
             &sc.runs
                 .iter()
@@ -480,14 +485,15 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
             md,
             "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
              M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
-             distance, per-vertex Pearson {}; mean per-part length error {} %. Preprocessing {} s; \
-             peak memory of a stage {} MiB.\n",
+             distance, per-vertex Pearson {}; mean per-part length error {} % (V2, species reference \
+             lengths: {} %). Preprocessing {} s; peak memory of a stage {} MiB.\n",
             fmt_stat(outer, 2),
             fmt_stat(root, 2),
             fmt_stat(inside, 3),
             fmt_stat(base, 2),
             fmt_stat(corr, 2),
             fmt_stat(len_err, 0),
+            fmt_stat(len_err_v2, 0),
             fmt_stat(pre, 1),
             fmt_stat(mem, 0),
         );
@@ -530,6 +536,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
                 "baseline_to_skin_frac": stat_json(base),
                 "frosting_vertex_pearson": stat_json(corr),
                 "length_error_mean_pct": stat_json(len_err),
+                "length_error_v2_mean_pct": stat_json(len_err_v2),
                 "seconds": stat_json(pre),
                 "peak_rss_mib": stat_json(mem),
             }),
@@ -772,6 +779,7 @@ fn config(p: &Params) -> Result<Config, StageError> {
         ceiling: p.str("ceiling")?.to_string(),
         preprocessing: p.str_list("preprocessing")?,
         speedup: p.str("speedup")?.to_string(),
+        v2_lengths: p.str("v2_lengths")?.to_string(),
         charts_link: p.str("charts_link")?.to_string(),
     })
 }
@@ -784,7 +792,7 @@ impl Stage for BenchmarkReport {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        3
+        4
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -848,6 +856,11 @@ impl Stage for BenchmarkReport {
                 "speedup",
                 "speed_accuracy",
                 "the speed_accuracy stage's metric prefix",
+            ),
+            ParamSpec::string(
+                "v2_lengths",
+                "lengths_v2",
+                "the lengths stage with species reference lengths (V2), reported beside V1 when present",
             ),
             ParamSpec::string(
                 "charts_link",
@@ -940,6 +953,7 @@ mod tests {
             ceiling: "evaluate_ceiling".into(),
             preprocessing: vec!["frosting".into()],
             speedup: "speed_accuracy".into(),
+            v2_lengths: "lengths_v2".into(),
             charts_link: "benchmark".into(),
         }
     }

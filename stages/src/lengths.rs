@@ -14,6 +14,15 @@
 //! - V1: `l_p = m_p T_p`. V2 (with a reference `l_ref_p`):
 //!   `clip(0.60 m_p T_p + 0.40 l_ref_p, 0.35 l_ref_p, 1.35 l_ref_p)`; without a
 //!   reference V2 = V1. Non-fur parts: 0.
+//! - Reference lengths (the stand-in for the paper's VLM answer, issue 14's
+//!   "documented coarse source"): parameter `species` takes them from the
+//!   same per-species coat table as the NeuralFur baseline
+//!   ([`crate::defur::baseline::species_thickness_cm`]). That table was
+//!   written as about half of each region's hair length (fur lies at a
+//!   shallow angle), so the reference length is twice its entry:
+//!   `l_ref_p = 2 x thickness_p`. One table, one source of coarse species
+//!   knowledge, never read from a scene. `reference_length_cm` entries
+//!   override single parts; a fur part with neither keeps V1.
 //! - Strand render width `W_p = clip(0.03 l_p, 0.02, 0.12)`, in cm as the
 //!   appendix's lengths are (so 0.2 to 1.2 mm); non-fur parts 0.
 //!
@@ -65,6 +74,7 @@ use fure_stage_api::{ParamSpec, ParamType, Params, PortSpec, Stage, StageContext
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use crate::defur::baseline::{species_thickness_cm, SPECIES};
 use crate::defur::thickness::raw_widths;
 use crate::formats::json::{read_json, write_json};
 use crate::formats::obj::read_labelled_mesh;
@@ -181,6 +191,13 @@ pub fn part_length_cm(t_cm: f32, m: f32, reference: Option<f32>, v2: bool) -> f3
         (true, Some(r)) => (0.60 * shape + 0.40 * r).clamp(0.35 * r, 1.35 * r),
         _ => shape,
     }
+}
+
+/// Coarse reference hair lengths (cm) of a species: twice the coat table's per-part fur
+/// thickness, which was written as about half the hair length (module doc); `None` for an
+/// unknown species.
+pub fn species_reference_lengths_cm(species: &str) -> Option<BTreeMap<String, f32>> {
+    species_thickness_cm(species).map(|t| t.iter().map(|(k, v)| (k.to_string(), 2.0 * v)).collect())
 }
 
 /// Strand render width (cm) for a length in cm.
@@ -301,9 +318,15 @@ impl Stage for LengthsStage {
                 "m_p of fur parts not in the defaults or the table",
             )
             .positive(),
+            ParamSpec::optional(
+                "species",
+                ParamType::Str,
+                "V2 reference lengths from the per-species coat table (twice its thicknesses; module doc)",
+            )
+            .choices(SPECIES),
             ParamSpec::table(
                 "reference_length_cm",
-                "per-part reference lengths in cm for V2",
+                "per-part reference lengths in cm for V2 (override the species table)",
             ),
             ParamSpec::string(
                 "variant",
@@ -425,10 +448,23 @@ impl Stage for LengthsStage {
             .collect();
         multipliers.extend(number_table(p, "multiplier")?);
         let v2 = p.str("variant")? == "v2";
-        let references_cm = number_table(p, "reference_length_cm")?;
+        let mut references_cm = match p.get("species").and_then(|v| v.as_str()) {
+            Some(species) => species_reference_lengths_cm(species).ok_or_else(|| {
+                StageError::param(
+                    "species",
+                    format!("unknown species `{species}`; expected one of {}", SPECIES.join(", ")),
+                )
+            })?,
+            None => BTreeMap::new(),
+        };
+        references_cm.extend(number_table(p, "reference_length_cm")?);
         if v2 && references_cm.is_empty() {
             ctx.progress
                 .note("variant v2 without reference lengths: V2 = V1");
+        }
+        if !v2 && !references_cm.is_empty() {
+            ctx.progress
+                .note("reference lengths are used only by variant v2; this is v1 (l = m T)");
         }
         let table = compute_lengths(
             &tau,
@@ -531,6 +567,22 @@ mod tests {
         assert_eq!(strand_width_cm(0.1), 0.02);
         assert_eq!(strand_width_cm(100.0), 0.12);
         assert!((strand_width_cm(3.0) - 0.09).abs() < 1e-6);
+    }
+
+    #[test]
+    fn species_references_are_twice_the_coat_table_and_every_species_has_them() {
+        for species in SPECIES {
+            let refs = species_reference_lengths_cm(species).unwrap();
+            let coat = species_thickness_cm(species).unwrap();
+            assert_eq!(refs.len(), coat.len(), "{species}");
+            for (part, t) in coat {
+                assert_eq!(refs[*part], 2.0 * t, "{species} {part}");
+            }
+        }
+        assert!(species_reference_lengths_cm("dragon").is_none());
+        // A wildly wrong shape estimate is pulled into [0.35, 1.35] x the species' length.
+        let r = species_reference_lengths_cm("tiger").unwrap()["torso"];
+        assert!((part_length_cm(50.0, 2.5, Some(r), true) - 1.35 * r).abs() < 1e-5);
     }
 
     #[test]

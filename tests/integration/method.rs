@@ -756,12 +756,15 @@ iterations = 10
 [stages.codec_human]
 iterations = 10
 
+[stages.codec_v2]
+iterations = 10
+
 [stages.dense]
 iterations = 30
 
 [sweep]
-"scene.preset,defur_baseline.species" = ["cat"]
-"scene.seed,frosting.seed,roots.seed,codec.seed,codec_fixed.seed,codec_prior.seed,codec_human.seed,dense.seed" = [0, 1]
+"scene.preset,defur_baseline.species,lengths_v2.species" = ["cat"]
+"scene.seed,frosting.seed,roots.seed,roots_v2.seed,codec.seed,codec_fixed.seed,codec_prior.seed,codec_human.seed,codec_v2.seed,dense.seed" = [0, 1]
 
 [publish]
 "report.results" = "docs/results.md"
@@ -791,6 +794,7 @@ iterations = 30
         "fixed length",
         "shape prior",
         "human basis",
+        "V2 lengths",
         "ceiling",
     ] {
         assert!(
@@ -825,7 +829,12 @@ iterations = 30
             "{f} not published"
         );
     }
-    assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 6);
+    assert_eq!(p.read("docs/benchmark/runs.csv").lines().count(), 1 + 2 * 7);
+    // V2 (species reference lengths) is reported beside V1, from its own lengths stage.
+    assert!(
+        cat["preprocessing"]["length_error_v2_mean_pct"]["n"] == 2,
+        "{m}"
+    );
 }
 
 /// `--device` sets the parameter on every stage that renders; the device
