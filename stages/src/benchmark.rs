@@ -264,6 +264,23 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
     let scenes = scenes(rec, cfg);
     let mut md = String::new();
     let mut out = Map::new();
+    write_preamble(&mut md, rec, cfg);
+    write_headlines(&mut md, &scenes, cfg);
+    if let Some(verdicts) = write_comparisons(&mut md, &scenes, cfg) {
+        out.insert("verdicts".into(), verdicts);
+    }
+    let _ = writeln!(md, "## Per scene\n");
+    let per_scene: Map<String, Json> = scenes
+        .iter()
+        .map(|sc| (sc.name.clone(), write_scene(&mut md, sc, cfg)))
+        .collect();
+    out.insert("scenes".into(), per_scene.into());
+    out.insert("runs".into(), rec.variants.len().into());
+    (md, runs_csv(&scenes, cfg), Json::Object(out))
+}
+
+/// Title, provenance mark, splits, seeds and the rules the tables follow.
+fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
     let _ = writeln!(md, "# Benchmark results: `{}`\n", rec.pipeline);
     let _ = writeln!(md, "{}\n", PROVENANCE_MARK);
     let seeds: Vec<String> = {
@@ -299,8 +316,10 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
          F-scores are signed (growth direction counted), in %; the **ceiling** is the same animal \
          regrown with another seed, scored against the GT.\n"
     );
+}
 
-    // Headline: signed F at 3 cm / 30 deg and the strict 1 cm / 10 deg, per method, per scene.
+/// Headline: signed F at 3 cm / 30 deg and the strict 1 cm / 10 deg, per split, scene and method.
+fn write_headlines(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) {
     let t3 = THRESHOLDS[2];
     let t1 = THRESHOLDS[0];
     for split in ["dev", "test", "unsplit"] {
@@ -344,8 +363,11 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         }
         let _ = writeln!(md);
     }
+}
 
-    // Verdicts of the first method against each other one, per scene and threshold.
+/// Verdicts of the first method against each other one, per scene and threshold (the JSON
+/// `verdicts`; `None` without methods).
+fn write_comparisons(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) -> Option<Json> {
     if let Some((first, others)) = cfg.methods.split_first() {
         let _ = writeln!(
             md,
@@ -354,7 +376,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         );
         let _ = writeln!(md, "| scene | split | against | 1 cm | 2 cm | 3 cm | 4 cm |\n|---|---|---|---|---|---|---|");
         let mut verdicts = Map::new();
-        for sc in &scenes {
+        for sc in scenes {
             for o in others {
                 let mut row = format!("| {} | {} | {} |", sc.name, sc.split, o.name);
                 let mut vj = Map::new();
@@ -375,190 +397,204 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
                 verdicts.insert(format!("{}|{}", sc.name, o.name), vj.into());
             }
         }
-        out.insert("verdicts".into(), verdicts.into());
         let _ = writeln!(md);
+        return Some(verdicts.into());
     }
+    None
+}
 
-    // Per scene: every method in full.
-    let _ = writeln!(md, "## Per scene\n");
-    let mut per_scene = Map::new();
-    for sc in &scenes {
-        let _ = writeln!(
-            md,
-            "### {} ({} split, {} seeds)\n",
-            sc.name,
-            sc.split,
-            sc.runs.len()
-        );
-        let _ = writeln!(
-            md,
-            "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | learning stage (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
-        );
-        let mut sj = Map::new();
-        let rows = cfg
-            .methods
+/// One scene's section: every method in full, the fur-thickness and speed figures; its JSON.
+fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
+    let mut sj = Map::new();
+    write_method_table(md, sc, cfg, &mut sj);
+    write_thickness_and_speed(md, sc, cfg, &mut sj);
+    sj.insert("split".into(), sc.split.into());
+    let _ = writeln!(
+        md,
+        "![F vs training time, {0}]({2}/f_vs_time_{1}.svg) ![F vs model size, {0}]({2}/f_vs_size_{1}.svg)\n",
+        sc.name,
+        safe(&sc.name),
+        cfg.charts_link
+    );
+    sj.into()
+}
+
+/// The scene's table: F-scores, direction and shape errors, PSNR/SSIM, time and size per method.
+fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Map<String, Json>) {
+    let _ = writeln!(
+        md,
+        "### {} ({} split, {} seeds)\n",
+        sc.name,
+        sc.split,
+        sc.runs.len()
+    );
+    let _ = writeln!(
+        md,
+        "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | learning stage (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    let rows = cfg
+        .methods
+        .iter()
+        .map(|m| (m.name.clone(), m.eval.clone(), m.learner.clone()))
+        .chain(std::iter::once((
+            "ceiling".to_string(),
+            cfg.ceiling.clone(),
+            None,
+        )));
+    for (name, eval, learner) in rows {
+        let fs: Vec<Option<Stat>> = THRESHOLDS
             .iter()
-            .map(|m| (m.name.clone(), m.eval.clone(), m.learner.clone()))
-            .chain(std::iter::once((
-                "ceiling".to_string(),
-                cfg.ceiling.clone(),
-                None,
-            )));
-        for (name, eval, learner) in rows {
-            let fs: Vec<Option<Stat>> = THRESHOLDS
-                .iter()
-                .map(|&t| stat(&values(sc, &f_key(&eval, t))))
-                .collect();
-            let dir = stat(&values(sc, &format!("{eval}.direction_error_deg")));
-            let curv = stat(&values(
-                sc,
-                &format!("{eval}.local_curvature_variance_vs_gt"),
-            ));
-            let psnr = stat(&values(sc, &format!("{eval}.psnr")));
-            let ssim = stat(&values(sc, &format!("{eval}.ssim")));
-            let (secs, params) = match &learner {
-                Some(l) => (
-                    stat(
-                        &sc.runs
-                            .iter()
-                            .filter_map(|v| cost(v, l))
-                            .collect::<Vec<_>>(),
-                    ),
-                    stat(&values(sc, &format!("{l}.optimised_parameters"))),
+            .map(|&t| stat(&values(sc, &f_key(&eval, t))))
+            .collect();
+        let dir = stat(&values(sc, &format!("{eval}.direction_error_deg")));
+        let curv = stat(&values(
+            sc,
+            &format!("{eval}.local_curvature_variance_vs_gt"),
+        ));
+        let psnr = stat(&values(sc, &format!("{eval}.psnr")));
+        let ssim = stat(&values(sc, &format!("{eval}.ssim")));
+        let (secs, params) = match &learner {
+            Some(l) => (
+                stat(
+                    &sc.runs
+                        .iter()
+                        .filter_map(|v| cost(v, l))
+                        .collect::<Vec<_>>(),
                 ),
-                None => (None, None),
-            };
-            let mut row = format!("| {name} |");
-            for f in &fs {
-                let _ = write!(row, " {} |", fmt_stat(*f, 1));
-            }
-            let _ = writeln!(
-                md,
-                "{row} {} | {} | {} | {} | {} | {} |",
-                fmt_stat(dir, 1),
-                fmt_stat(curv, 2),
-                fmt_stat(psnr, 2),
-                fmt_stat(ssim, 3),
-                fmt_stat(secs, 1),
-                fmt_stat(params, 0)
-            );
-            let mut mj = Map::new();
-            for (t, f) in THRESHOLDS.iter().zip(&fs) {
-                mj.insert(
-                    format!("signed_f_{}", crate::evaluate::threshold_key(t.0, t.1)),
-                    stat_json(*f),
-                );
-            }
-            mj.insert("direction_error_deg".into(), stat_json(dir));
-            mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
-            mj.insert("psnr".into(), stat_json(psnr));
-            mj.insert("ssim".into(), stat_json(ssim));
-            mj.insert("training_seconds".into(), stat_json(secs));
-            mj.insert("optimised_parameters".into(), stat_json(params));
-            sj.insert(name, mj.into());
-        }
-        let _ = writeln!(md);
-
-        // Fur thickness and preprocessing, shared by every method of the scene.
-        let g = |k: &str| stat(&values(sc, k));
-        let outer = g("defur.outer_to_skin_mean_frac");
-        let root = g("defur.root_to_skin_mean_frac");
-        let base = g("defur.baseline_to_skin_mean_frac");
-        let corr = g("frosting.gt_vertex.pearson");
-        let inside = g("defur.root_inside_body_frac");
-        let len_err = g("lengths.length_error_mean_pct");
-        let len_err_v2 = g(&format!("{}.length_error_mean_pct", cfg.v2_lengths));
-        let pre = stat(
-            &sc.runs
-                .iter()
-                .filter_map(|v| preprocessing_seconds(v, cfg))
-                .collect::<Vec<_>>(),
-        );
-        let mem = stat(
-            &sc.runs
-                .iter()
-                .filter_map(|v| peak_rss(v))
-                .map(|b| b / (1u64 << 20) as f64)
-                .collect::<Vec<_>>(),
-        );
-        let _ = writeln!(
-            md,
-            "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
-             M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
-             distance, per-vertex Pearson {}; mean per-part length error {} % (V2, species reference \
-             lengths: {} %). Preprocessing {} s; peak memory of a stage {} MiB.\n",
-            fmt_stat(outer, 2),
-            fmt_stat(root, 2),
-            fmt_stat(inside, 3),
-            fmt_stat(base, 2),
-            fmt_stat(corr, 2),
-            fmt_stat(len_err, 0),
-            fmt_stat(len_err_v2, 0),
-            fmt_stat(pre, 1),
-            fmt_stat(mem, 0),
-        );
-        let sp = g(&format!("{}.speedup_to_dense_final_fscore", cfg.speedup));
-        let lo = values(sc, &format!("{}.speedup_low", cfg.speedup))
-            .into_iter()
-            .reduce(f64::min);
-        let hi = values(sc, &format!("{}.speedup_high", cfg.speedup))
-            .into_iter()
-            .reduce(f64::max);
-        let count = |k: &str| {
-            values(sc, &format!("{}.{k}", cfg.speedup))
-                .iter()
-                .filter(|&&x| x > 0.0)
-                .count()
+                stat(&values(sc, &format!("{l}.optimised_parameters"))),
+            ),
+            None => (None, None),
         };
-        let reached = count("codec_reached_dense_final");
-        let at_start = count("codec_reached_dense_final_at_start");
-        let start_codec = g(&format!("{}.codec_start_fscore_3cm_30deg", cfg.speedup));
-        let start_dense = g(&format!("{}.dense_start_fscore_3cm_30deg", cfg.speedup));
+        let mut row = format!("| {name} |");
+        for f in &fs {
+            let _ = write!(row, " {} |", fmt_stat(*f, 1));
+        }
         let _ = writeln!(
             md,
-            "Speed-up of the first method to dense's final F (3 cm, unsigned, from the snapshots): {} \
-             (the codec reached dense's final F in {reached} of {} seeds, {at_start} of them already \
-             untrained, where the ratio is undefined; snapshot bracket {}–{}). Untrained start, F at \
-             3 cm unsigned: codec {}, dense {}.\n",
-            fmt_stat(sp, 1),
-            sc.runs.len(),
-            lo.map_or("-".into(), |x| format!("{x:.1}")),
-            hi.map_or("-".into(), |x| format!("{x:.1}")),
-            fmt_stat(start_codec, 1),
-            fmt_stat(start_dense, 1),
+            "{row} {} | {} | {} | {} | {} | {} |",
+            fmt_stat(dir, 1),
+            fmt_stat(curv, 2),
+            fmt_stat(psnr, 2),
+            fmt_stat(ssim, 3),
+            fmt_stat(secs, 1),
+            fmt_stat(params, 0)
         );
-        sj.insert(
-            "preprocessing".into(),
-            json!({
-                "outer_to_skin_frac": stat_json(outer),
-                "root_to_skin_frac": stat_json(root),
-                "root_inside_body_frac": stat_json(inside),
-                "baseline_to_skin_frac": stat_json(base),
-                "frosting_vertex_pearson": stat_json(corr),
-                "length_error_mean_pct": stat_json(len_err),
-                "length_error_v2_mean_pct": stat_json(len_err_v2),
-                "seconds": stat_json(pre),
-                "peak_rss_mib": stat_json(mem),
-            }),
-        );
-        sj.insert(
-            "speedup".into(),
-            json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense)}),
-        );
-        sj.insert("split".into(), sc.split.into());
-        per_scene.insert(sc.name.clone(), sj.into());
-        let _ = writeln!(
-            md,
-            "![F vs training time, {0}]({2}/f_vs_time_{1}.svg) ![F vs model size, {0}]({2}/f_vs_size_{1}.svg)\n",
-            sc.name,
-            safe(&sc.name),
-            cfg.charts_link
-        );
+        let mut mj = Map::new();
+        for (t, f) in THRESHOLDS.iter().zip(&fs) {
+            mj.insert(
+                format!("signed_f_{}", crate::evaluate::threshold_key(t.0, t.1)),
+                stat_json(*f),
+            );
+        }
+        mj.insert("direction_error_deg".into(), stat_json(dir));
+        mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
+        mj.insert("psnr".into(), stat_json(psnr));
+        mj.insert("ssim".into(), stat_json(ssim));
+        mj.insert("training_seconds".into(), stat_json(secs));
+        mj.insert("optimised_parameters".into(), stat_json(params));
+        sj.insert(name, mj.into());
     }
-    out.insert("scenes".into(), per_scene.into());
-    out.insert("runs".into(), rec.variants.len().into());
+    let _ = writeln!(md);
+}
 
-    // One CSV row per run and method.
+/// Fur thickness, lengths and preprocessing (shared by every method of the scene), and the
+/// speed-up to dense's final F.
+fn write_thickness_and_speed(
+    md: &mut String,
+    sc: &Scene<'_>,
+    cfg: &Config,
+    sj: &mut Map<String, Json>,
+) {
+    // Fur thickness and preprocessing, shared by every method of the scene.
+    let g = |k: &str| stat(&values(sc, k));
+    let outer = g("defur.outer_to_skin_mean_frac");
+    let root = g("defur.root_to_skin_mean_frac");
+    let base = g("defur.baseline_to_skin_mean_frac");
+    let corr = g("frosting.gt_vertex.pearson");
+    let inside = g("defur.root_inside_body_frac");
+    let len_err = g("lengths.length_error_mean_pct");
+    let len_err_v2 = g(&format!("{}.length_error_mean_pct", cfg.v2_lengths));
+    let pre = stat(
+        &sc.runs
+            .iter()
+            .filter_map(|v| preprocessing_seconds(v, cfg))
+            .collect::<Vec<_>>(),
+    );
+    let mem = stat(
+        &sc.runs
+            .iter()
+            .filter_map(|v| peak_rss(v))
+            .map(|b| b / (1u64 << 20) as f64)
+            .collect::<Vec<_>>(),
+    );
+    let _ = writeln!(
+        md,
+        "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
+         M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
+         distance, per-vertex Pearson {}; mean per-part length error {} % (V2, species reference \
+         lengths: {} %). Preprocessing {} s; peak memory of a stage {} MiB.\n",
+        fmt_stat(outer, 2),
+        fmt_stat(root, 2),
+        fmt_stat(inside, 3),
+        fmt_stat(base, 2),
+        fmt_stat(corr, 2),
+        fmt_stat(len_err, 0),
+        fmt_stat(len_err_v2, 0),
+        fmt_stat(pre, 1),
+        fmt_stat(mem, 0),
+    );
+    let sp = g(&format!("{}.speedup_to_dense_final_fscore", cfg.speedup));
+    let lo = values(sc, &format!("{}.speedup_low", cfg.speedup))
+        .into_iter()
+        .reduce(f64::min);
+    let hi = values(sc, &format!("{}.speedup_high", cfg.speedup))
+        .into_iter()
+        .reduce(f64::max);
+    let count = |k: &str| {
+        values(sc, &format!("{}.{k}", cfg.speedup))
+            .iter()
+            .filter(|&&x| x > 0.0)
+            .count()
+    };
+    let reached = count("codec_reached_dense_final");
+    let at_start = count("codec_reached_dense_final_at_start");
+    let start_codec = g(&format!("{}.codec_start_fscore_3cm_30deg", cfg.speedup));
+    let start_dense = g(&format!("{}.dense_start_fscore_3cm_30deg", cfg.speedup));
+    let _ = writeln!(
+        md,
+        "Speed-up of the first method to dense's final F (3 cm, unsigned, from the snapshots): {} \
+         (the codec reached dense's final F in {reached} of {} seeds, {at_start} of them already \
+         untrained, where the ratio is undefined; snapshot bracket {}–{}). Untrained start, F at \
+         3 cm unsigned: codec {}, dense {}.\n",
+        fmt_stat(sp, 1),
+        sc.runs.len(),
+        lo.map_or("-".into(), |x| format!("{x:.1}")),
+        hi.map_or("-".into(), |x| format!("{x:.1}")),
+        fmt_stat(start_codec, 1),
+        fmt_stat(start_dense, 1),
+    );
+    sj.insert(
+        "preprocessing".into(),
+        json!({
+            "outer_to_skin_frac": stat_json(outer),
+            "root_to_skin_frac": stat_json(root),
+            "root_inside_body_frac": stat_json(inside),
+            "baseline_to_skin_frac": stat_json(base),
+            "frosting_vertex_pearson": stat_json(corr),
+            "length_error_mean_pct": stat_json(len_err),
+            "length_error_v2_mean_pct": stat_json(len_err_v2),
+            "seconds": stat_json(pre),
+            "peak_rss_mib": stat_json(mem),
+        }),
+    );
+    sj.insert(
+        "speedup".into(),
+        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense)}),
+    );
+}
+
+/// One CSV row per run and method (and the ceiling).
+fn runs_csv(scenes: &[Scene<'_>], cfg: &Config) -> String {
     let mut csv = String::from("scene,split,seed,variant,status,method");
     for t in THRESHOLDS {
         let _ = write!(
@@ -571,7 +607,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         ",direction_error_deg,curvature_vs_gt,psnr,ssim,training_seconds,optimised_parameters\n",
     );
     let num = |x: Option<f64>| x.map_or(String::new(), |x| format!("{x}"));
-    for sc in &scenes {
+    for sc in scenes {
         for v in &sc.runs {
             let seed = setting(v, &cfg.seed_setting).map(label).unwrap_or_default();
             let status = match v.status {
@@ -610,7 +646,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
             }
         }
     }
-    (md, csv, Json::Object(out))
+    csv
 }
 
 fn list_or_none(v: &[String]) -> String {

@@ -452,7 +452,10 @@ impl Stage for LengthsStage {
             Some(species) => species_reference_lengths_cm(species).ok_or_else(|| {
                 StageError::param(
                     "species",
-                    format!("unknown species `{species}`; expected one of {}", SPECIES.join(", ")),
+                    format!(
+                        "unknown species `{species}`; expected one of {}",
+                        SPECIES.join(", ")
+                    ),
                 )
             })?,
             None => BTreeMap::new(),
