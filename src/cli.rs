@@ -142,6 +142,12 @@ pub struct SweepArgs {
     /// and what would run; run nothing, write nothing.
     #[arg(long)]
     pub dry_run: bool,
+    /// Plain stage lines even on a terminal.
+    #[arg(long, conflicts_with = "quiet")]
+    pub plain: bool,
+    /// Only one line per variant, no stage lines.
+    #[arg(long)]
+    pub quiet: bool,
     #[command(flatten)]
     pub executor: ExecutorArgs,
     /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
@@ -525,19 +531,44 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     crate::publish::check(&p).map_err(|e| Failure::Usage(format!("error: {e}")))?;
     let cache = open_cache(cache_dir, Access::Shared)?;
     let (executor, remote_jobs) = executor(&a.executor, p.executor.as_ref(), &cache, a.dry_run)?;
+    // Stage lines show progress inside a long variant; a remote executor runs
+    // the variants at once, whose interleaved lines would not say which is which.
+    let ui = if a.quiet || a.dry_run || executor.is_remote() {
+        UiMode::Quiet
+    } else if a.plain {
+        UiMode::Plain
+    } else {
+        UiMode::detect()
+    };
     let opts = RunOptions {
         jobs: jobs_for(a.jobs, remote_jobs)?,
         cores: exec::available_cores(),
         out_root: if a.dry_run { None } else { Some(a.out.clone()) },
         dry_run: a.dry_run,
-        ui: UiMode::Quiet,
+        ui,
         keep_going: true,
         executor,
     };
-    println!("sweep {}: {} variants", p.name, variants.len());
-    let rows = sweep::run_sweep(engine, &p, &variants, &cache, &opts, &mut |row| {
-        print_variant(row, a.dry_run, &cache)
-    })?;
+    let total = variants.len();
+    println!("sweep {}: {total} variants", p.name);
+    let rows = sweep::run_sweep(
+        engine,
+        &p,
+        &variants,
+        &cache,
+        &opts,
+        &mut |v| {
+            if ui != UiMode::Quiet {
+                println!(
+                    "starting variant {} ({} of {total}): {}",
+                    v.index,
+                    v.index + 1,
+                    sweep::describe(v)
+                );
+            }
+        },
+        &mut |row| print_variant(row, a.dry_run, &cache),
+    )?;
     if a.dry_run {
         if !p.aggregates.is_empty() {
             println!(

@@ -309,13 +309,16 @@ pub fn variant_pipeline(pipeline: &Pipeline, v: &Variant) -> Result<Pipeline, Pi
 
 /// Runs every variant, each to the end (keep-going), after checking every
 /// variant and every aggregate stage; an invalid one is an error and nothing
-/// runs.
+/// runs. `on_start` is called before a variant runs (locally, one at a time;
+/// not with a remote executor, whose variants run at once), `on_row` when it
+/// has ended.
 pub fn run_sweep(
     engine: &Engine,
     pipeline: &Pipeline,
     variants: &[Variant],
     cache: &Cache,
     opts: &RunOptions,
+    on_start: &mut dyn FnMut(&Variant),
     on_row: &mut dyn FnMut(&Row),
 ) -> Result<Vec<Row>, PipelineErrors> {
     let mut plans = Vec::new();
@@ -366,6 +369,7 @@ pub fn run_sweep(
         return Ok(rows);
     }
     for (v, plan) in variants.iter().zip(&plans) {
+        on_start(v);
         let report = exec::run(plan, cache, &opts);
         let row = make_row(v, plan, report, cache);
         on_row(&row);

@@ -262,6 +262,16 @@ count = 5
     );
     assert!(s.line(1).ends_with(": ok"), "{}", s.line(1));
     assert!(s.stdout().contains("1 of 2 variants failed"), "{}", s.all());
+    // Progress inside a variant: a line as it starts, then its stage lines.
+    let out = s.stdout();
+    let start = out.find("starting variant 1 (2 of 2): ").expect(&s.all());
+    let done = out[start..].find("done    after").expect(&s.all());
+    assert!(out[start..start + done].lines().count() >= 2, "{}", s.all());
+    assert!(out.contains("failed  bad  "), "{}", s.all());
+    // --quiet: only the variant lines.
+    let q = p.sweep(&["sweep", "k.toml", "--jobs", "1", "--quiet"]);
+    assert!(!q.stdout().contains("starting variant"), "{}", q.all());
+    assert!(q.line(1).ends_with(": ok"), "{}", q.all());
     let r = json(&p.read("out/k/sweep.json"));
     assert_eq!(r["variants"][0]["status"], "failed");
     assert_eq!(r["variants"][1]["status"], "ok");
