@@ -17,10 +17,10 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use fure_stages::defur::{defur, DefurSettings};
-use fure_stages::mesh::Mesh;
+use fure_stages::data::mesh::Mesh;
+use fure_stages::data::shell::ShellWidths;
 use fure_stages::render::Vec3;
-use fure_stages::shell::ShellWidths;
+use fure_stages::thickness::defur::{defur, DefurSettings};
 
 mod common;
 use common::Rng;

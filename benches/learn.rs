@@ -15,10 +15,10 @@
 
 use std::time::Instant;
 
-use fure_stages::learn::mlp::{Mlp, PositionalEncoding};
-use fure_stages::learn::model::{Codec, Dense, Model, Prepared, Rates};
-use fure_stages::learn::placement::Decoder;
-use fure_stages::learn::train::subset;
+use fure_stages::growth::learn::mlp::{Mlp, PositionalEncoding};
+use fure_stages::growth::learn::model::{Codec, Dense, Model, Prepared, Rates};
+use fure_stages::growth::learn::placement::Decoder;
+use fure_stages::growth::learn::train::subset;
 use fure_stages::render::{Mat3, Vec3};
 
 mod common;

@@ -16,7 +16,7 @@
 
 use std::time::Instant;
 
-use fure_stages::image::ImageF32;
+use fure_stages::data::image::ImageF32;
 use fure_stages::render::{backward, render, OutputGrads, RenderSettings, Vec3};
 
 mod common;

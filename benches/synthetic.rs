@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use fure_stage_api::{NoProgress, Params, StageContext};
-use fure_stages::synthetic::{run_settings, Settings};
+use fure_stages::scenes::synthetic::{run_settings, Settings};
 
 fn main() {
     let preset = std::env::var("FURE_BENCH_PRESET").unwrap_or_else(|_| "tiger".to_string());

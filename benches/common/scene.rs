@@ -1,7 +1,7 @@
 //! The renderer benchmarks' scene (`render.rs`, `gpu.rs`): a ball of short
 //! strands seen by one square camera.
 
-use fure_stages::camera::Camera;
+use fure_stages::data::camera::Camera;
 use fure_stages::render::{strands_to_gaussians, Gaussians, Mat4, Vec3};
 
 use crate::common::Rng;

@@ -30,20 +30,20 @@ use std::collections::BTreeMap;
 use std::error::Error;
 use std::path::{Path, PathBuf};
 
-use fure_stages::defur::{
-    defur, distances_to, gt_mean_thickness_cm, postcheck, thickness, vertex_areas, vertex_normals,
-    DefurSettings, GtComparison, DEFAULT_PROTECTED,
-};
+use fure_stages::data::mesh::Mesh;
+use fure_stages::data::scene::SceneInfo;
+use fure_stages::data::shell::ShellWidths;
 use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
-use fure_stages::frosting::Offsets;
-use fure_stages::geom::{MeshQuery, PointIndex};
-use fure_stages::mesh::Mesh;
-use fure_stages::parts::protected_parts;
-use fure_stages::scene::SceneInfo;
-use fure_stages::shell::ShellWidths;
-use fure_stages::stats::percentile;
+use fure_stages::maths::geom::{MeshQuery, PointIndex};
+use fure_stages::maths::stats::percentile;
+use fure_stages::surface::parts::protected_parts;
+use fure_stages::thickness::defur::{
+    defur, distances_to, gt_mean_thickness_cm, postcheck, thickness, vertex_areas, vertex_normals,
+    DefurSettings, GtComparison, DEFAULT_PROTECTED,
+};
+use fure_stages::thickness::frosting::Offsets;
 
 type Res = Result<(), Box<dyn Error>>;
 
@@ -194,7 +194,7 @@ fn oracle(run: Loaded) -> Res {
         }
     }
     eprintln!("part          GT_len  T_p(oracle)  m_p  oracle_len  err%   needed m_p");
-    let defaults: BTreeMap<&str, f32> = fure_stages::lengths::DEFAULT_MULTIPLIERS
+    let defaults: BTreeMap<&str, f32> = fure_stages::thickness::lengths::DEFAULT_MULTIPLIERS
         .iter()
         .copied()
         .collect();

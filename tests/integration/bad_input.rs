@@ -369,8 +369,11 @@ fn missing_truncated_and_garbage_images_name_the_file() {
     // A mask of the wrong size.
     let small = {
         let p = s.path("small.png");
-        fure_stages::formats::images::write_png(&p, &fure_stages::image::ImageF32::new(8, 8, 1))
-            .unwrap();
+        fure_stages::formats::images::write_png(
+            &p,
+            &fure_stages::data::image::ImageF32::new(8, 8, 1),
+        )
+        .unwrap();
         std::fs::read(p).unwrap()
     };
     s.write(mask, &small);
@@ -555,8 +558,11 @@ fn an_empty_mask_names_the_mask_file() {
     let good = s.read(mask);
     let empty = {
         let p = s.path("empty.png");
-        fure_stages::formats::images::write_png(&p, &fure_stages::image::ImageF32::new(48, 48, 1))
-            .unwrap();
+        fure_stages::formats::images::write_png(
+            &p,
+            &fure_stages::data::image::ImageF32::new(48, 48, 1),
+        )
+        .unwrap();
         std::fs::read(p).unwrap()
     };
     s.write(mask, &empty);

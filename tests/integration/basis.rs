@@ -73,7 +73,7 @@ fn perm_npz(path: &Path, k: usize, shape_bins: usize) {
         fb.resize(shape_bins * 6, 0.0);
         blend.extend(fb);
     }
-    let bytes = fure_stages::basis::npz_bytes(&[
+    let bytes = fure_stages::growth::strand_basis::npz_bytes(&[
         ("mean_shape", &[1, BINS, 6], &features(&mean), false),
         ("blend_shapes", &[k, shape_bins, 6], &blend, true),
     ]);
@@ -110,7 +110,7 @@ fn a_perm_npz_runs_through_codec_training_to_evaluation() {
     assert_eq!(m["source"], "perm", "{m}");
     assert_eq!(m["k"], 6, "{m}");
     assert_eq!(m["points"], 8, "{m}");
-    let basis: fure_stages::basis::StrandBasis =
+    let basis: fure_stages::growth::strand_basis::StrandBasis =
         serde_json::from_value(read_json(&out.join("basis/basis.json"))).unwrap();
     basis.validate("basis.json").unwrap();
     let arc: f32 = basis.mean.windows(2).map(|w| (w[1] - w[0]).length()).sum();
@@ -119,7 +119,9 @@ fn a_perm_npz_runs_through_codec_training_to_evaluation() {
     assert!(basis.mean[7].x > 0.9, "{:?}", basis.mean);
 
     // The codec trained on it and wrote finite strands that the evaluation scored.
-    let strands = fure_stages::evaluate::read_strands_any(&out.join("codec/strands.hair")).unwrap();
+    let strands =
+        fure_stages::evaluation::evaluate::read_strands_any(&out.join("codec/strands.hair"))
+            .unwrap();
     assert!(!strands.is_empty());
     assert!(strands.points.iter().all(|p| p.is_finite()));
     let eval = read_json(&out.join("evaluate/metrics.json"));

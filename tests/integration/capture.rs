@@ -228,7 +228,7 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     }
     cameras::write_views(
         &ngp,
-        &fure_stages::camera::CameraSet {
+        &fure_stages::data::camera::CameraSet {
             train: read.train.clone(),
             test: vec![],
         },

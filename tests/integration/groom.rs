@@ -16,7 +16,13 @@ use crate::engine::Project;
 use crate::method::tiny_pipeline;
 
 /// Reads the root mesh, the strands and s_cm of a tiny tiger run.
-fn inputs(out: &Path) -> (fure_stages::mesh::Mesh, fure_stages::strands::Strands, f32) {
+fn inputs(
+    out: &Path,
+) -> (
+    fure_stages::data::mesh::Mesh,
+    fure_stages::data::strands::Strands,
+    f32,
+) {
     let mesh = fure_stages::formats::obj::read_obj(out.join("defur/root_mesh.obj")).unwrap();
     let strands =
         fure_stages::formats::ply::read_ply_strands(out.join("codec/strands_ply.ply")).unwrap();

@@ -437,7 +437,7 @@ fn a_capture_in_centimetres_gives_the_metre_result_times_100() {
         fure_stages::formats::hair::read_hair(dir.join("codec/strands.hair")).unwrap()
     };
     let (hm, hc, hr) = (read(&m), read(&cm), read(&p.path("out_m1/capture")));
-    let strand = |h: &fure_stages::strands::Strands, i: usize| -> Vec<[f64; 3]> {
+    let strand = |h: &fure_stages::data::strands::Strands, i: usize| -> Vec<[f64; 3]> {
         h.points[h.starts[i] as usize..h.starts[i + 1] as usize]
             .iter()
             .map(|p| p.to_array().map(f64::from))
@@ -450,7 +450,7 @@ fn a_capture_in_centimetres_gives_the_metre_result_times_100() {
     let nm = hm.starts.len() - 1;
     // Strands of `h` (lengths / div) twinned by root with the metre run's:
     // how many have no twin, and the mean point distance of the twins.
-    let compare = |h: &fure_stages::strands::Strands, div: f64| -> (usize, f64) {
+    let compare = |h: &fure_stages::data::strands::Strands, div: f64| -> (usize, f64) {
         let n = h.starts.len() - 1;
         assert!(
             nm.abs_diff(n) as f64 <= 0.005 * nm as f64,

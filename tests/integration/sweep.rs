@@ -264,8 +264,12 @@ count = 5
     assert!(s.stdout().contains("1 of 2 variants failed"), "{}", s.all());
     // Progress inside a variant: a line as it starts, then its stage lines.
     let out = s.stdout();
-    let start = out.find("starting variant 1 (2 of 2): ").expect(&s.all());
-    let done = out[start..].find("done    after").expect(&s.all());
+    let start = out
+        .find("starting variant 1 (2 of 2): ")
+        .unwrap_or_else(|| panic!("{}", s.all()));
+    let done = out[start..]
+        .find("done    after")
+        .unwrap_or_else(|| panic!("{}", s.all()));
     assert!(out[start..start + done].lines().count() >= 2, "{}", s.all());
     assert!(out.contains("failed  bad  "), "{}", s.all());
     // --quiet: only the variant lines.

@@ -39,8 +39,8 @@ use std::path::Path;
 use glam::Vec3;
 
 use super::{check_finite, write_bytes, FormatError};
-use crate::mesh::Mesh;
-use crate::strands::Strands;
+use crate::data::mesh::Mesh;
+use crate::data::strands::Strands;
 
 /// Longest line of base64 data in the script.
 pub const LINE: usize = 1000;

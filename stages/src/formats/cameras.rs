@@ -65,8 +65,8 @@ use serde_json::{Map, Value};
 
 use super::json::{from_slice, to_pretty_bytes};
 use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
-use crate::camera::{Camera, CameraSet};
-use crate::image::ImageF32;
+use crate::data::camera::{Camera, CameraSet};
+use crate::data::image::ImageF32;
 
 /// Image extensions probed for extension-less `file_path`s, in order.
 const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];

@@ -39,7 +39,7 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DQuat, DVec3, Mat4};
 
 use super::{read_bytes, write_bytes, FormatError, Position};
-use crate::camera::{Camera, CameraSet};
+use crate::data::camera::{Camera, CameraSet};
 
 /// One in this many images (by sorted name, from the first) is held out for testing.
 pub const HOLDOUT_EVERY: usize = 8;

@@ -25,10 +25,10 @@ use proptest::prelude::*;
 use proptest::test_runner::Config;
 
 use super::FormatError;
-use crate::camera::{Camera, CameraSet};
-use crate::image::ImageF32;
-use crate::mesh::Mesh;
-use crate::strands::Strands;
+use crate::data::camera::{Camera, CameraSet};
+use crate::data::image::ImageF32;
+use crate::data::mesh::Mesh;
+use crate::data::strands::Strands;
 
 /// Cases per target when `PROPTEST_CASES` is not set.
 pub const DEFAULT_CASES: u32 = 64;

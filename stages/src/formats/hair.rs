@@ -35,7 +35,7 @@ use std::path::Path;
 use glam::Vec3;
 
 use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
-use crate::strands::Strands;
+use crate::data::strands::Strands;
 
 const HEADER: usize = 128;
 const FLAG_SEGMENTS: u32 = 1;

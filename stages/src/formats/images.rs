@@ -34,7 +34,7 @@ use image::{DynamicImage, ImageDecoder};
 use super::{
     check_finite, extension, read_bytes, write_bytes, FormatError, Position, TrackingReader,
 };
-use crate::image::ImageF32;
+use crate::data::image::ImageF32;
 
 const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
 

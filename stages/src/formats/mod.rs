@@ -5,15 +5,15 @@
 //! | module      | files                                   | data                       |
 //! |-------------|-----------------------------------------|----------------------------|
 //! | [`json`]    | any serde type, pretty JSON             | `T: Serialize/Deserialize` |
-//! | [`cameras`] | a views directory with `transforms*.json` (NeRF / instant-ngp / NeuS2), or a COLMAP one | [`CameraSet`](crate::camera::CameraSet) |
-//! | [`colmap`]  | COLMAP sparse model `cameras`/`images` (`.txt`, `.bin`), with `images/` and `masks/` | [`CameraSet`](crate::camera::CameraSet) |
-//! | [`images`]  | PNG (8/16 bit, gray/GA/RGB/RGBA), OpenEXR (float), JPEG (read only) | [`ImageF32`](crate::image::ImageF32) |
-//! | [`obj`]     | Wavefront OBJ, one group per part       | [`Mesh`](crate::mesh::Mesh) |
-//! | [`hair`]    | Cem Yuksel `.hair`                      | [`Strands`](crate::strands::Strands) |
-//! | [`ply`]     | PLY polylines (vertex + edge elements)  | [`Strands`](crate::strands::Strands) |
+//! | [`cameras`] | a views directory with `transforms*.json` (NeRF / instant-ngp / NeuS2), or a COLMAP one | [`CameraSet`](crate::data::camera::CameraSet) |
+//! | [`colmap`]  | COLMAP sparse model `cameras`/`images` (`.txt`, `.bin`), with `images/` and `masks/` | [`CameraSet`](crate::data::camera::CameraSet) |
+//! | [`images`]  | PNG (8/16 bit, gray/GA/RGB/RGBA), OpenEXR (float), JPEG (read only) | [`ImageF32`](crate::data::image::ImageF32) |
+//! | [`obj`]     | Wavefront OBJ, one group per part       | [`Mesh`](crate::data::mesh::Mesh) |
+//! | [`hair`]    | Cem Yuksel `.hair`                      | [`Strands`](crate::data::strands::Strands) |
+//! | [`ply`]     | PLY polylines (vertex + edge elements)  | [`Strands`](crate::data::strands::Strands) |
 //! | [`scalars`] | per-vertex floats, JSON `{"values": [...]}` | `Vec<f32>`             |
-//! | [`blender`] | a groom as a Blender Python script (write only) | [`Strands`](crate::strands::Strands) + [`Mesh`](crate::mesh::Mesh) |
-//! | [`usd`]     | a groom as USD `.usda`: BasisCurves + Mesh (write only) | [`Strands`](crate::strands::Strands) + [`Mesh`](crate::mesh::Mesh) |
+//! | [`blender`] | a groom as a Blender Python script (write only) | [`Strands`](crate::data::strands::Strands) + [`Mesh`](crate::data::mesh::Mesh) |
+//! | [`usd`]     | a groom as USD `.usda`: BasisCurves + Mesh (write only) | [`Strands`](crate::data::strands::Strands) + [`Mesh`](crate::data::mesh::Mesh) |
 //!
 //! Common rules, kept by every module:
 //!
@@ -162,7 +162,7 @@ impl FormatError {
 
 /// Reads strands by file extension: `.hair` ([`hair::read_hair`]) or `.ply`
 /// ([`ply::read_ply_strands`]).
-pub fn read_strands(path: impl AsRef<Path>) -> Result<crate::strands::Strands, FormatError> {
+pub fn read_strands(path: impl AsRef<Path>) -> Result<crate::data::strands::Strands, FormatError> {
     let path = path.as_ref();
     match extension(path).as_str() {
         "hair" => hair::read_hair(path),
@@ -177,7 +177,7 @@ pub fn read_strands(path: impl AsRef<Path>) -> Result<crate::strands::Strands, F
 /// Writes strands by file extension: `.hair` or `.ply` (binary little endian).
 pub fn write_strands(
     path: impl AsRef<Path>,
-    strands: &crate::strands::Strands,
+    strands: &crate::data::strands::Strands,
 ) -> Result<(), FormatError> {
     let path = path.as_ref();
     match extension(path).as_str() {

@@ -45,7 +45,7 @@ use fure_stage_api::{StageContext, StageError};
 use glam::Vec3;
 
 use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
-use crate::mesh::Mesh;
+use crate::data::mesh::Mesh;
 
 const LABEL_COMMENT: &str = "# fure-vertex-parts";
 

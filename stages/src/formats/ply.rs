@@ -55,7 +55,7 @@ use std::path::Path;
 use glam::Vec3;
 
 use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
-use crate::strands::Strands;
+use crate::data::strands::Strands;
 
 /// Reads a strand PLY (see the module doc).
 pub fn read_ply_strands(path: impl AsRef<Path>) -> Result<Strands, FormatError> {

@@ -27,8 +27,8 @@ use glam::Vec3;
 
 use super::blender::{check_groom, strand_part_names};
 use super::{write_bytes, FormatError};
-use crate::mesh::Mesh;
-use crate::strands::Strands;
+use crate::data::mesh::Mesh;
+use crate::data::strands::Strands;
 
 /// The stage metadata of the layer.
 #[derive(Debug, Clone, PartialEq)]

@@ -15,9 +15,9 @@
 use std::path::{Path, PathBuf};
 
 use super::{orientation_from_feature, RenderOutput};
+use crate::data::image::ImageF32;
 use crate::formats::images::{write_exr, write_png};
 use crate::formats::FormatError;
-use crate::image::ImageF32;
 
 /// HSV (all in [0, 1]) to RGB.
 fn hsv(h: f32, s: f32, v: f32) -> [f32; 3] {

@@ -17,7 +17,7 @@ use serde_json::{json, Value};
 use super::gaussians::{GaussianGrads, Gaussians};
 use super::raster::{OutputGrads, RenderOutput, RenderState};
 use super::{RenderError, RenderSettings};
-use crate::camera::Camera;
+use crate::data::camera::Camera;
 
 /// The values of the `device` parameter.
 pub const DEVICE_CHOICES: &[&str] = &["auto", "cpu", "gpu"];

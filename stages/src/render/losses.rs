@@ -28,7 +28,7 @@
 
 use super::raster::check_image;
 use super::RenderError;
-use crate::image::ImageF32;
+use crate::data::image::ImageF32;
 
 /// Below this squared feature magnitude the rendered orientation carries no
 /// gradient.

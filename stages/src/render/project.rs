@@ -12,7 +12,7 @@
 use glam::{Mat3, Quat, Vec2, Vec3};
 
 use super::{RenderSettings, SH_C0, SH_C1};
-use crate::camera::Camera;
+use crate::data::camera::Camera;
 
 /// Per-Gaussian blended features: RGB, alpha (constant 1), depth, the two
 /// orientation components and the fur flag.

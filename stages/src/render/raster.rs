@@ -21,8 +21,8 @@ use super::project::{
     NF,
 };
 use super::{RenderError, RenderSettings, TILE};
-use crate::camera::Camera;
-use crate::image::ImageF32;
+use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
 
 const TP: usize = (TILE * TILE) as usize;
 /// Gaussians per rayon task in the per-Gaussian passes.

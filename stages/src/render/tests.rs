@@ -7,8 +7,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::*;
-use crate::camera::Camera;
-use crate::image::ImageF32;
+use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
 
 pub(crate) fn test_camera(size: u32, eye: Vec3, target: Vec3) -> Camera {
     // look_at_rh gives the w2c of a camera looking down -z (OpenGL).

@@ -41,8 +41,8 @@ use super::gaussians::{GaussianGrads, Gaussians};
 use super::project::CamData;
 use super::raster::{check_image, OutputGrads, RenderOutput};
 use super::{RenderError, RenderSettings, TILE};
-use crate::camera::Camera;
-use crate::image::ImageF32;
+use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
 
 #[cfg(test)]
 mod tests;

@@ -13,8 +13,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::{GpuMode, GpuRenderer};
-use crate::camera::Camera;
-use crate::image::ImageF32;
+use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
 use crate::render::tests::{random_output_grads, test_camera};
 use crate::render::{
     backward, render, strands_to_gaussians, GaussianGrads, Gaussians, OutputGrads, RenderOutput,

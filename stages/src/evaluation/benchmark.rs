@@ -1,0 +1,1100 @@
+//! The `benchmark_report` stage: the benchmark suite's results document, from a sweep record.
+//!
+//! `pipelines/benchmark.toml` sweeps scenes x seeds (linked keys: the preset with the baseline's
+//! species table, the scene seed with every learner's seed) over the method and its ablations; this
+//! stage, its aggregate, turns the engine's record (`sweep.json`, see [`crate::evaluation::stability`] for its
+//! reader) into `results.md`, charts, a CSV of every run and `metrics.json` with the aggregates.
+//!
+//! # Protocol (what the document states and the code enforces)
+//! - Scenes belong to declared splits: `dev` (the only scenes a default may be tuned on) and `test`
+//!   (reported, never used to choose). A scene in neither is listed as `unsplit`.
+//! - Per scene and method every figure is the mean and the sample standard deviation over seeds
+//!   (`n - 1` in the denominator; with one seed the spread is unknown and shown as `-`).
+//! - A comparison A vs B at a threshold is **won** only when A's mean is ahead by more than the
+//!   seed spread, taken as the larger of the two standard deviations; behind by more is **lost**;
+//!   anything else is a **tie**. With fewer than two seeds a side it is **undecided**: one run says
+//!   nothing about the spread.
+//! - The headline is the signed F-score (growth direction counted). Each scene's **ceiling** is the
+//!   same animal regrown with another seed, scored against the GT (`ceiling` prefix): what a
+//!   reconstruction could reach when only the seed's draws differ.
+//!
+//! # Keys read from the record
+//! A method is `NAME=EVAL[:LEARNER]`: `EVAL` the prefix of its `evaluate` stage
+//! (`EVAL.prf_signed.<d>cm_<a>deg.fscore`, `EVAL.direction_error_deg`,
+//! `EVAL.local_curvature_variance_vs_gt`, `EVAL.psnr`, `EVAL.ssim`), `LEARNER` its learning stage
+//! (`LEARNER.optimised_parameters`, and the compute seconds `costs.LEARNER.seconds`). Preprocessing
+//! time is the sum of `costs.S.seconds` over the `preprocessing` stages; peak memory the largest
+//! `costs.*.peak_rss_bytes` of the variant. Fur thickness: `defur.{outer,root,baseline}_to_skin_mean_frac`,
+//! `frosting.gt_vertex.pearson`, `lengths.length_error_mean_pct`, and for the V2 lengths (species
+//! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
+//! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`.
+//! A missing key is a missing figure (`-`), never a zero.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use serde_json::{json, Map, Value as Json};
+
+use crate::evaluation::charts::{chart_err, fmt_num, write_png_chart, write_svg_chart};
+use crate::evaluation::stability::{SweepRecord, VariantRecord};
+
+/// The line `fure sweep`'s `[publish]` replaces with the date, machine, revision and command
+/// (the engine's `publish::PROVENANCE_MARK`): a cached output cannot say when it was made.
+pub const PROVENANCE_MARK: &str = "<!-- fure:provenance -->";
+
+/// The thresholds of the signed F-score, strict first (cm, degrees).
+pub const THRESHOLDS: [(f32, f32); 4] = [(1.0, 10.0), (2.0, 20.0), (3.0, 30.0), (4.0, 40.0)];
+
+/// One method of the suite: a display name, its evaluation prefix and its learner stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Method {
+    pub name: String,
+    pub eval: String,
+    pub learner: Option<String>,
+}
+
+/// Parses `NAME=EVAL[:LEARNER]`.
+pub fn parse_method(s: &str) -> Result<Method, String> {
+    let (name, rest) = s
+        .split_once('=')
+        .ok_or_else(|| format!("`{s}`: expected NAME=EVAL_STAGE[:LEARNER_STAGE]"))?;
+    let (eval, learner) = match rest.split_once(':') {
+        Some((e, l)) => (e.trim(), Some(l.trim().to_string())),
+        None => (rest.trim(), None),
+    };
+    if name.trim().is_empty() || eval.is_empty() || learner.as_deref() == Some("") {
+        return Err(format!(
+            "`{s}`: expected NAME=EVAL_STAGE[:LEARNER_STAGE], none of them empty"
+        ));
+    }
+    Ok(Method {
+        name: name.trim().to_string(),
+        eval: eval.to_string(),
+        learner,
+    })
+}
+
+/// What the report needs besides the record.
+#[derive(Debug, Clone)]
+pub struct Config {
+    pub dev: Vec<String>,
+    pub test: Vec<String>,
+    pub scene_setting: String,
+    pub seed_setting: String,
+    pub methods: Vec<Method>,
+    pub ceiling: String,
+    pub preprocessing: Vec<String>,
+    pub speedup: String,
+    /// The lengths stage with species reference lengths (V2), reported beside `lengths`.
+    pub v2_lengths: String,
+    /// Where the published charts are, relative to the published document.
+    pub charts_link: String,
+}
+
+/// Mean, sample standard deviation (`None` below two values) and count.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stat {
+    pub mean: f64,
+    pub sd: Option<f64>,
+    pub n: usize,
+}
+
+/// [`Stat`] of the finite values, `None` when there are none.
+pub fn stat(values: &[f64]) -> Option<Stat> {
+    let v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    let n = v.len();
+    let mean = v.iter().sum::<f64>() / n as f64;
+    let sd = (n > 1)
+        .then(|| (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64).sqrt());
+    Some(Stat { mean, sd, n })
+}
+
+/// The protocol's verdict on A against B.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    Won,
+    Lost,
+    Tie,
+    Undecided,
+}
+
+impl Verdict {
+    pub fn label(self) -> &'static str {
+        match self {
+            Verdict::Won => "won",
+            Verdict::Lost => "lost",
+            Verdict::Tie => "tie",
+            Verdict::Undecided => "undecided (1 seed)",
+        }
+    }
+}
+
+/// A vs B: won when A's mean is ahead by more than the larger standard deviation (module doc).
+pub fn verdict(a: &Stat, b: &Stat) -> Verdict {
+    let (Some(sa), Some(sb)) = (a.sd, b.sd) else {
+        return Verdict::Undecided;
+    };
+    let spread = sa.max(sb);
+    let d = a.mean - b.mean;
+    if d > spread {
+        Verdict::Won
+    } else if -d > spread {
+        Verdict::Lost
+    } else {
+        Verdict::Tie
+    }
+}
+
+fn f_key(eval: &str, t: (f32, f32)) -> String {
+    format!(
+        "{eval}.prf_signed.{}.fscore",
+        crate::evaluation::evaluate::threshold_key(t.0, t.1)
+    )
+}
+
+/// The value of the setting whose (possibly linked) key names `target`.
+fn setting<'a>(v: &'a VariantRecord, target: &str) -> Option<&'a Json> {
+    v.settings
+        .iter()
+        .find(|(k, _)| k.split(',').any(|t| t.trim() == target))
+        .map(|(_, x)| x)
+}
+
+fn label(x: &Json) -> String {
+    match x {
+        Json::String(s) => s.clone(),
+        other => other.to_string(),
+    }
+}
+
+/// The runs of one scene: its variants (each one seed).
+struct Scene<'a> {
+    name: String,
+    split: &'static str,
+    runs: Vec<&'a VariantRecord>,
+}
+
+fn scenes<'a>(rec: &'a SweepRecord, cfg: &Config) -> Vec<Scene<'a>> {
+    let mut by: BTreeMap<String, Vec<&VariantRecord>> = BTreeMap::new();
+    for v in &rec.variants {
+        let name = setting(v, &cfg.scene_setting)
+            .map(label)
+            .unwrap_or_else(|| "-".into());
+        by.entry(name).or_default().push(v);
+    }
+    let mut out = Vec::new();
+    let mut take =
+        |name: &str, split: &'static str, by: &mut BTreeMap<String, Vec<&'a VariantRecord>>| {
+            if let Some(runs) = by.remove(name) {
+                out.push(Scene {
+                    name: name.to_string(),
+                    split,
+                    runs,
+                });
+            }
+        };
+    for s in &cfg.dev {
+        take(s, "dev", &mut by);
+    }
+    for s in &cfg.test {
+        take(s, "test", &mut by);
+    }
+    let rest: Vec<String> = by.keys().cloned().collect();
+    for s in rest {
+        take(&s, "unsplit", &mut by);
+    }
+    out
+}
+
+/// The values of `key` over a scene's runs that have it.
+fn values(sc: &Scene<'_>, key: &str) -> Vec<f64> {
+    sc.runs
+        .iter()
+        .filter_map(|v| v.metrics.get(key).copied())
+        .collect()
+}
+
+fn cost(v: &VariantRecord, stage: &str) -> Option<f64> {
+    v.costs.get(&format!("{stage}.seconds")).copied()
+}
+
+fn peak_rss(v: &VariantRecord) -> Option<f64> {
+    v.costs
+        .iter()
+        .filter(|(k, _)| k.ends_with(".peak_rss_bytes"))
+        .map(|(_, x)| *x)
+        .reduce(f64::max)
+}
+
+fn preprocessing_seconds(v: &VariantRecord, cfg: &Config) -> Option<f64> {
+    let s: Vec<f64> = cfg
+        .preprocessing
+        .iter()
+        .filter_map(|st| cost(v, st))
+        .collect();
+    (!s.is_empty()).then(|| s.iter().sum())
+}
+
+fn fmt_stat(s: Option<Stat>, digits: usize) -> String {
+    match s {
+        None => "-".into(),
+        Some(Stat {
+            mean, sd: Some(sd), ..
+        }) => format!("{mean:.digits$} ± {sd:.digits$}"),
+        Some(Stat { mean, .. }) => format!("{mean:.digits$}"),
+    }
+}
+
+fn stat_json(s: Option<Stat>) -> Json {
+    match s {
+        None => Json::Null,
+        Some(s) => json!({"mean": s.mean, "sd": s.sd, "n": s.n}),
+    }
+}
+
+/// Everything the stage writes except the charts: (results.md, runs.csv, metrics.json).
+pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
+    let scenes = scenes(rec, cfg);
+    let mut md = String::new();
+    let mut out = Map::new();
+    write_preamble(&mut md, rec, cfg);
+    write_headlines(&mut md, &scenes, cfg);
+    if let Some(verdicts) = write_comparisons(&mut md, &scenes, cfg) {
+        out.insert("verdicts".into(), verdicts);
+    }
+    let _ = writeln!(md, "## Per scene\n");
+    let per_scene: Map<String, Json> = scenes
+        .iter()
+        .map(|sc| (sc.name.clone(), write_scene(&mut md, sc, cfg)))
+        .collect();
+    out.insert("scenes".into(), per_scene.into());
+    out.insert("runs".into(), rec.variants.len().into());
+    (md, runs_csv(&scenes, cfg), Json::Object(out))
+}
+
+/// Title, provenance mark, splits, seeds and the rules the tables follow.
+fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
+    let _ = writeln!(md, "# Benchmark results: `{}`\n", rec.pipeline);
+    let _ = writeln!(md, "{}\n", PROVENANCE_MARK);
+    let seeds: Vec<String> = {
+        let mut s: Vec<String> = rec
+            .variants
+            .iter()
+            .filter_map(|v| setting(v, &cfg.seed_setting).map(label))
+            .collect();
+        s.sort();
+        s.dedup();
+        s
+    };
+    let _ =
+        writeln!(
+        md,
+        "Splits: **dev** {} (the only scenes any default may be tuned on); **test** {} (reported, \
+         never used to choose). Seeds: {} (each regrows the animal and reseeds every learner). \
+         {} runs, {} failed.\n",
+        list_or_none(&cfg.dev),
+        list_or_none(&cfg.test),
+        if seeds.is_empty() { "-".into() } else { seeds.join(", ") },
+        rec.variants.len(),
+        rec.variants
+            .iter()
+            .filter(|v| v.status == crate::evaluation::stability::EngineStatus::Failed)
+            .count(),
+    );
+    let _ = writeln!(
+        md,
+        "Every figure is mean ± sample standard deviation over seeds. A comparison is **won** only \
+         when the mean is ahead by more than the seed spread (the larger standard deviation of the \
+         two), **lost** when behind by more, a **tie** otherwise, and **undecided** with one seed. \
+         F-scores are signed (growth direction counted), in %; the **ceiling** is the same animal \
+         regrown with another seed, scored against the GT.\n"
+    );
+}
+
+/// Headline: signed F at 3 cm / 30 deg and the strict 1 cm / 10 deg, per split, scene and method.
+fn write_headlines(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) {
+    let t3 = THRESHOLDS[2];
+    let t1 = THRESHOLDS[0];
+    for split in ["dev", "test", "unsplit"] {
+        let in_split: Vec<&Scene<'_>> = scenes.iter().filter(|s| s.split == split).collect();
+        if in_split.is_empty() {
+            continue;
+        }
+        let _ = writeln!(
+            md,
+            "## Headline, {split} split: signed F at 3 cm / 30° (strict 1 cm / 10° below)\n"
+        );
+        let mut head = "| scene | seeds |".to_string();
+        let mut rule = "|---|---|".to_string();
+        for m in &cfg.methods {
+            let _ = write!(head, " {} |", m.name);
+            rule.push_str("---|");
+        }
+        let _ = writeln!(md, "{head} ceiling |\n{rule}---|");
+        for sc in &in_split {
+            for t in [t3, t1] {
+                let mut row = format!(
+                    "| {}{} | {} |",
+                    sc.name,
+                    if t == t1 { " (1 cm)" } else { "" },
+                    sc.runs.len()
+                );
+                for m in &cfg.methods {
+                    let _ = write!(
+                        row,
+                        " {} |",
+                        fmt_stat(stat(&values(sc, &f_key(&m.eval, t))), 1)
+                    );
+                }
+                let _ = write!(
+                    row,
+                    " {} |",
+                    fmt_stat(stat(&values(sc, &f_key(&cfg.ceiling, t))), 1)
+                );
+                let _ = writeln!(md, "{row}");
+            }
+        }
+        let _ = writeln!(md);
+    }
+}
+
+/// Verdicts of the first method against each other one, per scene and threshold (the JSON
+/// `verdicts`; `None` without methods).
+fn write_comparisons(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) -> Option<Json> {
+    if let Some((first, others)) = cfg.methods.split_first() {
+        let _ = writeln!(
+            md,
+            "## Comparisons: {} against each method (signed F)\n",
+            first.name
+        );
+        let _ = writeln!(md, "| scene | split | against | 1 cm | 2 cm | 3 cm | 4 cm |\n|---|---|---|---|---|---|---|");
+        let mut verdicts = Map::new();
+        for sc in scenes {
+            for o in others {
+                let mut row = format!("| {} | {} | {} |", sc.name, sc.split, o.name);
+                let mut vj = Map::new();
+                for t in THRESHOLDS {
+                    let a = stat(&values(sc, &f_key(&first.eval, t)));
+                    let b = stat(&values(sc, &f_key(&o.eval, t)));
+                    let cell = match (a, b) {
+                        (Some(a), Some(b)) => {
+                            let v = verdict(&a, &b);
+                            vj.insert(
+                                crate::evaluation::evaluate::threshold_key(t.0, t.1),
+                                v.label().into(),
+                            );
+                            format!("{} ({:+.1})", v.label(), a.mean - b.mean)
+                        }
+                        _ => "-".into(),
+                    };
+                    let _ = write!(row, " {cell} |");
+                }
+                let _ = writeln!(md, "{row}");
+                verdicts.insert(format!("{}|{}", sc.name, o.name), vj.into());
+            }
+        }
+        let _ = writeln!(md);
+        return Some(verdicts.into());
+    }
+    None
+}
+
+/// One scene's section: every method in full, the fur-thickness and speed figures; its JSON.
+fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
+    let mut sj = Map::new();
+    write_method_table(md, sc, cfg, &mut sj);
+    write_thickness_and_speed(md, sc, cfg, &mut sj);
+    sj.insert("split".into(), sc.split.into());
+    let _ = writeln!(
+        md,
+        "![F vs training time, {0}]({2}/f_vs_time_{1}.svg) ![F vs model size, {0}]({2}/f_vs_size_{1}.svg)\n",
+        sc.name,
+        safe(&sc.name),
+        cfg.charts_link
+    );
+    sj.into()
+}
+
+/// The scene's table: F-scores, direction and shape errors, PSNR/SSIM, time and size per method.
+fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Map<String, Json>) {
+    let _ = writeln!(
+        md,
+        "### {} ({} split, {} seeds)\n",
+        sc.name,
+        sc.split,
+        sc.runs.len()
+    );
+    let _ = writeln!(
+        md,
+        "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | learning stage (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    let rows = cfg
+        .methods
+        .iter()
+        .map(|m| (m.name.clone(), m.eval.clone(), m.learner.clone()))
+        .chain(std::iter::once((
+            "ceiling".to_string(),
+            cfg.ceiling.clone(),
+            None,
+        )));
+    for (name, eval, learner) in rows {
+        let fs: Vec<Option<Stat>> = THRESHOLDS
+            .iter()
+            .map(|&t| stat(&values(sc, &f_key(&eval, t))))
+            .collect();
+        let dir = stat(&values(sc, &format!("{eval}.direction_error_deg")));
+        let curv = stat(&values(
+            sc,
+            &format!("{eval}.local_curvature_variance_vs_gt"),
+        ));
+        let psnr = stat(&values(sc, &format!("{eval}.psnr")));
+        let ssim = stat(&values(sc, &format!("{eval}.ssim")));
+        let (secs, params) = match &learner {
+            Some(l) => (
+                stat(
+                    &sc.runs
+                        .iter()
+                        .filter_map(|v| cost(v, l))
+                        .collect::<Vec<_>>(),
+                ),
+                stat(&values(sc, &format!("{l}.optimised_parameters"))),
+            ),
+            None => (None, None),
+        };
+        let mut row = format!("| {name} |");
+        for f in &fs {
+            let _ = write!(row, " {} |", fmt_stat(*f, 1));
+        }
+        let _ = writeln!(
+            md,
+            "{row} {} | {} | {} | {} | {} | {} |",
+            fmt_stat(dir, 1),
+            fmt_stat(curv, 2),
+            fmt_stat(psnr, 2),
+            fmt_stat(ssim, 3),
+            fmt_stat(secs, 1),
+            fmt_stat(params, 0)
+        );
+        let mut mj = Map::new();
+        for (t, f) in THRESHOLDS.iter().zip(&fs) {
+            mj.insert(
+                format!(
+                    "signed_f_{}",
+                    crate::evaluation::evaluate::threshold_key(t.0, t.1)
+                ),
+                stat_json(*f),
+            );
+        }
+        mj.insert("direction_error_deg".into(), stat_json(dir));
+        mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
+        mj.insert("psnr".into(), stat_json(psnr));
+        mj.insert("ssim".into(), stat_json(ssim));
+        mj.insert("training_seconds".into(), stat_json(secs));
+        mj.insert("optimised_parameters".into(), stat_json(params));
+        sj.insert(name, mj.into());
+    }
+    let _ = writeln!(md);
+}
+
+/// Fur thickness, lengths and preprocessing (shared by every method of the scene), and the
+/// speed-up to dense's final F.
+fn write_thickness_and_speed(
+    md: &mut String,
+    sc: &Scene<'_>,
+    cfg: &Config,
+    sj: &mut Map<String, Json>,
+) {
+    // Fur thickness and preprocessing, shared by every method of the scene.
+    let g = |k: &str| stat(&values(sc, k));
+    let outer = g("defur.outer_to_skin_mean_frac");
+    let root = g("defur.root_to_skin_mean_frac");
+    let base = g("defur.baseline_to_skin_mean_frac");
+    let corr = g("frosting.gt_vertex.pearson");
+    let inside = g("defur.root_inside_body_frac");
+    let len_err = g("lengths.length_error_mean_pct");
+    let len_err_v2 = g(&format!("{}.length_error_mean_pct", cfg.v2_lengths));
+    let pre = stat(
+        &sc.runs
+            .iter()
+            .filter_map(|v| preprocessing_seconds(v, cfg))
+            .collect::<Vec<_>>(),
+    );
+    let mem = stat(
+        &sc.runs
+            .iter()
+            .filter_map(|v| peak_rss(v))
+            .map(|b| b / (1u64 << 20) as f64)
+            .collect::<Vec<_>>(),
+    );
+    let _ = writeln!(
+        md,
+        "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
+         M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
+         distance, per-vertex Pearson {}; mean per-part length error {} % (V2, species reference \
+         lengths: {} %). Preprocessing {} s; peak memory of a stage {} MiB.\n",
+        fmt_stat(outer, 2),
+        fmt_stat(root, 2),
+        fmt_stat(inside, 3),
+        fmt_stat(base, 2),
+        fmt_stat(corr, 2),
+        fmt_stat(len_err, 0),
+        fmt_stat(len_err_v2, 0),
+        fmt_stat(pre, 1),
+        fmt_stat(mem, 0),
+    );
+    let sp = g(&format!("{}.speedup_to_dense_final_fscore", cfg.speedup));
+    let lo = values(sc, &format!("{}.speedup_low", cfg.speedup))
+        .into_iter()
+        .reduce(f64::min);
+    let hi = values(sc, &format!("{}.speedup_high", cfg.speedup))
+        .into_iter()
+        .reduce(f64::max);
+    let count = |k: &str| {
+        values(sc, &format!("{}.{k}", cfg.speedup))
+            .iter()
+            .filter(|&&x| x > 0.0)
+            .count()
+    };
+    let reached = count("codec_reached_dense_final");
+    let at_start = count("codec_reached_dense_final_at_start");
+    let start_codec = g(&format!("{}.codec_start_fscore_3cm_30deg", cfg.speedup));
+    let start_dense = g(&format!("{}.dense_start_fscore_3cm_30deg", cfg.speedup));
+    let _ = writeln!(
+        md,
+        "Speed-up of the first method to dense's final F (3 cm, unsigned, from the snapshots): {} \
+         (the codec reached dense's final F in {reached} of {} seeds, {at_start} of them already \
+         untrained, where the ratio is undefined; snapshot bracket {}–{}). Untrained start, F at \
+         3 cm unsigned: codec {}, dense {}.\n",
+        fmt_stat(sp, 1),
+        sc.runs.len(),
+        lo.map_or("-".into(), |x| format!("{x:.1}")),
+        hi.map_or("-".into(), |x| format!("{x:.1}")),
+        fmt_stat(start_codec, 1),
+        fmt_stat(start_dense, 1),
+    );
+    sj.insert(
+        "preprocessing".into(),
+        json!({
+            "outer_to_skin_frac": stat_json(outer),
+            "root_to_skin_frac": stat_json(root),
+            "root_inside_body_frac": stat_json(inside),
+            "baseline_to_skin_frac": stat_json(base),
+            "frosting_vertex_pearson": stat_json(corr),
+            "length_error_mean_pct": stat_json(len_err),
+            "length_error_v2_mean_pct": stat_json(len_err_v2),
+            "seconds": stat_json(pre),
+            "peak_rss_mib": stat_json(mem),
+        }),
+    );
+    sj.insert(
+        "speedup".into(),
+        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense)}),
+    );
+}
+
+/// One CSV row per run and method (and the ceiling).
+fn runs_csv(scenes: &[Scene<'_>], cfg: &Config) -> String {
+    let mut csv = String::from("scene,split,seed,variant,status,method");
+    for t in THRESHOLDS {
+        let _ = write!(
+            csv,
+            ",signed_f_{}",
+            crate::evaluation::evaluate::threshold_key(t.0, t.1)
+        );
+    }
+    csv.push_str(
+        ",direction_error_deg,curvature_vs_gt,psnr,ssim,training_seconds,optimised_parameters\n",
+    );
+    let num = |x: Option<f64>| x.map_or(String::new(), |x| format!("{x}"));
+    for sc in scenes {
+        for v in &sc.runs {
+            let seed = setting(v, &cfg.seed_setting).map(label).unwrap_or_default();
+            let status = match v.status {
+                crate::evaluation::stability::EngineStatus::Ok => "ok",
+                crate::evaluation::stability::EngineStatus::Degraded => "degraded",
+                crate::evaluation::stability::EngineStatus::Failed => "failed",
+            };
+            let all = cfg
+                .methods
+                .iter()
+                .map(|m| (m.name.as_str(), m.eval.as_str(), m.learner.as_deref()))
+                .chain(std::iter::once(("ceiling", cfg.ceiling.as_str(), None)));
+            for (name, eval, learner) in all {
+                let _ = write!(
+                    csv,
+                    "{},{},{},{},{status},{}",
+                    sc.name, sc.split, seed, v.name, name
+                );
+                for t in THRESHOLDS {
+                    let _ = write!(csv, ",{}", num(v.metrics.get(&f_key(eval, t)).copied()));
+                }
+                let m = |k: &str| num(v.metrics.get(&format!("{eval}.{k}")).copied());
+                let _ = writeln!(
+                    csv,
+                    ",{},{},{},{},{},{}",
+                    m("direction_error_deg"),
+                    m("local_curvature_variance_vs_gt"),
+                    m("psnr"),
+                    m("ssim"),
+                    num(learner.and_then(|l| cost(v, l))),
+                    num(learner.and_then(|l| v
+                        .metrics
+                        .get(&format!("{l}.optimised_parameters"))
+                        .copied())),
+                );
+            }
+        }
+    }
+    csv
+}
+
+fn list_or_none(v: &[String]) -> String {
+    if v.is_empty() {
+        "(none)".into()
+    } else {
+        v.join(", ")
+    }
+}
+
+/// A file-name-safe form of a scene name.
+fn safe(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+const PALETTE: [RGBColor; 6] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(255, 127, 14),
+    RGBColor(127, 127, 127),
+];
+
+/// A scatter chart, one colour per series, x on a log axis; a series' points are its seeds.
+fn draw_scatter<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    title: &str,
+    x_desc: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), String> {
+    root.fill(&WHITE).map_err(chart_err)?;
+    let pts: Vec<(f64, f64)> = series.iter().flat_map(|(_, p)| p.iter().copied()).collect();
+    let xmin = pts.iter().map(|p| p.0).fold(f64::MAX, f64::min).max(1e-3);
+    let xmax = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(xmin * 10.0);
+    let ymax =
+        ((pts.iter().map(|p| p.1).fold(0.0, f64::max) / 10.0).ceil() * 10.0).clamp(10.0, 100.0);
+    let mut chart = ChartBuilder::on(root)
+        .caption(title, ("sans-serif", 20))
+        .margin(14)
+        .x_label_area_size(44)
+        .y_label_area_size(56)
+        .build_cartesian_2d((xmin * 0.7..xmax * 1.4).log_scale(), 0.0..ymax)
+        .map_err(chart_err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc("signed F-score at 3 cm / 30\u{b0} (%)")
+        .x_label_formatter(&|x| fmt_num(*x))
+        .y_label_formatter(&|y| format!("{y:.0}"))
+        .label_style(("sans-serif", 14))
+        .axis_desc_style(("sans-serif", 15))
+        .draw()
+        .map_err(chart_err)?;
+    for (i, (name, p)) in series.iter().enumerate() {
+        let c = PALETTE[i % PALETTE.len()];
+        chart
+            .draw_series(p.iter().map(|&q| Circle::new(q, 5, c.filled())))
+            .map_err(chart_err)?
+            .label(name.clone())
+            .legend(move |(x, y)| Circle::new((x + 10, y), 5, c.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 14))
+        .position(SeriesLabelPosition::LowerRight)
+        .draw()
+        .map_err(chart_err)?;
+    root.present().map_err(chart_err)
+}
+
+/// Per scene: F (3 cm, signed) against training seconds and against optimised parameters.
+fn write_charts(rec: &SweepRecord, cfg: &Config, dir: &Path) -> Result<(), StageError> {
+    std::fs::create_dir_all(dir).map_err(|e| StageError::io(dir, e))?;
+    let t3 = THRESHOLDS[2];
+    for sc in scenes(rec, cfg) {
+        let mut time = Vec::new();
+        let mut size = Vec::new();
+        for m in &cfg.methods {
+            let Some(l) = &m.learner else { continue };
+            let f = |v: &VariantRecord| v.metrics.get(&f_key(&m.eval, t3)).copied();
+            time.push((
+                m.name.clone(),
+                sc.runs
+                    .iter()
+                    .filter_map(|v| Some((cost(v, l)?, f(v)?)))
+                    .collect::<Vec<_>>(),
+            ));
+            size.push((
+                m.name.clone(),
+                sc.runs
+                    .iter()
+                    .filter_map(|v| {
+                        Some((*v.metrics.get(&format!("{l}.optimised_parameters"))?, f(v)?))
+                    })
+                    .collect::<Vec<_>>(),
+            ));
+        }
+        for (stem, title, xdesc, series) in [
+            (
+                "f_vs_time",
+                format!("{}: F vs strand-training time", sc.name),
+                "learning stage compute time (s, log)",
+                &time,
+            ),
+            (
+                "f_vs_size",
+                format!("{}: F vs model size", sc.name),
+                "optimised parameters (log)",
+                &size,
+            ),
+        ] {
+            if series.iter().all(|(_, p)| p.is_empty()) {
+                continue;
+            }
+            let name = format!("{stem}_{}", safe(&sc.name));
+            let size = (820, 600);
+            write_png_chart(&dir.join(format!("{name}.png")), size, |r| {
+                draw_scatter(r, &title, xdesc, series)
+            })?;
+            write_svg_chart(&dir.join(format!("{name}.svg")), size, |r| {
+                draw_scatter(r, &title, xdesc, series)
+            })?;
+        }
+    }
+    Ok(())
+}
+
+fn config(p: &Params) -> Result<Config, StageError> {
+    let methods = p
+        .str_list("methods")?
+        .iter()
+        .map(|s| parse_method(s))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| StageError::param("methods", e))?;
+    if methods.is_empty() {
+        return Err(StageError::param(
+            "methods",
+            "expected at least one NAME=EVAL[:LEARNER]",
+        ));
+    }
+    let dev = p.str_list("dev")?;
+    let test = p.str_list("test")?;
+    if let Some(s) = dev.iter().find(|s| test.contains(s)) {
+        return Err(StageError::param(
+            "test",
+            format!("scene `{s}` is in both splits"),
+        ));
+    }
+    Ok(Config {
+        dev,
+        test,
+        scene_setting: p.str("scene_setting")?.to_string(),
+        seed_setting: p.str("seed_setting")?.to_string(),
+        methods,
+        ceiling: p.str("ceiling")?.to_string(),
+        preprocessing: p.str_list("preprocessing")?,
+        speedup: p.str("speedup")?.to_string(),
+        v2_lengths: p.str("v2_lengths")?.to_string(),
+        charts_link: p.str("charts_link")?.to_string(),
+    })
+}
+
+/// Stage `benchmark_report`.
+pub struct BenchmarkReport;
+
+impl Stage for BenchmarkReport {
+    fn kind(&self) -> &'static str {
+        "benchmark_report"
+    }
+    fn version(&self) -> u32 {
+        4
+    }
+    fn doc(&self) -> &'static str {
+        "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
+         (1/2/3/4 cm) of every method as mean ± sd over seeds beside the scene's ceiling, won / lost / \
+         tie verdicts by the seed-spread rule, direction and shape errors, PSNR/SSIM, fur-thickness \
+         figures, preprocessing and training time, peak memory, the speed-up; results.md, charts (F vs \
+         training time, F vs model size), a CSV of every run and metrics.json."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        vec![
+            ParamSpec::str_list(
+                "dev",
+                &["tiger", "fox"],
+                "dev split: the only scenes defaults may be tuned on",
+            ),
+            ParamSpec::str_list(
+                "test",
+                &["panda", "cat", "bison", "wolf"],
+                "test split: reported, never used to choose",
+            ),
+            ParamSpec::string(
+                "scene_setting",
+                "scene.preset",
+                "the swept STAGE.PARAM naming the scene (a linked key containing it counts)",
+            ),
+            ParamSpec::string(
+                "seed_setting",
+                "scene.seed",
+                "the swept STAGE.PARAM naming the seed (a linked key containing it counts)",
+            ),
+            ParamSpec::str_list(
+                "methods",
+                &[
+                    "FurE codec=evaluate:codec",
+                    "dense=evaluate_dense:dense",
+                    "fixed length=evaluate_fixed:codec_fixed",
+                    "shape prior=evaluate_prior:codec_prior",
+                ],
+                "NAME=EVAL_STAGE[:LEARNER_STAGE]; the first is compared with every other",
+            ),
+            ParamSpec::string(
+                "ceiling",
+                "evaluate_ceiling",
+                "evaluation of the regrown GT against the GT",
+            ),
+            ParamSpec::str_list(
+                "preprocessing",
+                &[
+                    "outer",
+                    "parts",
+                    "frosting",
+                    "lengths",
+                    "defur",
+                    "roots",
+                    "basis",
+                    "orientation",
+                ],
+                "stages whose compute seconds add up to the preprocessing time",
+            ),
+            ParamSpec::string(
+                "speedup",
+                "speed_accuracy",
+                "the speed_accuracy stage's metric prefix",
+            ),
+            ParamSpec::string(
+                "v2_lengths",
+                "lengths_v2",
+                "the lengths stage with species reference lengths (V2), reported beside V1 when present",
+            ),
+            ParamSpec::string(
+                "charts_link",
+                "benchmark",
+                "where the published charts are, relative to the published results.md",
+            ),
+        ]
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![PortSpec::file(
+            "sweep",
+            "json",
+            "the engine's sweep record (sweep.json)",
+        )]
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![
+            PortSpec::file(
+                "results",
+                "md",
+                "the results document (publish it to docs/results.md)",
+            ),
+            PortSpec::dir(
+                "charts",
+                "per scene: f_vs_time_<scene> and f_vs_size_<scene>, PNG and SVG",
+            ),
+            PortSpec::file("runs", "csv", "one row per run and method"),
+            PortSpec::file(
+                "metrics",
+                "json",
+                "per scene and method: mean, sd, n of every figure; verdicts",
+            ),
+        ]
+    }
+    fn validate(&self, params: &Params) -> Result<(), StageError> {
+        config(params).map(|_| ())
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        let cfg = config(ctx.params)?;
+        let path = ctx.input("sweep")?;
+        let rec = SweepRecord::read(path)?;
+        let (md, csv, metrics) = report(&rec, &cfg);
+        write_charts(&rec, &cfg, ctx.output("charts")?)?;
+        let out = ctx.output("results")?;
+        std::fs::write(out, md).map_err(|e| StageError::io(out, e))?;
+        let out = ctx.output("runs")?;
+        std::fs::write(out, csv).map_err(|e| StageError::io(out, e))?;
+        crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(runs: &[(&str, u64, f64, f64)]) -> SweepRecord {
+        // (scene, seed, codec F3, dense F3)
+        let variants: Vec<Json> = runs
+            .iter()
+            .enumerate()
+            .map(|(i, (scene, seed, fc, fd))| {
+                json!({
+                    "index": i, "name": format!("b@v{i}"), "status": "ok",
+                    "settings": {"scene.preset,defur_baseline.species": scene, "scene.seed,codec.seed": seed},
+                    "metrics": {
+                        "evaluate": {"prf_signed": {"3cm_30deg": {"fscore": fc}}},
+                        "evaluate_dense": {"prf_signed": {"3cm_30deg": {"fscore": fd}}},
+                        "codec": {"optimised_parameters": 1000},
+                    },
+                    "costs": {"codec": {"seconds": 10.0, "peak_rss_bytes": 1048576}, "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
+                })
+            })
+            .collect();
+        let root =
+            json!({"pipeline": "benchmark", "crossed": {}, "each": {}, "variants": variants});
+        SweepRecord::from_json(Path::new("sweep.json"), &root).unwrap()
+    }
+
+    fn cfg() -> Config {
+        Config {
+            dev: vec!["tiger".into()],
+            test: vec!["panda".into()],
+            scene_setting: "scene.preset".into(),
+            seed_setting: "scene.seed".into(),
+            methods: vec![
+                parse_method("FurE=evaluate:codec").unwrap(),
+                parse_method("dense=evaluate_dense:dense").unwrap(),
+            ],
+            ceiling: "evaluate_ceiling".into(),
+            preprocessing: vec!["frosting".into()],
+            speedup: "speed_accuracy".into(),
+            v2_lengths: "lengths_v2".into(),
+            charts_link: "benchmark".into(),
+        }
+    }
+
+    #[test]
+    fn verdicts_follow_the_seed_spread() {
+        let s = |m: f64, sd: Option<f64>| Stat { mean: m, sd, n: 3 };
+        assert_eq!(
+            verdict(&s(50.0, Some(1.0)), &s(48.5, Some(1.0))),
+            Verdict::Won
+        );
+        assert_eq!(
+            verdict(&s(50.0, Some(2.0)), &s(48.5, Some(1.0))),
+            Verdict::Tie
+        );
+        assert_eq!(
+            verdict(&s(40.0, Some(2.0)), &s(48.5, Some(1.0))),
+            Verdict::Lost
+        );
+        assert_eq!(
+            verdict(&s(90.0, None), &s(10.0, Some(1.0))),
+            Verdict::Undecided
+        );
+        let st = stat(&[1.0, 2.0, 3.0, f64::NAN]).unwrap();
+        assert_eq!((st.mean, st.n), (2.0, 3));
+        assert!((st.sd.unwrap() - 1.0).abs() < 1e-12);
+        assert!(stat(&[]).is_none());
+    }
+
+    #[test]
+    fn report_groups_by_linked_scene_key_and_splits() {
+        let rec = record(&[
+            ("tiger", 0, 60.0, 50.0),
+            ("tiger", 1, 62.0, 51.0),
+            ("tiger", 2, 61.0, 52.0),
+            ("panda", 0, 40.0, 45.0),
+            ("panda", 1, 41.0, 47.0),
+            ("wolf", 0, 30.0, 30.0),
+        ]);
+        let (md, csv, m) = report(&rec, &cfg());
+        // Tiger: codec 61 +- 1 vs dense 51 +- 1: won; panda: lost; wolf: one seed, undecided.
+        assert_eq!(m["verdicts"]["tiger|dense"]["3cm_30deg"], "won", "{m}");
+        assert_eq!(m["verdicts"]["panda|dense"]["3cm_30deg"], "lost", "{m}");
+        assert_eq!(
+            m["verdicts"]["wolf|dense"]["3cm_30deg"], "undecided (1 seed)",
+            "{m}"
+        );
+        assert_eq!(m["scenes"]["tiger"]["split"], "dev");
+        assert_eq!(m["scenes"]["wolf"]["split"], "unsplit");
+        let f = &m["scenes"]["tiger"]["FurE"]["signed_f_3cm_30deg"];
+        assert_eq!(f["mean"], 61.0);
+        assert_eq!(f["n"], 3);
+        // Missing figures are missing, not zero.
+        assert!(m["scenes"]["tiger"]["FurE"]["psnr"].is_null());
+        assert!(
+            md.contains("| tiger | 3 | 61.0 ± 1.0 | 51.0 ± 1.0 | - |"),
+            "{md}"
+        );
+        assert!(md.find("Headline, dev").unwrap() < md.find("Headline, test").unwrap());
+        assert_eq!(
+            m["scenes"]["tiger"]["preprocessing"]["seconds"]["mean"],
+            5.0
+        );
+        assert_eq!(
+            m["scenes"]["tiger"]["preprocessing"]["peak_rss_mib"]["mean"],
+            2.0
+        );
+        // One row per run and method (+ ceiling).
+        assert_eq!(csv.lines().count(), 1 + 6 * 3);
+    }
+
+    #[test]
+    fn methods_parse_or_say_what_is_expected() {
+        assert_eq!(
+            parse_method("dense=evaluate_dense:dense").unwrap(),
+            Method {
+                name: "dense".into(),
+                eval: "evaluate_dense".into(),
+                learner: Some("dense".into())
+            }
+        );
+        assert_eq!(parse_method("c=ev").unwrap().learner, None);
+        assert!(parse_method("nothing")
+            .unwrap_err()
+            .contains("NAME=EVAL_STAGE"));
+        assert!(parse_method("x=ev:").is_err());
+    }
+
+    #[test]
+    fn charts_are_written_per_scene() {
+        let rec = record(&[("tiger", 0, 60.0, 50.0), ("tiger", 1, 62.0, 51.0)]);
+        let dir = tempfile::tempdir().unwrap();
+        write_charts(&rec, &cfg(), dir.path()).unwrap();
+        for f in [
+            "f_vs_time_tiger.png",
+            "f_vs_time_tiger.svg",
+            "f_vs_size_tiger.svg",
+        ] {
+            assert!(dir.path().join(f).is_file(), "{f}");
+        }
+    }
+}

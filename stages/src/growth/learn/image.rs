@@ -1,0 +1,780 @@
+//! The image losses of the loop: strands to segment Gaussians, rendered with
+//! the body occluders from the training views, compared with the photos,
+//! masks, fur masks and Gabor orientation maps; gradients back to the points.
+//!
+//! Body occluders. The strands alone cannot explain the photos: behind sparse
+//! fur and on non-fur parts the skin is visible, and without a body the
+//! strands on the far side would show through and corrupt the silhouette and
+//! orientation comparisons. We therefore render the body mesh (M_root, or
+//! M_outer in the shape-prior ablation) as `body_gaussians` opaque, flat
+//! surface Gaussians (area-weighted seeded samples; discs of standard deviation
+//! 0.6 x the sample spacing, one tenth of that thick, fur flag off) with a
+//! trainable colour each. They never move; both methods get the same ones.
+//!
+//! Strand appearance: one trainable RGB colour per strand (degree-0 SH), lazy
+//! Adam on the sampled strands; identical for codec and dense. Colours start
+//! from the views ([`ImageLosses::fit_colors`], `fit_colors = "start"`): every
+//! strand and body occluder takes the mean of the training pixels it makes,
+//! weighted by its blending weight `alpha_i T_i` there, so the renderer itself
+//! decides what is visible (occlusion by the body and by other strands). The
+//! two sums are colour gradients of two linear losses (the masked straight
+//! colour, then the mask) at a grey that no clamp touches. Why: a strand is
+//! sampled only ~8 times in the codec's 100 iterations, so from one common
+//! starting colour Adam leaves the coat a washed-out brown, and L_rgb then
+//! pulls geometry to explain colour errors. The fit renders every strand, so it
+//! costs about one training iteration per view per strand subset; 12 evenly
+//! spaced views are the default, and a second fit after training
+//! (`start_end`) gave no further gain on the dev scenes (docs/history.md).
+//!
+//! Held-out renders (`held_out_coverage = "width"`): strand Gaussians are
+//! trained at opacity 1 on strand subsets, where a strand must show at all;
+//! rendered with every strand, the renderer's screen-space low-pass (0.3 px^2)
+//! makes each sub-pixel strand about a pixel wide and opaque, so the coat
+//! reads too dense and its silhouette about a pixel too wide. The held-out
+//! views therefore scale each segment's opacity so that its integrated
+//! coverage is that of its true width ([`width_coverage`], Mip-Splatting's
+//! compensation of its 2D filter, applied to the thin axis only). Both
+//! learners are rendered the same way; `opaque` keeps the training opacity.
+//!
+//! Views: each iteration renders `views_per_iteration` distinct training
+//! views drawn with a seeded generator; the losses are averaged over them.
+//! Targets: the photo composited over the renderer's black background with
+//! its own alpha (when it has one); the silhouette is the view's mask; the fur
+//! mask is `<stem>_fur.png` (when present; else L_mask is skipped for the
+//! view); the orientation target is the `orientation` input's map for the
+//! view (when connected; else L_ori is skipped).
+
+use std::path::Path;
+
+use fure_stage_api::StageError;
+use glam::{Quat, Vec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::model::RowAdam;
+use super::train::ImageTerm;
+use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
+use crate::data::mesh::Mesh;
+use crate::data::strands::Strands;
+use crate::formats;
+use crate::render::{self, GaussianGrads, Gaussians, OutputGrads, RenderOutput, RenderSettings};
+
+/// Settings of the image losses.
+#[derive(Debug, Clone)]
+pub struct ImageConfig {
+    pub views_per_iteration: usize,
+    pub lr_color: f32,
+    pub l_rgb: f32,
+    pub l_sil: f32,
+    pub l_ori: f32,
+    pub l_mask: f32,
+    pub body_gaussians: usize,
+    pub seed: u64,
+    /// Normalised confidence below which a pixel has no orientation target.
+    pub ori_min_confidence: f32,
+    /// Training views the colour fit uses, evenly spaced (0 = all).
+    pub fit_color_views: usize,
+    /// Strand coverage in the held-out renders.
+    pub held_out_coverage: Coverage,
+    /// Where the renderer runs (the stage's `device` parameter).
+    pub device: render::device::Renderer,
+}
+
+/// One training view's targets.
+pub struct ViewData {
+    pub camera: Camera,
+    /// RGB over black.
+    pub rgb: ImageF32,
+    pub mask: Option<ImageF32>,
+    pub fur: Option<ImageF32>,
+    /// Orientation angle in [0, pi) and confidence (1 channel each).
+    pub orientation: Option<(ImageF32, ImageF32)>,
+}
+
+/// The image term.
+pub struct ImageLosses {
+    cfg: ImageConfig,
+    views: Vec<ViewData>,
+    test_cameras: Vec<Camera>,
+    body: Gaussians,
+    body_adam: render::Adam,
+    body_group: usize,
+    widths: Vec<f32>,
+    colors: Vec<[f32; 3]>,
+    color_adam: RowAdam,
+    settings: RenderSettings,
+}
+
+fn fur_mask_path(views: &Path, cam: &Camera) -> std::path::PathBuf {
+    let m = formats::cameras::mask_file_path(&cam.file_path);
+    let stem = m.strip_suffix("_mask.png").unwrap_or(&m);
+    views.join(format!("{stem}_fur.png"))
+}
+
+fn first_channel(img: ImageF32) -> ImageF32 {
+    let c = img.channels as usize;
+    if c == 1 {
+        return img;
+    }
+    ImageF32 {
+        width: img.width,
+        height: img.height,
+        channels: 1,
+        data: img.data.chunks_exact(c).map(|p| p[0]).collect(),
+    }
+}
+
+/// Area-weighted seeded surface samples as flat opaque Gaussians.
+pub fn body_gaussians(mesh: &Mesh, n: usize, seed: u64) -> Gaussians {
+    let mut g = Gaussians::default();
+    if n == 0 || mesh.triangles.is_empty() {
+        return g;
+    }
+    let mut cum = Vec::with_capacity(mesh.triangles.len());
+    let mut total = 0.0f64;
+    for t in &mesh.triangles {
+        let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+        total += 0.5 * (b - a).cross(c - a).length() as f64;
+        cum.push(total);
+    }
+    if total <= 0.0 {
+        return g;
+    }
+    let spacing = (total as f32 / n as f32).sqrt();
+    let scale = Vec3::new(0.6 * spacing, 0.6 * spacing, 0.06 * spacing);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xB0D1);
+    for _ in 0..n {
+        let x = rng.gen::<f64>() * total;
+        let ti = cum.partition_point(|&c| c < x).min(cum.len() - 1);
+        let [a, b, c] = mesh.triangles[ti].map(|i| mesh.positions[i as usize]);
+        let (mut u, mut v) = (rng.gen::<f32>(), rng.gen::<f32>());
+        if u + v > 1.0 {
+            u = 1.0 - u;
+            v = 1.0 - v;
+        }
+        let p = a + u * (b - a) + v * (c - a);
+        let nrm = (b - a).cross(c - a).try_normalize().unwrap_or(Vec3::Z);
+        g.push(
+            p,
+            scale,
+            Quat::from_rotation_arc(Vec3::Z, nrm),
+            1.0,
+            Vec3::splat(0.3),
+            false,
+        );
+    }
+    g
+}
+
+/// The first `n` Gaussians' gradients.
+fn head(g: &GaussianGrads, n: usize) -> GaussianGrads {
+    let mut h = g.clone();
+    h.means.truncate(n);
+    h.scales.truncate(n);
+    h.rotations.truncate(n);
+    h.opacities.truncate(n);
+    h.sh.truncate(n);
+    h.cov3d.truncate(n);
+    h
+}
+
+impl ImageLosses {
+    pub fn new(
+        views_dir: &Path,
+        orientation: Option<&Path>,
+        body_mesh: &Mesh,
+        widths: Vec<f32>,
+        cfg: &ImageConfig,
+    ) -> Result<Self, StageError> {
+        let cams = formats::cameras::read_views(views_dir)?;
+        if cams.train.is_empty() {
+            return Err(StageError::input(
+                "views",
+                views_dir,
+                "no training views in transforms.json",
+            ));
+        }
+        let mut views = Vec::with_capacity(cams.train.len());
+        for (vi, cam) in cams.train.iter().enumerate() {
+            let ipath = formats::cameras::image_path(views_dir, cam);
+            let img = formats::images::read_png(&ipath)?;
+            if (img.width, img.height) != (cam.width, cam.height) {
+                return Err(StageError::input(
+                    "views",
+                    &ipath,
+                    format!(
+                        "image is {}x{}, camera says {}x{}",
+                        img.width, img.height, cam.width, cam.height
+                    ),
+                ));
+            }
+            let c = img.channels as usize;
+            let mut rgb = ImageF32::new(img.width, img.height, 3);
+            let mut alpha = None;
+            if c == 4 || c == 2 {
+                alpha = Some(ImageF32::new(img.width, img.height, 1));
+            }
+            for (i, px) in img.data.chunks_exact(c).enumerate() {
+                let (col, a) = match c {
+                    1 => ([px[0]; 3], 1.0),
+                    2 => ([px[0]; 3], px[1]),
+                    3 => ([px[0], px[1], px[2]], 1.0),
+                    _ => ([px[0], px[1], px[2]], px[3]),
+                };
+                for (k, c) in col.iter().enumerate() {
+                    rgb.data[3 * i + k] = c * a;
+                }
+                if let Some(al) = alpha.as_mut() {
+                    al.data[i] = a;
+                }
+            }
+            let mpath = formats::cameras::mask_path(views_dir, cam);
+            let mask = if mpath.is_file() {
+                Some(first_channel(formats::images::read_png(&mpath)?))
+            } else {
+                alpha
+            };
+            let fpath = fur_mask_path(views_dir, cam);
+            let fur = if fpath.is_file() {
+                Some(first_channel(formats::images::read_png(&fpath)?))
+            } else {
+                None
+            };
+            for (what, im) in [("mask", &mask), ("fur mask", &fur)] {
+                if let Some(m) = im {
+                    if (m.width, m.height) != (cam.width, cam.height) {
+                        return Err(StageError::input(
+                            "views",
+                            views_dir,
+                            format!(
+                                "view {vi}: {what} is {}x{}, expected {}x{}",
+                                m.width, m.height, cam.width, cam.height
+                            ),
+                        ));
+                    }
+                }
+            }
+            let orientation = match orientation {
+                Some(dir) => {
+                    let (o, mut c) = read_orientation(dir, cam)?;
+                    // Pixels below the confidence threshold carry no orientation target.
+                    for v in c.data.iter_mut() {
+                        if *v < cfg.ori_min_confidence {
+                            *v = 0.0;
+                        }
+                    }
+                    Some((o, c))
+                }
+                None => None,
+            };
+            views.push(ViewData {
+                camera: cam.clone(),
+                rgb,
+                mask,
+                fur,
+                orientation,
+            });
+        }
+        let body = body_gaussians(body_mesh, cfg.body_gaussians, cfg.seed);
+        let mut body_adam = render::Adam::default();
+        let body_group = body_adam.add_group("body_colour", cfg.lr_color, body.len() * 3);
+        let n = widths.len();
+        Ok(ImageLosses {
+            cfg: cfg.clone(),
+            views,
+            test_cameras: cams.test,
+            body,
+            body_adam,
+            body_group,
+            widths,
+            colors: vec![[0.5, 0.4, 0.3]; n],
+            color_adam: RowAdam::new(n, 3),
+            settings: RenderSettings::default(),
+        })
+    }
+
+    /// Sets every strand's colour and every body occluder's colour to the
+    /// blending-weighted mean of the training pixels it makes (see the module
+    /// doc): all `points` (every strand, `l` points each) are rendered with
+    /// the body in each training view; two colour backward passes give, per
+    /// Gaussian, `sum_p w(p) target(p)` and `sum_p w(p)` over the pixels inside
+    /// the view's mask. Strands or occluders no view shows keep their colour.
+    /// Returns the fraction of strands that got a colour.
+    pub fn fit_colors(&mut self, points: &[Vec3], l: usize) -> Result<f32, StageError> {
+        let n = self.colors.len();
+        if n == 0 || l < 2 || points.len() != n * l {
+            return Ok(0.0);
+        }
+        let grey = vec![[0.5f32; 3]; n];
+        let (mut g, segs) = self.scene(points, l, &self.widths, &grey)?;
+        for sh in &mut g.sh[segs..] {
+            *sh = [Vec3::ZERO; 4];
+        }
+        let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
+        let nb = self.body.len();
+        // Per strand / occluder: weighted colour sum (3) and weight.
+        let mut strand_acc = vec![[0.0f64; 4]; n];
+        let mut body_acc = vec![[0.0f64; 4]; nb];
+        let nv = self.views.len();
+        let used = match self.cfg.fit_color_views {
+            0 => nv,
+            k => k.min(nv),
+        };
+        for view in (0..used).map(|j| &self.views[j * nv / used]) {
+            let (w, h) = (view.camera.width, view.camera.height);
+            let mut target = ImageF32::new(w, h, 3);
+            let mut weight = ImageF32::new(w, h, 3);
+            for p in 0..(w * h) as usize {
+                let a = view.mask.as_ref().map_or(1.0, |m| m.data[p]);
+                if a < 0.5 {
+                    continue;
+                }
+                for k in 0..3 {
+                    target.data[3 * p + k] = (view.rgb.data[3 * p + k] / a).clamp(0.0, 1.0);
+                    weight.data[3 * p + k] = 1.0;
+                }
+            }
+            let (_, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
+            let mut sums = Vec::with_capacity(2);
+            for img in [target, weight] {
+                let dl = OutputGrads {
+                    rgb: Some(img),
+                    ..Default::default()
+                };
+                let gg = self
+                    .cfg
+                    .device
+                    .backward(&g, &view.camera, &self.settings, &state, &dl)?;
+                let sg = render::strands_backward(points, &starts, &self.widths, &head(&gg, segs))?;
+                let body: Vec<Vec3> = gg.sh[segs..].iter().map(|s| s[0] / render::SH_C0).collect();
+                sums.push((sg.colors, body));
+            }
+            let (wsum, bw) = (&sums[1].0, &sums[1].1);
+            for (i, acc) in strand_acc.iter_mut().enumerate() {
+                let c = sums[0].0[i];
+                for k in 0..3 {
+                    acc[k] += c[k] as f64;
+                }
+                acc[3] += (wsum[i].iter().sum::<f32>() / 3.0) as f64;
+            }
+            for (b, acc) in body_acc.iter_mut().enumerate() {
+                let c = sums[0].1[b];
+                for k in 0..3 {
+                    acc[k] += c[k] as f64;
+                }
+                acc[3] += ((bw[b].x + bw[b].y + bw[b].z) / 3.0) as f64;
+            }
+        }
+        // Below this many pixels of blending weight over all views a
+        // colour is noise: keep the previous one.
+        const MIN_WEIGHT: f64 = 0.05;
+        let mean = |a: &[f64; 4]| -> Option<[f32; 3]> {
+            (a[3] > MIN_WEIGHT).then(|| [0, 1, 2].map(|k| ((a[k] / a[3]) as f32).clamp(0.0, 1.0)))
+        };
+        let mut coloured = 0usize;
+        for (c, a) in self.colors.iter_mut().zip(&strand_acc) {
+            if let Some(m) = mean(a) {
+                *c = m;
+                coloured += 1;
+            }
+        }
+        for (sh, a) in self.body.sh.iter_mut().zip(&body_acc) {
+            if let Some(m) = mean(a) {
+                sh[0] = render::gaussians::rgb_to_sh0(Vec3::from_array(m));
+            }
+        }
+        fure_stage_api::ensure_finite(
+            "fitted strand colours",
+            self.colors.iter().flat_map(|c| *c),
+        )?;
+        Ok(coloured as f32 / n as f32)
+    }
+
+    /// The learned strand colours (one per strand).
+    pub fn colors(&self) -> &[[f32; 3]] {
+        &self.colors
+    }
+
+    /// The device that renders, for the run report's note.
+    pub fn device_description(&self) -> String {
+        self.cfg.device.describe()
+    }
+
+    /// The device that rendered, for metrics.json.
+    pub fn device_metrics(&self) -> serde_json::Value {
+        self.cfg.device.metrics()
+    }
+
+    pub fn appearance_parameters(&self) -> usize {
+        self.colors.len() * 3 + self.body.len() * 3
+    }
+
+    fn scene(
+        &self,
+        points: &[Vec3],
+        l: usize,
+        widths: &[f32],
+        colors: &[[f32; 3]],
+    ) -> Result<(Gaussians, usize), StageError> {
+        let n = points.len() / l;
+        let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
+        let mut g = render::strands_to_gaussians(points, &starts, widths, colors, true)?;
+        let segs = g.len();
+        g.means.extend_from_slice(&self.body.means);
+        g.scales.extend_from_slice(&self.body.scales);
+        g.rotations.extend_from_slice(&self.body.rotations);
+        g.opacities.extend_from_slice(&self.body.opacities);
+        g.sh.extend_from_slice(&self.body.sh);
+        g.fur.extend_from_slice(&self.body.fur);
+        Ok((g, segs))
+    }
+
+    /// Renders every held-out view of `strands` into `dir/test/NNN.png` (RGBA,
+    /// straight alpha) and `dir/test/NNN.exr` (RGBA, premultiplied over black).
+    pub fn render_test_views(&self, strands: &Strands, dir: &Path) -> Result<(), StageError> {
+        let l = if strands.is_empty() {
+            2
+        } else {
+            strands.strand(0).len()
+        };
+        let (g, segs) = self.scene(&strands.points, l, &strands.width, &strands.color)?;
+        let out_dir = dir.join("test");
+        std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
+        for (i, cam) in self.test_cameras.iter().enumerate() {
+            let g = match self.cfg.held_out_coverage {
+                Coverage::Opaque => std::borrow::Cow::Borrowed(&g),
+                Coverage::Width => {
+                    std::borrow::Cow::Owned(width_coverage(&g, segs, cam, self.settings.low_pass))
+                }
+            };
+            let (out, _) = self.cfg.device.render(&g, cam, &self.settings)?;
+            let (w, h) = (cam.width, cam.height);
+            let mut straight = ImageF32::new(w, h, 4);
+            let mut pre = ImageF32::new(w, h, 4);
+            for p in 0..(w * h) as usize {
+                let a = out.alpha.data[p].clamp(0.0, 1.0);
+                for k in 0..3 {
+                    let c = out.rgb.data[3 * p + k];
+                    pre.data[4 * p + k] = c;
+                    straight.data[4 * p + k] = if a > 1e-6 {
+                        (c / a).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                }
+                pre.data[4 * p + 3] = a;
+                straight.data[4 * p + 3] = a;
+            }
+            fure_stage_api::ensure_finite("held-out render", pre.data.iter().copied())?;
+            formats::images::write_png(out_dir.join(format!("{i:03}.png")), &straight)?;
+            formats::images::write_exr(out_dir.join(format!("{i:03}.exr")), &pre)?;
+        }
+        Ok(())
+    }
+}
+
+/// How held-out renders cover pixels with strands (see [`width_coverage`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coverage {
+    /// Every strand Gaussian at its training opacity (1).
+    Opaque,
+    /// Opacity scaled to the strand's true width in the view.
+    Width,
+}
+
+/// `g` with the opacity of each of its first `segs` Gaussians (strand
+/// segments) scaled by `sqrt(v / (v + low_pass))`, `v` the squared thin
+/// standard deviation in pixels at the segment's depth in `cam`: the
+/// renderer's screen-space low-pass widens a sub-pixel strand to about a
+/// pixel, and this keeps its integrated coverage that of its true width (the
+/// long axis, many pixels, is left alone). Mip-Splatting compensates its 2D
+/// filter the same way.
+pub fn width_coverage(g: &Gaussians, segs: usize, cam: &Camera, low_pass: f32) -> Gaussians {
+    let mut out = g.clone();
+    let w2c = cam.w2c();
+    for i in 0..segs.min(g.len()) {
+        let depth = -w2c.transform_point3(g.means[i]).z;
+        if depth <= 0.0 {
+            continue;
+        }
+        let sigma_px = g.scales[i].y * cam.fx / depth;
+        let v = sigma_px * sigma_px;
+        out.opacities[i] *= (v / (v + low_pass)).sqrt();
+    }
+    out
+}
+
+/// Reads the orientation angle and confidence maps of a view:
+/// `<image path without extension>_orient.exr` and `_conf.exr` (the
+/// `orientation_maps` stage's naming). Maps computed on a downscaled image
+/// (an integer factor) are upsampled by pixel replication to the view's size.
+fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
+    let rel = &cam.file_path;
+    let stem = match Path::new(rel).extension() {
+        Some(ext) => &rel[..rel.len() - ext.len() - 1],
+        None => rel.as_str(),
+    };
+    let opath = dir.join(format!("{stem}_orient.exr"));
+    let o = first_channel(formats::images::read_exr(&opath)?);
+    let c = first_channel(formats::images::read_exr(
+        dir.join(format!("{stem}_conf.exr")),
+    )?);
+    let (w, h) = (cam.width, cam.height);
+    let fits = |m: &ImageF32| {
+        m.width > 0
+            && m.height > 0
+            && w % m.width == 0
+            && h % m.height == 0
+            && w / m.width == h / m.height
+    };
+    if !fits(&o) || (c.width, c.height) != (o.width, o.height) {
+        return Err(StageError::input(
+            "orientation",
+            &opath,
+            format!(
+                "maps are {}x{} (orientation) and {}x{} (confidence); the camera is {w}x{h}, \
+                 expected equal sizes that divide it by an integer factor",
+                o.width, o.height, c.width, c.height
+            ),
+        ));
+    }
+    let up = |m: ImageF32| -> ImageF32 {
+        let f = w / m.width;
+        if f == 1 {
+            return m;
+        }
+        let mut out = ImageF32::new(w, h, 1);
+        for y in 0..h {
+            for x in 0..w {
+                out.data[(y * w + x) as usize] = m.data[((y / f) * m.width + x / f) as usize];
+            }
+        }
+        out
+    };
+    let (o, mut c) = (up(o), up(c));
+    normalise_confidence(&mut c);
+    Ok((o, c))
+}
+
+/// Gabor confidences span many orders of magnitude (1 / (var^2 + 1e-7)); we
+/// divide by the 95th percentile of the positive values and clamp to [0, 1],
+/// so the orientation loss is a mean angle error in radians over confident
+/// pixels, comparable across views.
+pub fn normalise_confidence(c: &mut ImageF32) {
+    let mut pos: Vec<f32> = c
+        .data
+        .iter()
+        .copied()
+        .filter(|v| *v > 0.0 && v.is_finite())
+        .collect();
+    if pos.is_empty() {
+        c.data.iter_mut().for_each(|v| *v = 0.0);
+        return;
+    }
+    let k = ((pos.len() - 1) as f32 * 0.95).round() as usize;
+    let (_, p95, _) = pos.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
+    let p95 = p95.max(1e-30);
+    for v in &mut c.data {
+        *v = if v.is_finite() {
+            (*v / p95).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+    }
+}
+
+/// Weighted loss terms of one rendered view and d loss / d outputs.
+///
+/// L_rgb = 0.8 L1 + 0.2 (1 - SSIM) over the whole image (3DGS's photometric
+/// loss; the targets are composited over the same black background);
+/// L_sil = mean |alpha - mask|; L_mask = mean |fur - fur mask|; L_ori = the
+/// pi-periodic angle difference weighted by the normalised Gabor confidence
+/// inside the GT fur mask (the silhouette mask when there is no fur mask).
+/// Weighted loss terms by name, and d loss / d render outputs.
+type ViewLosses = (Vec<(&'static str, f32)>, OutputGrads);
+
+fn view_losses(
+    out: &RenderOutput,
+    view: &ViewData,
+    cfg: &ImageConfig,
+) -> Result<ViewLosses, StageError> {
+    use render::losses;
+    let mut terms = Vec::new();
+    let mut dl = OutputGrads::default();
+    let scale = |mut g: ImageF32, w: f32| {
+        g.data.iter_mut().for_each(|v| *v *= w);
+        g
+    };
+    if cfg.l_rgb > 0.0 {
+        let (v, g) = losses::l1_dssim(&out.rgb, &view.rgb, None, 0.2)?;
+        terms.push(("rgb", cfg.l_rgb * v));
+        dl.rgb = Some(scale(g, cfg.l_rgb));
+    }
+    if cfg.l_sil > 0.0 {
+        if let Some(m) = &view.mask {
+            let (v, g) = losses::silhouette(&out.alpha, m, None)?;
+            terms.push(("sil", cfg.l_sil * v));
+            dl.alpha = Some(scale(g, cfg.l_sil));
+        }
+    }
+    if cfg.l_mask > 0.0 {
+        if let Some(f) = &view.fur {
+            let (v, g) = losses::fur_mask(&out.fur, f, None)?;
+            terms.push(("mask", cfg.l_mask * v));
+            dl.fur = Some(scale(g, cfg.l_mask));
+        }
+    }
+    if cfg.l_ori > 0.0 {
+        if let Some((angle, conf)) = &view.orientation {
+            let region = view.fur.as_ref().or(view.mask.as_ref());
+            let (v, g) = losses::orientation(&out.orientation, angle, conf, region)?;
+            terms.push(("ori", cfg.l_ori * v));
+            dl.orientation = Some(scale(g, cfg.l_ori));
+        }
+    }
+    Ok((terms, dl))
+}
+
+impl ImageTerm for ImageLosses {
+    fn eval(
+        &mut self,
+        iteration: usize,
+        points: &[Vec3],
+        l: usize,
+        subset: &[u32],
+        grad: &mut [Vec3],
+    ) -> Result<Vec<(&'static str, f32)>, StageError> {
+        let widths: Vec<f32> = subset.iter().map(|&i| self.widths[i as usize]).collect();
+        let colors: Vec<[f32; 3]> = subset.iter().map(|&i| self.colors[i as usize]).collect();
+        let (g, segs) = self.scene(points, l, &widths, &colors)?;
+        let nv = self.cfg.views_per_iteration.min(self.views.len()).max(1);
+        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0x1A6E ^ (iteration as u64) << 20);
+        let mut vids: Vec<usize> =
+            rand::seq::index::sample(&mut rng, self.views.len(), nv).into_vec();
+        vids.sort_unstable();
+        let inv = 1.0 / nv as f32;
+        let mut terms: Vec<(&'static str, f32)> = Vec::new();
+        let mut gcol = vec![0.0f32; subset.len() * 3];
+        let mut gbody = vec![0.0f32; self.body.len() * 3];
+        let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
+        for &vi in &vids {
+            let view = &self.views[vi];
+            let (out, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
+            let (t, dl) = view_losses(&out, view, &self.cfg)?;
+            for (name, v) in t {
+                match terms.iter_mut().find(|x| x.0 == name) {
+                    Some(x) => x.1 += inv * v,
+                    None => terms.push((name, inv * v)),
+                }
+            }
+            let gg = self
+                .cfg
+                .device
+                .backward(&g, &view.camera, &self.settings, &state, &dl)?;
+            let sg = render::strands_backward(points, &starts, &widths, &head(&gg, segs))?;
+            for (a, b) in grad.iter_mut().zip(&sg.points) {
+                *a += inv * *b;
+            }
+            for (s, c) in sg.colors.iter().enumerate() {
+                for k in 0..3 {
+                    gcol[3 * s + k] += inv * c[k];
+                }
+            }
+            for (b, sh) in gg.sh[segs..].iter().enumerate() {
+                for k in 0..3 {
+                    gbody[3 * b + k] += inv * sh[0][k];
+                }
+            }
+        }
+        // Appearance steps (colours stay in [0, 1]).
+        let mut flat: Vec<f32> = self.colors.iter().flat_map(|c| *c).collect();
+        self.color_adam
+            .step(&mut flat, &gcol, subset, self.cfg.lr_color);
+        for (c, f) in self.colors.iter_mut().zip(flat.chunks_exact(3)) {
+            *c = [
+                f[0].clamp(0.0, 1.0),
+                f[1].clamp(0.0, 1.0),
+                f[2].clamp(0.0, 1.0),
+            ];
+        }
+        if !self.body.is_empty() {
+            let mut sh: Vec<f32> = self.body.sh.iter().flat_map(|s| s[0].to_array()).collect();
+            self.body_adam.step(self.body_group, &mut sh, &gbody)?;
+            for (s, f) in self.body.sh.iter_mut().zip(sh.chunks_exact(3)) {
+                s[0] = Vec3::new(f[0], f[1], f[2]);
+            }
+        }
+        Ok(terms)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 64 px view of the origin from 5 units away.
+    fn camera() -> Camera {
+        Camera {
+            file_path: "c.png".into(),
+            c2w: glam::Mat4::look_at_rh(Vec3::new(0.0, 0.0, 5.0), Vec3::ZERO, Vec3::Y).inverse(),
+            fx: 64.0,
+            fy: 64.0,
+            cx: 32.0,
+            cy: 32.0,
+            width: 64,
+            height: 64,
+        }
+    }
+
+    /// One long horizontal segment Gaussian, `sigma_px` thick in a 64 px
+    /// view: the alpha summed down a column is the strand's coverage.
+    fn column_coverage(sigma_px: f32, coverage: Coverage) -> f32 {
+        let cam = camera();
+        let thin = sigma_px * 5.0 / cam.fx;
+        let mut g = Gaussians::default();
+        g.push(
+            Vec3::ZERO,
+            Vec3::new(2.0, thin, thin),
+            Quat::IDENTITY,
+            1.0,
+            Vec3::splat(0.5),
+            true,
+        );
+        let settings = RenderSettings::default();
+        let g = match coverage {
+            Coverage::Opaque => g,
+            Coverage::Width => width_coverage(&g, 1, &cam, settings.low_pass),
+        };
+        let (out, _) = render::render(&g, &cam, &settings).unwrap();
+        (0..64).map(|y| out.alpha.data[y * 64 + 32]).sum()
+    }
+
+    #[test]
+    fn width_coverage_keeps_a_thin_strands_true_coverage() {
+        let root_tau = (2.0 * std::f32::consts::PI).sqrt();
+        for sigma in [0.05f32, 0.1, 0.2] {
+            let want = root_tau * sigma;
+            let got = column_coverage(sigma, Coverage::Width);
+            assert!(
+                (got - want).abs() < 0.1 * want,
+                "sigma {sigma}: {got} vs {want}"
+            );
+            // Without it the low-pass makes the strand about a pixel wide.
+            let opaque = column_coverage(sigma, Coverage::Opaque);
+            assert!(opaque > 2.5 * want, "sigma {sigma}: opaque {opaque}");
+        }
+        // A strand many pixels thick keeps (nearly) its opacity.
+        let wide = width_coverage(
+            &{
+                let mut g = Gaussians::default();
+                g.push(Vec3::ZERO, Vec3::ONE, Quat::IDENTITY, 1.0, Vec3::ONE, true);
+                g
+            },
+            1,
+            &camera(),
+            0.3,
+        );
+        assert!(wide.opacities[0] > 0.99);
+    }
+}

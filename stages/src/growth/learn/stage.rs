@@ -1,0 +1,1367 @@
+//! The stages `codec_strands` and `dense_strands`: reading the inputs,
+//! preparing roots, lengths and distance grids, running the shared loop, and
+//! writing strands, snapshots, held-out renders and metrics.
+
+use std::path::Path;
+
+use fure_stage_api::{
+    ensure_finite, ParamSpec, ParamType, Params, PortSpec, Stage, StageContext, StageError,
+};
+use glam::{Mat3, Vec3};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::geomloss::DistanceGrid;
+use super::image::{Coverage, ImageConfig, ImageLosses};
+use super::mlp::{Mlp, PositionalEncoding};
+use super::model::{Codec, Dense, Model, Prepared, Rates};
+use super::placement::{frame, Decoder};
+use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
+use crate::data::mesh::Mesh;
+use crate::data::rootset::Roots;
+use crate::data::strands::Strands;
+use crate::formats;
+use crate::growth::strand_basis::StrandBasis;
+use crate::maths::geom::MeshQuery;
+
+const LENGTH_MODES: &[&str] = &["defurred", "fixed", "shape_prior"];
+const CHAMFER_MODES: &[&str] = &["inside", "surface"];
+const FIT_COLORS: &[&str] = &["none", "start", "start_end"];
+
+/// Parameters both stages share.
+fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
+    let mut p = schedule_params(iterations, lr_decay);
+    p.extend(loss_params());
+    p.extend(setup_params());
+    p
+}
+
+/// Device, budget, sampling and learning rates.
+fn schedule_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
+    vec![
+        crate::render::device::device_param(),
+        ParamSpec::int("iterations", iterations, "Optimisation iterations.").min(0.0),
+        ParamSpec::int(
+            "strands_per_iteration",
+            4000,
+            "Strands sampled (seeded) and rendered per iteration (the paper: 15,000 of ~500,000).",
+        )
+        .min(1.0),
+        ParamSpec::int(
+            "max_strands",
+            0,
+            "Keep at most this many roots (seeded subsample; 0 = all fur roots).",
+        )
+        .min(0.0),
+        ParamSpec::int(
+            "views_per_iteration",
+            1,
+            "Training views rendered per iteration.",
+        )
+        .min(1.0),
+        ParamSpec::float(
+            "lr_decay",
+            lr_decay,
+            "Final / initial ratio of the geometry learning rates (encoder and decoder, or dense \
+             points), decayed exponentially over the iterations as 3DGS decays its position rate \
+             (1 = constant rates; colours are not decayed).",
+        )
+        .range(1e-6, 1.0),
+        ParamSpec::float(
+            "lr_color",
+            0.02,
+            "Adam learning rate of strand and body colours.",
+        )
+        .min(0.0),
+    ]
+}
+
+/// The loss weights and their options.
+fn loss_params() -> Vec<ParamSpec> {
+    vec![
+        ParamSpec::float("l_rgb", 1.0, "Weight of L_rgb (L1 + D-SSIM on the photo).").min(0.0),
+        ParamSpec::float(
+            "l_sil",
+            0.1,
+            "Weight of L_sil (rendered vs given silhouette).",
+        )
+        .min(0.0),
+        ParamSpec::float(
+            "l_ori",
+            0.1,
+            "Weight of L_ori (image-space orientation vs the Gabor maps, confidence-weighted).",
+        )
+        .min(0.0),
+        ParamSpec::float(
+            "ori_min_confidence",
+            0.0,
+            "L_ori ignores pixels whose normalised Gabor confidence (divided by its 95th \
+             percentile, clamped to 1) is below this (0 = all pixels, confidence-weighted).",
+        )
+        .range(0.0, 1.0),
+        ParamSpec::float(
+            "l_chm",
+            0.1,
+            "Weight of L_chm (strand tips toward M_outer).",
+        )
+        .min(0.0),
+        ParamSpec::string(
+            "chamfer_mode",
+            "inside",
+            "L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips \
+             outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto \
+             M_outer from either side (see learn::geomloss).",
+        )
+        .choices(CHAMFER_MODES),
+        ParamSpec::float(
+            "chamfer_reach",
+            0.0,
+            "L_chm only for strands whose root is within chamfer_reach x their length of M_outer \
+             (0 = every strand; see learn::geomloss).",
+        )
+        .min(0.0),
+        ParamSpec::float("l_sdf", 1.0, "Weight of L_sdf (penetration of M_root).").min(0.0),
+        ParamSpec::float(
+            "l_mask",
+            0.1,
+            "Weight of L_mask (rendered vs given fur mask).",
+        )
+        .min(0.0),
+    ]
+}
+
+/// Snapshots, seed, lengths, distance grids, occluders and appearance.
+fn setup_params() -> Vec<ParamSpec> {
+    vec![
+        ParamSpec::float(
+            "snapshot_first_seconds",
+            0.5,
+            "Training wall-clock time of the first recorded snapshot after the initial one; later \
+             ones follow geometrically (0 = only the initial and final strands).",
+        )
+        .min(0.0),
+        ParamSpec::float(
+            "snapshot_growth",
+            1.1,
+            "Ratio between consecutive snapshot times (times read off the snapshots are upper \
+             bounds within this factor).",
+        )
+        .range(1.01, 100.0),
+        ParamSpec::int("seed", 0, "Seed of initialisation and subset sampling.").min(0.0),
+        ParamSpec::string(
+            "length_mode",
+            "defurred",
+            "defurred: per-root lengths on M_root (full method); fixed: one length for all fur \
+             parts; shape_prior: no defurred mesh (roots snapped onto M_outer, which is also the \
+             body for L_sdf).",
+        )
+        .choices(LENGTH_MODES),
+        ParamSpec::optional(
+            "fixed_length_cm",
+            ParamType::Float,
+            "Length for length_mode = fixed (default: the mean over fur parts of their mean length).",
+        )
+        .positive(),
+        ParamSpec::int("sdf_resolution", 48, "Nodes along the largest side of the distance grids.")
+            .range(8.0, 256.0),
+        ParamSpec::int(
+            "body_gaussians",
+            20000,
+            "Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).",
+        )
+        .min(0.0),
+        ParamSpec::string(
+            "fit_colors",
+            "start",
+            "Strand and body colours set to the blending-weighted mean of the training pixels \
+             they make (learn::image): before training (start), also after it (start_end), or \
+             never (none: every strand starts grey-brown and only Adam moves it).",
+        )
+        .choices(FIT_COLORS),
+        ParamSpec::float(
+            "frame_rotation_deg",
+            0.0,
+            "Turn every root frame about its normal by this angle before training: a wrong start \
+             for stability tests (0 = the roots' frames).",
+        )
+        .range(-180.0, 180.0),
+        ParamSpec::string(
+            "held_out_coverage",
+            "width",
+            "Strand coverage in the held-out renders: width = each strand segment's opacity \
+             scaled to its true width in the view (learn::image::width_coverage); opaque = the \
+             training opacity 1, which the renderer's low-pass widens to about a pixel.",
+        )
+        .choices(&["opaque", "width"]),
+        ParamSpec::int(
+            "fit_color_views",
+            12,
+            "Training views the colour fit renders, evenly spaced in the views' order (0 = all; \
+             each costs a render of every strand and two backward passes).",
+        )
+        .min(0.0),
+    ]
+}
+
+fn ports_in() -> Vec<PortSpec> {
+    vec![
+        PortSpec::file(
+            "roots",
+            "json",
+            "Roots with frames, parts, lengths (stage `roots`).",
+        ),
+        PortSpec::file("basis", "json", "Strand basis (stage `strand_basis`)."),
+        PortSpec::file("outer", "obj", "Outer envelope M_outer."),
+        PortSpec::file("root_mesh", "obj", "Defurred body M_root."),
+        PortSpec::dir(
+            "views",
+            "Training and held-out views (transforms.json, images, masks).",
+        )
+        .optional(),
+        PortSpec::dir(
+            "orientation",
+            "Gabor orientation maps (stage `orientation_maps`).",
+        )
+        .optional(),
+    ]
+}
+
+fn ports_out() -> Vec<PortSpec> {
+    vec![
+        PortSpec::file("strands", "hair", "Final strands (Cem Yuksel .hair)."),
+        PortSpec::file(
+            "strands_ply",
+            "ply",
+            "Final strands (PLY with edges and parts).",
+        ),
+        PortSpec::dir("renders", "Held-out views rendered: test/NNN.png and .exr."),
+        PortSpec::dir(
+            "snapshots",
+            "index.json + snap_NNN.hair at regular training times.",
+        ),
+        PortSpec::file(
+            "metrics",
+            "json",
+            "Training time, iterations, losses, parameter counts.",
+        ),
+    ]
+}
+
+/// Codec strand learning (FurE).
+pub struct CodecStrands;
+/// The dense baseline (NeuralFur-style per-point optimisation).
+pub struct DenseStrands;
+
+impl Stage for CodecStrands {
+    fn kind(&self) -> &'static str {
+        "codec_strands"
+    }
+    fn version(&self) -> u32 {
+        8
+    }
+    fn doc(&self) -> &'static str {
+        "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
+         shell-width feature and length to PCA codes, a fine-tuned PCA decoder gives a canonical \
+         strand, the placement equation puts it on the root with exactly its length; trained \
+         through the Gaussian renderer with L_rgb, L_sil, L_ori, L_chm, L_sdf, L_mask."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        // lr_decay 1e-3 with lr_encoder 1e-3: the best mean final F-score of a sweep on the
+        // synthetic tiger; 100 iterations: the benchmark's dev split (docs/history.md, strand learning).
+        let mut p = common_params(100, 1e-3);
+        p.extend([
+            ParamSpec::float(
+                "lr_encoder",
+                1e-3,
+                "Initial Adam learning rate of the encoder (decays with lr_decay).",
+            )
+            .min(0.0),
+            ParamSpec::float(
+                "lr_decoder",
+                1e-5,
+                "Adam learning rate of the decoder fine-tuning, in strand lengths per step: every \
+                 strand shares the decoder, so it is a hundredth of the encoder's (docs/history.md, strand learning); \
+                 it decays with lr_decay.",
+            )
+            .min(0.0),
+            ParamSpec::bool("finetune_decoder", true, "Fine-tune the PCA decoder (psi)."),
+            ParamSpec::bool(
+                "learn_rotation",
+                true,
+                "The encoder also outputs an angle per strand that turns its root frame about the \
+                 normal (a learned growth-direction field, zero at the start; learn::model).",
+            ),
+            ParamSpec::int("pe_frequencies", 10, "Positional-encoding frequencies.")
+                .range(0.0, 20.0),
+            ParamSpec::int("mlp_width", 64, "Hidden width of the encoder.").range(1.0, 1024.0),
+            ParamSpec::int("mlp_depth", 3, "Hidden layers of the encoder.").range(1.0, 16.0),
+            ParamSpec::int(
+                "components",
+                0,
+                "Use the first K basis components (0 = all).",
+            )
+            .min(0.0),
+        ]);
+        p
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_in()
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_out()
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        run_stage(ctx, false)
+    }
+}
+
+impl Stage for DenseStrands {
+    fn kind(&self) -> &'static str {
+        "dense_strands"
+    }
+    fn version(&self) -> u32 {
+        6
+    }
+    fn doc(&self) -> &'static str {
+        "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
+         losses and subset sampling as codec_strands, but every non-root point of every strand is \
+         a free parameter (lazy Adam on the sampled strands)."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        // 12x the codec's former 300 iterations: the paper trains the dense baseline 12x longer
+        // (10.5 h vs 52 min); a dense iteration costs about 0.9x a codec one here
+        // (rendering dominates both; the codec adds its encoder), so this is ~10x the
+        // codec's training time.
+        let mut p = common_params(3600, 0.01);
+        p.push(
+            ParamSpec::float(
+                "lr_points",
+                0.001,
+                "Initial Adam learning rate of the points, in strand lengths per step (the best \
+                 final F-score of 0.0003 / 0.001 / 0.003 with lr_decay 0.01 on the synthetic \
+                 tiger, docs/history.md).",
+            )
+            .min(0.0),
+        );
+        p
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_in()
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        ports_out()
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        run_stage(ctx, true)
+    }
+}
+
+/// One entry of `snapshots/index.json`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SnapshotEntry {
+    pub file: String,
+    pub seconds: f64,
+    pub iteration: usize,
+    pub optimised_parameters: usize,
+}
+
+/// `metrics.json` of both stages.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct LearnMetrics {
+    pub method: String,
+    pub length_mode: String,
+    pub train_seconds: f64,
+    pub iterations: usize,
+    pub final_losses: std::collections::BTreeMap<String, f32>,
+    /// Geometry parameters optimised (encoder + decoder, or every free point).
+    pub optimised_parameters: usize,
+    /// Appearance parameters optimised (strand and body colours), the same for both methods.
+    pub appearance_parameters: usize,
+    pub strands: usize,
+    pub points_per_strand: usize,
+    pub strands_per_iteration: usize,
+    pub mean_length: f32,
+    /// Loss after every iteration.
+    pub loss_history: Vec<f32>,
+    /// Fraction of strands given a colour by each colour fit (before and
+    /// after training, per `fit_colors`).
+    pub colors_fitted: Vec<f32>,
+    /// Seconds of the colour fits (the one before training is also inside
+    /// `train_seconds` and the snapshot times).
+    pub color_fit_seconds: f64,
+    /// `{"device", "adapter"}` that rendered, when the `device` parameter is set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device: Option<serde_json::Value>,
+}
+
+/// Checks the roots' arrays agree and are finite.
+fn check_roots(r: &Roots, path: &Path) -> Result<(), StageError> {
+    let n = r.len();
+    for (what, len) in [
+        ("normals", r.normals.len()),
+        ("tangents", r.tangents.len()),
+        ("bitangents", r.bitangents.len()),
+        ("part", r.part.len()),
+        ("length", r.length.len()),
+        ("width", r.width.len()),
+        ("rho", r.rho.len()),
+    ] {
+        if len != n {
+            return Err(StageError::input(
+                "roots",
+                path,
+                format!("field `{what}` has {len} entries, expected {n} (one per position)"),
+            ));
+        }
+    }
+    let finite = r
+        .positions
+        .iter()
+        .chain(&r.normals)
+        .chain(&r.tangents)
+        .chain(&r.bitangents)
+        .all(|v| v.is_finite())
+        && r.length
+            .iter()
+            .chain(&r.width)
+            .chain(&r.rho)
+            .all(|v| v.is_finite());
+    if !finite {
+        return Err(StageError::input("roots", path, "non-finite values"));
+    }
+    if !(r.s_cm.is_finite() && r.s_cm > 0.0) {
+        return Err(StageError::input(
+            "roots",
+            path,
+            format!("field `s_cm` must be a positive number, found {}", r.s_cm),
+        ));
+    }
+    Ok(())
+}
+
+fn check_basis(b: &StrandBasis, path: &Path) -> Result<(), StageError> {
+    if b.points < 2 || b.mean.len() != b.points {
+        return Err(StageError::input(
+            "basis",
+            path,
+            format!(
+                "`mean` has {} points but `points` is {} (need at least 2)",
+                b.mean.len(),
+                b.points
+            ),
+        ));
+    }
+    for (k, c) in b.components.iter().enumerate() {
+        if c.len() != b.points {
+            return Err(StageError::input(
+                "basis",
+                path,
+                format!(
+                    "`components[{k}]` has {} points, expected {}",
+                    c.len(),
+                    b.points
+                ),
+            ));
+        }
+    }
+    ensure_finite(
+        "basis",
+        b.mean
+            .iter()
+            .chain(b.components.iter().flatten())
+            .flat_map(|v| v.to_array()),
+    )
+}
+
+/// The per-root lengths of a length mode (scene units); roots of length 0 grow no strand.
+pub fn mode_lengths(r: &Roots, mode: &str, fixed_cm: Option<f64>) -> Result<Vec<f32>, StageError> {
+    match mode {
+        "defurred" | "shape_prior" => Ok(r.length.clone()),
+        "fixed" => {
+            let cm = match fixed_cm {
+                Some(v) if v > 0.0 => v as f32,
+                Some(v) => {
+                    return Err(StageError::param(
+                        "fixed_length_cm",
+                        format!("must be positive, found {v}"),
+                    ))
+                }
+                None => {
+                    // Mean over fur parts of each part's mean root length.
+                    let parts = r
+                        .part_names
+                        .len()
+                        .max(r.part.iter().map(|&p| p as usize + 1).max().unwrap_or(0));
+                    let mut sum = vec![0.0f64; parts];
+                    let mut cnt = vec![0usize; parts];
+                    for (i, &l) in r.length.iter().enumerate() {
+                        if l > 0.0 {
+                            sum[r.part[i] as usize] += l as f64;
+                            cnt[r.part[i] as usize] += 1;
+                        }
+                    }
+                    let means: Vec<f64> = (0..parts)
+                        .filter(|&p| cnt[p] > 0)
+                        .map(|p| sum[p] / cnt[p] as f64)
+                        .collect();
+                    if means.is_empty() {
+                        return Err(StageError::failed("no root has a positive length"));
+                    }
+                    (means.iter().sum::<f64>() / means.len() as f64 * r.s_cm as f64) as f32
+                }
+            };
+            let l = cm / r.s_cm;
+            Ok(r.length
+                .iter()
+                .map(|&x| if x > 0.0 { l } else { 0.0 })
+                .collect())
+        }
+        other => Err(StageError::param(
+            "length_mode",
+            format!("unknown mode `{other}` (expected one of {LENGTH_MODES:?})"),
+        )),
+    }
+}
+
+/// Everything prepared from the inputs.
+struct Setup {
+    prep: Prepared,
+    keep: Vec<usize>,
+    roots: Roots,
+    geometry: Geometry,
+    decoder: Decoder,
+    lengths: Vec<f32>,
+    body_mesh: Mesh,
+    outer: Mesh,
+}
+
+fn setup(
+    ctx: &StageContext<'_>,
+    pe_frequencies: usize,
+    components: usize,
+) -> Result<Setup, StageError> {
+    let p = ctx.params;
+    let roots_path = ctx.input("roots")?;
+    let mut roots: Roots = formats::json::read_json(roots_path)?;
+    check_roots(&roots, roots_path)?;
+    let basis_path = ctx.input("basis")?;
+    let basis: StrandBasis = formats::json::read_json(basis_path)?;
+    check_basis(&basis, basis_path)?;
+    let outer = crate::formats::obj::read_mesh(ctx, "outer")?;
+    let root_mesh = crate::formats::obj::read_mesh(ctx, "root_mesh")?;
+    let mode = p.str("length_mode")?.to_string();
+    let fixed_cm = p.f64_opt("fixed_length_cm")?;
+    let lengths_all = mode_lengths(&roots, &mode, fixed_cm)?;
+
+    // Shape-prior ablation: no defurred mesh, roots on M_outer.
+    let body_mesh = if mode == "shape_prior" {
+        let q = MeshQuery::new(&outer)?;
+        for i in 0..roots.len() {
+            let (c, _, tri) = q.closest_point(roots.positions[i]);
+            roots.positions[i] = c;
+            if let Some(t) = outer.triangles.get(tri as usize) {
+                let [a, b, cc] = t.map(|v| outer.positions[v as usize]);
+                if let Some(nrm) = (b - a).cross(cc - a).try_normalize() {
+                    // Re-orthonormalise the frame around the envelope's normal.
+                    let tan = (roots.tangents[i] - nrm * nrm.dot(roots.tangents[i]))
+                        .try_normalize()
+                        .unwrap_or_else(|| nrm.any_orthonormal_vector());
+                    roots.normals[i] = nrm;
+                    roots.tangents[i] = tan;
+                    roots.bitangents[i] = nrm.cross(tan);
+                }
+            }
+        }
+        outer.clone()
+    } else {
+        root_mesh
+    };
+
+    // Fur roots only, optionally a seeded subsample.
+    let mut keep: Vec<usize> = (0..roots.len()).filter(|&i| lengths_all[i] > 0.0).collect();
+    let max = p.usize("max_strands")?;
+    if max > 0 && keep.len() > max {
+        let mut rng = ChaCha8Rng::seed_from_u64(p.u64("seed")? ^ 0x5EED_0FF0);
+        let mut pick: Vec<usize> = rand::seq::index::sample(&mut rng, keep.len(), max)
+            .into_iter()
+            .collect();
+        pick.sort_unstable();
+        keep = pick.into_iter().map(|j| keep[j]).collect();
+    }
+    if keep.is_empty() {
+        return Err(StageError::input(
+            "roots",
+            roots_path,
+            "no root with a positive strand length (all parts are non-fur?)",
+        ));
+    }
+    let part_count = roots.part_names.len().max(
+        roots
+            .part
+            .iter()
+            .map(|&x| x as usize + 1)
+            .max()
+            .unwrap_or(1),
+    );
+    let (lo, hi) = outer.bounds();
+    let pe = PositionalEncoding::new(pe_frequencies, lo.to_array(), hi.to_array());
+    let lengths: Vec<f32> = keep.iter().map(|&i| lengths_all[i]).collect();
+    let prep = Prepared::new(
+        basis.points,
+        keep.iter().map(|&i| roots.positions[i]).collect(),
+        {
+            // A deliberately wrong start for stability tests: every frame
+            // turned about its normal.
+            let turn = Mat3::from_rotation_z(p.f32("frame_rotation_deg")?.to_radians());
+            keep.iter()
+                .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
+                .collect()
+        },
+        lengths.clone(),
+        &keep.iter().map(|&i| roots.part[i]).collect::<Vec<_>>(),
+        part_count,
+        &keep.iter().map(|&i| roots.rho[i]).collect::<Vec<_>>(),
+        &pe,
+    );
+    let k = if components == 0 {
+        basis.k()
+    } else {
+        components.min(basis.k())
+    };
+    let decoder = Decoder::new(&basis.mean, &basis.components[..k]);
+
+    // Distance grids over both meshes' box padded by 10% of the diagonal.
+    ctx.progress.message("distance grids");
+    let (blo, bhi) = body_mesh.bounds();
+    let lo = lo.min(blo);
+    let hi = hi.max(bhi);
+    let pad = 0.1 * (hi - lo).length();
+    let res = p.usize("sdf_resolution")?;
+    let oq = MeshQuery::new(&outer)?;
+    let bq = MeshQuery::new(&body_mesh)?;
+    let reach = p.f32("chamfer_reach")?;
+    let chamfer_gate = (reach > 0.0).then(|| {
+        (0..prep.len())
+            .map(|j| oq.closest_point(prep.roots[j]).1 <= reach * prep.lengths[j])
+            .collect::<Vec<bool>>()
+    });
+    if let Some(g) = &chamfer_gate {
+        ctx.progress.note(&format!(
+            "chamfer_reach {reach}: L_chm on {} of {} strands",
+            g.iter().filter(|&&x| x).count(),
+            g.len()
+        ));
+    }
+    let geometry = Geometry {
+        outer: if p.str("chamfer_mode")? == "inside" {
+            // Signed (negative inside): the loss's clamp at 0 makes it a hinge.
+            DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.signed_distance(x))
+        } else {
+            DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.closest_point(x).1)
+        },
+        body: DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| bq.signed_distance(x)),
+        chamfer_gate,
+    };
+    ensure_finite(
+        "distance grids",
+        geometry
+            .outer
+            .values
+            .iter()
+            .chain(&geometry.body.values)
+            .copied(),
+    )?;
+    Ok(Setup {
+        prep,
+        keep,
+        roots,
+        geometry,
+        decoder,
+        lengths,
+        body_mesh,
+        outer,
+    })
+}
+
+/// Strands from flat points, with the roots' parts and widths.
+fn to_strands(points: &[Vec3], l: usize, s: &Setup, colors: Option<&[[f32; 3]]>) -> Strands {
+    let mut out = Strands::new();
+    out.part_names = s.roots.part_names.clone();
+    for (j, &i) in s.keep.iter().enumerate() {
+        let c = colors.map(|c| c[j]).unwrap_or([0.5, 0.4, 0.3]);
+        out.push(
+            &points[j * l..(j + 1) * l],
+            s.roots.part[i],
+            s.roots.width[i],
+            c,
+        );
+    }
+    out
+}
+
+fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
+    let p = ctx.params;
+    let seed = p.u64("seed")?;
+    let (pe_f, comps) = if dense {
+        (0, 0)
+    } else {
+        (p.usize("pe_frequencies")?, p.usize("components")?)
+    };
+    ctx.progress.message("reading inputs");
+    let s = setup(ctx, pe_f, comps)?;
+    let l = s.prep.points;
+
+    // The initial codec; the dense baseline starts from its strands.
+    let mlp = if dense {
+        Mlp::new(s.prep.feature_dim, 8, 1, s.decoder.k, seed)
+    } else {
+        Mlp::new(
+            s.prep.feature_dim,
+            p.usize("mlp_width")?,
+            p.usize("mlp_depth")?,
+            s.decoder.k + p.bool("learn_rotation")? as usize,
+            seed,
+        )
+    };
+    let codec = Model::Codec(Codec::new(
+        mlp,
+        s.decoder.clone(),
+        !dense && p.bool("finetune_decoder")?,
+        !dense && p.bool("learn_rotation")?,
+    ));
+    let mut model = if dense {
+        Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len()))
+    } else {
+        codec
+    };
+    let rates = Rates {
+        encoder: if dense { 0.0 } else { p.f32("lr_encoder")? },
+        decoder: if dense { 0.0 } else { p.f32("lr_decoder")? },
+        points: if dense { p.f32("lr_points")? } else { 0.0 },
+    };
+    let mut cfg = TrainConfig {
+        iterations: p.usize("iterations")?,
+        subset: p.usize("strands_per_iteration")?,
+        seed,
+        rates,
+        lr_decay: p.f32("lr_decay")?,
+        w_chm: p.f32("l_chm")?,
+        w_sdf: p.f32("l_sdf")?,
+        snapshot_first: p.f64("snapshot_first_seconds")?,
+        snapshot_growth: p.f64("snapshot_growth")?,
+        clock_start: 0.0,
+    };
+
+    // Image losses when views are connected.
+    let mut image = match ctx.input_opt("views") {
+        Some(views) => {
+            ctx.progress.message("reading views");
+            let icfg = ImageConfig {
+                views_per_iteration: p.usize("views_per_iteration")?,
+                lr_color: p.f32("lr_color")?,
+                l_rgb: p.f32("l_rgb")?,
+                l_sil: p.f32("l_sil")?,
+                l_ori: p.f32("l_ori")?,
+                l_mask: p.f32("l_mask")?,
+                body_gaussians: p.usize("body_gaussians")?,
+                seed,
+                ori_min_confidence: p.f32("ori_min_confidence")?,
+                fit_color_views: p.usize("fit_color_views")?,
+                held_out_coverage: match p.str("held_out_coverage")? {
+                    "opaque" => Coverage::Opaque,
+                    _ => Coverage::Width,
+                },
+                device: crate::render::device::Renderer::from_params(p)?,
+            };
+            let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
+            Some(ImageLosses::new(
+                views,
+                ctx.input_opt("orientation"),
+                &s.body_mesh,
+                widths,
+                &icfg,
+            )?)
+        }
+        None => None,
+    };
+
+    if let Some(img) = image.as_ref() {
+        ctx.progress
+            .note(&format!("renders on {}", img.device_description()));
+    }
+    let fit_colors = p.str("fit_colors")?;
+    let mut colors_fitted = Vec::new();
+    let mut color_fit_seconds = 0.0f64;
+    if let Some(img) = image.as_mut() {
+        if fit_colors != "none" {
+            ctx.progress.message("colours from the views");
+            let t0 = std::time::Instant::now();
+            colors_fitted.push(img.fit_colors(&model.all_points(&s.prep), l)?);
+            cfg.clock_start = t0.elapsed().as_secs_f64();
+            color_fit_seconds = cfg.clock_start;
+        }
+    }
+
+    // Snapshots.
+    let snap_dir = ctx.output("snapshots")?.to_path_buf();
+    let mut index: Vec<SnapshotEntry> = Vec::new();
+    let params_count = model.parameter_count();
+    let report: TrainReport = {
+        let mut snapshot = |m: &Model, it: usize, secs: f64| -> Result<(), StageError> {
+            let pts = m.all_points(&s.prep);
+            let strands = to_strands(&pts, l, &s, None);
+            let file = format!("snap_{:03}.hair", index.len());
+            formats::hair::write_hair(snap_dir.join(&file), &strands)?;
+            index.push(SnapshotEntry {
+                file,
+                seconds: secs,
+                iteration: it,
+                optimised_parameters: params_count,
+            });
+            Ok(())
+        };
+        ctx.progress.message(if dense {
+            "dense training"
+        } else {
+            "codec training"
+        });
+        train::train(
+            &mut model,
+            &s.prep,
+            &s.geometry,
+            image.as_mut().map(|i| i as &mut dyn ImageTerm),
+            &cfg,
+            ctx.progress,
+            &mut snapshot,
+        )?
+    };
+    formats::json::write_json(snap_dir.join("index.json"), &index)?;
+
+    // Final strands.
+    let pts = model.all_points(&s.prep);
+    ensure_finite("final strands", pts.iter().flat_map(|v| v.to_array()))?;
+    if let Some(img) = image.as_mut() {
+        if fit_colors == "start_end" {
+            ctx.progress
+                .message("colours from the views (final strands)");
+            let t0 = std::time::Instant::now();
+            colors_fitted.push(img.fit_colors(&pts, l)?);
+            color_fit_seconds += t0.elapsed().as_secs_f64();
+        }
+    }
+    let colors = image.as_ref().map(|i| i.colors().to_vec());
+    let strands = to_strands(&pts, l, &s, colors.as_deref());
+    formats::hair::write_hair(ctx.output("strands")?, &strands)?;
+    formats::ply::write_ply_strands(ctx.output("strands_ply")?, &strands)?;
+
+    // Held-out renders.
+    if let Some(img) = image.as_ref() {
+        ctx.progress.message("rendering held-out views");
+        img.render_test_views(&strands, ctx.output("renders")?)?;
+    }
+
+    let metrics = LearnMetrics {
+        method: if dense { "dense" } else { "codec" }.into(),
+        length_mode: p.str("length_mode")?.into(),
+        train_seconds: report.train_seconds,
+        iterations: report.iterations,
+        final_losses: report.final_losses.clone(),
+        optimised_parameters: params_count,
+        appearance_parameters: image
+            .as_ref()
+            .map(|i| i.appearance_parameters())
+            .unwrap_or(0),
+        strands: s.keep.len(),
+        points_per_strand: l,
+        strands_per_iteration: cfg.subset.min(s.keep.len()),
+        mean_length: s.prep.mean_length(),
+        loss_history: report.history.clone(),
+        colors_fitted,
+        color_fit_seconds,
+        device: p
+            .get("device")
+            .and(image.as_ref())
+            .map(|i| i.device_metrics()),
+    };
+    let _ = (&s.lengths, &s.outer);
+    formats::json::write_json(ctx.output("metrics")?, &metrics)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fure_stage_api::{NoProgress, Value};
+    use std::collections::BTreeMap;
+    use std::path::PathBuf;
+
+    /// A UV sphere (closed, outward normals).
+    pub(crate) fn sphere(radius: f32, rings: usize, segs: usize) -> Mesh {
+        let mut m = Mesh::default();
+        m.positions.push(Vec3::Y * radius);
+        for r in 1..rings {
+            let th = std::f32::consts::PI * r as f32 / rings as f32;
+            for s in 0..segs {
+                let ph = std::f32::consts::TAU * s as f32 / segs as f32;
+                m.positions
+                    .push(radius * Vec3::new(th.sin() * ph.cos(), th.cos(), -th.sin() * ph.sin()));
+            }
+        }
+        m.positions.push(-Vec3::Y * radius);
+        let last = (m.positions.len() - 1) as u32;
+        let idx = |r: usize, s: usize| (1 + (r - 1) * segs + s % segs) as u32;
+        for s in 0..segs {
+            m.triangles.push([0, idx(1, s), idx(1, s + 1)]);
+            m.triangles
+                .push([last, idx(rings - 1, s + 1), idx(rings - 1, s)]);
+        }
+        for r in 1..rings - 1 {
+            for s in 0..segs {
+                m.triangles
+                    .push([idx(r, s), idx(r + 1, s), idx(r + 1, s + 1)]);
+                m.triangles
+                    .push([idx(r, s), idx(r + 1, s + 1), idx(r, s + 1)]);
+            }
+        }
+        m.part = vec![0; m.positions.len()];
+        m.part_names = vec!["torso".into()];
+        m.recompute_normals();
+        m
+    }
+
+    fn roots(n: usize) -> Roots {
+        let mut r = Roots {
+            s_cm: 10.0,
+            part_names: vec!["torso".into(), "eyes".into()],
+            ..Default::default()
+        };
+        let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+        for i in 0..n {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let rr = (1.0 - y * y).sqrt();
+            let th = golden * i as f32;
+            let nrm = Vec3::new(rr * th.cos(), y, rr * th.sin());
+            let t = nrm.any_orthonormal_vector();
+            r.positions.push(nrm);
+            r.normals.push(nrm);
+            r.tangents.push(t);
+            r.bitangents.push(nrm.cross(t));
+            // Every tenth root is a non-fur part.
+            let fur = i % 10 != 0;
+            r.part.push(if fur { 0 } else { 1 });
+            r.length.push(if fur {
+                0.4 + 0.2 * (i % 3) as f32 / 2.0
+            } else {
+                0.0
+            });
+            r.width.push(0.01);
+            r.rho.push(0.5);
+        }
+        r
+    }
+
+    fn basis() -> StrandBasis {
+        let l = 8;
+        let t = |k: usize| k as f32 / (l - 1) as f32;
+        StrandBasis {
+            points: l,
+            mean: (0..l).map(|k| Vec3::new(0.3, 0.0, 0.9) * t(k)).collect(),
+            components: vec![
+                (0..l).map(|k| Vec3::X * t(k) * t(k)).collect(),
+                (0..l).map(|k| Vec3::Y * t(k)).collect(),
+                (0..l).map(|k| Vec3::Z * t(k) * t(k)).collect(),
+            ],
+            variance: vec![0.5, 0.3, 0.1],
+        }
+    }
+
+    fn write_inputs(dir: &Path) -> BTreeMap<String, PathBuf> {
+        let mut inputs = BTreeMap::new();
+        let p = dir.join("roots.json");
+        formats::json::write_json(&p, &roots(300)).unwrap();
+        inputs.insert("roots".to_string(), p);
+        let p = dir.join("basis.json");
+        formats::json::write_json(&p, &basis()).unwrap();
+        inputs.insert("basis".to_string(), p);
+        let p = dir.join("outer.obj");
+        formats::obj::write_obj(&p, &sphere(1.3, 12, 16)).unwrap();
+        inputs.insert("outer".to_string(), p);
+        let p = dir.join("root_mesh.obj");
+        formats::obj::write_obj(&p, &sphere(1.0, 12, 16)).unwrap();
+        inputs.insert("root_mesh".to_string(), p);
+        inputs
+    }
+
+    fn params(stage: &dyn Stage, over: &[(&str, Value)]) -> Params {
+        let mut p = Params::default();
+        for s in stage.params() {
+            if let Some(d) = s.default {
+                p.0.insert(s.name.to_string(), d);
+            }
+        }
+        for (k, v) in over {
+            p.0.insert(k.to_string(), v.clone());
+        }
+        p
+    }
+
+    fn run(stage: &dyn Stage, over: &[(&str, Value)], dir: &Path) -> PathBuf {
+        let inputs = write_inputs(dir);
+        let params = params(stage, over);
+        let out = dir.join("out");
+        let mut outputs = BTreeMap::new();
+        for port in stage.outputs(&params) {
+            let path = out.join(port.file_name());
+            if port.kind == fure_stage_api::PortKind::Dir {
+                std::fs::create_dir_all(&path).unwrap();
+            }
+            outputs.insert(port.name.clone(), path);
+        }
+        std::fs::create_dir_all(&out).unwrap();
+        let ctx = StageContext {
+            name: "test",
+            params: &params,
+            inputs,
+            outputs,
+            progress: &NoProgress,
+        };
+        stage.run(&ctx).unwrap();
+        out
+    }
+
+    fn small() -> Vec<(&'static str, Value)> {
+        vec![
+            ("iterations", Value::Int(40)),
+            ("strands_per_iteration", Value::Int(100)),
+            ("sdf_resolution", Value::Int(24)),
+            ("pe_frequencies", Value::Int(4)),
+            ("mlp_width", Value::Int(16)),
+            ("mlp_depth", Value::Int(2)),
+        ]
+    }
+
+    #[test]
+    fn codec_stage_writes_exact_length_strands_deterministically() {
+        let a = tempfile::tempdir().unwrap();
+        let b = tempfile::tempdir().unwrap();
+        let out_a = run(&CodecStrands, &small(), a.path());
+        let out_b = run(&CodecStrands, &small(), b.path());
+        let bytes = |o: &Path| std::fs::read(o.join("strands.hair")).unwrap();
+        assert_eq!(bytes(&out_a), bytes(&out_b));
+        let strands = formats::hair::read_hair(out_a.join("strands.hair")).unwrap();
+        let r = roots(300);
+        let fur: Vec<usize> = (0..300).filter(|&i| r.length[i] > 0.0).collect();
+        assert_eq!(strands.len(), fur.len());
+        for (s, &i) in fur.iter().enumerate() {
+            assert!((strands.length(s) - r.length[i]).abs() < 1e-4 * r.length[i] + 1e-5);
+            assert!((strands.strand(s)[0] - r.positions[i]).length() < 1e-5);
+        }
+        let m: LearnMetrics = formats::json::read_json(out_a.join("metrics.json")).unwrap();
+        assert_eq!(m.iterations, 40);
+        assert_eq!(m.strands, fur.len());
+        assert!(m.loss_history[39] < m.loss_history[0]);
+        let idx: Vec<SnapshotEntry> =
+            formats::json::read_json(out_a.join("snapshots").join("index.json")).unwrap();
+        assert_eq!(idx.last().unwrap().iteration, 40);
+        // The initial strands at 0 s, then increasing times and iterations.
+        assert_eq!((idx[0].iteration, idx[0].seconds), (0, 0.0));
+        assert!(idx
+            .windows(2)
+            .all(|w| w[0].seconds <= w[1].seconds && w[0].iteration < w[1].iteration));
+        assert!(out_a
+            .join("snapshots")
+            .join(&idx.last().unwrap().file)
+            .is_file());
+    }
+
+    #[test]
+    fn dense_and_fixed_length_variants_run() {
+        let d = tempfile::tempdir().unwrap();
+        let mut over = small();
+        over.push(("lr_points", Value::Float(0.02)));
+        let out = run(&DenseStrands, &over, d.path());
+        let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
+        assert_eq!(m.method, "dense");
+        assert_eq!(m.optimised_parameters, m.strands * 7 * 3);
+        assert!(m.loss_history[39] < m.loss_history[0]);
+
+        let f = tempfile::tempdir().unwrap();
+        let mut over = small();
+        over.push(("length_mode", Value::Str("fixed".into())));
+        let out = run(&CodecStrands, &over, f.path());
+        let strands = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+        // Default fixed length: the mean fur length (one fur part here).
+        let r = roots(300);
+        let fur: Vec<f32> = r.length.iter().copied().filter(|&x| x > 0.0).collect();
+        let mean = fur.iter().sum::<f32>() / fur.len() as f32;
+        assert_eq!(strands.len(), fur.len());
+        for s in 0..strands.len() {
+            assert!(
+                (strands.length(s) - mean).abs() < 1e-4,
+                "{}",
+                strands.length(s)
+            );
+        }
+    }
+
+    /// Views of the sphere scene rendered from strands whose code is
+    /// `z = (1.2, 0.6, 0)` everywhere (a lean the initial mean does not have).
+    fn write_views(dir: &Path) -> (PathBuf, Vec<Vec3>) {
+        use crate::data::camera::{Camera, CameraSet};
+        use crate::render;
+        let views = dir.join("views");
+        let r = roots(300);
+        let b = basis();
+        let dec = Decoder::new(&b.mean, &b.components);
+        let mut local = vec![Vec3::ZERO; b.points];
+        dec.decode(&[1.2, 0.6, 0.0], &mut local);
+        let mut pts = Vec::new();
+        let mut starts = vec![0u32];
+        let mut widths = Vec::new();
+        for i in 0..r.len() {
+            if r.length[i] <= 0.0 {
+                continue;
+            }
+            let f = frame(r.tangents[i], r.bitangents[i], r.normals[i]);
+            let mut w = vec![Vec3::ZERO; b.points];
+            crate::growth::learn::placement::place(&local, r.positions[i], f, r.length[i], &mut w);
+            pts.extend(w);
+            starts.push(pts.len() as u32);
+            widths.push(0.03);
+        }
+        let cols = vec![[0.9, 0.6, 0.2]; widths.len()];
+        let mut g = render::strands_to_gaussians(&pts, &starts, &widths, &cols, true).unwrap();
+        let body = super::super::image::body_gaussians(&sphere(1.0, 12, 16), 2000, 0);
+        for i in 0..body.len() {
+            g.push(
+                body.means[i],
+                body.scales[i],
+                body.rotations[i],
+                1.0,
+                Vec3::splat(0.2),
+                false,
+            );
+        }
+        let cam = |k: usize, split: &str| {
+            let a = k as f32 * 1.3 + if split == "test" { 0.5 } else { 0.0 };
+            let eye = Vec3::new(4.0 * a.cos(), 1.0 - 0.5 * k as f32, 4.0 * a.sin());
+            Camera {
+                file_path: format!("{split}/{k:03}.png"),
+                c2w: glam::Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Y).inverse(),
+                fx: 60.0,
+                fy: 60.0,
+                cx: 24.0,
+                cy: 24.0,
+                width: 48,
+                height: 48,
+            }
+        };
+        let set = CameraSet {
+            train: (0..4).map(|k| cam(k, "train")).collect(),
+            test: vec![cam(0, "test")],
+        };
+        formats::cameras::write_views(&views, &set).unwrap();
+        for c in set.train.iter().chain(&set.test) {
+            let (out, _) = render::render(&g, c, &render::RenderSettings::default()).unwrap();
+            let n = (c.width * c.height) as usize;
+            let mut rgba = crate::data::image::ImageF32::new(c.width, c.height, 4);
+            let mut mask = crate::data::image::ImageF32::new(c.width, c.height, 1);
+            let mut fur = crate::data::image::ImageF32::new(c.width, c.height, 1);
+            for p in 0..n {
+                let a = out.alpha.data[p];
+                for k in 0..3 {
+                    rgba.data[4 * p + k] = if a > 1e-6 {
+                        (out.rgb.data[3 * p + k] / a).min(1.0)
+                    } else {
+                        0.0
+                    };
+                }
+                rgba.data[4 * p + 3] = a;
+                mask.data[p] = if a > 0.5 { 1.0 } else { 0.0 };
+                fur.data[p] = if out.fur.data[p] > 0.5 { 1.0 } else { 0.0 };
+            }
+            let stem = c.file_path.trim_end_matches(".png");
+            formats::images::write_png(views.join(&c.file_path), &rgba).unwrap();
+            formats::images::write_png(views.join(format!("{stem}_mask.png")), &mask).unwrap();
+            formats::images::write_png(views.join(format!("{stem}_fur.png")), &fur).unwrap();
+        }
+        let tips = (1..starts.len())
+            .map(|s| pts[starts[s] as usize - 1])
+            .collect();
+        (views, tips)
+    }
+
+    /// Runs the codec on the [`write_views`] scene with `extra` parameters;
+    /// returns the output folder.
+    fn run_with_views(d: &Path, views: PathBuf, extra: &[(&str, Value)]) -> PathBuf {
+        let stage = CodecStrands;
+        let mut over = small();
+        over.extend([
+            ("l_chm", Value::Float(0.0)),
+            ("body_gaussians", Value::Int(2000)),
+            ("views_per_iteration", Value::Int(2)),
+        ]);
+        over.extend(extra.iter().cloned());
+        let params = params(&stage, &over);
+        std::fs::create_dir_all(d).unwrap();
+        let mut inputs = write_inputs(d);
+        inputs.insert("views".into(), views);
+        let out = d.join("out");
+        let mut outputs = BTreeMap::new();
+        for port in stage.outputs(&params) {
+            let path = out.join(port.file_name());
+            if port.kind == fure_stage_api::PortKind::Dir {
+                std::fs::create_dir_all(&path).unwrap();
+            }
+            outputs.insert(port.name.clone(), path);
+        }
+        let ctx = StageContext {
+            name: "test",
+            params: &params,
+            inputs,
+            outputs,
+            progress: &NoProgress,
+        };
+        stage.run(&ctx).unwrap();
+        out
+    }
+
+    #[test]
+    fn the_colour_fit_gives_strands_the_colour_the_views_show() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, _) = write_views(d.path());
+        let colours = |fit: &str| -> (Vec<[f32; 3]>, LearnMetrics) {
+            let dir = d.path().join(fit);
+            let out = run_with_views(
+                &dir,
+                views.clone(),
+                &[
+                    ("iterations", Value::Int(0)),
+                    ("fit_colors", Value::Str(fit.into())),
+                    ("fit_color_views", Value::Int(0)),
+                ],
+            );
+            let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+            let m = formats::json::read_json(out.join("metrics.json")).unwrap();
+            (st.color, m)
+        };
+        // The views show orange strands (0.9, 0.6, 0.2) over a dark body.
+        let (fitted, m) = colours("start");
+        assert_eq!(m.colors_fitted.len(), 1);
+        assert!(m.colors_fitted[0] > 0.5, "{:?}", m.colors_fitted);
+        let n = fitted.len() as f32;
+        let mean = [0, 1, 2].map(|k| fitted.iter().map(|c| c[k]).sum::<f32>() / n);
+        for (k, want) in [0.9f32, 0.6, 0.2].iter().enumerate() {
+            assert!((mean[k] - want).abs() < 0.12, "mean fitted colour {mean:?}");
+        }
+        // Without the fit every strand keeps the starting colour.
+        let (constant, m) = colours("none");
+        assert!(m.colors_fitted.is_empty());
+        assert!(constant.iter().all(|c| *c == constant[0]));
+        assert!((constant[0][0] - 0.9).abs() > 0.3);
+    }
+
+    #[test]
+    fn a_learned_rotation_turns_wrongly_framed_strands_back() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let r = roots(300);
+        let fur: Vec<usize> = (0..r.len()).filter(|&i| r.length[i] > 0.0).collect();
+        // Mean angle (degrees) between the in-plane root-to-tip directions of
+        // the trained strands and of the views' strands.
+        let error = |learn: bool| -> f32 {
+            let dir = d.path().join(format!("rotation_{learn}"));
+            let out = run_with_views(
+                &dir,
+                views.clone(),
+                &[
+                    ("iterations", Value::Int(60)),
+                    ("lr_encoder", Value::Float(2e-3)),
+                    ("lr_decay", Value::Float(1.0)),
+                    ("frame_rotation_deg", Value::Float(45.0)),
+                    ("learn_rotation", Value::Bool(learn)),
+                    // Only the lean along the tangent, as a fur corpus's
+                    // components: the codes cannot turn a strand sideways.
+                    ("components", Value::Int(1)),
+                ],
+            );
+            let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+            let flat = |v: Vec3, n: Vec3| (v - v.dot(n) * n).normalize_or_zero();
+            let sum: f32 = fur
+                .iter()
+                .enumerate()
+                .map(|(s, &i)| {
+                    let (root, n) = (r.positions[i], r.normals[i]);
+                    let got = flat(*st.strand(s).last().unwrap() - root, n);
+                    let want = flat(gt_tips[s] - root, n);
+                    got.dot(want).clamp(-1.0, 1.0).acos().to_degrees()
+                })
+                .sum();
+            sum / fur.len() as f32
+        };
+        let (fixed, learned) = (error(false), error(true));
+        eprintln!(
+            "in-plane direction error: fixed frames {fixed:.1} deg, learned {learned:.1} deg"
+        );
+        assert!(fixed > 15.0, "the 45 degree turn should show: {fixed}");
+        assert!(
+            learned < 0.5 * fixed,
+            "fixed {fixed} deg, learned {learned} deg"
+        );
+    }
+
+    #[test]
+    fn image_losses_drive_the_codec_and_test_views_are_rendered() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let out = run_with_views(
+            d.path(),
+            views,
+            &[
+                ("iterations", Value::Int(60)),
+                ("lr_encoder", Value::Float(2e-3)),
+                // Constant rates: 60 iterations are too few for the schedule's tail.
+                ("lr_decay", Value::Float(1.0)),
+            ],
+        );
+        let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
+        assert!(m.final_losses.contains_key("rgb") && m.final_losses.contains_key("sil"));
+        let h = &m.loss_history;
+        let first: f32 = h[..5].iter().sum();
+        let last: f32 = h[h.len() - 5..].iter().sum();
+        assert!(last < 0.8 * first, "image loss {first} -> {last}");
+        assert!(out.join("renders/test/000.png").is_file());
+        // The strands moved toward the unseen GT lean: tip error shrinks.
+        let tip_err = |st: &Strands| -> f32 {
+            (0..st.len())
+                .map(|s| (*st.strand(s).last().unwrap() - gt_tips[s]).length())
+                .sum::<f32>()
+                / st.len() as f32
+        };
+        let fin = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+        let r = roots(300);
+        let b = basis();
+        let mut init_err = 0.0;
+        let mut n = 0;
+        for i in 0..r.len() {
+            if r.length[i] > 0.0 {
+                let f = frame(r.tangents[i], r.bitangents[i], r.normals[i]);
+                let mut w = vec![Vec3::ZERO; b.points];
+                crate::growth::learn::placement::place(
+                    &b.mean,
+                    r.positions[i],
+                    f,
+                    r.length[i],
+                    &mut w,
+                );
+                init_err += (w[b.points - 1] - gt_tips[n]).length();
+                n += 1;
+            }
+        }
+        init_err /= n as f32;
+        let e = tip_err(&fin);
+        assert!(e < 0.6 * init_err, "mean tip error {init_err} -> {e}");
+        assert!(out.join("renders/test/000.exr").is_file());
+    }
+}

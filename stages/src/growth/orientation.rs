@@ -1,0 +1,658 @@
+//! Gabor orientation and confidence maps (stage `orientation_maps`), the image-space direction cue of
+//! the orientation loss.
+//!
+//! # The maths (the public recipe shared by Neural Haircut, Gaussian Haircut and NeuralFur)
+//! 1. Gray = 0.2989 R + 0.5870 G + 0.1140 B (the values as stored in the PNG, no linearisation).
+//! 2. Difference of Gaussians: `G(sigma 0.4) * gray - G(sigma 10) * gray` (separable, each Gaussian
+//!    truncated at 3 sigma and normalised; borders mirrored).
+//! 3. `orientations` (default 180) filters, theta_k = k pi / orientations. Filter k is the real part of a
+//!    Gabor kernel whose stripes run along theta_k: with `a` the pixel offset along direction
+//!    `(cos theta_k, sin theta_k)` and `b` the offset across it,
+//!    `exp(-(b^2 / (2 sigma_x^2) + a^2 / (2 sigma_y^2))) cos(2 pi f b)`, f = 0.23 (wavelength ~4.35 px),
+//!    sigma_x = 1.8 across the strand, sigma_y = 2.4 along it. Kernel support: a square of half-size
+//!    `ceil(3 max(sigma_x, sigma_y))` (the public code sizes it per angle; a fixed square is a superset)
+//!    with taps below 1e-4 of the peak dropped (they change no response by more than ~1e-4 relative).
+//! 4. Per pixel, `F_k = |response_k|`; orientation = theta of argmax F_k (first maximum on ties);
+//!    variance = `sum_k (F_k / sum F) d(theta*, theta_k)^2` with the circular distance modulo pi;
+//!    confidence = `1 / ((variance / pi^2)^2 + 1e-7)` (raw, up to 1e7, as in the public code; the loss
+//!    decides how to normalise it).
+//!
+//! # Conventions
+//! Angles are in [0, pi) in image coordinates, u to the right and v DOWN, and give the direction of the
+//! strands (the stripes), not the normal to them: a strand whose projection moves by (du, dv) pixels has
+//! angle `atan2(dv, du) mod pi`, exactly [`crate::render::orientation_angle`], so the rendered strand
+//! orientation and these maps compare directly.
+//!
+//! # Inputs and outputs
+//! Either `views` (a views directory: its training frames, colour with mask from `_mask.png` or alpha)
+//! or `images` (any folder: every `.png` in it except `*_mask.png`, sorted by name; an alpha channel, if
+//! present, is the mask). Exactly one must be connected. Pixels outside the mask (mask < 0.5) are not
+//! filtered (speed: fur images are mostly background) and get angle 0 and confidence 0. Without a mask
+//! every pixel is processed. `downscale` (integer, default 1 because our synthetic images are small; the
+//! public code usually works at half resolution, i.e. 2) box-averages the image (and the mask) by that
+//! factor first; the maps then have the reduced size, recorded in `index.json`.
+//!
+//! Output directory `maps`: `<name>_orient.exr` and `<name>_conf.exr` (one channel, f32), `<name>` being
+//! the image path relative to its folder without extension (`train/r_000` -> `train/r_000_orient.exr`),
+//! and `index.json` listing, in input order, `{image, orient, conf, width, height, downscale}` plus the
+//! parameters used.
+
+use std::path::{Path, PathBuf};
+
+use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::data::image::ImageF32;
+
+/// Gabor filter-bank parameters.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GaborParams {
+    pub orientations: usize,
+    pub dog_sigma_small: f32,
+    pub dog_sigma_large: f32,
+    pub frequency: f32,
+    pub sigma_x: f32,
+    pub sigma_y: f32,
+}
+
+impl Default for GaborParams {
+    fn default() -> Self {
+        GaborParams {
+            orientations: 180,
+            dog_sigma_small: 0.4,
+            dog_sigma_large: 10.0,
+            frequency: 0.23,
+            sigma_x: 1.8,
+            sigma_y: 2.4,
+        }
+    }
+}
+
+/// Gray = 0.2989 R + 0.5870 G + 0.1140 B (1- or 2-channel images are gray already).
+pub fn to_gray(im: &ImageF32) -> Vec<f32> {
+    let c = im.channels as usize;
+    (0..(im.width * im.height) as usize)
+        .map(|i| {
+            let p = &im.data[i * c..i * c + c];
+            if c >= 3 {
+                0.2989 * p[0] + 0.5870 * p[1] + 0.1140 * p[2]
+            } else {
+                p[0]
+            }
+        })
+        .collect()
+}
+
+fn mirror(i: i64, n: i64) -> usize {
+    if n == 1 {
+        return 0;
+    }
+    let period = 2 * (n - 1);
+    let m = i.rem_euclid(period);
+    (if m >= n { period - m } else { m }) as usize
+}
+
+/// Separable Gaussian blur (3 sigma support, normalised, mirrored borders).
+pub fn gaussian_blur(img: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
+    if !(sigma > 0.0) {
+        return img.to_vec();
+    }
+    let r = (3.0 * sigma).ceil().max(1.0) as i64;
+    let mut k: Vec<f32> = (-r..=r)
+        .map(|x| (-(x * x) as f32 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let s: f32 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= s);
+    let mut tmp = vec![0.0f32; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            let mut acc = 0.0;
+            for (i, kv) in k.iter().enumerate() {
+                acc += kv * img[y * w + mirror(x as i64 + i as i64 - r, w as i64)];
+            }
+            *o = acc;
+        }
+    });
+    let mut out = vec![0.0f32; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            let mut acc = 0.0;
+            for (i, kv) in k.iter().enumerate() {
+                acc += kv * tmp[mirror(y as i64 + i as i64 - r, h as i64) * w + x];
+            }
+            *o = acc;
+        }
+    });
+    out
+}
+
+/// One sparse Gabor kernel: (dx, dy, weight) taps.
+type Kernel = Vec<(i32, i32, f32)>;
+
+/// The filter bank: kernel k has its stripes along theta_k = k pi / n.
+pub fn gabor_bank(p: &GaborParams) -> (Vec<Kernel>, i32) {
+    let half = (3.0 * p.sigma_x.max(p.sigma_y)).ceil() as i32;
+    let bank = (0..p.orientations)
+        .map(|k| {
+            let th = k as f32 * std::f32::consts::PI / p.orientations as f32;
+            let (s, c) = th.sin_cos();
+            let mut taps = Vec::new();
+            for dy in -half..=half {
+                for dx in -half..=half {
+                    let a = dx as f32 * c + dy as f32 * s;
+                    let b = -dx as f32 * s + dy as f32 * c;
+                    let env = (-(b * b / (2.0 * p.sigma_x * p.sigma_x)
+                        + a * a / (2.0 * p.sigma_y * p.sigma_y)))
+                        .exp();
+                    let w = env * (2.0 * std::f32::consts::PI * p.frequency * b).cos();
+                    if w.abs() >= 1e-4 {
+                        taps.push((dx, dy, w));
+                    }
+                }
+            }
+            taps
+        })
+        .collect();
+    (bank, half)
+}
+
+/// Orientation (radians in [0, pi), image coordinates with v down) and confidence maps of an image.
+/// `mask` (same size, one value per pixel) limits the work to pixels with mask >= 0.5.
+pub fn orientation_maps(
+    im: &ImageF32,
+    mask: Option<&[f32]>,
+    p: &GaborParams,
+) -> (ImageF32, ImageF32) {
+    let (w, h) = (im.width as usize, im.height as usize);
+    let gray = to_gray(im);
+    let a = gaussian_blur(&gray, w, h, p.dog_sigma_small);
+    let b = gaussian_blur(&gray, w, h, p.dog_sigma_large);
+    let dog: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x - y).collect();
+    let (bank, half) = gabor_bank(p);
+    // Mirror-padded copy so the inner loop needs no bounds logic.
+    let pw = w + 2 * half as usize;
+    let ph = h + 2 * half as usize;
+    let mut pad = vec![0.0f32; pw * ph];
+    for y in 0..ph {
+        for x in 0..pw {
+            let sx = mirror(x as i64 - half as i64, w as i64);
+            let sy = mirror(y as i64 - half as i64, h as i64);
+            pad[y * pw + x] = dog[sy * w + sx];
+        }
+    }
+    // Taps as flat offsets into the padded image.
+    let flat: Vec<Vec<(isize, f32)>> = bank
+        .iter()
+        .map(|k| {
+            k.iter()
+                .map(|&(dx, dy, wt)| ((dy as isize) * pw as isize + dx as isize, wt))
+                .collect()
+        })
+        .collect();
+    let n = p.orientations;
+    let thetas: Vec<f32> = (0..n)
+        .map(|k| k as f32 * std::f32::consts::PI / n as f32)
+        .collect();
+    let pi = std::f32::consts::PI;
+    let mut orient = ImageF32::new(im.width, im.height, 1);
+    let mut conf = ImageF32::new(im.width, im.height, 1);
+    orient
+        .data
+        .par_chunks_mut(w)
+        .zip(conf.data.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (orow, crow))| {
+            let mut f = vec![0.0f32; n];
+            for x in 0..w {
+                if let Some(m) = mask {
+                    if m[y * w + x] < 0.5 {
+                        continue;
+                    }
+                }
+                let centre = ((y + half as usize) * pw + x + half as usize) as isize;
+                for (k, taps) in flat.iter().enumerate() {
+                    let mut acc = 0.0f32;
+                    for &(off, wt) in taps {
+                        acc += wt * pad[(centre + off) as usize];
+                    }
+                    f[k] = acc.abs();
+                }
+                let mut best = 0;
+                for k in 1..n {
+                    if f[k] > f[best] {
+                        best = k;
+                    }
+                }
+                let sum: f32 = f.iter().sum();
+                let th = thetas[best];
+                let var = if sum > 0.0 {
+                    f.iter()
+                        .zip(&thetas)
+                        .map(|(fk, tk)| {
+                            let d = (th - tk).abs();
+                            let d = d.min(pi - d);
+                            fk / sum * d * d
+                        })
+                        .sum::<f32>()
+                } else {
+                    // A flat patch: no orientation at all.
+                    pi * pi
+                };
+                orow[x] = th;
+                crow[x] = if sum > 0.0 {
+                    1.0 / ((var / (pi * pi)).powi(2) + 1e-7)
+                } else {
+                    0.0
+                };
+            }
+        });
+    (orient, conf)
+}
+
+/// Box-averages an image by an integer factor (the last partial rows/columns are dropped).
+pub fn downscale(im: &ImageF32, factor: u32) -> ImageF32 {
+    if factor <= 1 {
+        return im.clone();
+    }
+    let (w, h) = ((im.width / factor).max(1), (im.height / factor).max(1));
+    let c = im.channels as usize;
+    let mut out = ImageF32::new(w, h, im.channels);
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = vec![0.0f32; c];
+            let mut cnt = 0.0;
+            for yy in y * factor..((y + 1) * factor).min(im.height) {
+                for xx in x * factor..((x + 1) * factor).min(im.width) {
+                    for (a, v) in acc.iter_mut().zip(im.pixel(xx, yy)) {
+                        *a += v;
+                    }
+                    cnt += 1.0;
+                }
+            }
+            for (o, a) in out.pixel_mut(x, y).iter_mut().zip(acc) {
+                *o = a / cnt;
+            }
+        }
+    }
+    out
+}
+
+/// One entry of `index.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapEntry {
+    /// The source image, relative to its folder (as in transforms.json for views).
+    pub image: String,
+    /// Orientation map file, relative to the `maps` directory.
+    pub orient: String,
+    /// Confidence map file, relative to the `maps` directory.
+    pub conf: String,
+    pub width: u32,
+    pub height: u32,
+    pub downscale: u32,
+}
+
+/// `index.json` of the `maps` directory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapIndex {
+    pub params: GaborParams,
+    /// "angle in [0, pi) of the strand direction, image coordinates u right, v down".
+    pub convention: String,
+    pub maps: Vec<MapEntry>,
+}
+
+/// Stage `orientation_maps`.
+pub struct OrientationMaps;
+
+fn stem_of(rel: &str) -> String {
+    let p = Path::new(rel);
+    match p.extension() {
+        Some(ext) => rel[..rel.len() - ext.len() - 1].to_string(),
+        None => rel.to_string(),
+    }
+}
+
+impl Stage for OrientationMaps {
+    fn kind(&self) -> &'static str {
+        "orientation_maps"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "Gabor orientation (strand direction angle in [0, pi), v down) and confidence maps of the \
+         training images of `views`, or of every PNG of `images`: DoG then 180 Gabor filters."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        let d = GaborParams::default();
+        vec![
+            ParamSpec::int(
+                "orientations",
+                d.orientations as i64,
+                "number of filter orientations",
+            )
+            .range(2.0, 3600.0),
+            ParamSpec::float(
+                "dog_sigma_small",
+                d.dog_sigma_small as f64,
+                "DoG small sigma (px)",
+            )
+            .range(0.0, 100.0),
+            ParamSpec::float(
+                "dog_sigma_large",
+                d.dog_sigma_large as f64,
+                "DoG large sigma (px)",
+            )
+            .range(0.0, 1000.0),
+            ParamSpec::float(
+                "frequency",
+                d.frequency as f64,
+                "Gabor frequency (cycles/px)",
+            )
+            .range(0.01, 0.5),
+            ParamSpec::float(
+                "sigma_x",
+                d.sigma_x as f64,
+                "Gabor sigma across the strand (px)",
+            )
+            .range(0.1, 50.0),
+            ParamSpec::float(
+                "sigma_y",
+                d.sigma_y as f64,
+                "Gabor sigma along the strand (px)",
+            )
+            .range(0.1, 50.0),
+            ParamSpec::int(
+                "downscale",
+                1,
+                "integer box downscale before filtering (1 = none)",
+            )
+            .range(1.0, 64.0),
+        ]
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![
+            PortSpec::dir("views", "views directory (training frames are used)").optional(),
+            PortSpec::dir("images", "any folder of PNG images").optional(),
+        ]
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![PortSpec::dir(
+            "maps",
+            "<name>_orient.exr, <name>_conf.exr per image and index.json",
+        )]
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        let p = ctx.params;
+        let gp = GaborParams {
+            orientations: p.usize("orientations")?,
+            dog_sigma_small: p.f32("dog_sigma_small")?,
+            dog_sigma_large: p.f32("dog_sigma_large")?,
+            frequency: p.f32("frequency")?,
+            sigma_x: p.f32("sigma_x")?,
+            sigma_y: p.f32("sigma_y")?,
+        };
+        let factor = p.u64("downscale")? as u32;
+        // (relative name, image, mask)
+        type Job = (
+            String,
+            PathBuf,
+            Option<(PathBuf, crate::data::camera::Camera)>,
+        );
+        let jobs: Vec<Job> = match (ctx.input_opt("views"), ctx.input_opt("images")) {
+            (Some(v), None) => {
+                let cams = crate::formats::cameras::read_views(v)?;
+                if cams.train.is_empty() {
+                    return Err(StageError::input("views", v, "no training frames"));
+                }
+                cams.train
+                    .into_iter()
+                    .map(|c| {
+                        (
+                            c.file_path.clone(),
+                            v.join(&c.file_path),
+                            Some((v.to_path_buf(), c)),
+                        )
+                    })
+                    .collect()
+            }
+            (None, Some(dir)) => {
+                let mut files = Vec::new();
+                for e in std::fs::read_dir(dir).map_err(|e| StageError::io(dir, e))? {
+                    let path = e.map_err(|e| StageError::io(dir, e))?.path();
+                    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+                    if path.is_file()
+                        && name.to_ascii_lowercase().ends_with(".png")
+                        && !name.ends_with("_mask.png")
+                    {
+                        files.push((name.to_string(), path.clone(), None));
+                    }
+                }
+                files.sort_by(|a, b| a.0.cmp(&b.0));
+                if files.is_empty() {
+                    return Err(StageError::input("images", dir, "holds no .png image"));
+                }
+                files
+            }
+            _ => {
+                return Err(StageError::failed(
+                    "connect exactly one of the inputs `views` and `images`",
+                ))
+            }
+        };
+        let out_dir = ctx.output("maps")?;
+        ctx.progress.set_total(jobs.len() as u64);
+        let mut entries = Vec::with_capacity(jobs.len());
+        for (rel, path, view) in jobs {
+            ctx.progress.message(&format!("Gabor filtering {rel}"));
+            let (img, mask) = match view {
+                Some((dir, cam)) => {
+                    let v = crate::formats::cameras::read_view(&dir, &cam)?;
+                    (v.rgb, v.mask)
+                }
+                None => {
+                    let im = crate::formats::images::read_png(&path)?;
+                    let mask = (im.channels == 4 || im.channels == 2).then(|| {
+                        let c = im.channels as usize;
+                        let mut m = ImageF32::new(im.width, im.height, 1);
+                        for i in 0..m.data.len() {
+                            m.data[i] = im.data[i * c + c - 1];
+                        }
+                        m
+                    });
+                    (im, mask)
+                }
+            };
+            if img.width == 0 || img.height == 0 {
+                return Err(StageError::failed(format!(
+                    "{}: empty image",
+                    path.display()
+                )));
+            }
+            let img = downscale(&img, factor);
+            let mask = mask.map(|m| downscale(&m, factor));
+            let (o, c) = orientation_maps(&img, mask.as_ref().map(|m| m.data.as_slice()), &gp);
+            fure_stage_api::ensure_finite(
+                &format!("orientation maps of {rel}"),
+                o.data.iter().chain(&c.data).copied(),
+            )?;
+            let stem = stem_of(&rel);
+            let (on, cn) = (format!("{stem}_orient.exr"), format!("{stem}_conf.exr"));
+            crate::formats::images::write_exr(out_dir.join(&on), &o)?;
+            crate::formats::images::write_exr(out_dir.join(&cn), &c)?;
+            entries.push(MapEntry {
+                image: rel,
+                orient: on,
+                conf: cn,
+                width: o.width,
+                height: o.height,
+                downscale: factor,
+            });
+            ctx.progress.advance(1);
+        }
+        let index = MapIndex {
+            params: gp,
+            convention:
+                "angle in [0, pi) of the strand direction, image coordinates u right, v down \
+                         (render::orientation_angle)"
+                    .into(),
+            maps: entries,
+        };
+        crate::formats::json::write_json(out_dir.join("index.json"), &index)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Stripes whose lines run along angle `theta` (v down), period `period` px.
+    fn stripes(w: u32, h: u32, theta: f32, period: f32) -> ImageF32 {
+        let mut im = ImageF32::new(w, h, 3);
+        let n = (-theta.sin(), theta.cos());
+        for y in 0..h {
+            for x in 0..w {
+                let b = x as f32 * n.0 + y as f32 * n.1;
+                let v = 0.5 + 0.4 * (2.0 * std::f32::consts::PI * b / period).cos();
+                im.pixel_mut(x, y).copy_from_slice(&[v, v, v]);
+            }
+        }
+        im
+    }
+
+    fn circ_deg(a: f32, b: f32) -> f32 {
+        let d = (a - b).abs() % std::f32::consts::PI;
+        d.min(std::f32::consts::PI - d).to_degrees()
+    }
+
+    #[test]
+    fn stripes_of_known_angle() {
+        let p = GaborParams::default();
+        for deg in [0.0f32, 30.0, 72.0, 90.0, 135.0, 161.0] {
+            let th = deg.to_radians();
+            let im = stripes(48, 40, th, 1.0 / 0.23);
+            let (o, c) = orientation_maps(&im, None, &p);
+            // Interior pixels (away from mirrored borders). The filters are the real (even) part only,
+            // as in the public recipe, so pixels whose stripe phase sits at a zero crossing of the
+            // right filter get weak, unreliable responses: they must be rare and low-confidence.
+            let (mut good, mut total) = (0, 0);
+            let (mut conf_good, mut conf_bad) = (0.0f64, 0.0f64);
+            let mut bad = 0;
+            for y in 12..28 {
+                for x in 12..36 {
+                    total += 1;
+                    let cv = c.pixel(x, y)[0] as f64;
+                    if circ_deg(o.pixel(x, y)[0], th) <= 1.01 {
+                        good += 1;
+                        conf_good += cv;
+                    } else {
+                        bad += 1;
+                        conf_bad += cv;
+                    }
+                }
+            }
+            assert!(
+                good as f32 >= 0.8 * total as f32,
+                "{deg} deg: {good} of {total} within 1 degree"
+            );
+            if bad > 0 {
+                assert!(conf_good / good as f64 > conf_bad / bad as f64);
+            }
+        }
+    }
+
+    #[test]
+    fn convention_matches_the_renderer() {
+        // A stripe along the image direction (du, dv) = (1, 2) (down-right) has the renderer's angle.
+        let th = crate::render::orientation_angle(1.0, 2.0);
+        let im = stripes(40, 40, (2.0f32).atan2(1.0), 4.35);
+        let (o, _) = orientation_maps(&im, None, &GaborParams::default());
+        assert!(circ_deg(o.pixel(20, 20)[0], th) <= 1.01);
+    }
+
+    #[test]
+    fn confidence_is_higher_on_stripes_than_noise_and_mask_skips() {
+        let p = GaborParams::default();
+        let s = stripes(40, 40, 0.5, 4.35);
+        let mut noise = ImageF32::new(40, 40, 3);
+        let mut x = 12345u64;
+        for v in noise.data.iter_mut() {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            *v = (x >> 40) as f32 / (1u64 << 24) as f32;
+        }
+        let (_, cs) = orientation_maps(&s, None, &p);
+        let (_, cn) = orientation_maps(&noise, None, &p);
+        let med = |c: &ImageF32| {
+            let mut v: Vec<f32> = (10..30)
+                .flat_map(|y| (10..30).map(move |x| (x, y)))
+                .map(|(x, y)| c.pixel(x, y)[0])
+                .collect();
+            v.sort_by(f32::total_cmp);
+            v[v.len() / 2]
+        };
+        assert!(med(&cs) > 10.0 * med(&cn), "{} vs {}", med(&cs), med(&cn));
+        // A mask of zeros leaves everything at 0.
+        let m = vec![0.0f32; 1600];
+        let (o, c) = orientation_maps(&s, Some(&m), &p);
+        assert!(o.data.iter().chain(&c.data).all(|v| *v == 0.0));
+    }
+
+    #[test]
+    fn downscale_averages_blocks() {
+        let mut im = ImageF32::new(4, 2, 1);
+        im.data = vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
+        let d = downscale(&im, 2);
+        assert_eq!((d.width, d.height), (2, 1));
+        assert_eq!(d.data, vec![2.5, 4.5]);
+    }
+
+    #[test]
+    fn stage_on_an_image_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let imgs = dir.path().join("imgs");
+        std::fs::create_dir_all(&imgs).unwrap();
+        // b.png: stripes at 45 degrees with an alpha mask covering the left half; a.png: RGB stripes.
+        let mut rgba = ImageF32::new(32, 24, 4);
+        let s = stripes(32, 24, 45f32.to_radians(), 4.35);
+        for y in 0..24 {
+            for x in 0..32 {
+                let v = s.pixel(x, y)[0];
+                let a = if x < 16 { 1.0 } else { 0.0 };
+                rgba.pixel_mut(x, y).copy_from_slice(&[v, v, v, a]);
+            }
+        }
+        crate::formats::images::write_png(imgs.join("b.png"), &rgba).unwrap();
+        crate::formats::images::write_png(imgs.join("a.png"), &stripes(32, 24, 0.3, 4.35)).unwrap();
+        crate::formats::images::write_png(imgs.join("a_mask.png"), &ImageF32::new(32, 24, 1))
+            .unwrap();
+        let out = dir.path().join("out");
+        let outs = crate::evaluation::evaluate::tests::run_stage(
+            &OrientationMaps,
+            &[("images", imgs.clone())],
+            &out,
+        )
+        .unwrap();
+        let maps = &outs["maps"];
+        let idx: MapIndex = crate::formats::json::read_json(maps.join("index.json")).unwrap();
+        let names: Vec<&str> = idx.maps.iter().map(|m| m.image.as_str()).collect();
+        assert_eq!(names, vec!["a.png", "b.png"]);
+        let o = crate::formats::images::read_exr(maps.join(&idx.maps[1].orient)).unwrap();
+        let c = crate::formats::images::read_exr(maps.join(&idx.maps[1].conf)).unwrap();
+        assert_eq!((o.width, o.height, o.channels), (32, 24, 1));
+        assert!(circ_deg(o.pixel(8, 12)[0], 45f32.to_radians()) <= 1.01);
+        assert!(c.pixel(8, 12)[0] > 0.0);
+        assert_eq!(c.pixel(24, 12)[0], 0.0, "outside the alpha mask");
+        // Neither or both inputs: a clear error.
+        let e = crate::evaluation::evaluate::tests::run_stage(
+            &OrientationMaps,
+            &[],
+            &dir.path().join("o2"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("exactly one"), "{e}");
+    }
+}

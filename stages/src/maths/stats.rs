@@ -1,0 +1,64 @@
+//! Statistics the stages share: percentiles (NumPy's default `linear`
+//! method) and the PSNR of two images.
+
+use crate::data::image::ImageF32;
+
+/// The `q`-th percentile (`q` in [0, 100]) by linear interpolation between
+/// order statistics; `None` for an empty slice. NaNs must have been rejected
+/// by the caller.
+pub fn percentile(values: &[f32], q: f64) -> Option<f32> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(f32::total_cmp);
+    Some(percentile_sorted(&v, q))
+}
+
+/// [`percentile`] on values sorted ascending (non-empty).
+pub fn percentile_sorted(sorted: &[f32], q: f64) -> f32 {
+    let n = sorted.len();
+    if n == 1 {
+        return sorted[0];
+    }
+    let pos = (q.clamp(0.0, 100.0) / 100.0) * (n - 1) as f64;
+    let lo = pos.floor() as usize;
+    let hi = (lo + 1).min(n - 1);
+    let frac = pos - lo as f64;
+    (sorted[lo] as f64 + frac * (sorted[hi] as f64 - sorted[lo] as f64)) as f32
+}
+
+/// PSNR in dB of two images of the same shape with values in [0, 1] (all
+/// channels); infinity when identical.
+pub fn psnr(a: &ImageF32, b: &ImageF32) -> f32 {
+    let se: f64 = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| {
+            let d = (*x - *y) as f64;
+            d * d
+        })
+        .sum();
+    let mse = se / a.data.len().max(1) as f64;
+    if mse <= 0.0 {
+        f32::INFINITY
+    } else {
+        (10.0 * (1.0 / mse).log10()) as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentile_interpolates_like_numpy() {
+        let v = [4.0, 1.0, 3.0, 2.0];
+        assert_eq!(percentile(&v, 0.0), Some(1.0));
+        assert_eq!(percentile(&v, 100.0), Some(4.0));
+        // numpy.percentile([1,2,3,4], 75) == 3.25
+        assert!((percentile(&v, 75.0).unwrap() - 3.25).abs() < 1e-6);
+        assert_eq!(percentile(&[], 50.0), None);
+    }
+}
