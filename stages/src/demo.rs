@@ -47,9 +47,9 @@ fn splitmix64(state: &mut u64) -> u64 {
 }
 
 /// `demo_numbers`: seeded numbers in [0, scale).
-pub struct DemoNumbers;
+pub struct DemoNumbersStage;
 
-impl Stage for DemoNumbers {
+impl Stage for DemoNumbersStage {
     fn kind(&self) -> &'static str {
         "demo_numbers"
     }
@@ -90,9 +90,9 @@ impl Stage for DemoNumbers {
 }
 
 /// `demo_sum`: sum of powers, with metrics.
-pub struct DemoSum;
+pub struct DemoSumStage;
 
-impl Stage for DemoSum {
+impl Stage for DemoSumStage {
     fn kind(&self) -> &'static str {
         "demo_sum"
     }
@@ -138,9 +138,9 @@ impl Stage for DemoSum {
 }
 
 /// `demo_concat`: joins text files.
-pub struct DemoConcat;
+pub struct DemoConcatStage;
 
-impl Stage for DemoConcat {
+impl Stage for DemoConcatStage {
     fn kind(&self) -> &'static str {
         "demo_concat"
     }
@@ -179,9 +179,9 @@ impl Stage for DemoConcat {
 }
 
 /// `demo_sleep`: waits, with progress; fails on request.
-pub struct DemoSleep;
+pub struct DemoSleepStage;
 
-impl Stage for DemoSleep {
+impl Stage for DemoSleepStage {
     fn kind(&self) -> &'static str {
         "demo_sleep"
     }
@@ -248,7 +248,7 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let run_numbers = |seed: i64, name: &str| {
             let p = params(
-                &DemoNumbers,
+                &DemoNumbersStage,
                 &[
                     ("seed", fure_stage_api::Value::Int(seed)),
                     ("count", fure_stage_api::Value::Int(50)),
@@ -262,7 +262,7 @@ mod tests {
                 outputs: BTreeMap::from([("numbers".to_string(), out.clone())]),
                 progress: &NoProgress,
             };
-            DemoNumbers.run(&ctx).unwrap();
+            DemoNumbersStage.run(&ctx).unwrap();
             std::fs::read_to_string(out).unwrap()
         };
         let a = run_numbers(3, "a.txt");
@@ -270,7 +270,7 @@ mod tests {
         assert_ne!(a, run_numbers(4, "c.txt"));
         assert_eq!(a.lines().count(), 50);
 
-        let p = params(&DemoSum, &[]);
+        let p = params(&DemoSumStage, &[]);
         let ctx = StageContext {
             name: "s",
             params: &p,
@@ -281,7 +281,7 @@ mod tests {
             ]),
             progress: &NoProgress,
         };
-        DemoSum.run(&ctx).unwrap();
+        DemoSumStage.run(&ctx).unwrap();
         let expect: f64 = a.lines().map(|l| l.parse::<f64>().unwrap()).sum();
         let got: f64 = std::fs::read_to_string(d.path().join("sum.txt"))
             .unwrap()
@@ -298,7 +298,7 @@ mod tests {
     fn sum_rejects_bad_numbers_naming_the_line() {
         let d = tempfile::tempdir().unwrap();
         std::fs::write(d.path().join("n.txt"), "1\nx\n").unwrap();
-        let p = params(&DemoSum, &[]);
+        let p = params(&DemoSumStage, &[]);
         let ctx = StageContext {
             name: "s",
             params: &p,
@@ -309,7 +309,7 @@ mod tests {
             ]),
             progress: &NoProgress,
         };
-        let e = DemoSum.run(&ctx).unwrap_err().to_string();
+        let e = DemoSumStage.run(&ctx).unwrap_err().to_string();
         assert!(e.contains("line 2"), "{e}");
     }
 }

@@ -5,7 +5,9 @@
 //! [`surface`] (M_outer, parts), [`thickness`] (Frosting, defurring, lengths), [`growth`]
 //! (roots, orientation, strand basis, learners, groom), [`evaluation`] (metrics and the
 //! reports over sweeps), and [`scenes`] (synthetic animals, corrupted views) for experiments.
-//! A stage module is named after its stage kind. The engine reaches this crate only through
+//! A stage module is named after its stage kind or the kind's noun (`groom` for `export_groom`);
+//! its stage struct is the kind in CamelCase plus
+//! `Stage`. The engine reaches this crate only through
 //! [`registry`] and the contract in `fure_stage_api`.
 
 // `!(x > 0.0)` is this crate's idiom for "not a positive number": unlike
@@ -31,23 +33,23 @@ use fure_stage_api::Stage;
 pub fn registry() -> Vec<Box<dyn Stage>> {
     // One entry per stage kind, alphabetical by module path.
     vec![
-        Box::new(demo::DemoConcat),
-        Box::new(demo::DemoNumbers),
-        Box::new(demo::DemoSleep),
-        Box::new(demo::DemoSum),
-        Box::new(evaluation::benchmark::BenchmarkReport),
-        Box::new(evaluation::evaluate::Evaluate),
-        Box::new(evaluation::speed_accuracy::SpeedAccuracy),
-        Box::new(evaluation::stability::StabilityReport),
-        Box::new(growth::groom::ExportGroom),
-        Box::new(growth::learn::CodecStrands),
-        Box::new(growth::learn::DenseStrands),
-        Box::new(growth::orientation::OrientationMaps),
+        Box::new(demo::DemoConcatStage),
+        Box::new(demo::DemoNumbersStage),
+        Box::new(demo::DemoSleepStage),
+        Box::new(demo::DemoSumStage),
+        Box::new(evaluation::benchmark::BenchmarkReportStage),
+        Box::new(evaluation::evaluate::EvaluateStage),
+        Box::new(evaluation::speed_accuracy::SpeedAccuracyStage),
+        Box::new(evaluation::stability::StabilityReportStage),
+        Box::new(growth::groom::ExportGroomStage),
+        Box::new(growth::learn::CodecStrandsStage),
+        Box::new(growth::learn::DenseStrandsStage),
+        Box::new(growth::orientation::OrientationMapsStage),
         Box::new(growth::roots::RootsStage),
         Box::new(growth::strand_basis::StrandBasisStage),
-        Box::new(scenes::corrupt::CorruptViews),
-        Box::new(scenes::synthetic::SyntheticScene),
-        Box::new(surface::fit_template::FitTemplate),
+        Box::new(scenes::corrupt::CorruptViewsStage),
+        Box::new(scenes::synthetic::SyntheticSceneStage),
+        Box::new(surface::fit_template::FitTemplateStage),
         Box::new(surface::outer_surface::OuterSurfaceStage),
         Box::new(surface::parts::PartsStage),
         Box::new(thickness::defur::DefurStage),

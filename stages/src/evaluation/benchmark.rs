@@ -827,9 +827,9 @@ fn config(p: &Params) -> Result<Config, StageError> {
 }
 
 /// Stage `benchmark_report`.
-pub struct BenchmarkReport;
+pub struct BenchmarkReportStage;
 
-impl Stage for BenchmarkReport {
+impl Stage for BenchmarkReportStage {
     fn kind(&self) -> &'static str {
         "benchmark_report"
     }

@@ -866,7 +866,7 @@ pub fn to_rgb(im: &ImageF32, bg: [f32; 3]) -> ImageF32 {
 // The stage.
 
 /// Stage `evaluate`.
-pub struct Evaluate;
+pub struct EvaluateStage;
 
 /// PSNR written for identical images (dB).
 pub const PSNR_CAP_DB: f32 = 100.0;
@@ -982,7 +982,7 @@ fn image_metrics(
     ))
 }
 
-impl Stage for Evaluate {
+impl Stage for EvaluateStage {
     fn kind(&self) -> &'static str {
         "evaluate"
     }
@@ -1631,7 +1631,7 @@ pub(crate) mod tests {
                 .unwrap();
         }
         let outs = run_stage(
-            &Evaluate,
+            &EvaluateStage,
             &[
                 ("strands", root.join("pred.ply")),
                 ("gt_strands", root.join("gt.hair")),
@@ -1666,7 +1666,7 @@ pub(crate) mod tests {
         // A missing render is a clear error naming both counts.
         std::fs::remove_file(renders.join("test/001.png")).unwrap();
         let e = run_stage(
-            &Evaluate,
+            &EvaluateStage,
             &[
                 ("strands", root.join("pred.ply")),
                 ("gt_strands", root.join("gt.hair")),
@@ -1682,7 +1682,7 @@ pub(crate) mod tests {
         // Garbage strands name the file.
         std::fs::write(root.join("bad.hair"), b"nonsense").unwrap();
         let e = run_stage(
-            &Evaluate,
+            &EvaluateStage,
             &[
                 ("strands", root.join("bad.hair")),
                 ("gt_strands", root.join("gt.hair")),

@@ -381,9 +381,9 @@ pub fn read_snapshots(port: &str, dir: &Path) -> Result<(PathBuf, Vec<Snapshot>)
 }
 
 /// Stage `speed_accuracy`.
-pub struct SpeedAccuracy;
+pub struct SpeedAccuracyStage;
 
-impl Stage for SpeedAccuracy {
+impl Stage for SpeedAccuracyStage {
     fn kind(&self) -> &'static str {
         "speed_accuracy"
     }
@@ -717,7 +717,7 @@ mod tests {
         }
         let out = root.join("out");
         std::fs::create_dir_all(&out).unwrap();
-        let st = SpeedAccuracy;
+        let st = SpeedAccuracyStage;
         let mut params = Params::default();
         for spec in st.params() {
             params

@@ -1198,7 +1198,7 @@ pub fn report(
 }
 
 /// Stage `stability_report`.
-pub struct StabilityReport;
+pub struct StabilityReportStage;
 
 fn config(p: &Params) -> Result<ReportConfig, StageError> {
     let mut methods = Vec::new();
@@ -1228,7 +1228,7 @@ fn config(p: &Params) -> Result<ReportConfig, StageError> {
     })
 }
 
-impl Stage for StabilityReport {
+impl Stage for StabilityReportStage {
     fn kind(&self) -> &'static str {
         "stability_report"
     }

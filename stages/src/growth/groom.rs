@@ -35,7 +35,7 @@ use crate::formats::blender::GroomInfo;
 use crate::formats::usd::UsdInfo;
 
 /// The `export_groom` stage.
-pub struct ExportGroom;
+pub struct ExportGroomStage;
 
 const UP: &[&str] = &["y", "z"];
 
@@ -89,7 +89,7 @@ fn transformed(
     (s, m)
 }
 
-impl Stage for ExportGroom {
+impl Stage for ExportGroomStage {
     fn kind(&self) -> &'static str {
         "export_groom"
     }
@@ -282,7 +282,7 @@ mod tests {
             ]),
             progress: &NoProgress,
         };
-        ExportGroom.run(&ctx)
+        ExportGroomStage.run(&ctx)
     }
 
     #[test]

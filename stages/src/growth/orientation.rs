@@ -302,7 +302,7 @@ pub struct MapIndex {
 }
 
 /// Stage `orientation_maps`.
-pub struct OrientationMaps;
+pub struct OrientationMapsStage;
 
 fn stem_of(rel: &str) -> String {
     let p = Path::new(rel);
@@ -312,7 +312,7 @@ fn stem_of(rel: &str) -> String {
     }
 }
 
-impl Stage for OrientationMaps {
+impl Stage for OrientationMapsStage {
     fn kind(&self) -> &'static str {
         "orientation_maps"
     }
@@ -630,7 +630,7 @@ mod tests {
             .unwrap();
         let out = dir.path().join("out");
         let outs = crate::evaluation::evaluate::tests::run_stage(
-            &OrientationMaps,
+            &OrientationMapsStage,
             &[("images", imgs.clone())],
             &out,
         )
@@ -647,7 +647,7 @@ mod tests {
         assert_eq!(c.pixel(24, 12)[0], 0.0, "outside the alpha mask");
         // Neither or both inputs: a clear error.
         let e = crate::evaluation::evaluate::tests::run_stage(
-            &OrientationMaps,
+            &OrientationMapsStage,
             &[],
             &dir.path().join("o2"),
         )

@@ -556,9 +556,9 @@ pub fn settings(p: &Params) -> Result<Corruption, StageError> {
 }
 
 /// Stage `corrupt_views`.
-pub struct CorruptViews;
+pub struct CorruptViewsStage;
 
-impl Stage for CorruptViews {
+impl Stage for CorruptViewsStage {
     fn kind(&self) -> &'static str {
         "corrupt_views"
     }
@@ -956,7 +956,7 @@ mod tests {
 
     #[test]
     fn parameters_are_validated() {
-        let stage = CorruptViews;
+        let stage = CorruptViewsStage;
         let mut p = Params::default();
         for s in stage.params() {
             p.0.insert(s.name.to_string(), s.default.clone().unwrap());

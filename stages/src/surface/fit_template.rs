@@ -49,7 +49,7 @@ use crate::scenes::synthetic::body::Body;
 use crate::scenes::synthetic::presets;
 
 /// The `fit_template` stage.
-pub struct FitTemplate;
+pub struct FitTemplateStage;
 
 const PRESETS: [&str; 5] = ["tiger", "fox", "panda", "cat", "bison"];
 
@@ -428,7 +428,7 @@ struct SceneOut {
     preset: String,
 }
 
-impl Stage for FitTemplate {
+impl Stage for FitTemplateStage {
     fn kind(&self) -> &'static str {
         "fit_template"
     }

@@ -111,4 +111,4 @@ pub mod placement;
 pub mod stage;
 pub mod train;
 
-pub use stage::{CodecStrands, DenseStrands};
+pub use stage::{CodecStrandsStage, DenseStrandsStage};

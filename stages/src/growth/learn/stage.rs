@@ -249,11 +249,11 @@ fn ports_out() -> Vec<PortSpec> {
 }
 
 /// Codec strand learning (FurE).
-pub struct CodecStrands;
+pub struct CodecStrandsStage;
 /// The dense baseline (NeuralFur-style per-point optimisation).
-pub struct DenseStrands;
+pub struct DenseStrandsStage;
 
-impl Stage for CodecStrands {
+impl Stage for CodecStrandsStage {
     fn kind(&self) -> &'static str {
         "codec_strands"
     }
@@ -316,7 +316,7 @@ impl Stage for CodecStrands {
     }
 }
 
-impl Stage for DenseStrands {
+impl Stage for DenseStrandsStage {
     fn kind(&self) -> &'static str {
         "dense_strands"
     }
@@ -1045,8 +1045,8 @@ mod tests {
     fn codec_stage_writes_exact_length_strands_deterministically() {
         let a = tempfile::tempdir().unwrap();
         let b = tempfile::tempdir().unwrap();
-        let out_a = run(&CodecStrands, &small(), a.path());
-        let out_b = run(&CodecStrands, &small(), b.path());
+        let out_a = run(&CodecStrandsStage, &small(), a.path());
+        let out_b = run(&CodecStrandsStage, &small(), b.path());
         let bytes = |o: &Path| std::fs::read(o.join("strands.hair")).unwrap();
         assert_eq!(bytes(&out_a), bytes(&out_b));
         let strands = formats::hair::read_hair(out_a.join("strands.hair")).unwrap();
@@ -1080,7 +1080,7 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let mut over = small();
         over.push(("lr_points", Value::Float(0.02)));
-        let out = run(&DenseStrands, &over, d.path());
+        let out = run(&DenseStrandsStage, &over, d.path());
         let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
         assert_eq!(m.method, "dense");
         assert_eq!(m.optimised_parameters, m.strands * 7 * 3);
@@ -1089,7 +1089,7 @@ mod tests {
         let f = tempfile::tempdir().unwrap();
         let mut over = small();
         over.push(("length_mode", Value::Str("fixed".into())));
-        let out = run(&CodecStrands, &over, f.path());
+        let out = run(&CodecStrandsStage, &over, f.path());
         let strands = formats::hair::read_hair(out.join("strands.hair")).unwrap();
         // Default fixed length: the mean fur length (one fur part here).
         let r = roots(300);
@@ -1195,7 +1195,7 @@ mod tests {
     /// Runs the codec on the [`write_views`] scene with `extra` parameters;
     /// returns the output folder.
     fn run_with_views(d: &Path, views: PathBuf, extra: &[(&str, Value)]) -> PathBuf {
-        let stage = CodecStrands;
+        let stage = CodecStrandsStage;
         let mut over = small();
         over.extend([
             ("l_chm", Value::Float(0.0)),

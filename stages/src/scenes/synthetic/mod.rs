@@ -95,7 +95,7 @@ pub const MAX_STRANDS: usize = 3_000_000;
 const HALF_FOV_DEG: f32 = 20.0;
 
 /// The `synthetic_scene` stage.
-pub struct SyntheticScene;
+pub struct SyntheticSceneStage;
 
 /// Sizes: (views, test views, resolution, supersample).
 fn size_defaults(size: &str) -> (usize, usize, u32, u32) {
@@ -515,7 +515,7 @@ pub fn scene_info(g: &Generated) -> SceneInfo {
     }
 }
 
-impl Stage for SyntheticScene {
+impl Stage for SyntheticSceneStage {
     fn kind(&self) -> &'static str {
         "synthetic_scene"
     }
@@ -693,7 +693,7 @@ mod tests {
 
     fn params_with(extra: &[(&str, Value)]) -> Params {
         let mut p = Params::default();
-        for s in SyntheticScene.params() {
+        for s in SyntheticSceneStage.params() {
             if let Some(d) = s.default {
                 p.0.insert(s.name.to_string(), d);
             }
@@ -737,7 +737,7 @@ mod tests {
     #[test]
     fn quick_tiger_runs_and_writes_all_outputs() {
         let p = params_with(&[("size", Value::Str("quick".into()))]);
-        SyntheticScene.validate(&p).unwrap();
+        SyntheticSceneStage.validate(&p).unwrap();
         let st = Settings::from_params(&p).unwrap();
         assert_eq!((st.views, st.test_views, st.resolution), (8, 2, 96));
         let dir = tempfile::tempdir().unwrap();
@@ -922,7 +922,7 @@ mod tests {
         // Unknown part names and keys are rejected by validate, naming what is allowed.
         let mut bad = BTreeMap::new();
         bad.insert("wing".to_string(), Value::Table(BTreeMap::new()));
-        let e = SyntheticScene
+        let e = SyntheticSceneStage
             .validate(&params_with(&[("parts", Value::Table(bad))]))
             .unwrap_err()
             .to_string();
