@@ -21,7 +21,9 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+pub mod declare;
 mod params;
+pub use declare::FromParam;
 pub use params::{ParamSpec, ParamType, Params, Value};
 
 /// Errors a stage reports. The engine adds the stage name.

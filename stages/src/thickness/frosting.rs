@@ -139,25 +139,37 @@ use crate::maths::geom::{MeshQuery, PointIndex};
 use crate::maths::stats::{percentile, psnr};
 use crate::render::{self, losses, Adam, Gaussians, OutputGrads, RenderSettings};
 
-/// How `sigma_n` (the sampling half-range unit) is defined.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SigmaMode {
-    /// Frosting: mean std along the normal of the nearest Gaussians.
-    Gaussians,
-    /// A fixed length (`sigma_floor`).
-    Fixed,
-    /// The larger of the two.
-    Max,
+fure_stage_api::param_enum! {
+    /// How `sigma_n` (the sampling half-range unit) is defined.
+    pub enum SigmaMode {
+        /// Frosting: mean std along the normal of the nearest Gaussians.
+        Gaussians = "gaussians",
+        /// A fixed length (`sigma_floor`).
+        Fixed = "fixed",
+        /// The larger of the two.
+        Max = "max",
+    }
 }
 
-/// How a vertex's width is read from its two level crossings.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum WidthReading {
-    /// Gaussian Frosting: `|outer - inner|`, the extent of the level set.
-    Frosting,
-    /// `max(0, -inner)`: from M_outer down to the innermost crossing (the
-    /// level set's extent plus how far it lies under a visual-hull M_outer).
-    InnerDepth,
+fure_stage_api::param_enum! {
+    /// How a vertex's width is read from its two level crossings.
+    pub enum WidthReading {
+        /// Gaussian Frosting: `|outer - inner|`, the extent of the level set.
+        Frosting = "frosting",
+        /// `max(0, -inner)`: from M_outer down to the innermost crossing (the
+        /// level set's extent plus how far it lies under a visual-hull M_outer).
+        InnerDepth = "inner_depth",
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// Where the initial Gaussians are placed.
+    pub enum InitBand {
+        /// In a band under M_outer.
+        Under = "under",
+        /// On both sides of M_outer (the images decide where the surface is).
+        Both = "both",
+    }
 }
 
 /// Settings of the width definition.
@@ -1276,73 +1288,117 @@ fn gt_vertex_correlation(
     }))
 }
 
-fn width_settings(p: &Params, d: f32) -> Result<WidthSettings, StageError> {
-    Ok(WidthSettings {
-        reading: match p.str("width_reading")? {
-            "frosting" => WidthReading::Frosting,
-            "inner_depth" => WidthReading::InnerDepth,
-            other => {
-                return Err(StageError::param(
-                    "width_reading",
-                    format!("unknown reading `{other}`: expected frosting or inner_depth"),
-                ))
-            }
-        },
-        samples: p.usize("samples")?,
-        knn: p.usize("knn")?,
-        level: p.f32("level")?,
-        range_sigmas: p.f32("range_sigmas")?,
-        sigma_k: p.usize("sigma_k")?,
-        sigma_mode: match p.str("sigma_n")? {
-            "gaussians" => SigmaMode::Gaussians,
-            "fixed" => SigmaMode::Fixed,
-            "max" => SigmaMode::Max,
-            other => {
-                return Err(StageError::param(
-                    "sigma_n",
-                    format!("unknown mode `{other}`: expected gaussians, fixed or max"),
-                ))
-            }
-        },
-        sigma_floor: p.f32("sigma_n_frac")? * d,
-        min_width: p.f32("min_width_frac")? * d,
-        smooth_k: p.usize("smooth_k")?,
-        inner_limit: Vec::new(),
-    })
+fure_stage_api::stage_params! {
+    /// The `frosting` stage's parameters (besides `device`).
+    pub struct FrostingParams {
+        /// Gaussians fitted (fixed budget, no densification)
+        gaussians: usize = int(12000).range(1.0, 5_000_000.0),
+        /// fitting iterations (one training view each)
+        iterations: usize = int(400).range(0.0, 1_000_000.0),
+        /// seed of the initial placement and the view order
+        seed: u64 = int(0).min(0.0),
+        /// Adam rate of the means, as a fraction of D
+        lr_position: f32 = float(0.0005).range(0.0, 1.0),
+        /// Adam rate of the log-scales
+        lr_scale: f32 = float(0.01).range(0.0, 10.0),
+        /// Adam rate of the quaternions
+        lr_rotation: f32 = float(0.002).range(0.0, 10.0),
+        /// Adam rate of the logit-opacities
+        lr_opacity: f32 = float(0.05).range(0.0, 10.0),
+        /// Adam rate of the SH band-0 colours
+        lr_color: f32 = float(0.01).range(0.0, 10.0),
+        /// depth of the initial band under M_outer, fraction of D
+        init_depth_frac: f32 = float(0.005).range(0.0, 1.0),
+        /// initial Gaussians are surface-aligned discs: normal scale / tangential scale
+        init_flatness: f32 = float(0.2).range(0.01, 1.0),
+        /// D-SSIM weight of the photometric loss
+        lambda_dssim: f32 = float(0.2).range(0.0, 1.0),
+        /// weight of |alpha - mask|
+        silhouette_weight: f32 = float(0.5).range(0.0, 100.0),
+        /// Gaussians below this opacity after fitting are dropped
+        prune_opacity: f32 = float(0.005).range(0.0, 1.0),
+        /// initial band: under M_outer, or on both sides of it (then the images decide where the surface is)
+        init_band: InitBand = string("under").choices(InitBand::NAMES),
+        /// clone/split Gaussians with large view-space gradients every this many iterations (0: no densification)
+        densify_every: usize = int(0).range(0.0, 1_000_000.0),
+        /// last iteration of densification
+        densify_until: usize = int(300).range(0.0, 1_000_000.0),
+        /// mean view-space positional gradient above which a Gaussian is densified (loss per pixel of displacement, summed over the image)
+        densify_grad: f32 = float(1.0).range(0.0, 1e12),
+        /// Gaussians larger than this (fraction of D) are split, smaller ones cloned
+        percent_dense: f32 = float(0.01).range(0.0, 1.0).positive(),
+        /// densification stops at gaussians x this
+        max_gaussians_factor: usize = int(4).range(1.0, 1000.0),
+        /// Gaussians contributing less blending weight than this (pixels, summed over the training views) are dropped after fitting (0: off)
+        prune_visibility: f32 = float(0.0).range(0.0, 1e6),
+        /// sampling unit: gaussians (Frosting: mean normal std of the sigma_k nearest), fixed (sigma_n_frac D) or max of both
+        sigma_n: SigmaMode = string("gaussians").choices(SigmaMode::NAMES),
+        /// fixed sigma_n as a fraction of D (for sigma_n = fixed or max)
+        sigma_n_frac: f32 = float(0.01).range(0.0, 1.0).positive(),
+        /// Gaussians averaged for sigma_n
+        sigma_k: usize = int(4).range(1.0, 256.0),
+        /// samples span +-range_sigmas sigma_n
+        range_sigmas: f32 = float(3.0).range(0.01, 100.0),
+        /// samples along each normal
+        samples: usize = int(21).range(2.0, 10_000.0),
+        /// nearest Gaussians summed for the density
+        knn: usize = int(16).range(1.0, 1024.0),
+        /// density level of the shell boundary
+        level: f32 = float(0.01).range(1e-6, 1.0),
+        /// minimum width as a fraction of D
+        min_width_frac: f32 = float(0.001).range(0.0, 1.0),
+        /// frosting: |outer - inner| (Gaussian Frosting); inner_depth: from M_outer down to the innermost crossing
+        width_reading: WidthReading = string("frosting").choices(WidthReading::NAMES),
+        /// cap the inward window at half the inward ray-hit distance through M_outer (thin parts: ears, muzzle)
+        medial_clamp: bool = bool(false),
+        /// offsets averaged over this many nearest vertices (1 = none)
+        smooth_k: usize = int(4).range(1.0, 1024.0),
+    }
 }
 
-fn fit_settings(p: &Params) -> Result<FitSettings, StageError> {
-    Ok(FitSettings {
-        gaussians: p.usize("gaussians")?,
-        iterations: p.usize("iterations")?,
-        seed: p.u64("seed")?,
-        lr_position_frac: p.f32("lr_position")?,
-        lr_scale: p.f32("lr_scale")?,
-        lr_rotation: p.f32("lr_rotation")?,
-        lr_opacity: p.f32("lr_opacity")?,
-        lr_color: p.f32("lr_color")?,
-        init_depth_frac: p.f32("init_depth_frac")?,
-        init_flatness: p.f32("init_flatness")?,
-        lambda_dssim: p.f32("lambda_dssim")?,
-        silhouette_weight: p.f32("silhouette_weight")?,
-        prune_opacity: p.f32("prune_opacity")?,
-        prune_visibility: p.f32("prune_visibility")?,
-        band_both_sides: match p.str("init_band")? {
-            "under" => false,
-            "both" => true,
-            other => {
-                return Err(StageError::param(
-                    "init_band",
-                    format!("expected under or both, got {other:?}"),
-                ))
-            }
-        },
-        densify_every: p.usize("densify_every")?,
-        densify_until: p.usize("densify_until")?,
-        densify_grad: p.f32("densify_grad")?,
-        percent_dense: p.f32("percent_dense")?,
-        max_gaussians_factor: p.usize("max_gaussians_factor")?,
-    })
+impl FrostingParams {
+    /// The width definition's settings for a mesh of bounding-box diagonal `d`.
+    fn width_settings(&self, d: f32) -> WidthSettings {
+        WidthSettings {
+            reading: self.width_reading,
+            samples: self.samples,
+            knn: self.knn,
+            level: self.level,
+            range_sigmas: self.range_sigmas,
+            sigma_k: self.sigma_k,
+            sigma_mode: self.sigma_n,
+            sigma_floor: self.sigma_n_frac * d,
+            min_width: self.min_width_frac * d,
+            smooth_k: self.smooth_k,
+            inner_limit: Vec::new(),
+        }
+    }
+
+    /// The Gaussian fit's settings.
+    fn fit_settings(&self) -> FitSettings {
+        FitSettings {
+            gaussians: self.gaussians,
+            iterations: self.iterations,
+            seed: self.seed,
+            lr_position_frac: self.lr_position,
+            lr_scale: self.lr_scale,
+            lr_rotation: self.lr_rotation,
+            lr_opacity: self.lr_opacity,
+            lr_color: self.lr_color,
+            init_depth_frac: self.init_depth_frac,
+            init_flatness: self.init_flatness,
+            lambda_dssim: self.lambda_dssim,
+            silhouette_weight: self.silhouette_weight,
+            prune_opacity: self.prune_opacity,
+            prune_visibility: self.prune_visibility,
+            band_both_sides: self.init_band == InitBand::Both,
+            densify_every: self.densify_every,
+            densify_until: self.densify_until,
+            densify_grad: self.densify_grad,
+            percent_dense: self.percent_dense,
+            max_gaussians_factor: self.max_gaussians_factor,
+        }
+    }
 }
 
 /// Reads the training views as fitting targets (RGB composited on black with the mask).
@@ -1396,43 +1452,9 @@ impl Stage for FrostingStage {
          vertices. Or import widths on another mesh (closest-point transfer)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            render::device::device_param(),
-            ParamSpec::int("gaussians", 12000, "Gaussians fitted (fixed budget, no densification)").range(1.0, 5_000_000.0),
-            ParamSpec::int("iterations", 400, "fitting iterations (one training view each)").range(0.0, 1_000_000.0),
-            ParamSpec::int("seed", 0, "seed of the initial placement and the view order").min(0.0),
-            ParamSpec::float("lr_position", 0.0005, "Adam rate of the means, as a fraction of D").range(0.0, 1.0),
-            ParamSpec::float("lr_scale", 0.01, "Adam rate of the log-scales").range(0.0, 10.0),
-            ParamSpec::float("lr_rotation", 0.002, "Adam rate of the quaternions").range(0.0, 10.0),
-            ParamSpec::float("lr_opacity", 0.05, "Adam rate of the logit-opacities").range(0.0, 10.0),
-            ParamSpec::float("lr_color", 0.01, "Adam rate of the SH band-0 colours").range(0.0, 10.0),
-            ParamSpec::float("init_depth_frac", 0.005, "depth of the initial band under M_outer, fraction of D").range(0.0, 1.0),
-            ParamSpec::float("init_flatness", 0.2, "initial Gaussians are surface-aligned discs: normal scale / tangential scale").range(0.01, 1.0),
-            ParamSpec::float("lambda_dssim", 0.2, "D-SSIM weight of the photometric loss").range(0.0, 1.0),
-            ParamSpec::float("silhouette_weight", 0.5, "weight of |alpha - mask|").range(0.0, 100.0),
-            ParamSpec::float("prune_opacity", 0.005, "Gaussians below this opacity after fitting are dropped").range(0.0, 1.0),
-            ParamSpec::string("init_band", "under", "initial band: under M_outer, or on both sides of it (then the images decide where the surface is)")
-                .choices(&["under", "both"]),
-            ParamSpec::int("densify_every", 0, "clone/split Gaussians with large view-space gradients every this many iterations (0: no densification)").range(0.0, 1_000_000.0),
-            ParamSpec::int("densify_until", 300, "last iteration of densification").range(0.0, 1_000_000.0),
-            ParamSpec::float("densify_grad", 1.0, "mean view-space positional gradient above which a Gaussian is densified (loss per pixel of displacement, summed over the image)").range(0.0, 1e12),
-            ParamSpec::float("percent_dense", 0.01, "Gaussians larger than this (fraction of D) are split, smaller ones cloned").range(0.0, 1.0).positive(),
-            ParamSpec::int("max_gaussians_factor", 4, "densification stops at gaussians x this").range(1.0, 1000.0),
-            ParamSpec::float("prune_visibility", 0.0, "Gaussians contributing less blending weight than this (pixels, summed over the training views) are dropped after fitting (0: off)").range(0.0, 1e6),
-            ParamSpec::string("sigma_n", "gaussians", "sampling unit: gaussians (Frosting: mean normal std of the sigma_k nearest), fixed (sigma_n_frac D) or max of both")
-                .choices(&["gaussians", "fixed", "max"]),
-            ParamSpec::float("sigma_n_frac", 0.01, "fixed sigma_n as a fraction of D (for sigma_n = fixed or max)").range(0.0, 1.0).positive(),
-            ParamSpec::int("sigma_k", 4, "Gaussians averaged for sigma_n").range(1.0, 256.0),
-            ParamSpec::float("range_sigmas", 3.0, "samples span +-range_sigmas sigma_n").range(0.01, 100.0),
-            ParamSpec::int("samples", 21, "samples along each normal").range(2.0, 10_000.0),
-            ParamSpec::int("knn", 16, "nearest Gaussians summed for the density").range(1.0, 1024.0),
-            ParamSpec::float("level", 0.01, "density level of the shell boundary").range(1e-6, 1.0),
-            ParamSpec::float("min_width_frac", 0.001, "minimum width as a fraction of D").range(0.0, 1.0),
-            ParamSpec::string("width_reading", "frosting", "frosting: |outer - inner| (Gaussian Frosting); inner_depth: from M_outer down to the innermost crossing")
-                .choices(&["frosting", "inner_depth"]),
-            ParamSpec::bool("medial_clamp", false, "cap the inward window at half the inward ray-hit distance through M_outer (thin parts: ears, muzzle)"),
-            ParamSpec::int("smooth_k", 4, "offsets averaged over this many nearest vertices (1 = none)").range(1.0, 1024.0),
-        ]
+        let mut specs = vec![render::device::device_param()];
+        specs.extend(FrostingParams::specs());
+        specs
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -1510,7 +1532,8 @@ impl Stage for FrostingStage {
             mesh.recompute_normals();
         }
         let d = mesh.diagonal();
-        let ws = width_settings(ctx.params, d)?;
+        let params = FrostingParams::from_params(ctx.params)?;
+        let ws = params.width_settings(d);
         let views = match ctx.input_opt("views") {
             Some(dir) => Some((dir, crate::formats::cameras::read_views(dir)?)),
             None => None,
@@ -1557,7 +1580,7 @@ impl Stage for FrostingStage {
                 ctx.progress.message("reading training views");
                 let train = read_train_views(dir)?;
                 ctx.progress.message("fitting Gaussians");
-                let fs = fit_settings(ctx.params)?;
+                let fs = params.fit_settings();
                 let (g, rep) = fit_gaussians_on(&device, &mesh, &train, &fs, ctx.progress)?;
                 ctx.progress.note(&format!(
                         "fitted {} Gaussians ({} kept) in {} iterations, loss {:.4} -> {:.4}, train PSNR {:.2} dB, {:.1} s",
@@ -1572,7 +1595,7 @@ impl Stage for FrostingStage {
                 let t = std::time::Instant::now();
                 let field = DensityField::new(&g, ws.knn)?;
                 let mut ws = ws.clone();
-                if ctx.params.bool("medial_clamp")? {
+                if params.medial_clamp {
                     ws.inner_limit = medial_limits(&mesh)?;
                 }
                 let r = shell_widths(&field, &mesh.positions, &mesh.normals, &ws)?;

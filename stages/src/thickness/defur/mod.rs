@@ -700,34 +700,7 @@ impl Stage for DefurStage {
         DEFUR_DOC
     }
     fn params(&self) -> Vec<ParamSpec> {
-        let d = DefurSettings::default();
-        vec![
-            ParamSpec::float("eta", d.eta, "weight of the part guidance term").min(0.0),
-            ParamSpec::float("lambda", d.lambda, "weight of the edge smoothness term").min(0.0),
-            ParamSpec::string("units", "diagonal", "length unit of the objective (its minimiser depends on it): scene (the paper read literally), cm (needs s_cm) or diagonal (M_outer's bounding-box diagonal; needs nothing)")
-                .choices(&["scene", "cm", "diagonal"]),
-            ParamSpec::float("cross_part_weight", d.cross_part_weight, "smoothness weight factor across parts").range(0.0, 1.0),
-            ParamSpec::float("support_radius_frac", d.support_radius_frac as f64, "correspondence acceptance distance, fraction of D").range(0.0, 1.0),
-            ParamSpec::float("support_sigma_frac", d.support_sigma_frac as f64, "Gaussian distance scale of correspondence weights, fraction of D").range(1e-6, 1.0),
-            ParamSpec::int("max_neighbours", d.max_neighbours as i64, "shell vertices considered per outer vertex").range(1.0, 255.0),
-            ParamSpec::float("normal_min", d.normal_min as f64, "minimum n_i . nu_k of an accepted correspondence").range(-1.0, 1.0),
-            ParamSpec::float("width_percentile", d.width_percentile, "widths above this global percentile are unreliable").range(0.0, 100.0),
-            ParamSpec::float("bound_hit_frac", d.bound_hit_frac as f64, "u_i <= this x inward ray hit distance").range(0.0, 1.0),
-            ParamSpec::float("bound_max_frac", d.bound_max_frac as f64, "u_i <= this x D").range(0.0, 1.0),
-            ParamSpec::float("bound_miss_frac", d.bound_miss_frac as f64, "hit distance assumed when the inward ray hits nothing, fraction of D").range(0.0, 10.0),
-            ParamSpec::table("reference_thickness_cm", "per-part reference thickness h_p in cm (missing parts use W75; an explicit 0 stays 0); needs s_cm"),
-            ParamSpec::optional("s_cm", ParamType::Float, "centimetres per scene unit, when no `scale` input is connected").positive(),
-            ParamSpec::str_list("protected_parts", DEFAULT_PROTECTED, "non-fur part names kept fixed (case-insensitive)"),
-            ParamSpec::int("max_iterations", d.solver.max_iterations as i64, "solver iteration limit").range(0.0, 1e7),
-            ParamSpec::float("ftol", d.solver.ftol, "relative reduction tolerance").min(0.0),
-            ParamSpec::float("gtol", d.solver.gtol, "projected gradient tolerance").min(0.0),
-            ParamSpec::int("memory", d.solver.memory as i64, "L-BFGS correction pairs").range(1.0, 100.0),
-            ParamSpec::bool("precondition", d.precondition, "Jacobi-scale the L-BFGS initial Hessian"),
-            ParamSpec::float("collapse_ratio", d.postcheck.collapse_ratio as f64, "faces shrinking below this area ratio count as collapsed").range(0.0, 1.0),
-            ParamSpec::float("reduce_factor", d.postcheck.reduce_factor as f64, "post-check multiplies offending displacements by this").range(0.0, 0.99),
-            ParamSpec::int("max_rounds", d.postcheck.max_rounds as i64, "post-check reduction rounds before zeroing").range(0.0, 1000.0),
-            ParamSpec::bool("check_intersections", d.postcheck.check_intersections, "test for new self-intersections"),
-        ]
+        DefurParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -789,7 +762,8 @@ impl Stage for DefurStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;
-        let mut settings = settings_from(p)?;
+        let params = DefurParams::from_params(p)?;
+        let mut settings = params.settings();
         ctx.progress.message("reading inputs");
         let outer = read_mesh(ctx, "outer")?;
         let shell_path = ctx.input("shell")?;
@@ -805,7 +779,7 @@ impl Stage for DefurStage {
             &outer,
         );
         let s_cm = scale_from(ctx)?;
-        if let Some(u) = unit_scale(p.str("units")?, s_cm, &outer)? {
+        if let Some(u) = unit_scale(params.units, s_cm, &outer)? {
             settings.unit_scale = u;
         }
         let reference_h: BTreeMap<String, f32> = if refs_cm.is_empty() {
@@ -841,7 +815,7 @@ impl Stage for DefurStage {
         write_obj(ctx.output("root_mesh")?, &r.root)?;
         write_scalars(ctx.output("displacement")?, &r.d)?;
 
-        let mut m = run_metrics(&r, s_cm, p.str("units")?, seconds_total)?;
+        let mut m = run_metrics(&r, s_cm, params.units.name(), seconds_total)?;
         if let Some(gt) = GtComparison::load(ctx, &outer, &part_protected)? {
             ctx.progress.message("measuring against the GT skin");
             let root = gt.measure(&r.root, &part_protected);
@@ -877,44 +851,111 @@ impl Stage for DefurStage {
     }
 }
 
-/// The `defur` stage's settings from its parameters (`unit_scale` 1: see
-/// [`unit_scale`]).
-fn settings_from(p: &Params) -> Result<DefurSettings, StageError> {
-    Ok(DefurSettings {
-        eta: p.f64("eta")?,
-        lambda: p.f64("lambda")?,
-        unit_scale: 1.0,
-        cross_part_weight: p.f64("cross_part_weight")?,
-        support_radius_frac: p.f32("support_radius_frac")?,
-        support_sigma_frac: p.f32("support_sigma_frac")?,
-        max_neighbours: p.usize("max_neighbours")?,
-        normal_min: p.f32("normal_min")?,
-        width_percentile: p.f64("width_percentile")?,
-        bound_hit_frac: p.f32("bound_hit_frac")?,
-        bound_max_frac: p.f32("bound_max_frac")?,
-        bound_miss_frac: p.f32("bound_miss_frac")?,
-        solver: lbfgsb::Settings {
-            memory: p.usize("memory")?,
-            max_iterations: p.usize("max_iterations")?,
-            ftol: p.f64("ftol")?,
-            gtol: p.f64("gtol")?,
-            ..lbfgsb::Settings::default()
-        },
-        precondition: p.bool("precondition")?,
-        postcheck: PostCheckSettings {
-            collapse_ratio: p.f32("collapse_ratio")?,
-            reduce_factor: p.f32("reduce_factor")?,
-            max_rounds: p.usize("max_rounds")?,
-            check_intersections: p.bool("check_intersections")?,
-        },
-    })
+fure_stage_api::param_enum! {
+    /// The length unit of the defurring objective (module doc, "Units").
+    pub enum Units {
+        /// The scene's own unit (the appendix read literally).
+        Scene = "scene",
+        /// Centimetres (needs the metric scale).
+        Cm = "cm",
+        /// Diagonals of M_outer's bounding box.
+        Diagonal = "diagonal",
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// The `defur` stage's parameters; defaults from [`DefurSettings::default`].
+    pub struct DefurParams {
+        /// weight of the part guidance term
+        eta: f64 = float(DefurSettings::default().eta).min(0.0),
+        /// weight of the edge smoothness term
+        lambda: f64 = float(DefurSettings::default().lambda).min(0.0),
+        /// length unit of the objective (its minimiser depends on it): scene (the paper read literally), cm (needs s_cm) or diagonal (M_outer's bounding-box diagonal; needs nothing)
+        units: Units = string("diagonal").choices(Units::NAMES),
+        /// smoothness weight factor across parts
+        cross_part_weight: f64 = float(DefurSettings::default().cross_part_weight).range(0.0, 1.0),
+        /// correspondence acceptance distance, fraction of D
+        support_radius_frac: f32 = float(DefurSettings::default().support_radius_frac as f64).range(0.0, 1.0),
+        /// Gaussian distance scale of correspondence weights, fraction of D
+        support_sigma_frac: f32 = float(DefurSettings::default().support_sigma_frac as f64).range(1e-6, 1.0),
+        /// shell vertices considered per outer vertex
+        max_neighbours: usize = int(DefurSettings::default().max_neighbours as i64).range(1.0, 255.0),
+        /// minimum n_i . nu_k of an accepted correspondence
+        normal_min: f32 = float(DefurSettings::default().normal_min as f64).range(-1.0, 1.0),
+        /// widths above this global percentile are unreliable
+        width_percentile: f64 = float(DefurSettings::default().width_percentile).range(0.0, 100.0),
+        /// u_i <= this x inward ray hit distance
+        bound_hit_frac: f32 = float(DefurSettings::default().bound_hit_frac as f64).range(0.0, 1.0),
+        /// u_i <= this x D
+        bound_max_frac: f32 = float(DefurSettings::default().bound_max_frac as f64).range(0.0, 1.0),
+        /// hit distance assumed when the inward ray hits nothing, fraction of D
+        bound_miss_frac: f32 = float(DefurSettings::default().bound_miss_frac as f64).range(0.0, 10.0),
+        /// per-part reference thickness h_p in cm (missing parts use W75; an explicit 0 stays 0); needs s_cm
+        reference_thickness_cm: BTreeMap<String, fure_stage_api::Value> = table(),
+        /// centimetres per scene unit, when no `scale` input is connected
+        s_cm: Option<f64> = optional(ParamType::Float).positive(),
+        /// non-fur part names kept fixed (case-insensitive)
+        protected_parts: Vec<String> = str_list(DEFAULT_PROTECTED),
+        /// solver iteration limit
+        max_iterations: usize = int(DefurSettings::default().solver.max_iterations as i64).range(0.0, 1e7),
+        /// relative reduction tolerance
+        ftol: f64 = float(DefurSettings::default().solver.ftol).min(0.0),
+        /// projected gradient tolerance
+        gtol: f64 = float(DefurSettings::default().solver.gtol).min(0.0),
+        /// L-BFGS correction pairs
+        memory: usize = int(DefurSettings::default().solver.memory as i64).range(1.0, 100.0),
+        /// Jacobi-scale the L-BFGS initial Hessian
+        precondition: bool = bool(DefurSettings::default().precondition),
+        /// faces shrinking below this area ratio count as collapsed
+        collapse_ratio: f32 = float(DefurSettings::default().postcheck.collapse_ratio as f64).range(0.0, 1.0),
+        /// post-check multiplies offending displacements by this
+        reduce_factor: f32 = float(DefurSettings::default().postcheck.reduce_factor as f64).range(0.0, 0.99),
+        /// post-check reduction rounds before zeroing
+        max_rounds: usize = int(DefurSettings::default().postcheck.max_rounds as i64).range(0.0, 1000.0),
+        /// test for new self-intersections
+        check_intersections: bool = bool(DefurSettings::default().postcheck.check_intersections),
+    }
+}
+
+impl DefurParams {
+    /// The solve's settings (`unit_scale` 1: see [`unit_scale`]).
+    fn settings(&self) -> DefurSettings {
+        DefurSettings {
+            eta: self.eta,
+            lambda: self.lambda,
+            unit_scale: 1.0,
+            cross_part_weight: self.cross_part_weight,
+            support_radius_frac: self.support_radius_frac,
+            support_sigma_frac: self.support_sigma_frac,
+            max_neighbours: self.max_neighbours,
+            normal_min: self.normal_min,
+            width_percentile: self.width_percentile,
+            bound_hit_frac: self.bound_hit_frac,
+            bound_max_frac: self.bound_max_frac,
+            bound_miss_frac: self.bound_miss_frac,
+            solver: lbfgsb::Settings {
+                memory: self.memory,
+                max_iterations: self.max_iterations,
+                ftol: self.ftol,
+                gtol: self.gtol,
+                ..lbfgsb::Settings::default()
+            },
+            precondition: self.precondition,
+            postcheck: PostCheckSettings {
+                collapse_ratio: self.collapse_ratio,
+                reduce_factor: self.reduce_factor,
+                max_rounds: self.max_rounds,
+                check_intersections: self.check_intersections,
+            },
+        }
+    }
 }
 
 /// Objective units per scene unit for parameter `units`; `None` for
 /// `scene` (1).
-fn unit_scale(units: &str, s_cm: Option<f32>, outer: &Mesh) -> Result<Option<f64>, StageError> {
+fn unit_scale(units: Units, s_cm: Option<f32>, outer: &Mesh) -> Result<Option<f64>, StageError> {
     Ok(match units {
-        "cm" => {
+        Units::Cm => {
             let s = s_cm.ok_or_else(|| {
                 StageError::param(
                     "units",
@@ -924,8 +965,8 @@ fn unit_scale(units: &str, s_cm: Option<f32>, outer: &Mesh) -> Result<Option<f64
             Some(s as f64)
         }
         // Lengths in diagonals of M_outer's bounding box: 1 / D objective units per scene unit.
-        "diagonal" => Some(1.0 / f64::from(outer.diagonal().max(f32::MIN_POSITIVE))),
-        _ => None,
+        Units::Diagonal => Some(1.0 / f64::from(outer.diagonal().max(f32::MIN_POSITIVE))),
+        Units::Scene => None,
     })
 }
 
