@@ -25,183 +25,204 @@ use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
 use crate::maths::geom::MeshQuery;
 
-const LENGTH_MODES: &[&str] = &["defurred", "fixed", "shape_prior"];
-const CHAMFER_MODES: &[&str] = &["inside", "surface"];
-const FIT_COLORS: &[&str] = &["none", "start", "start_end"];
+fure_stage_api::param_enum! {
+    /// Where the strands' lengths come from (the ablations).
+    pub enum LengthMode {
+        /// Per-root lengths on M_root (the full method).
+        Defurred = "defurred",
+        /// One length for every fur part.
+        Fixed = "fixed",
+        /// No defurred mesh: roots snapped onto M_outer.
+        ShapePrior = "shape_prior",
+    }
+}
 
-/// Parameters both stages share.
-fn common_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
-    let mut p = schedule_params(iterations, lr_decay);
-    p.extend(loss_params());
-    p.extend(setup_params());
+fure_stage_api::param_enum! {
+    /// What L_chm pulls the strand tips onto.
+    pub enum ChamferMode {
+        /// Only tips outside M_outer, back onto it (a hinge).
+        Inside = "inside",
+        /// Tips onto M_outer from either side.
+        Surface = "surface",
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// When colours are set from the views.
+    pub enum FitColors {
+        /// Never: Adam alone moves them.
+        Never = "none",
+        /// Before training.
+        Start = "start",
+        /// Before and after training.
+        StartEnd = "start_end",
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// How held-out renders cover pixels with strands.
+    pub enum HeldOutCoverage {
+        /// The training opacity 1.
+        Opaque = "opaque",
+        /// Each segment's opacity scaled to its true width in the view.
+        Width = "width",
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// Parameters both learners share (besides `device`, `iterations` and `lr_decay`).
+    pub struct LearnParams {
+        /// Strands sampled (seeded) and rendered per iteration (the paper: 15,000 of ~500,000).
+        strands_per_iteration: usize = int(4000).min(1.0),
+        /// Keep at most this many roots (seeded subsample; 0 = all fur roots).
+        max_strands: usize = int(0).min(0.0),
+        /// Training views rendered per iteration.
+        views_per_iteration: usize = int(1).min(1.0),
+        /// Adam learning rate of strand and body colours.
+        lr_color: f32 = float(0.02).min(0.0),
+        /// Weight of L_rgb (L1 + D-SSIM on the photo).
+        l_rgb: f32 = float(1.0).min(0.0),
+        /// Weight of L_sil (rendered vs given silhouette).
+        l_sil: f32 = float(0.1).min(0.0),
+        /// Weight of L_ori (image-space orientation vs the Gabor maps, confidence-weighted).
+        l_ori: f32 = float(0.1).min(0.0),
+        /// L_ori ignores pixels whose normalised Gabor confidence (divided by its 95th
+        /// percentile, clamped to 1) is below this (0 = all pixels, confidence-weighted).
+        ori_min_confidence: f32 = float(0.0).range(0.0, 1.0),
+        /// Weight of L_chm (strand tips toward M_outer).
+        l_chm: f32 = float(0.1).min(0.0),
+        /// L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips
+        /// outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto
+        /// M_outer from either side (see learn::geomloss).
+        chamfer_mode: ChamferMode = string("inside").choices(ChamferMode::NAMES),
+        /// L_chm only for strands whose root is within chamfer_reach x their length of M_outer
+        /// (0 = every strand; see learn::geomloss).
+        chamfer_reach: f32 = float(0.0).min(0.0),
+        /// Weight of L_sdf (penetration of M_root).
+        l_sdf: f32 = float(1.0).min(0.0),
+        /// Weight of L_mask (rendered vs given fur mask).
+        l_mask: f32 = float(0.1).min(0.0),
+        /// Training wall-clock time of the first recorded snapshot after the initial one; later
+        /// ones follow geometrically (0 = only the initial and final strands).
+        snapshot_first_seconds: f64 = float(0.5).min(0.0),
+        /// Ratio between consecutive snapshot times (times read off the snapshots are upper
+        /// bounds within this factor).
+        snapshot_growth: f64 = float(1.1).range(1.01, 100.0),
+        /// Seed of initialisation and subset sampling.
+        seed: u64 = int(0).min(0.0),
+        /// defurred: per-root lengths on M_root (full method); fixed: one length for all fur
+        /// parts; shape_prior: no defurred mesh (roots snapped onto M_outer, which is also the
+        /// body for L_sdf).
+        length_mode: LengthMode = string("defurred").choices(LengthMode::NAMES),
+        /// Length for length_mode = fixed (default: the mean over fur parts of their mean length).
+        fixed_length_cm: Option<f64> = optional(ParamType::Float).positive(),
+        /// Nodes along the largest side of the distance grids.
+        sdf_resolution: usize = int(48).range(8.0, 256.0),
+        /// Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).
+        body_gaussians: usize = int(20000).min(0.0),
+        /// Strand and body colours set to the blending-weighted mean of the training pixels
+        /// they make (learn::image): before training (start), also after it (start_end), or
+        /// never (none: every strand starts grey-brown and only Adam moves it).
+        fit_colors: FitColors = string("start").choices(FitColors::NAMES),
+        /// Turn every root frame about its normal by this angle before training: a wrong start
+        /// for stability tests (0 = the roots' frames).
+        frame_rotation_deg: f32 = float(0.0).range(-180.0, 180.0),
+        /// Strand coverage in the held-out renders: width = each strand segment's opacity
+        /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
+        /// training opacity 1, which the renderer's low-pass widens to about a pixel.
+        held_out_coverage: HeldOutCoverage = string("width").choices(HeldOutCoverage::NAMES),
+        /// Training views the colour fit renders, evenly spaced in the views' order (0 = all;
+        /// each costs a render of every strand and two backward passes).
+        fit_color_views: usize = int(12).min(0.0),
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// The codec's own parameters. lr_decay 1e-3 with lr_encoder 1e-3: the best mean final
+    /// F-score of a sweep on the synthetic tiger; 100 iterations: the benchmark's dev split
+    /// (docs/history.md, strand learning).
+    pub struct CodecParams {
+        /// Optimisation iterations.
+        iterations: usize = int(100).min(0.0),
+        /// Final / initial ratio of the geometry learning rates (encoder and decoder, or dense
+        /// points), decayed exponentially over the iterations as 3DGS decays its position rate
+        /// (1 = constant rates; colours are not decayed).
+        lr_decay: f32 = float(1e-3).range(1e-6, 1.0),
+        /// Initial Adam learning rate of the encoder (decays with lr_decay).
+        lr_encoder: f32 = float(1e-3).min(0.0),
+        /// Adam learning rate of the decoder fine-tuning, in strand lengths per step: every
+        /// strand shares the decoder, so it is a hundredth of the encoder's (docs/history.md,
+        /// strand learning); it decays with lr_decay.
+        lr_decoder: f32 = float(1e-5).min(0.0),
+        /// Fine-tune the PCA decoder (psi).
+        finetune_decoder: bool = bool(true),
+        /// The encoder also outputs an angle per strand that turns its root frame about the
+        /// normal (a learned growth-direction field, zero at the start; learn::model).
+        learn_rotation: bool = bool(true),
+        /// Positional-encoding frequencies.
+        pe_frequencies: usize = int(10).range(0.0, 20.0),
+        /// Hidden width of the encoder.
+        mlp_width: usize = int(64).range(1.0, 1024.0),
+        /// Hidden layers of the encoder.
+        mlp_depth: usize = int(3).range(1.0, 16.0),
+        /// Use the first K basis components (0 = all).
+        components: usize = int(0).min(0.0),
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// The dense baseline's own parameters. 12x the codec's former 300 iterations: the paper
+    /// trains the dense baseline 12x longer (10.5 h vs 52 min); a dense iteration costs about
+    /// 0.9x a codec one here (rendering dominates both; the codec adds its encoder), so this is
+    /// about 10x the codec's training time.
+    pub struct DenseParams {
+        /// Optimisation iterations.
+        iterations: usize = int(3600).min(0.0),
+        /// Final / initial ratio of the geometry learning rates (encoder and decoder, or dense
+        /// points), decayed exponentially over the iterations as 3DGS decays its position rate
+        /// (1 = constant rates; colours are not decayed).
+        lr_decay: f32 = float(0.01).range(1e-6, 1.0),
+        /// Initial Adam learning rate of the points, in strand lengths per step (the best
+        /// final F-score of 0.0003 / 0.001 / 0.003 with lr_decay 0.01 on the synthetic
+        /// tiger, docs/history.md).
+        lr_points: f32 = float(0.001).min(0.0),
+    }
+}
+
+/// The learner a stage runs, with its own parameters.
+enum Learner {
+    Codec(CodecParams),
+    Dense(DenseParams),
+}
+
+impl Learner {
+    fn from_params(p: &Params, dense: bool) -> Result<Learner, StageError> {
+        Ok(if dense {
+            Learner::Dense(DenseParams::from_params(p)?)
+        } else {
+            Learner::Codec(CodecParams::from_params(p)?)
+        })
+    }
+    fn iterations(&self) -> usize {
+        match self {
+            Learner::Codec(c) => c.iterations,
+            Learner::Dense(d) => d.iterations,
+        }
+    }
+    fn lr_decay(&self) -> f32 {
+        match self {
+            Learner::Codec(c) => c.lr_decay,
+            Learner::Dense(d) => d.lr_decay,
+        }
+    }
+}
+
+/// A learner's parameter list: `device`, its own, then the shared ones.
+fn learner_specs(own: Vec<ParamSpec>) -> Vec<ParamSpec> {
+    let mut p = vec![crate::render::device::device_param()];
+    p.extend(own);
+    p.extend(LearnParams::specs());
     p
-}
-
-/// Device, budget, sampling and learning rates.
-fn schedule_params(iterations: i64, lr_decay: f64) -> Vec<ParamSpec> {
-    vec![
-        crate::render::device::device_param(),
-        ParamSpec::int("iterations", iterations, "Optimisation iterations.").min(0.0),
-        ParamSpec::int(
-            "strands_per_iteration",
-            4000,
-            "Strands sampled (seeded) and rendered per iteration (the paper: 15,000 of ~500,000).",
-        )
-        .min(1.0),
-        ParamSpec::int(
-            "max_strands",
-            0,
-            "Keep at most this many roots (seeded subsample; 0 = all fur roots).",
-        )
-        .min(0.0),
-        ParamSpec::int(
-            "views_per_iteration",
-            1,
-            "Training views rendered per iteration.",
-        )
-        .min(1.0),
-        ParamSpec::float(
-            "lr_decay",
-            lr_decay,
-            "Final / initial ratio of the geometry learning rates (encoder and decoder, or dense \
-             points), decayed exponentially over the iterations as 3DGS decays its position rate \
-             (1 = constant rates; colours are not decayed).",
-        )
-        .range(1e-6, 1.0),
-        ParamSpec::float(
-            "lr_color",
-            0.02,
-            "Adam learning rate of strand and body colours.",
-        )
-        .min(0.0),
-    ]
-}
-
-/// The loss weights and their options.
-fn loss_params() -> Vec<ParamSpec> {
-    vec![
-        ParamSpec::float("l_rgb", 1.0, "Weight of L_rgb (L1 + D-SSIM on the photo).").min(0.0),
-        ParamSpec::float(
-            "l_sil",
-            0.1,
-            "Weight of L_sil (rendered vs given silhouette).",
-        )
-        .min(0.0),
-        ParamSpec::float(
-            "l_ori",
-            0.1,
-            "Weight of L_ori (image-space orientation vs the Gabor maps, confidence-weighted).",
-        )
-        .min(0.0),
-        ParamSpec::float(
-            "ori_min_confidence",
-            0.0,
-            "L_ori ignores pixels whose normalised Gabor confidence (divided by its 95th \
-             percentile, clamped to 1) is below this (0 = all pixels, confidence-weighted).",
-        )
-        .range(0.0, 1.0),
-        ParamSpec::float(
-            "l_chm",
-            0.1,
-            "Weight of L_chm (strand tips toward M_outer).",
-        )
-        .min(0.0),
-        ParamSpec::string(
-            "chamfer_mode",
-            "inside",
-            "L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips \
-             outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto \
-             M_outer from either side (see learn::geomloss).",
-        )
-        .choices(CHAMFER_MODES),
-        ParamSpec::float(
-            "chamfer_reach",
-            0.0,
-            "L_chm only for strands whose root is within chamfer_reach x their length of M_outer \
-             (0 = every strand; see learn::geomloss).",
-        )
-        .min(0.0),
-        ParamSpec::float("l_sdf", 1.0, "Weight of L_sdf (penetration of M_root).").min(0.0),
-        ParamSpec::float(
-            "l_mask",
-            0.1,
-            "Weight of L_mask (rendered vs given fur mask).",
-        )
-        .min(0.0),
-    ]
-}
-
-/// Snapshots, seed, lengths, distance grids, occluders and appearance.
-fn setup_params() -> Vec<ParamSpec> {
-    vec![
-        ParamSpec::float(
-            "snapshot_first_seconds",
-            0.5,
-            "Training wall-clock time of the first recorded snapshot after the initial one; later \
-             ones follow geometrically (0 = only the initial and final strands).",
-        )
-        .min(0.0),
-        ParamSpec::float(
-            "snapshot_growth",
-            1.1,
-            "Ratio between consecutive snapshot times (times read off the snapshots are upper \
-             bounds within this factor).",
-        )
-        .range(1.01, 100.0),
-        ParamSpec::int("seed", 0, "Seed of initialisation and subset sampling.").min(0.0),
-        ParamSpec::string(
-            "length_mode",
-            "defurred",
-            "defurred: per-root lengths on M_root (full method); fixed: one length for all fur \
-             parts; shape_prior: no defurred mesh (roots snapped onto M_outer, which is also the \
-             body for L_sdf).",
-        )
-        .choices(LENGTH_MODES),
-        ParamSpec::optional(
-            "fixed_length_cm",
-            ParamType::Float,
-            "Length for length_mode = fixed (default: the mean over fur parts of their mean length).",
-        )
-        .positive(),
-        ParamSpec::int("sdf_resolution", 48, "Nodes along the largest side of the distance grids.")
-            .range(8.0, 256.0),
-        ParamSpec::int(
-            "body_gaussians",
-            20000,
-            "Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).",
-        )
-        .min(0.0),
-        ParamSpec::string(
-            "fit_colors",
-            "start",
-            "Strand and body colours set to the blending-weighted mean of the training pixels \
-             they make (learn::image): before training (start), also after it (start_end), or \
-             never (none: every strand starts grey-brown and only Adam moves it).",
-        )
-        .choices(FIT_COLORS),
-        ParamSpec::float(
-            "frame_rotation_deg",
-            0.0,
-            "Turn every root frame about its normal by this angle before training: a wrong start \
-             for stability tests (0 = the roots' frames).",
-        )
-        .range(-180.0, 180.0),
-        ParamSpec::string(
-            "held_out_coverage",
-            "width",
-            "Strand coverage in the held-out renders: width = each strand segment's opacity \
-             scaled to its true width in the view (learn::image::width_coverage); opaque = the \
-             training opacity 1, which the renderer's low-pass widens to about a pixel.",
-        )
-        .choices(&["opaque", "width"]),
-        ParamSpec::int(
-            "fit_color_views",
-            12,
-            "Training views the colour fit renders, evenly spaced in the views' order (0 = all; \
-             each costs a render of every strand and two backward passes).",
-        )
-        .min(0.0),
-    ]
 }
 
 fn ports_in() -> Vec<PortSpec> {
@@ -267,43 +288,7 @@ impl Stage for CodecStrandsStage {
          through the Gaussian renderer with L_rgb, L_sil, L_ori, L_chm, L_sdf, L_mask."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        // lr_decay 1e-3 with lr_encoder 1e-3: the best mean final F-score of a sweep on the
-        // synthetic tiger; 100 iterations: the benchmark's dev split (docs/history.md, strand learning).
-        let mut p = common_params(100, 1e-3);
-        p.extend([
-            ParamSpec::float(
-                "lr_encoder",
-                1e-3,
-                "Initial Adam learning rate of the encoder (decays with lr_decay).",
-            )
-            .min(0.0),
-            ParamSpec::float(
-                "lr_decoder",
-                1e-5,
-                "Adam learning rate of the decoder fine-tuning, in strand lengths per step: every \
-                 strand shares the decoder, so it is a hundredth of the encoder's (docs/history.md, strand learning); \
-                 it decays with lr_decay.",
-            )
-            .min(0.0),
-            ParamSpec::bool("finetune_decoder", true, "Fine-tune the PCA decoder (psi)."),
-            ParamSpec::bool(
-                "learn_rotation",
-                true,
-                "The encoder also outputs an angle per strand that turns its root frame about the \
-                 normal (a learned growth-direction field, zero at the start; learn::model).",
-            ),
-            ParamSpec::int("pe_frequencies", 10, "Positional-encoding frequencies.")
-                .range(0.0, 20.0),
-            ParamSpec::int("mlp_width", 64, "Hidden width of the encoder.").range(1.0, 1024.0),
-            ParamSpec::int("mlp_depth", 3, "Hidden layers of the encoder.").range(1.0, 16.0),
-            ParamSpec::int(
-                "components",
-                0,
-                "Use the first K basis components (0 = all).",
-            )
-            .min(0.0),
-        ]);
-        p
+        learner_specs(CodecParams::specs())
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         ports_in()
@@ -329,22 +314,7 @@ impl Stage for DenseStrandsStage {
          a free parameter (lazy Adam on the sampled strands)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        // 12x the codec's former 300 iterations: the paper trains the dense baseline 12x longer
-        // (10.5 h vs 52 min); a dense iteration costs about 0.9x a codec one here
-        // (rendering dominates both; the codec adds its encoder), so this is ~10x the
-        // codec's training time.
-        let mut p = common_params(3600, 0.01);
-        p.push(
-            ParamSpec::float(
-                "lr_points",
-                0.001,
-                "Initial Adam learning rate of the points, in strand lengths per step (the best \
-                 final F-score of 0.0003 / 0.001 / 0.003 with lr_decay 0.01 on the synthetic \
-                 tiger, docs/history.md).",
-            )
-            .min(0.0),
-        );
-        p
+        learner_specs(DenseParams::specs())
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         ports_in()
@@ -475,10 +445,14 @@ fn check_basis(b: &StrandBasis, path: &Path) -> Result<(), StageError> {
 }
 
 /// The per-root lengths of a length mode (scene units); roots of length 0 grow no strand.
-pub fn mode_lengths(r: &Roots, mode: &str, fixed_cm: Option<f64>) -> Result<Vec<f32>, StageError> {
+pub fn mode_lengths(
+    r: &Roots,
+    mode: LengthMode,
+    fixed_cm: Option<f64>,
+) -> Result<Vec<f32>, StageError> {
     match mode {
-        "defurred" | "shape_prior" => Ok(r.length.clone()),
-        "fixed" => {
+        LengthMode::Defurred | LengthMode::ShapePrior => Ok(r.length.clone()),
+        LengthMode::Fixed => {
             let cm = match fixed_cm {
                 Some(v) if v > 0.0 => v as f32,
                 Some(v) => {
@@ -517,10 +491,6 @@ pub fn mode_lengths(r: &Roots, mode: &str, fixed_cm: Option<f64>) -> Result<Vec<
                 .map(|&x| if x > 0.0 { l } else { 0.0 })
                 .collect())
         }
-        other => Err(StageError::param(
-            "length_mode",
-            format!("unknown mode `{other}` (expected one of {LENGTH_MODES:?})"),
-        )),
     }
 }
 
@@ -538,10 +508,10 @@ struct Setup {
 
 fn setup(
     ctx: &StageContext<'_>,
+    p: &LearnParams,
     pe_frequencies: usize,
     components: usize,
 ) -> Result<Setup, StageError> {
-    let p = ctx.params;
     let roots_path = ctx.input("roots")?;
     let mut roots: Roots = formats::json::read_json(roots_path)?;
     check_roots(&roots, roots_path)?;
@@ -550,12 +520,10 @@ fn setup(
     check_basis(&basis, basis_path)?;
     let outer = crate::formats::obj::read_mesh(ctx, "outer")?;
     let root_mesh = crate::formats::obj::read_mesh(ctx, "root_mesh")?;
-    let mode = p.str("length_mode")?.to_string();
-    let fixed_cm = p.f64_opt("fixed_length_cm")?;
-    let lengths_all = mode_lengths(&roots, &mode, fixed_cm)?;
+    let lengths_all = mode_lengths(&roots, p.length_mode, p.fixed_length_cm)?;
 
     // Shape-prior ablation: no defurred mesh, roots on M_outer.
-    let body_mesh = if mode == "shape_prior" {
+    let body_mesh = if p.length_mode == LengthMode::ShapePrior {
         let q = MeshQuery::new(&outer)?;
         for i in 0..roots.len() {
             let (c, _, tri) = q.closest_point(roots.positions[i]);
@@ -580,9 +548,9 @@ fn setup(
 
     // Fur roots only, optionally a seeded subsample.
     let mut keep: Vec<usize> = (0..roots.len()).filter(|&i| lengths_all[i] > 0.0).collect();
-    let max = p.usize("max_strands")?;
+    let max = p.max_strands;
     if max > 0 && keep.len() > max {
-        let mut rng = ChaCha8Rng::seed_from_u64(p.u64("seed")? ^ 0x5EED_0FF0);
+        let mut rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0x5EED_0FF0);
         let mut pick: Vec<usize> = rand::seq::index::sample(&mut rng, keep.len(), max)
             .into_iter()
             .collect();
@@ -613,7 +581,7 @@ fn setup(
         {
             // A deliberately wrong start for stability tests: every frame
             // turned about its normal.
-            let turn = Mat3::from_rotation_z(p.f32("frame_rotation_deg")?.to_radians());
+            let turn = Mat3::from_rotation_z(p.frame_rotation_deg.to_radians());
             keep.iter()
                 .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
                 .collect()
@@ -637,10 +605,10 @@ fn setup(
     let lo = lo.min(blo);
     let hi = hi.max(bhi);
     let pad = 0.1 * (hi - lo).length();
-    let res = p.usize("sdf_resolution")?;
+    let res = p.sdf_resolution;
     let oq = MeshQuery::new(&outer)?;
     let bq = MeshQuery::new(&body_mesh)?;
-    let reach = p.f32("chamfer_reach")?;
+    let reach = p.chamfer_reach;
     let chamfer_gate = (reach > 0.0).then(|| {
         (0..prep.len())
             .map(|j| oq.closest_point(prep.roots[j]).1 <= reach * prep.lengths[j])
@@ -654,7 +622,7 @@ fn setup(
         ));
     }
     let geometry = Geometry {
-        outer: if p.str("chamfer_mode")? == "inside" {
+        outer: if p.chamfer_mode == ChamferMode::Inside {
             // Signed (negative inside): the loss's clamp at 0 makes it a hinge.
             DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.signed_distance(x))
         } else {
@@ -701,55 +669,60 @@ fn to_strands(points: &[Vec3], l: usize, s: &Setup, colors: Option<&[[f32; 3]]>)
 }
 
 fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
-    let p = ctx.params;
-    let seed = p.u64("seed")?;
-    let (pe_f, comps) = if dense {
-        (0, 0)
-    } else {
-        (p.usize("pe_frequencies")?, p.usize("components")?)
+    let p = LearnParams::from_params(ctx.params)?;
+    let learner = Learner::from_params(ctx.params, dense)?;
+    let seed = p.seed;
+    let (pe_f, comps) = match &learner {
+        Learner::Codec(c) => (c.pe_frequencies, c.components),
+        Learner::Dense(_) => (0, 0),
     };
     ctx.progress.message("reading inputs");
-    let s = setup(ctx, pe_f, comps)?;
+    let s = setup(ctx, &p, pe_f, comps)?;
     let l = s.prep.points;
 
-    // The initial codec; the dense baseline starts from its strands.
-    let mlp = if dense {
-        Mlp::new(s.prep.feature_dim, 8, 1, s.decoder.k, seed)
-    } else {
-        Mlp::new(
-            s.prep.feature_dim,
-            p.usize("mlp_width")?,
-            p.usize("mlp_depth")?,
-            s.decoder.k + p.bool("learn_rotation")? as usize,
-            seed,
-        )
-    };
-    let codec = Model::Codec(Codec::new(
-        mlp,
-        s.decoder.clone(),
-        !dense && p.bool("finetune_decoder")?,
-        !dense && p.bool("learn_rotation")?,
-    ));
-    let mut model = if dense {
-        Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len()))
-    } else {
-        codec
-    };
-    let rates = Rates {
-        encoder: if dense { 0.0 } else { p.f32("lr_encoder")? },
-        decoder: if dense { 0.0 } else { p.f32("lr_decoder")? },
-        points: if dense { p.f32("lr_points")? } else { 0.0 },
+    // The codec; the dense baseline starts from the basis mean on every root.
+    let (mut model, rates) = match &learner {
+        Learner::Codec(c) => {
+            let mlp = Mlp::new(
+                s.prep.feature_dim,
+                c.mlp_width,
+                c.mlp_depth,
+                s.decoder.k + c.learn_rotation as usize,
+                seed,
+            );
+            (
+                Model::Codec(Codec::new(
+                    mlp,
+                    s.decoder.clone(),
+                    c.finetune_decoder,
+                    c.learn_rotation,
+                )),
+                Rates {
+                    encoder: c.lr_encoder,
+                    decoder: c.lr_decoder,
+                    points: 0.0,
+                },
+            )
+        }
+        Learner::Dense(d) => (
+            Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len())),
+            Rates {
+                encoder: 0.0,
+                decoder: 0.0,
+                points: d.lr_points,
+            },
+        ),
     };
     let mut cfg = TrainConfig {
-        iterations: p.usize("iterations")?,
-        subset: p.usize("strands_per_iteration")?,
+        iterations: learner.iterations(),
+        subset: p.strands_per_iteration,
         seed,
         rates,
-        lr_decay: p.f32("lr_decay")?,
-        w_chm: p.f32("l_chm")?,
-        w_sdf: p.f32("l_sdf")?,
-        snapshot_first: p.f64("snapshot_first_seconds")?,
-        snapshot_growth: p.f64("snapshot_growth")?,
+        lr_decay: learner.lr_decay(),
+        w_chm: p.l_chm,
+        w_sdf: p.l_sdf,
+        snapshot_first: p.snapshot_first_seconds,
+        snapshot_growth: p.snapshot_growth,
         clock_start: 0.0,
     };
 
@@ -758,21 +731,21 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         Some(views) => {
             ctx.progress.message("reading views");
             let icfg = ImageConfig {
-                views_per_iteration: p.usize("views_per_iteration")?,
-                lr_color: p.f32("lr_color")?,
-                l_rgb: p.f32("l_rgb")?,
-                l_sil: p.f32("l_sil")?,
-                l_ori: p.f32("l_ori")?,
-                l_mask: p.f32("l_mask")?,
-                body_gaussians: p.usize("body_gaussians")?,
+                views_per_iteration: p.views_per_iteration,
+                lr_color: p.lr_color,
+                l_rgb: p.l_rgb,
+                l_sil: p.l_sil,
+                l_ori: p.l_ori,
+                l_mask: p.l_mask,
+                body_gaussians: p.body_gaussians,
                 seed,
-                ori_min_confidence: p.f32("ori_min_confidence")?,
-                fit_color_views: p.usize("fit_color_views")?,
-                held_out_coverage: match p.str("held_out_coverage")? {
-                    "opaque" => Coverage::Opaque,
-                    _ => Coverage::Width,
+                ori_min_confidence: p.ori_min_confidence,
+                fit_color_views: p.fit_color_views,
+                held_out_coverage: match p.held_out_coverage {
+                    HeldOutCoverage::Opaque => Coverage::Opaque,
+                    HeldOutCoverage::Width => Coverage::Width,
                 },
-                device: crate::render::device::Renderer::from_params(p)?,
+                device: crate::render::device::Renderer::from_params(ctx.params)?,
             };
             let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
             Some(ImageLosses::new(
@@ -790,11 +763,11 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         ctx.progress
             .note(&format!("renders on {}", img.device_description()));
     }
-    let fit_colors = p.str("fit_colors")?;
+    let fit_colors = p.fit_colors;
     let mut colors_fitted = Vec::new();
     let mut color_fit_seconds = 0.0f64;
     if let Some(img) = image.as_mut() {
-        if fit_colors != "none" {
+        if fit_colors != FitColors::Never {
             ctx.progress.message("colours from the views");
             let t0 = std::time::Instant::now();
             colors_fitted.push(img.fit_colors(&model.all_points(&s.prep), l)?);
@@ -842,7 +815,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let pts = model.all_points(&s.prep);
     ensure_finite("final strands", pts.iter().flat_map(|v| v.to_array()))?;
     if let Some(img) = image.as_mut() {
-        if fit_colors == "start_end" {
+        if fit_colors == FitColors::StartEnd {
             ctx.progress
                 .message("colours from the views (final strands)");
             let t0 = std::time::Instant::now();
@@ -863,7 +836,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
 
     let metrics = LearnMetrics {
         method: if dense { "dense" } else { "codec" }.into(),
-        length_mode: p.str("length_mode")?.into(),
+        length_mode: p.length_mode.name().into(),
         train_seconds: report.train_seconds,
         iterations: report.iterations,
         final_losses: report.final_losses.clone(),
@@ -879,7 +852,8 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         loss_history: report.history.clone(),
         colors_fitted,
         color_fit_seconds,
-        device: p
+        device: ctx
+            .params
             .get("device")
             .and(image.as_ref())
             .map(|i| i.device_metrics()),
