@@ -46,6 +46,60 @@ fn splitmix64(state: &mut u64) -> u64 {
     z ^ (z >> 31)
 }
 
+fure_stage_api::stage_params! {
+    /// `demo_numbers`'s parameters.
+    pub struct DemoNumbersParams {
+        /// random seed
+        seed: i64 = int(1),
+        /// how many numbers
+        count: usize = int(100).range(0.0, 10_000_000.0),
+        /// numbers are in [0, scale)
+        scale: f64 = float(1.0).min(0.0),
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// `demo_sum`'s parameters.
+    pub struct DemoSumParams {
+        /// exponent applied to each number
+        power: f64 = float(1.0).range(0.0, 16.0),
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// `demo_concat`'s parameters.
+    pub struct DemoConcatParams {
+        /// text put between a and b
+        separator: String = string(""),
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// Whether `demo_sleep` fails on purpose, and how.
+    pub enum Fail {
+        /// It does not.
+        No = "no",
+        /// It returns an error.
+        Error = "error",
+        /// It panics.
+        Panic = "panic",
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// `demo_sleep`'s parameters.
+    pub struct DemoSleepParams {
+        /// how long to wait
+        seconds: f64 = float(1.0).range(0.0, 3600.0),
+        /// progress steps
+        steps: usize = int(10).range(1.0, 1_000_000.0),
+        /// fail on purpose
+        fail: Fail = string("no").choices(Fail::NAMES),
+        /// text written to the output
+        label: String = string(""),
+    }
+}
+
 /// `demo_numbers`: seeded numbers in [0, scale).
 pub struct DemoNumbersStage;
 
@@ -60,11 +114,7 @@ impl Stage for DemoNumbersStage {
         "Writes `count` seeded pseudo-random numbers in [0, scale), one per line (demo)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::int("seed", 1, "random seed"),
-            ParamSpec::int("count", 100, "how many numbers").range(0.0, 10_000_000.0),
-            ParamSpec::float("scale", 1.0, "numbers are in [0, scale)").min(0.0),
-        ]
+        DemoNumbersParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         Vec::new()
@@ -73,9 +123,10 @@ impl Stage for DemoNumbersStage {
         vec![PortSpec::file("numbers", "txt", "one number per line")]
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let mut state = ctx.params.i64("seed")? as u64;
-        let count = ctx.params.usize("count")?;
-        let scale = ctx.params.f64("scale")?;
+        let p = DemoNumbersParams::from_params(ctx.params)?;
+        let mut state = p.seed as u64;
+        let count = p.count;
+        let scale = p.scale;
         ctx.progress.set_total(count as u64);
         let mut s = String::with_capacity(count * 20);
         for i in 0..count {
@@ -103,7 +154,7 @@ impl Stage for DemoSumStage {
         "Sums x^power over a list of numbers; writes the sum and metrics.json {sum, mean, count} (demo)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![ParamSpec::float("power", 1.0, "exponent applied to each number").range(0.0, 16.0)]
+        DemoSumParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::file("numbers", "txt", "one number per line")]
@@ -115,7 +166,7 @@ impl Stage for DemoSumStage {
         ]
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let power = ctx.params.f64("power")?;
+        let power = DemoSumParams::from_params(ctx.params)?.power;
         let xs = read_numbers(ctx, "numbers")?;
         // Fixed order: a plain sequential sum is deterministic.
         let sum: f64 = xs.iter().map(|x| x.powf(power)).sum();
@@ -151,11 +202,7 @@ impl Stage for DemoConcatStage {
         "Concatenates text `a` and optional `b`, with `separator` between them (demo)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![ParamSpec::string(
-            "separator",
-            "",
-            "text put between a and b",
-        )]
+        DemoConcatParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -171,7 +218,7 @@ impl Stage for DemoConcatStage {
             |p: &std::path::Path| std::fs::read_to_string(p).map_err(|e| StageError::io(p, e));
         let mut s = read(ctx.input("a")?)?;
         if let Some(b) = ctx.input_opt("b") {
-            s.push_str(ctx.params.str("separator")?);
+            s.push_str(&DemoConcatParams::from_params(ctx.params)?.separator);
             s.push_str(&read(b)?);
         }
         write(ctx, "text", &s)
@@ -193,12 +240,7 @@ impl Stage for DemoSleepStage {
          `fail = \"error\"` or `\"panic\"` makes it fail after waiting (demo, engine tests)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::float("seconds", 1.0, "how long to wait").range(0.0, 3600.0),
-            ParamSpec::int("steps", 10, "progress steps").range(1.0, 1_000_000.0),
-            ParamSpec::string("fail", "no", "fail on purpose").choices(&["no", "error", "panic"]),
-            ParamSpec::string("label", "", "text written to the output"),
-        ]
+        DemoSleepParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::file("after", "", "anything to wait for").optional()]
@@ -207,21 +249,22 @@ impl Stage for DemoSleepStage {
         vec![PortSpec::file("done", "txt", "the label")]
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let seconds = ctx.params.f64("seconds")?;
-        let steps = ctx.params.u64("steps")?.max(1);
+        let p = DemoSleepParams::from_params(ctx.params)?;
+        let seconds = p.seconds;
+        let steps = (p.steps as u64).max(1);
         ctx.progress.set_total(steps);
         ctx.progress.message("sleeping");
         for _ in 0..steps {
             std::thread::sleep(std::time::Duration::from_secs_f64(seconds / steps as f64));
             ctx.progress.advance(1);
         }
-        match ctx.params.str("fail")? {
-            "error" => return Err(StageError::failed("failing on request (fail = \"error\")")),
-            "panic" => panic!("panicking on request (fail = \"panic\")"),
-            _ => {}
+        match p.fail {
+            Fail::Error => return Err(StageError::failed("failing on request (fail = \"error\")")),
+            Fail::Panic => panic!("panicking on request (fail = \"panic\")"),
+            Fail::No => {}
         }
         ctx.progress.note(&format!("slept {seconds}s"));
-        write(ctx, "done", &format!("{}\n", ctx.params.str("label")?))
+        write(ctx, "done", &format!("{}\n", p.label))
     }
 }
 

@@ -50,6 +50,14 @@ impl FromParam for u64 {
     }
 }
 
+impl FromParam for u32 {
+    fn from_param(p: &Params, name: &str) -> Result<Self, StageError> {
+        let x = p.u64(name)?;
+        u32::try_from(x)
+            .map_err(|_| StageError::param(name, format!("{x} does not fit in 32 bits")))
+    }
+}
+
 impl FromParam for bool {
     fn from_param(p: &Params, name: &str) -> Result<Self, StageError> {
         p.bool(name)
@@ -77,6 +85,30 @@ impl FromParam for Vec<f64> {
 impl FromParam for BTreeMap<String, Value> {
     fn from_param(p: &Params, name: &str) -> Result<Self, StageError> {
         p.table(name)
+    }
+}
+
+/// A table of non-negative numbers (per-part multipliers, thicknesses, lengths): every value
+/// must be a finite number >= 0.
+impl FromParam for BTreeMap<String, f32> {
+    fn from_param(p: &Params, name: &str) -> Result<Self, StageError> {
+        let mut out = BTreeMap::new();
+        for (k, v) in p.table(name)? {
+            let x = v.as_f64().ok_or_else(|| {
+                StageError::param(
+                    name,
+                    format!("`{k}`: expected a number, found {}", v.type_name()),
+                )
+            })?;
+            if !(x.is_finite() && x >= 0.0) {
+                return Err(StageError::param(
+                    name,
+                    format!("`{k}`: expected a non-negative number, found {x}"),
+                ));
+            }
+            out.insert(k, x as f32);
+        }
+        Ok(out)
     }
 }
 

@@ -791,9 +791,50 @@ fn write_charts(rec: &SweepRecord, cfg: &Config, dir: &Path) -> Result<(), Stage
     Ok(())
 }
 
+fure_stage_api::stage_params! {
+    /// The `benchmark_report` stage's parameters.
+    pub struct BenchmarkReportParams {
+        /// dev split: the only scenes defaults may be tuned on
+        dev: Vec<String> = str_list(&["tiger", "fox"]),
+        /// test split: reported, never used to choose
+        test: Vec<String> = str_list(&["panda", "cat", "bison", "wolf"]),
+        /// the swept STAGE.PARAM naming the scene (a linked key containing it counts)
+        scene_setting: String = string("scene.preset"),
+        /// the swept STAGE.PARAM naming the seed (a linked key containing it counts)
+        seed_setting: String = string("scene.seed"),
+        /// NAME=EVAL_STAGE[:LEARNER_STAGE]; the first is compared with every other
+        methods: Vec<String> = str_list(&[
+            "FurE codec=evaluate:codec",
+            "dense=evaluate_dense:dense",
+            "fixed length=evaluate_fixed:codec_fixed",
+            "shape prior=evaluate_prior:codec_prior",
+        ]),
+        /// evaluation of the regrown GT against the GT
+        ceiling: String = string("evaluate_ceiling"),
+        /// stages whose compute seconds add up to the preprocessing time
+        preprocessing: Vec<String> = str_list(&[
+            "outer",
+            "parts",
+            "frosting",
+            "lengths",
+            "defur",
+            "roots",
+            "basis",
+            "orientation",
+        ]),
+        /// the speed_accuracy stage's metric prefix
+        speedup: String = string("speed_accuracy"),
+        /// the lengths stage with species reference lengths (V2), reported beside V1 when present
+        v2_lengths: String = string("lengths_v2"),
+        /// where the published charts are, relative to the published results.md
+        charts_link: String = string("benchmark"),
+    }
+}
+
 fn config(p: &Params) -> Result<Config, StageError> {
+    let p = BenchmarkReportParams::from_params(p)?;
     let methods = p
-        .str_list("methods")?
+        .methods
         .iter()
         .map(|s| parse_method(s))
         .collect::<Result<Vec<_>, _>>()
@@ -804,25 +845,23 @@ fn config(p: &Params) -> Result<Config, StageError> {
             "expected at least one NAME=EVAL[:LEARNER]",
         ));
     }
-    let dev = p.str_list("dev")?;
-    let test = p.str_list("test")?;
-    if let Some(s) = dev.iter().find(|s| test.contains(s)) {
+    if let Some(s) = p.dev.iter().find(|s| p.test.contains(s)) {
         return Err(StageError::param(
             "test",
             format!("scene `{s}` is in both splits"),
         ));
     }
     Ok(Config {
-        dev,
-        test,
-        scene_setting: p.str("scene_setting")?.to_string(),
-        seed_setting: p.str("seed_setting")?.to_string(),
+        dev: p.dev,
+        test: p.test,
+        scene_setting: p.scene_setting,
+        seed_setting: p.seed_setting,
         methods,
-        ceiling: p.str("ceiling")?.to_string(),
-        preprocessing: p.str_list("preprocessing")?,
-        speedup: p.str("speedup")?.to_string(),
-        v2_lengths: p.str("v2_lengths")?.to_string(),
-        charts_link: p.str("charts_link")?.to_string(),
+        ceiling: p.ceiling,
+        preprocessing: p.preprocessing,
+        speedup: p.speedup,
+        v2_lengths: p.v2_lengths,
+        charts_link: p.charts_link,
     })
 }
 
@@ -844,72 +883,7 @@ impl Stage for BenchmarkReportStage {
          training time, F vs model size), a CSV of every run and metrics.json."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::str_list(
-                "dev",
-                &["tiger", "fox"],
-                "dev split: the only scenes defaults may be tuned on",
-            ),
-            ParamSpec::str_list(
-                "test",
-                &["panda", "cat", "bison", "wolf"],
-                "test split: reported, never used to choose",
-            ),
-            ParamSpec::string(
-                "scene_setting",
-                "scene.preset",
-                "the swept STAGE.PARAM naming the scene (a linked key containing it counts)",
-            ),
-            ParamSpec::string(
-                "seed_setting",
-                "scene.seed",
-                "the swept STAGE.PARAM naming the seed (a linked key containing it counts)",
-            ),
-            ParamSpec::str_list(
-                "methods",
-                &[
-                    "FurE codec=evaluate:codec",
-                    "dense=evaluate_dense:dense",
-                    "fixed length=evaluate_fixed:codec_fixed",
-                    "shape prior=evaluate_prior:codec_prior",
-                ],
-                "NAME=EVAL_STAGE[:LEARNER_STAGE]; the first is compared with every other",
-            ),
-            ParamSpec::string(
-                "ceiling",
-                "evaluate_ceiling",
-                "evaluation of the regrown GT against the GT",
-            ),
-            ParamSpec::str_list(
-                "preprocessing",
-                &[
-                    "outer",
-                    "parts",
-                    "frosting",
-                    "lengths",
-                    "defur",
-                    "roots",
-                    "basis",
-                    "orientation",
-                ],
-                "stages whose compute seconds add up to the preprocessing time",
-            ),
-            ParamSpec::string(
-                "speedup",
-                "speed_accuracy",
-                "the speed_accuracy stage's metric prefix",
-            ),
-            ParamSpec::string(
-                "v2_lengths",
-                "lengths_v2",
-                "the lengths stage with species reference lengths (V2), reported beside V1 when present",
-            ),
-            ParamSpec::string(
-                "charts_link",
-                "benchmark",
-                "where the published charts are, relative to the published results.md",
-            ),
-        ]
+        BenchmarkReportParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::file(

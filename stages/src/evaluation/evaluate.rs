@@ -865,6 +865,22 @@ pub fn to_rgb(im: &ImageF32, bg: [f32; 3]) -> ImageF32 {
 // ---------------------------------------------------------------------------------------------
 // The stage.
 
+fure_stage_api::stage_params! {
+    /// The `evaluate` stage's parameters.
+    pub struct EvaluateParams {
+        /// common arc-length spacing both strand sets are resampled to (cm)
+        spacing_cm: f32 = float(0.5).range(0.01, 100.0),
+        /// PRF thresholds as flat (cm, degrees) pairs (the strict 1 cm / 10 deg, then the paper's)
+        thresholds: Vec<f64> = float_list(&[1.0, 10.0, 2.0, 20.0, 3.0, 30.0, 4.0, 40.0]).min(0.0),
+        /// root neighbourhood radius of the first-segment direction variance (cm)
+        neighbour_cm: f32 = float(1.0).range(0.001, 1000.0),
+        /// evaluate at most this many evenly strided query points per side (0 = all)
+        max_queries: usize = int(0).min(0.0),
+        /// RGB background RGBA images are composited over before PSNR/SSIM
+        background: Vec<f64> = float_list(&[0.0, 0.0, 0.0]).range(0.0, 1.0),
+    }
+}
+
 /// Stage `evaluate`.
 pub struct EvaluateStage;
 
@@ -995,38 +1011,7 @@ impl Stage for EvaluateStage {
          local curvature variance relative to the GT's), PSNR/SSIM on held-out views, training time."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::float(
-                "spacing_cm",
-                0.5,
-                "common arc-length spacing both strand sets are resampled to (cm)",
-            )
-            .range(0.01, 100.0),
-            ParamSpec::float_list(
-                "thresholds",
-                &[1.0, 10.0, 2.0, 20.0, 3.0, 30.0, 4.0, 40.0],
-                "PRF thresholds as flat (cm, degrees) pairs (the strict 1 cm / 10 deg, then the paper's)",
-            )
-            .min(0.0),
-            ParamSpec::float(
-                "neighbour_cm",
-                1.0,
-                "root neighbourhood radius of the first-segment direction variance (cm)",
-            )
-            .range(0.001, 1000.0),
-            ParamSpec::int(
-                "max_queries",
-                0,
-                "evaluate at most this many evenly strided query points per side (0 = all)",
-            )
-            .min(0.0),
-            ParamSpec::float_list(
-                "background",
-                &[0.0, 0.0, 0.0],
-                "RGB background RGBA images are composited over before PSNR/SSIM",
-            )
-            .range(0.0, 1.0),
-        ]
+        EvaluateParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -1052,7 +1037,8 @@ impl Stage for EvaluateStage {
         vec![PortSpec::file("metrics", "json", "all metrics")]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        let t = params.f64_list("thresholds")?;
+        let p = EvaluateParams::from_params(params)?;
+        let t = &p.thresholds;
         if t.is_empty() || t.len() % 2 != 0 {
             return Err(StageError::param(
                 "thresholds",
@@ -1075,23 +1061,23 @@ impl Stage for EvaluateStage {
                 ));
             }
         }
-        if params.f64_list("background")?.len() != 3 {
+        if p.background.len() != 3 {
             return Err(StageError::param("background", "expected 3 numbers (RGB)"));
         }
         Ok(())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         self.validate(ctx.params)?;
-        let p = ctx.params;
-        let spacing = p.f32("spacing_cm")?;
-        let neighbour = p.f32("neighbour_cm")?;
-        let max_q = p.usize("max_queries")?;
+        let p = EvaluateParams::from_params(ctx.params)?;
+        let spacing = p.spacing_cm;
+        let neighbour = p.neighbour_cm;
+        let max_q = p.max_queries;
         let thr: Vec<(f32, f32)> = p
-            .f64_list("thresholds")?
+            .thresholds
             .chunks(2)
             .map(|c| (c[0] as f32, c[1] as f32))
             .collect();
-        let bgv = p.f64_list("background")?;
+        let bgv = &p.background;
         let bg = [bgv[0] as f32, bgv[1] as f32, bgv[2] as f32];
 
         let scene_path = ctx.input("gt_scene")?;

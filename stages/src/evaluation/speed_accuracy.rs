@@ -380,6 +380,20 @@ pub fn read_snapshots(port: &str, dir: &Path) -> Result<(PathBuf, Vec<Snapshot>)
     Ok((d, list))
 }
 
+fure_stage_api::stage_params! {
+    /// The `speed_accuracy` stage's parameters.
+    pub struct SpeedAccuracyParams {
+        /// arc-length resampling of both strand sets (cm)
+        spacing_cm: f32 = float(0.5).range(0.01, 100.0),
+        /// evaluate at most this many evenly strided query points per side (0 = all; module doc)
+        max_queries: usize = int(40_000).min(0.0),
+        /// chart width (px)
+        width: u32 = int(900).range(200.0, 8000.0),
+        /// chart height (px)
+        height: u32 = int(560).range(150.0, 8000.0),
+    }
+}
+
 /// Stage `speed_accuracy`.
 pub struct SpeedAccuracyStage;
 
@@ -396,22 +410,7 @@ impl Stage for SpeedAccuracyStage {
          tables and the speed-up to the dense baseline's final F-score."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::float(
-                "spacing_cm",
-                0.5,
-                "arc-length resampling of both strand sets (cm)",
-            )
-            .range(0.01, 100.0),
-            ParamSpec::int(
-                "max_queries",
-                40_000,
-                "evaluate at most this many evenly strided query points per side (0 = all; module doc)",
-            )
-            .min(0.0),
-            ParamSpec::int("width", 900, "chart width (px)").range(200.0, 8000.0),
-            ParamSpec::int("height", 560, "chart height (px)").range(150.0, 8000.0),
-        ]
+        SpeedAccuracyParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -437,10 +436,10 @@ impl Stage for SpeedAccuracyStage {
         ]
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
-        let spacing = p.f32("spacing_cm")?;
-        let max_q = p.usize("max_queries")?;
-        let size = (p.u64("width")? as u32, p.u64("height")? as u32);
+        let p = SpeedAccuracyParams::from_params(ctx.params)?;
+        let spacing = p.spacing_cm;
+        let max_q = p.max_queries;
+        let size = (p.width, p.height);
         let scene_path = ctx.input("gt_scene")?;
         let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
         if !(scene.s_cm > 0.0 && scene.s_cm.is_finite()) {

@@ -1200,14 +1200,36 @@ pub fn report(
 /// Stage `stability_report`.
 pub struct StabilityReportStage;
 
-fn config(p: &Params) -> Result<ReportConfig, StageError> {
+fure_stage_api::stage_params! {
+    /// The `stability_report` stage's parameters.
+    pub struct StabilityReportParams {
+        /// metric key prefix of FurE's evaluation
+        fure_prefix: String = string("evaluate"),
+        /// metric key prefix of the dense baseline's evaluation
+        dense_prefix: String = string("evaluate_dense"),
+        /// metric key prefix of the fixed-length ablation's evaluation
+        fixed_prefix: String = string("evaluate_fixed"),
+        /// metric key of the defurring error
+        defur_key: String = string("defur.root_to_skin_mean_frac"),
+        /// relative F-score drop below the clean base point that makes a variant degraded
+        baseline_drop: f64 = float(0.25).range(0.0, 1.0),
+        /// relative defurring-error rise above the clean base point that makes a variant degraded
+        defur_rise: f64 = float(0.5).range(0.0, 1000.0),
+        /// chart width (px)
+        width: u32 = int(900).range(300.0, 8000.0),
+        /// chart height (px)
+        height: u32 = int(760).range(300.0, 8000.0),
+    }
+}
+
+fn config(p: &StabilityReportParams) -> Result<ReportConfig, StageError> {
     let mut methods = Vec::new();
-    for (name, param) in [
-        ("FurE", "fure_prefix"),
-        ("dense", "dense_prefix"),
-        ("fixed", "fixed_prefix"),
+    for (name, param, value) in [
+        ("FurE", "fure_prefix", &p.fure_prefix),
+        ("dense", "dense_prefix", &p.dense_prefix),
+        ("fixed", "fixed_prefix", &p.fixed_prefix),
     ] {
-        let prefix = p.str(param)?.trim().to_string();
+        let prefix = value.trim().to_string();
         if prefix.is_empty() {
             return Err(StageError::param(
                 param,
@@ -1216,15 +1238,15 @@ fn config(p: &Params) -> Result<ReportConfig, StageError> {
         }
         methods.push((name.to_string(), prefix));
     }
-    let defur_key = p.str("defur_key")?.trim().to_string();
+    let defur_key = p.defur_key.trim().to_string();
     if defur_key.is_empty() {
         return Err(StageError::param("defur_key", "expected a metric key"));
     }
     Ok(ReportConfig {
         methods,
         defur_key,
-        baseline_drop: p.f64("baseline_drop")?,
-        defur_rise: p.f64("defur_rise")?,
+        baseline_drop: p.baseline_drop,
+        defur_rise: p.defur_rise,
     })
 }
 
@@ -1243,16 +1265,7 @@ impl Stage for StabilityReportStage {
          summaries and the largest corruption each method survives."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::string("fure_prefix", "evaluate", "metric key prefix of FurE's evaluation"),
-            ParamSpec::string("dense_prefix", "evaluate_dense", "metric key prefix of the dense baseline's evaluation"),
-            ParamSpec::string("fixed_prefix", "evaluate_fixed", "metric key prefix of the fixed-length ablation's evaluation"),
-            ParamSpec::string("defur_key", "defur.root_to_skin_mean_frac", "metric key of the defurring error"),
-            ParamSpec::float("baseline_drop", 0.25, "relative F-score drop below the clean base point that makes a variant degraded").range(0.0, 1.0),
-            ParamSpec::float("defur_rise", 0.5, "relative defurring-error rise above the clean base point that makes a variant degraded").range(0.0, 1000.0),
-            ParamSpec::int("width", 900, "chart width (px)").range(300.0, 8000.0),
-            ParamSpec::int("height", 760, "chart height (px)").range(300.0, 8000.0),
-        ]
+        StabilityReportParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::file(
@@ -1278,14 +1291,12 @@ impl Stage for StabilityReportStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        config(params).map(|_| ())
+        config(&StabilityReportParams::from_params(params)?).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let cfg = config(ctx.params)?;
-        let size = (
-            ctx.params.i64("width")? as u32,
-            ctx.params.i64("height")? as u32,
-        );
+        let params = StabilityReportParams::from_params(ctx.params)?;
+        let cfg = config(&params)?;
+        let size = (params.width, params.height);
         let rec = SweepRecord::read(ctx.input("sweep")?)?;
         ctx.progress.message("charting");
         let (md, csv, metrics) = report(&rec, &cfg, ctx.output("charts")?, size)?;

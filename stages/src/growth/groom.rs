@@ -34,6 +34,16 @@ use crate::formats;
 use crate::formats::blender::GroomInfo;
 use crate::formats::usd::UsdInfo;
 
+fure_stage_api::stage_params! {
+    /// The `export_groom` stage's parameters.
+    pub struct ExportGroomParams {
+        /// the capture's up axis (synthetic scenes: y; Blender / NeRF-synthetic captures: z)
+        up: String = string("y").choices(UP),
+        /// name of the Blender collection and objects (<name>_mesh, <name>_hair)
+        name: String = string("fure"),
+    }
+}
+
 /// The `export_groom` stage.
 pub struct ExportGroomStage;
 
@@ -103,19 +113,7 @@ impl Stage for ExportGroomStage {
          colour; in metres when the `lengths` output gives s_cm (docs/groom.md)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::string(
-                "up",
-                "y",
-                "the capture's up axis (synthetic scenes: y; Blender / NeRF-synthetic captures: z)",
-            )
-            .choices(UP),
-            ParamSpec::string(
-                "name",
-                "fure",
-                "name of the Blender collection and objects (<name>_mesh, <name>_hair)",
-            ),
-        ]
+        ExportGroomParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -152,7 +150,7 @@ impl Stage for ExportGroomStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        let name = params.str("name")?;
+        let name = ExportGroomParams::from_params(params)?.name;
         if name.is_empty() || name.len() > 48 || name.contains(['\n', '\r']) {
             return Err(StageError::param(
                 "name",
@@ -162,9 +160,7 @@ impl Stage for ExportGroomStage {
         Ok(())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
-        let up = p.str("up")?.to_string();
-        let name = p.str("name")?.to_string();
+        let ExportGroomParams { up, name } = ExportGroomParams::from_params(ctx.params)?;
         let strands_path = ctx.input("strands")?;
         let strands =
             formats::ply::read_ply_strands(strands_path).map_err(|e| e.for_input("strands"))?;

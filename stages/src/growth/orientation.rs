@@ -301,6 +301,26 @@ pub struct MapIndex {
     pub maps: Vec<MapEntry>,
 }
 
+fure_stage_api::stage_params! {
+    /// The `orientation_maps` stage's parameters; filter defaults from [`GaborParams::default`].
+    pub struct OrientationMapsParams {
+        /// number of filter orientations
+        orientations: usize = int(GaborParams::default().orientations as i64).range(2.0, 3600.0),
+        /// DoG small sigma (px)
+        dog_sigma_small: f32 = float(GaborParams::default().dog_sigma_small as f64).range(0.0, 100.0),
+        /// DoG large sigma (px)
+        dog_sigma_large: f32 = float(GaborParams::default().dog_sigma_large as f64).range(0.0, 1000.0),
+        /// Gabor frequency (cycles/px)
+        frequency: f32 = float(GaborParams::default().frequency as f64).range(0.01, 0.5),
+        /// Gabor sigma across the strand (px)
+        sigma_x: f32 = float(GaborParams::default().sigma_x as f64).range(0.1, 50.0),
+        /// Gabor sigma along the strand (px)
+        sigma_y: f32 = float(GaborParams::default().sigma_y as f64).range(0.1, 50.0),
+        /// integer box downscale before filtering (1 = none)
+        downscale: u32 = int(1).range(1.0, 64.0),
+    }
+}
+
 /// Stage `orientation_maps`.
 pub struct OrientationMapsStage;
 
@@ -324,51 +344,7 @@ impl Stage for OrientationMapsStage {
          training images of `views`, or of every PNG of `images`: DoG then 180 Gabor filters."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        let d = GaborParams::default();
-        vec![
-            ParamSpec::int(
-                "orientations",
-                d.orientations as i64,
-                "number of filter orientations",
-            )
-            .range(2.0, 3600.0),
-            ParamSpec::float(
-                "dog_sigma_small",
-                d.dog_sigma_small as f64,
-                "DoG small sigma (px)",
-            )
-            .range(0.0, 100.0),
-            ParamSpec::float(
-                "dog_sigma_large",
-                d.dog_sigma_large as f64,
-                "DoG large sigma (px)",
-            )
-            .range(0.0, 1000.0),
-            ParamSpec::float(
-                "frequency",
-                d.frequency as f64,
-                "Gabor frequency (cycles/px)",
-            )
-            .range(0.01, 0.5),
-            ParamSpec::float(
-                "sigma_x",
-                d.sigma_x as f64,
-                "Gabor sigma across the strand (px)",
-            )
-            .range(0.1, 50.0),
-            ParamSpec::float(
-                "sigma_y",
-                d.sigma_y as f64,
-                "Gabor sigma along the strand (px)",
-            )
-            .range(0.1, 50.0),
-            ParamSpec::int(
-                "downscale",
-                1,
-                "integer box downscale before filtering (1 = none)",
-            )
-            .range(1.0, 64.0),
-        ]
+        OrientationMapsParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -383,16 +359,16 @@ impl Stage for OrientationMapsStage {
         )]
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
+        let p = OrientationMapsParams::from_params(ctx.params)?;
         let gp = GaborParams {
-            orientations: p.usize("orientations")?,
-            dog_sigma_small: p.f32("dog_sigma_small")?,
-            dog_sigma_large: p.f32("dog_sigma_large")?,
-            frequency: p.f32("frequency")?,
-            sigma_x: p.f32("sigma_x")?,
-            sigma_y: p.f32("sigma_y")?,
+            orientations: p.orientations,
+            dog_sigma_small: p.dog_sigma_small,
+            dog_sigma_large: p.dog_sigma_large,
+            frequency: p.frequency,
+            sigma_x: p.sigma_x,
+            sigma_y: p.sigma_y,
         };
-        let factor = p.u64("downscale")? as u32;
+        let factor = p.downscale;
         // (relative name, image, mask)
         type Job = (
             String,

@@ -126,7 +126,7 @@ use crate::formats::json::{read_json, write_json};
 use crate::formats::obj::read_labelled_mesh;
 use crate::maths::geom::PointIndex;
 use crate::maths::stats::percentile;
-use crate::surface::parts::{number_table, protected_parts, DEFAULT_PROTECTED};
+use crate::surface::parts::{protected_parts, DEFAULT_PROTECTED};
 use crate::thickness::defur::thickness::raw_widths;
 use crate::thickness::lengths::LengthTable;
 
@@ -793,6 +793,38 @@ fn vdir_scale(vdir: &[Vec3], t: &[u32; 3]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+fure_stage_api::param_enum! {
+    /// The sign of the root tangents (the growth direction).
+    pub enum DirectionPrior {
+        /// Away from the head, down the limbs, toward the ear tips (module doc).
+        BodyAxis = "body_axis",
+        /// The breadth-first signs from face 0.
+        None = "none",
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// The `roots` stage's parameters.
+    pub struct RootsParams {
+        /// per-part roots per cm^2 (fur parts not listed use default_density; non-fur parts get none)
+        density: BTreeMap<String, f32> = table(),
+        /// roots per cm^2 of fur parts not in `density`
+        default_density: f32 = float(4.0).min(0.0),
+        /// cap on the number of roots (all densities scaled down together)
+        max_roots: usize = int(100_000).range(1.0, 1e8),
+        /// sampling seed
+        seed: u64 = int(0).min(0.0),
+        /// iteration cap of the tangent-field solve
+        cg_iterations: usize = int(20_000).range(1.0, 1e7),
+        /// non-fur part names (no roots), case-insensitive
+        protected_parts: Vec<String> = str_list(DEFAULT_PROTECTED),
+        /// sign of the root tangents (growth direction): body_axis = away from the head, down the limbs, toward the ear tips (module doc); none = the breadth-first signs from face 0
+        direction_prior: DirectionPrior = string("body_axis").choices(DirectionPrior::NAMES),
+        /// 0: the field's axis is the smoothest degree-2 field (one arbitrary constraint); > 0: softly aligned to the body_axis prior's directions, which it follows over about this fraction of the bounding-box diagonal (module doc)
+        direction_smoothing: f64 = float(0.02).range(0.0, 10.0),
+    }
+}
+
 /// The `roots` stage.
 pub struct RootsStage;
 
@@ -809,16 +841,7 @@ impl Stage for RootsStage {
          BFS sign alignment, growth sign from an anatomical body-axis prior)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::table("density", "per-part roots per cm^2 (fur parts not listed use default_density; non-fur parts get none)"),
-            ParamSpec::float("default_density", 4.0, "roots per cm^2 of fur parts not in `density`").min(0.0),
-            ParamSpec::int("max_roots", 100_000, "cap on the number of roots (all densities scaled down together)").range(1.0, 1e8),
-            ParamSpec::int("seed", 0, "sampling seed").min(0.0),
-            ParamSpec::int("cg_iterations", 20_000, "iteration cap of the tangent-field solve").range(1.0, 1e7),
-            ParamSpec::str_list("protected_parts", DEFAULT_PROTECTED, "non-fur part names (no roots), case-insensitive"),
-            ParamSpec::string("direction_prior", "body_axis", "sign of the root tangents (growth direction): body_axis = away from the head, down the limbs, toward the ear tips (module doc); none = the breadth-first signs from face 0").choices(&["body_axis", "none"]),
-            ParamSpec::float("direction_smoothing", 0.02, "0: the field's axis is the smoothest degree-2 field (one arbitrary constraint); > 0: softly aligned to the body_axis prior's directions, which it follows over about this fraction of the bounding-box diagonal (module doc)").range(0.0, 10.0),
-        ]
+        RootsParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -850,11 +873,10 @@ impl Stage for RootsStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        number_table(params, "density")?;
-        Ok(())
+        RootsParams::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
+        let p = RootsParams::from_params(ctx.params)?;
         let t0 = Instant::now();
         let mesh = read_labelled_mesh(ctx, "root_mesh")?;
         let lengths_path = ctx.input("lengths")?;
@@ -875,10 +897,10 @@ impl Stage for RootsStage {
                 "need one width per shell position (and at least one)",
             ));
         }
-        let names = p.str_list("protected_parts")?;
+        let names = p.protected_parts.clone();
         let prot = protected_parts(&mesh.part_names, &names);
-        let densities = number_table(p, "density")?;
-        let default_density = p.f32("default_density")?;
+        let densities = p.density.clone();
+        let default_density = p.default_density;
         let mut density = Vec::new();
         let mut length = Vec::new();
         let mut width = Vec::new();
@@ -935,14 +957,14 @@ impl Stage for RootsStage {
                 density,
                 length,
                 width,
-                max_roots: p.usize("max_roots")?,
-                seed: p.u64("seed")?,
-                cg_iterations: p.usize("cg_iterations")?,
-                direction_prior: p.str("direction_prior")? == "body_axis",
-                direction_smoothing: Some(p.f64("direction_smoothing")?).filter(|&x| x > 0.0),
+                max_roots: p.max_roots,
+                seed: p.seed,
+                cg_iterations: p.cg_iterations,
+                direction_prior: p.direction_prior == DirectionPrior::BodyAxis,
+                direction_smoothing: Some(p.direction_smoothing).filter(|&x| x > 0.0),
             },
         );
-        if p.str("direction_prior")? == "body_axis" && report.growth_prior.is_none() {
+        if p.direction_prior == DirectionPrior::BodyAxis && report.growth_prior.is_none() {
             ctx.progress.note(
                 "direction_prior: no head-group part (head, muzzle, nose, ...) in the root mesh; \
                  breadth-first tangent signs kept",

@@ -1249,8 +1249,15 @@ fn parse_axis(s: &str) -> Option<(usize, f64)> {
     Some((i, sign))
 }
 
-/// The corpora of parameter `domain`.
-pub const DOMAINS: &[&str] = &["fur", "human"];
+fure_stage_api::param_enum! {
+    /// The corpus the basis is fitted to (parameter `domain`).
+    pub enum Domain {
+        /// Straight, wavy and curly fur-like strands.
+        Fur = "fur",
+        /// Long hair draped on a head-like scalp.
+        Human = "human",
+    }
+}
 
 /// Default PERM axis mapping (our x, y, z from PERM's signed axes).
 pub const PERM_AXES: [&str; 3] = ["-y", "-x", "-z"];
@@ -1457,6 +1464,35 @@ pub fn choose_points(
 // ---------------------------------------------------------------------------------------------
 // The stage.
 
+fure_stage_api::stage_params! {
+    /// The `strand_basis` stage's parameters.
+    pub struct StrandBasisParams {
+        /// components K (0: smallest K reaching variance_target, capped at k_max)
+        k: usize = int(0).range(0.0, 512.0),
+        /// explained variance the automatic K reaches
+        variance_target: f64 = float(0.999).range(0.5, 1.0),
+        /// cap of the automatic K
+        k_max: usize = int(32).range(1.0, 512.0),
+        /// points per strand L incl. root (0: from the estimated lengths and the views, see docs)
+        points: usize = int(0).range(0.0, 200.0),
+        /// corpus strands (a tenth held out for the error metric)
+        corpus: usize = int(4000).range(20.0, 1_000_000.0),
+        /// corpus random seed
+        seed: u64 = int(0).min(0.0),
+        /// family weights: straight, wavy, curly
+        mix: Vec<f64> = float_list(&[0.5, 0.3, 0.2]).min(0.0),
+        /// our x, y, z from signed PERM axes
+        perm_axes: Vec<String> = str_list(&PERM_AXES),
+        /// corpus the basis is fitted to: fur (straight/wavy/curly fur-like strands) or human
+        /// (long hair draped on a head-like scalp, see docs); ignored when `perm` is connected
+        domain: Domain = string("fur").choices(Domain::NAMES),
+        /// human corpus style weights: straight, wavy, curly, clumped
+        human_mix: Vec<f64> = float_list(&[0.3, 0.3, 0.2, 0.2]).min(0.0),
+        /// human corpus strand lengths, uniform in [min, max] cm
+        human_length_cm: Vec<f64> = float_list(&[10.0, 60.0]).range(1.0, 200.0),
+    }
+}
+
 /// Stage `strand_basis`.
 pub struct StrandBasisStage;
 
@@ -1491,60 +1527,7 @@ impl Stage for StrandBasisStage {
          straight/wavy/curly strands, or human hairstyles draped on a scalp), or decoded from PERM's fft-strands-blend-shapes.npz when `perm` is connected."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::int(
-                "k",
-                0,
-                "components K (0: smallest K reaching variance_target, capped at k_max)",
-            )
-            .range(0.0, 512.0),
-            ParamSpec::float(
-                "variance_target",
-                0.999,
-                "explained variance the automatic K reaches",
-            )
-            .range(0.5, 1.0),
-            ParamSpec::int("k_max", 32, "cap of the automatic K").range(1.0, 512.0),
-            ParamSpec::int(
-                "points",
-                0,
-                "points per strand L incl. root (0: from the estimated lengths and the views, see docs)",
-            )
-            .range(0.0, 200.0),
-            ParamSpec::int(
-                "corpus",
-                4000,
-                "corpus strands (a tenth held out for the error metric)",
-            )
-            .range(20.0, 1_000_000.0),
-            ParamSpec::int("seed", 0, "corpus random seed").min(0.0),
-            ParamSpec::float_list(
-                "mix",
-                &[0.5, 0.3, 0.2],
-                "family weights: straight, wavy, curly",
-            )
-            .min(0.0),
-            ParamSpec::str_list("perm_axes", &PERM_AXES, "our x, y, z from signed PERM axes"),
-            ParamSpec::string(
-                "domain",
-                "fur",
-                "corpus the basis is fitted to: fur (straight/wavy/curly fur-like strands) or human \
-                 (long hair draped on a head-like scalp, see docs); ignored when `perm` is connected",
-            )
-            .choices(DOMAINS),
-            ParamSpec::float_list(
-                "human_mix",
-                &[0.3, 0.3, 0.2, 0.2],
-                "human corpus style weights: straight, wavy, curly, clumped",
-            )
-            .min(0.0),
-            ParamSpec::float_list(
-                "human_length_cm",
-                &[10.0, 60.0],
-                "human corpus strand lengths, uniform in [min, max] cm",
-            )
-            .range(1.0, 200.0),
-        ]
+        StrandBasisParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -1580,36 +1563,36 @@ impl Stage for StrandBasisStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        let mix = params.f64_list("mix")?;
+        let p = StrandBasisParams::from_params(params)?;
+        let mix = &p.mix;
         if mix.len() != 3 || !(mix.iter().sum::<f64>() > 0.0) {
             return Err(StageError::param(
                 "mix",
                 "expected 3 non-negative weights with a positive sum",
             ));
         }
-        let hmix = params.f64_list("human_mix")?;
+        let hmix = &p.human_mix;
         if hmix.len() != 4 || !(hmix.iter().sum::<f64>() > 0.0) {
             return Err(StageError::param(
                 "human_mix",
                 "expected 4 non-negative weights (straight, wavy, curly, clumped) with a positive sum",
             ));
         }
-        let hl = params.f64_list("human_length_cm")?;
+        let hl = &p.human_length_cm;
         if hl.len() != 2 || hl[0] > hl[1] {
             return Err(StageError::param(
                 "human_length_cm",
                 "expected [min, max] in cm with min <= max",
             ));
         }
-        let axes = params.str_list("perm_axes")?;
+        let axes = &p.perm_axes;
         if axes.len() != 3 || axes.iter().any(|a| parse_axis(a).is_none()) {
             return Err(StageError::param(
                 "perm_axes",
                 "expected 3 signed axes such as [\"-y\", \"-x\", \"-z\"]",
             ));
         }
-        let p = params.usize("points")?;
-        if p == 1 {
+        if p.points == 1 {
             return Err(StageError::param(
                 "points",
                 "expected 0 (automatic) or at least 2",
@@ -1619,7 +1602,7 @@ impl Stage for StrandBasisStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         self.validate(ctx.params)?;
-        let p = ctx.params;
+        let p = StrandBasisParams::from_params(ctx.params)?;
         let lengths: Option<crate::thickness::lengths::LengthTable> = match ctx.input_opt("lengths")
         {
             Some(path) => Some(crate::formats::json::read_json(path)?),
@@ -1630,7 +1613,7 @@ impl Stage for StrandBasisStage {
             None => None,
         };
         let mut choice = choose_points(lengths.as_ref(), cams.as_ref());
-        let l_param = p.usize("points")?;
+        let l_param = p.points;
         if l_param > 0 {
             choice = PointsChoice {
                 points: l_param,
@@ -1641,7 +1624,7 @@ impl Stage for StrandBasisStage {
         let l = choice.points;
         ctx.progress
             .note(&format!("L = {l} points per strand ({})", choice.rule));
-        let k = p.usize("k")?;
+        let k = p.k;
         let (basis, source, heldout_rms) = if let Some(perm) = ctx.input_opt("perm") {
             ctx.progress.message("decoding PERM blend shapes");
             let std = match ctx.input_opt("perm_stats") {
@@ -1655,32 +1638,26 @@ impl Stage for StrandBasisStage {
                 }
                 None => None,
             };
-            let axes = p.str_list("perm_axes")?;
+            let axes = &p.perm_axes;
             let axes = [axes[0].as_str(), axes[1].as_str(), axes[2].as_str()];
             let b = perm_basis(perm, l, axes, std.as_deref(), k)?;
             (b, "perm", None)
         } else {
-            let n = p.usize("corpus")?;
-            let human = p.str("domain")? == "human";
+            let n = p.corpus;
+            let human = p.domain == Domain::Human;
             let strands: Vec<Vec<Vec3>> = if human {
                 ctx.progress
                     .message("generating the human-hairstyle corpus");
-                let m = p.f64_list("human_mix")?;
-                let hl = p.f64_list("human_length_cm")?;
-                human_corpus(
-                    n,
-                    l,
-                    [m[0], m[1], m[2], m[3]],
-                    [hl[0], hl[1]],
-                    p.u64("seed")?,
-                )
-                .into_iter()
-                .map(|(_, s)| s)
-                .collect()
+                let m = &p.human_mix;
+                let hl = &p.human_length_cm;
+                human_corpus(n, l, [m[0], m[1], m[2], m[3]], [hl[0], hl[1]], p.seed)
+                    .into_iter()
+                    .map(|(_, s)| s)
+                    .collect()
             } else {
                 ctx.progress.message("generating the corpus");
-                let mixv = p.f64_list("mix")?;
-                corpus(n, l, [mixv[0], mixv[1], mixv[2]], p.u64("seed")?)
+                let mixv = &p.mix;
+                corpus(n, l, [mixv[0], mixv[1], mixv[2]], p.seed)
                     .into_iter()
                     .map(|(_, s)| s)
                     .collect()
@@ -1688,7 +1665,7 @@ impl Stage for StrandBasisStage {
             let hold = (n / 10).max(1);
             let (fit, held) = strands.split_at(n - hold);
             ctx.progress.message("PCA");
-            let b = fit_pca(fit, k, p.f64("variance_target")?, p.usize("k_max")?)?;
+            let b = fit_pca(fit, k, p.variance_target, p.k_max)?;
             let rms = reconstruction_rms(&b, held);
             (b, if human { "human_corpus" } else { "corpus" }, Some(rms))
         };
@@ -1727,8 +1704,8 @@ impl Stage for StrandBasisStage {
             "heldout_rms_error_unit_length": heldout_rms,
         });
         if source == "human_corpus" {
-            metrics["human_mix"] = serde_json::json!(p.f64_list("human_mix")?);
-            metrics["human_length_cm"] = serde_json::json!(p.f64_list("human_length_cm")?);
+            metrics["human_mix"] = serde_json::json!(p.human_mix);
+            metrics["human_length_cm"] = serde_json::json!(p.human_length_cm);
         }
         crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
         Ok(())

@@ -516,43 +516,33 @@ fn first_channel(img: &ImageF32) -> ImageF32 {
     channel(img, 0)
 }
 
-/// Reads the stage parameters.
-pub fn settings(p: &Params) -> Result<Corruption, StageError> {
-    let views = p.i64("views")?;
-    if views < 0 {
-        return Err(StageError::param(
-            "views",
-            format!("expected 0 (all) or a positive count, found {views}"),
-        ));
+fure_stage_api::stage_params! {
+    /// The `corrupt_views` stage's parameters (the engine checks their bounds).
+    pub struct CorruptViewsParams {
+        /// std of additive Gaussian noise on training RGB in [0, 1] (clamped; alpha > 0 pixels only when the image has alpha)
+        noise_sigma: f32 = float(0.0).range(0.0, 1.0),
+        /// each training camera orbits the object centre by exactly this angle (degrees) about a random axis
+        jitter_deg: f32 = float(0.0).range(0.0, 180.0),
+        /// training views kept, evenly spread by index (0 = all)
+        views: usize = int(0).min(0.0),
+        /// erode (< 0) or dilate (> 0) the training masks by a disc of this radius (pixels)
+        mask_morph_px: i64 = int(0).range(-64.0, 64.0),
+        /// seed of the noise and jitter streams
+        seed: u64 = int(0).min(0.0),
     }
-    let seed = p.i64("seed")?;
-    if seed < 0 {
-        return Err(StageError::param(
-            "seed",
-            format!("expected >= 0, found {seed}"),
-        ));
-    }
-    let nonneg = |name: &str| -> Result<f32, StageError> {
-        let x = p.f64(name)?;
-        if x < 0.0 {
-            return Err(StageError::param(name, format!("expected >= 0, found {x}")));
+}
+
+impl CorruptViewsParams {
+    /// The corruption these parameters ask for.
+    pub fn corruption(&self) -> Corruption {
+        Corruption {
+            noise_sigma: self.noise_sigma,
+            jitter_deg: self.jitter_deg,
+            views: self.views,
+            mask_morph_px: self.mask_morph_px,
+            seed: self.seed,
         }
-        Ok(x as f32)
-    };
-    let jitter_deg = nonneg("jitter_deg")?;
-    if jitter_deg > 180.0 {
-        return Err(StageError::param(
-            "jitter_deg",
-            format!("expected at most 180 degrees, found {jitter_deg}"),
-        ));
     }
-    Ok(Corruption {
-        noise_sigma: nonneg("noise_sigma")?,
-        jitter_deg,
-        views: views as usize,
-        mask_morph_px: p.i64("mask_morph_px")?,
-        seed: seed as u64,
-    })
 }
 
 /// Stage `corrupt_views`.
@@ -572,13 +562,7 @@ impl Stage for CorruptViewsStage {
          untouched; with every corruption off the output is byte-identical to the input."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::float("noise_sigma", 0.0, "std of additive Gaussian noise on training RGB in [0, 1] (clamped; alpha > 0 pixels only when the image has alpha)").range(0.0, 1.0),
-            ParamSpec::float("jitter_deg", 0.0, "each training camera orbits the object centre by exactly this angle (degrees) about a random axis").range(0.0, 180.0),
-            ParamSpec::int("views", 0, "training views kept, evenly spread by index (0 = all)").min(0.0),
-            ParamSpec::int("mask_morph_px", 0, "erode (< 0) or dilate (> 0) the training masks by a disc of this radius (pixels)").range(-64.0, 64.0),
-            ParamSpec::int("seed", 0, "seed of the noise and jitter streams").min(0.0),
-        ]
+        CorruptViewsParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::dir(
@@ -600,10 +584,10 @@ impl Stage for CorruptViewsStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        settings(params).map(|_| ())
+        CorruptViewsParams::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let cfg = settings(ctx.params)?;
+        let cfg = CorruptViewsParams::from_params(ctx.params)?.corruption();
         let input = ctx.input("views")?;
         let output = ctx.output("views")?;
         ctx.progress.message("corrupting training views");

@@ -48,6 +48,20 @@ use crate::maths::geom::{vertex_neighbours, MeshQuery, PointIndex};
 use crate::scenes::synthetic::body::Body;
 use crate::scenes::synthetic::presets;
 
+fure_stage_api::stage_params! {
+    /// The `fit_template` stage's parameters.
+    pub struct FitTemplateParams {
+        /// the species templates to try
+        presets: Vec<String> = str_list(&PRESETS),
+        /// template grid spacing (body length = 2)
+        cell: f32 = float(0.04).range(0.01, 0.2),
+        /// ICP iterations per start
+        icp_iterations: usize = int(30).range(1.0, 500.0),
+        /// non-rigid rounds (smoothing from 30 passes down to 3)
+        nonrigid_iterations: usize = int(12).range(0.0, 200.0),
+    }
+}
+
 /// The `fit_template` stage.
 pub struct FitTemplateStage;
 
@@ -442,18 +456,7 @@ impl Stage for FitTemplateStage {
          check) with the eye centres in `scene.json` (clicked eyes in the `scene` input win)."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::str_list("presets", &PRESETS, "the species templates to try"),
-            ParamSpec::float("cell", 0.04, "template grid spacing (body length = 2)")
-                .range(0.01, 0.2),
-            ParamSpec::int("icp_iterations", 30, "ICP iterations per start").range(1.0, 500.0),
-            ParamSpec::int(
-                "nonrigid_iterations",
-                12,
-                "non-rigid rounds (smoothing from 30 passes down to 3)",
-            )
-            .range(0.0, 200.0),
-        ]
+        FitTemplateParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -486,7 +489,7 @@ impl Stage for FitTemplateStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        let list = params.str_list("presets")?;
+        let list = FitTemplateParams::from_params(params)?.presets;
         if list.is_empty() {
             return Err(StageError::param(
                 "presets",
@@ -504,12 +507,12 @@ impl Stage for FitTemplateStage {
         Ok(())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
+        let p = FitTemplateParams::from_params(ctx.params)?;
         let st = FitSettings {
-            presets: p.str_list("presets")?,
-            cell: p.f64("cell")? as f32,
-            icp_iterations: p.usize("icp_iterations")?,
-            nonrigid_iterations: p.usize("nonrigid_iterations")?,
+            presets: p.presets,
+            cell: p.cell,
+            icp_iterations: p.icp_iterations,
+            nonrigid_iterations: p.nonrigid_iterations,
         };
         let mesh_path = ctx.input("mesh")?;
         let target = formats::obj::read_obj(mesh_path).map_err(|e| e.for_input("mesh"))?;

@@ -1127,20 +1127,41 @@ pub struct OuterSurfaceStage;
 
 const VERSION: u32 = 2;
 
-fn settings(p: &Params) -> Result<HullSettings, StageError> {
-    Ok(HullSettings {
-        resolution: match p.get("resolution") {
-            Some(_) => Some(p.usize("resolution")?),
-            None => None,
-        },
-        voxel_pixels: p.f32("voxel_pixels")?,
-        max_resolution: p.usize("max_resolution")?,
-        mask_threshold: p.f32("mask_threshold")?,
-        min_views_outside: p.usize("min_views_outside")?,
-        refine_steps: p.usize("refine_steps")?,
-        smoothing_iterations: p.usize("smoothing_iterations")?,
-        keep_largest_component: p.bool("keep_largest_component")?,
-    })
+fure_stage_api::stage_params! {
+    /// The `outer_surface` stage's parameters.
+    pub struct OuterSurfaceParams {
+        /// voxels along the longest side of the hull's box (default: from the image footprint, voxel_pixels per voxel, at most max_resolution)
+        resolution: Option<usize> = optional(ParamType::Int).range(8.0, 1024.0),
+        /// automatic resolution: voxel size in pixels of the median view at the box centre
+        voxel_pixels: f32 = float(1.5).range(0.25, 16.0),
+        /// cap of the automatic resolution (cost grows with its cube)
+        max_resolution: usize = int(160).range(16.0, 1024.0),
+        /// mask values above this are foreground
+        mask_threshold: f32 = float(0.5).range(0.01, 0.99),
+        /// how many views must see a point outside the mask to carve it (raise to tolerate bad masks)
+        min_views_outside: usize = int(1).range(1.0, 8.0),
+        /// bisection steps locating each surface crossing on the exact mask occupancy
+        refine_steps: usize = int(6).range(0.0, 20.0),
+        /// Taubin smoothing iterations (lambda 0.5, mu -0.53)
+        smoothing_iterations: usize = int(8).range(0.0, 200.0),
+        /// drop floating pieces (mask noise), keeping the largest connected surface
+        keep_largest_component: bool = bool(true),
+    }
+}
+
+impl OuterSurfaceParams {
+    fn settings(&self) -> HullSettings {
+        HullSettings {
+            resolution: self.resolution,
+            voxel_pixels: self.voxel_pixels,
+            max_resolution: self.max_resolution,
+            mask_threshold: self.mask_threshold,
+            min_views_outside: self.min_views_outside,
+            refine_steps: self.refine_steps,
+            smoothing_iterations: self.smoothing_iterations,
+            keep_largest_component: self.keep_largest_component,
+        }
+    }
 }
 
 /// Reads the training views' masks (see the module doc for the convention).
@@ -1209,21 +1230,7 @@ impl Stage for OuterSurfaceStage {
          `views` and `mesh`."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::optional(
-                "resolution",
-                ParamType::Int,
-                "voxels along the longest side of the hull's box (default: from the image footprint, voxel_pixels per voxel, at most max_resolution)",
-            )
-            .range(8.0, 1024.0),
-            ParamSpec::float("voxel_pixels", 1.5, "automatic resolution: voxel size in pixels of the median view at the box centre").range(0.25, 16.0),
-            ParamSpec::int("max_resolution", 160, "cap of the automatic resolution (cost grows with its cube)").range(16.0, 1024.0),
-            ParamSpec::float("mask_threshold", 0.5, "mask values above this are foreground").range(0.01, 0.99),
-            ParamSpec::int("min_views_outside", 1, "how many views must see a point outside the mask to carve it (raise to tolerate bad masks)").range(1.0, 8.0),
-            ParamSpec::int("refine_steps", 6, "bisection steps locating each surface crossing on the exact mask occupancy").range(0.0, 20.0),
-            ParamSpec::int("smoothing_iterations", 8, "Taubin smoothing iterations (lambda 0.5, mu -0.53)").range(0.0, 200.0),
-            ParamSpec::bool("keep_largest_component", true, "drop floating pieces (mask noise), keeping the largest connected surface"),
-        ]
+        OuterSurfaceParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -1247,7 +1254,7 @@ impl Stage for OuterSurfaceStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let t0 = std::time::Instant::now();
-        let s = settings(ctx.params)?;
+        let s = OuterSurfaceParams::from_params(ctx.params)?.settings();
         let (mesh, metrics) = match (ctx.input_opt("views"), ctx.input_opt("mesh")) {
             (Some(_), Some(_)) => return Err(StageError::failed(
                 "connect either `views` (carve a visual hull) or `mesh` (import an OBJ), not both",

@@ -573,35 +573,26 @@ pub fn protected_parts(names: &[String], protected: &[String]) -> Vec<bool> {
         .collect()
 }
 
-/// A `part -> number` table parameter, every value finite and non-negative.
-pub fn number_table(params: &Params, name: &str) -> Result<BTreeMap<String, f32>, StageError> {
-    let mut out = BTreeMap::new();
-    for (k, v) in params.table(name)? {
-        let x = v.as_f64().ok_or_else(|| {
-            StageError::param(
-                name,
-                format!("`{k}`: expected a number, found {}", v.type_name()),
-            )
-        })?;
-        if !(x.is_finite() && x >= 0.0) {
-            return Err(StageError::param(
-                name,
-                format!("`{k}`: expected a non-negative number, found {x}"),
-            ));
-        }
-        out.insert(k, x as f32);
-    }
-    Ok(out)
-}
-
-/// Protected part names from the `protected_parts` parameter and the optional `protected` input.
-pub fn protected_names(ctx: &StageContext<'_>) -> Result<Vec<String>, StageError> {
-    let mut names = ctx.params.str_list("protected_parts")?;
+/// Protected part names: a stage's `protected_parts` parameter (`listed`) and its optional
+/// `protected` input.
+pub fn protected_names(
+    ctx: &StageContext<'_>,
+    listed: &[String],
+) -> Result<Vec<String>, StageError> {
+    let mut names = listed.to_vec();
     if let Some(p) = ctx.input_opt("protected") {
         let extra: Vec<String> = crate::formats::json::read_json(p)?;
         names.extend(extra);
     }
     Ok(names)
+}
+
+fure_stage_api::stage_params! {
+    /// The `parts` stage's parameters.
+    pub struct PartsParams {
+        /// non-fur part names (case-insensitive; names absent from the mesh are ignored)
+        protected: Vec<String> = str_list(DEFAULT_PROTECTED),
+    }
 }
 
 /// The `parts` stage.
@@ -639,11 +630,7 @@ impl Stage for PartsStage {
          plus the protected (non-fur) part set from the `protected` names and the scene's non-fur parts."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![ParamSpec::str_list(
-            "protected",
-            DEFAULT_PROTECTED,
-            "non-fur part names (case-insensitive; names absent from the mesh are ignored)",
-        )]
+        PartsParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -732,7 +719,7 @@ impl Stage for PartsStage {
             Some(p) => Some(crate::formats::json::read_json(p)?),
             None => None,
         };
-        let wanted = ctx.params.str_list("protected")?;
+        let wanted = PartsParams::from_params(ctx.params)?.protected;
         let protected = protected_in(&mesh.part_names, &wanted, scene.as_ref());
         let mut counts: BTreeMap<String, usize> =
             mesh.part_names.iter().map(|n| (n.clone(), 0)).collect();

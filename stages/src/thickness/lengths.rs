@@ -80,7 +80,7 @@ use crate::formats::json::{read_json, write_json};
 use crate::formats::obj::read_labelled_mesh;
 use crate::maths::geom::PointIndex;
 use crate::maths::stats::percentile;
-use crate::surface::parts::{number_table, protected_parts, DEFAULT_PROTECTED};
+use crate::surface::parts::{protected_parts, DEFAULT_PROTECTED};
 use crate::thickness::defur::baseline::{species_thickness_cm, SPECIES};
 use crate::thickness::defur::thickness::raw_widths;
 
@@ -279,6 +279,38 @@ fn read_reference(path: &Path) -> Result<MetricReference, StageError> {
     read_json(path).map_err(StageError::from)
 }
 
+fure_stage_api::param_enum! {
+    /// The appendix's two length rules.
+    pub enum Variant {
+        /// `l = m T`.
+        V1 = "v1",
+        /// Blended with reference lengths.
+        V2 = "v2",
+    }
+}
+
+fure_stage_api::stage_params! {
+    /// The `lengths` stage's parameters.
+    pub struct LengthsParams {
+        /// explicit centimetres per scene unit (wins over the eyes)
+        s_cm: Option<f64> = optional(ParamType::Float).positive(),
+        /// assumed eye separation in cm (overrides the scene file's)
+        eye_separation_cm: Option<f64> = optional(ParamType::Float).positive(),
+        /// per-part multipliers m_p (defaults: 2.5 body, 2.0 head/muzzle/ears/paws)
+        multiplier: BTreeMap<String, f32> = table(),
+        /// m_p of fur parts not in the defaults or the table
+        default_multiplier: f32 = float(2.5).positive(),
+        /// V2 reference lengths from the per-species coat table (twice its thicknesses; module doc)
+        species: Option<String> = optional(ParamType::Str).choices(SPECIES),
+        /// per-part reference lengths in cm for V2 (override the species table)
+        reference_length_cm: BTreeMap<String, f32> = table(),
+        /// v1: l = m T; v2: blend with reference lengths
+        variant: Variant = string("v1").choices(Variant::NAMES),
+        /// non-fur part names (length 0), case-insensitive
+        protected_parts: Vec<String> = str_list(DEFAULT_PROTECTED),
+    }
+}
+
 /// The `lengths` stage.
 pub struct LengthsStage;
 
@@ -295,51 +327,7 @@ impl Stage for LengthsStage {
          clip(0.03 l, 0.02, 0.12) cm."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::optional(
-                "s_cm",
-                ParamType::Float,
-                "explicit centimetres per scene unit (wins over the eyes)",
-            )
-            .positive(),
-            ParamSpec::optional(
-                "eye_separation_cm",
-                ParamType::Float,
-                "assumed eye separation in cm (overrides the scene file's)",
-            )
-            .positive(),
-            ParamSpec::table(
-                "multiplier",
-                "per-part multipliers m_p (defaults: 2.5 body, 2.0 head/muzzle/ears/paws)",
-            ),
-            ParamSpec::float(
-                "default_multiplier",
-                2.5,
-                "m_p of fur parts not in the defaults or the table",
-            )
-            .positive(),
-            ParamSpec::optional(
-                "species",
-                ParamType::Str,
-                "V2 reference lengths from the per-species coat table (twice its thicknesses; module doc)",
-            )
-            .choices(SPECIES),
-            ParamSpec::table(
-                "reference_length_cm",
-                "per-part reference lengths in cm for V2 (override the species table)",
-            ),
-            ParamSpec::string(
-                "variant",
-                "v1",
-                "v1: l = m T; v2: blend with reference lengths",
-            )
-            .choices(&["v1", "v2"]),
-            ParamSpec::str_list(
-                "protected_parts",
-                DEFAULT_PROTECTED,
-                "non-fur part names (length 0), case-insensitive",
-            ),
-        ]
+        LengthsParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -380,19 +368,10 @@ impl Stage for LengthsStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        number_table(params, "multiplier")?;
-        number_table(params, "reference_length_cm")?;
-        for name in ["s_cm", "eye_separation_cm"] {
-            if let Some(x) = params.f64_opt(name)? {
-                if !(x > 0.0) {
-                    return Err(StageError::param(name, "must be positive"));
-                }
-            }
-        }
-        Ok(())
+        LengthsParams::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
+        let p = LengthsParams::from_params(ctx.params)?;
         let outer = read_labelled_mesh(ctx, "outer")?;
         let shell_path = ctx.input("shell")?;
         let shell: ShellWidths = read_json(shell_path)?;
@@ -423,15 +402,11 @@ impl Stage for LengthsStage {
             None => MetricReference::default(),
         };
         let separation = p
-            .f64_opt("eye_separation_cm")?
+            .eye_separation_cm
             .map(|x| x as f32)
             .or(reference.eye_separation_cm);
-        let (s_cm, source) = metric_scale(
-            p.f64_opt("s_cm")?.map(|x| x as f32),
-            reference.eyes,
-            separation,
-        )
-        .map_err(|e| StageError::param("s_cm", e.to_string()))?;
+        let (s_cm, source) = metric_scale(p.s_cm.map(|x| x as f32), reference.eyes, separation)
+            .map_err(|e| StageError::param("s_cm", e.to_string()))?;
         ctx.progress.note(&format!("s_cm = {s_cm} ({source})"));
 
         let index = PointIndex::new(&shell.positions)
@@ -439,16 +414,16 @@ impl Stage for LengthsStage {
         let tau = raw_widths(&shell, &index, &outer.positions);
         // Fur flags come from the labelled mesh's parts and the protected set, never from the
         // scene file (whose per-part fields are ground truth for synthetic scenes).
-        let names = crate::surface::parts::protected_names(ctx)?;
+        let names = crate::surface::parts::protected_names(ctx, &p.protected_parts)?;
         let prot = protected_parts(&outer.part_names, &names);
         let fur: Vec<bool> = prot.iter().map(|&pr| !pr).collect();
         let mut multipliers: BTreeMap<String, f32> = DEFAULT_MULTIPLIERS
             .iter()
             .map(|(k, v)| (k.to_string(), *v))
             .collect();
-        multipliers.extend(number_table(p, "multiplier")?);
-        let v2 = p.str("variant")? == "v2";
-        let mut references_cm = match p.get("species").and_then(|v| v.as_str()) {
+        multipliers.extend(p.multiplier.clone());
+        let v2 = p.variant == Variant::V2;
+        let mut references_cm = match p.species.as_deref() {
             Some(species) => species_reference_lengths_cm(species).ok_or_else(|| {
                 StageError::param(
                     "species",
@@ -460,7 +435,7 @@ impl Stage for LengthsStage {
             })?,
             None => BTreeMap::new(),
         };
-        references_cm.extend(number_table(p, "reference_length_cm")?);
+        references_cm.extend(p.reference_length_cm.clone());
         if v2 && references_cm.is_empty() {
             ctx.progress
                 .note("variant v2 without reference lengths: V2 = V1");
@@ -479,7 +454,7 @@ impl Stage for LengthsStage {
                 s_cm_source: source,
                 v2,
                 multipliers,
-                default_multiplier: p.f32("default_multiplier")?,
+                default_multiplier: p.default_multiplier,
                 references_cm,
             },
         );

@@ -142,32 +142,62 @@ pub struct Settings {
     pub parts: std::collections::BTreeMap<String, fure_stage_api::Value>,
 }
 
+fure_stage_api::stage_params! {
+    /// The `synthetic_scene` stage's parameters (unset sizes follow `size`).
+    pub struct SyntheticSceneParams {
+        /// species preset
+        preset: String = string("tiger").choices(PRESETS),
+        /// quick (tests, seconds) or default
+        size: String = string("default").choices(&["quick", "default"]),
+        /// random seed of fur, jitter and noise
+        seed: u64 = int(0).min(0.0),
+        /// training views (quick 8, default 36)
+        views: Option<usize> = optional(ParamType::Int).range(1.0, 1000.0),
+        /// held-out views (quick 2, default 8)
+        test_views: Option<usize> = optional(ParamType::Int).range(0.0, 1000.0),
+        /// square image size in pixels (quick 96, default 256)
+        resolution: Option<usize> = optional(ParamType::Int).range(16.0, 4096.0),
+        /// samples per pixel side (quick 2, default 3)
+        supersample: Option<usize> = optional(ParamType::Int).range(1.0, 8.0),
+        /// GT roots per pixel-footprint area of skin (base density)
+        strands_per_px2: f32 = float(1.5).range(0.01, 50.0),
+        /// strand tube width at the root, in pixels
+        width_px: f32 = float(0.7).range(0.05, 8.0),
+        /// target segment length, in pixels
+        seg_px: f32 = float(1.0).range(0.25, 20.0),
+        /// std of Gaussian noise added to image RGB
+        noise_sigma: f32 = float(0.0).range(0.0, 1.0),
+        /// std of the rotation applied to written cameras (degrees)
+        jitter_deg: f32 = float(0.0).range(0.0, 45.0),
+        /// RMS translation applied to written cameras (cm)
+        jitter_cm: f32 = float(0.0).range(0.0, 1000.0),
+        /// dilate (> 0) or erode (< 0) the object masks by this radius
+        mask_dilate_px: i64 = int(0).range(-50.0, 50.0),
+        /// per-part overrides: parts.<part> = { length_cm, length_jitter, density, density_per_cm2, direction, lift_deg, curl, clump, gravity, color }
+        parts: std::collections::BTreeMap<String, fure_stage_api::Value> = table(),
+    }
+}
+
 impl Settings {
     pub fn from_params(p: &Params) -> Result<Settings, StageError> {
-        let size = p.str("size")?.to_string();
-        let (v, tv, res, ss) = size_defaults(&size);
-        let opt_usize = |name: &str, d: usize| -> Result<usize, StageError> {
-            match p.get(name) {
-                None => Ok(d),
-                Some(_) => p.usize(name),
-            }
-        };
+        let p = SyntheticSceneParams::from_params(p)?;
+        let (v, tv, res, ss) = size_defaults(&p.size);
         Ok(Settings {
-            preset: p.str("preset")?.to_string(),
-            seed: p.u64("seed")?,
-            views: opt_usize("views", v)?,
-            test_views: opt_usize("test_views", tv)?,
-            resolution: opt_usize("resolution", res as usize)? as u32,
-            supersample: opt_usize("supersample", ss as usize)? as u32,
-            strands_per_px2: p.f32("strands_per_px2")?,
-            width_px: p.f32("width_px")?,
-            seg_px: p.f32("seg_px")?,
-            noise_sigma: p.f32("noise_sigma")?,
-            jitter_deg: p.f32("jitter_deg")?,
-            jitter_cm: p.f32("jitter_cm")?,
-            mask_dilate_px: p.i64("mask_dilate_px")?,
-            parts: p.table("parts")?,
-            size,
+            preset: p.preset,
+            seed: p.seed,
+            views: p.views.unwrap_or(v),
+            test_views: p.test_views.unwrap_or(tv),
+            resolution: p.resolution.unwrap_or(res as usize) as u32,
+            supersample: p.supersample.unwrap_or(ss as usize) as u32,
+            strands_per_px2: p.strands_per_px2,
+            width_px: p.width_px,
+            seg_px: p.seg_px,
+            noise_sigma: p.noise_sigma,
+            jitter_deg: p.jitter_deg,
+            jitter_cm: p.jitter_cm,
+            mask_dilate_px: p.mask_dilate_px,
+            parts: p.parts,
+            size: p.size,
         })
     }
 
@@ -529,23 +559,7 @@ impl Stage for SyntheticSceneStage {
          GT fur statistics. Per-part overrides in `parts.<name>`."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::string("preset", "tiger", "species preset").choices(PRESETS),
-            ParamSpec::string("size", "default", "quick (tests, seconds) or default").choices(&["quick", "default"]),
-            ParamSpec::int("seed", 0, "random seed of fur, jitter and noise").min(0.0),
-            ParamSpec::optional("views", ParamType::Int, "training views (quick 8, default 36)").range(1.0, 1000.0),
-            ParamSpec::optional("test_views", ParamType::Int, "held-out views (quick 2, default 8)").range(0.0, 1000.0),
-            ParamSpec::optional("resolution", ParamType::Int, "square image size in pixels (quick 96, default 256)").range(16.0, 4096.0),
-            ParamSpec::optional("supersample", ParamType::Int, "samples per pixel side (quick 2, default 3)").range(1.0, 8.0),
-            ParamSpec::float("strands_per_px2", 1.5, "GT roots per pixel-footprint area of skin (base density)").range(0.01, 50.0),
-            ParamSpec::float("width_px", 0.7, "strand tube width at the root, in pixels").range(0.05, 8.0),
-            ParamSpec::float("seg_px", 1.0, "target segment length, in pixels").range(0.25, 20.0),
-            ParamSpec::float("noise_sigma", 0.0, "std of Gaussian noise added to image RGB").range(0.0, 1.0),
-            ParamSpec::float("jitter_deg", 0.0, "std of the rotation applied to written cameras (degrees)").range(0.0, 45.0),
-            ParamSpec::float("jitter_cm", 0.0, "RMS translation applied to written cameras (cm)").range(0.0, 1000.0),
-            ParamSpec::int("mask_dilate_px", 0, "dilate (> 0) or erode (< 0) the object masks by this radius").range(-50.0, 50.0),
-            ParamSpec::table("parts", "per-part overrides: parts.<part> = { length_cm, length_jitter, density, density_per_cm2, direction, lift_deg, curl, clump, gravity, color }"),
-        ]
+        SyntheticSceneParams::specs()
     }
     fn inputs(&self, _params: &Params) -> Vec<PortSpec> {
         Vec::new()

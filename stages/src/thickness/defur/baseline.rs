@@ -44,7 +44,7 @@ use crate::data::mesh::Mesh;
 use crate::formats::json::write_json;
 use crate::formats::obj::{read_mesh, write_obj};
 use crate::maths::geom::vertex_neighbours;
-use crate::surface::parts::{number_table, protected_names, protected_parts};
+use crate::surface::parts::{protected_names, protected_parts};
 
 /// NeuralFur's reference thicknesses (cm) on our part names.
 pub const DEFAULT_THICKNESS_CM: &[(&str, f32)] = &[
@@ -167,6 +167,26 @@ pub fn baseline_shrink(
     s
 }
 
+fure_stage_api::stage_params! {
+    /// The `defur_baseline` stage's parameters.
+    pub struct DefurBaselineParams {
+        /// per-species thickness table (panda: NeuralFur's reference list; module doc)
+        species: String = string("panda").choices(SPECIES),
+        /// per-part fur thickness in cm (overrides the species table)
+        thickness_cm: BTreeMap<String, f32> = table(),
+        /// thickness of fur parts with no entry
+        default_thickness_cm: f32 = float(3.5).min(0.0),
+        /// Laplacian smoothing iterations
+        iterations: usize = int(100).range(0.0, 100000.0),
+        /// fraction of the way to the neighbour mean per iteration
+        smoothing_step: f32 = float(0.5).range(0.0, 1.0),
+        /// centimetres per scene unit, when no `scale` input is connected
+        s_cm: Option<f64> = optional(ParamType::Float).positive(),
+        /// bald part names (thickness 0), case-insensitive
+        protected_parts: Vec<String> = str_list(DEFAULT_PROTECTED),
+    }
+}
+
 /// The `defur_baseline` stage.
 pub struct DefurBaselineStage;
 
@@ -182,43 +202,7 @@ impl Stage for DefurBaselineStage {
          converted with the metric scale, uniform Laplacian smoothing, shrink along the normals."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        vec![
-            ParamSpec::string(
-                "species",
-                "panda",
-                "per-species thickness table (panda: NeuralFur's reference list; module doc)",
-            )
-            .choices(SPECIES),
-            ParamSpec::table(
-                "thickness_cm",
-                "per-part fur thickness in cm (overrides the species table)",
-            ),
-            ParamSpec::float(
-                "default_thickness_cm",
-                3.5,
-                "thickness of fur parts with no entry",
-            )
-            .min(0.0),
-            ParamSpec::int("iterations", 100, "Laplacian smoothing iterations")
-                .range(0.0, 100000.0),
-            ParamSpec::float(
-                "smoothing_step",
-                0.5,
-                "fraction of the way to the neighbour mean per iteration",
-            )
-            .range(0.0, 1.0),
-            ParamSpec::optional(
-                "s_cm",
-                ParamType::Float,
-                "centimetres per scene unit, when no `scale` input is connected",
-            )
-            .positive(),
-            ParamSpec::str_list(
-                "protected_parts",
-                DEFAULT_PROTECTED,
-                "bald part names (thickness 0), case-insensitive",
-            ),
-        ]
+        DefurBaselineParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -249,19 +233,18 @@ impl Stage for DefurBaselineStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        number_table(params, "thickness_cm")?;
-        super::validate_s_cm(params)
+        DefurBaselineParams::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ctx.params;
+        let p = DefurBaselineParams::from_params(ctx.params)?;
         let outer = read_mesh(ctx, "outer")?;
-        let s_cm = scale_from(ctx)?.ok_or_else(|| {
+        let s_cm = scale_from(ctx, p.s_cm)?.ok_or_else(|| {
             StageError::param(
                 "s_cm",
                 "the baseline's thicknesses are in cm and need the metric scale: connect the `scale` input (the lengths stage) or set `s_cm`",
             )
         })?;
-        let species = p.str("species")?;
+        let species = p.species.as_str();
         let mut table: BTreeMap<String, f32> = species_thickness_cm(species)
             .ok_or_else(|| {
                 StageError::param(
@@ -275,9 +258,9 @@ impl Stage for DefurBaselineStage {
             .iter()
             .map(|(k, v)| (k.to_string(), *v))
             .collect();
-        table.extend(number_table(p, "thickness_cm")?);
-        let default_cm = p.f32("default_thickness_cm")?;
-        let names = protected_names(ctx)?;
+        table.extend(p.thickness_cm.clone());
+        let default_cm = p.default_thickness_cm;
+        let names = protected_names(ctx, &p.protected_parts)?;
         let prot = protected_parts(&outer.part_names, &names);
         let part_cm: Vec<f32> = outer
             .part_names
@@ -293,12 +276,7 @@ impl Stage for DefurBaselineStage {
             .collect();
         let part_scene: Vec<f32> = part_cm.iter().map(|c| c / s_cm).collect();
         let t0 = Instant::now();
-        let shrink = baseline_shrink(
-            &outer,
-            &part_scene,
-            p.usize("iterations")?,
-            p.f32("smoothing_step")?,
-        );
+        let shrink = baseline_shrink(&outer, &part_scene, p.iterations, p.smoothing_step);
         let normals = vertex_normals(&outer);
         let mut root = outer.clone();
         root.positions = outer

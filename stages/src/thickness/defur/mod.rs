@@ -103,7 +103,7 @@ use crate::formats::obj::{read_mesh, read_obj, write_obj};
 use crate::formats::scalars::write_scalars;
 use crate::maths::geom::{GeomError, MeshQuery, PointIndex};
 use crate::maths::stats::percentile;
-use crate::surface::parts::{number_table, protected_names, protected_parts};
+use crate::surface::parts::{protected_names, protected_parts};
 
 use objective::{DefurProblem, ProblemInput};
 use postcheck::{PostCheckReport, PostCheckSettings};
@@ -537,20 +537,12 @@ pub fn read_scale(port: &str, path: &Path) -> Result<f32, StageError> {
     Ok(f.s_cm)
 }
 
-/// Checks the optional `s_cm` parameter shared by `defur` and `defur_baseline`.
-pub(crate) fn validate_s_cm(params: &Params) -> Result<(), StageError> {
-    match params.f64_opt("s_cm")? {
-        Some(s) if s <= 0.0 => Err(StageError::param("s_cm", "must be positive")),
-        _ => Ok(()),
-    }
-}
-
-/// `s_cm` from the `scale` input or the `s_cm` parameter (input wins), if any.
-pub fn scale_from(ctx: &StageContext<'_>) -> Result<Option<f32>, StageError> {
+/// `s_cm` from the `scale` input or the stage's `s_cm` parameter (`param`; the input wins), if any.
+pub fn scale_from(ctx: &StageContext<'_>, param: Option<f64>) -> Result<Option<f32>, StageError> {
     if let Some(p) = ctx.input_opt("scale") {
         return read_scale("scale", p).map(Some);
     }
-    Ok(ctx.params.f64_opt("s_cm")?.map(|x| x as f32))
+    Ok(param.map(|x| x as f32))
 }
 
 /// Warns (as a note) about table keys that name no part of the mesh.
@@ -757,8 +749,7 @@ impl Stage for DefurStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        number_table(params, "reference_thickness_cm")?;
-        validate_s_cm(params)
+        DefurParams::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let p = ctx.params;
@@ -769,16 +760,16 @@ impl Stage for DefurStage {
         let shell_path = ctx.input("shell")?;
         let shell: ShellWidths = read_json(shell_path)?;
         check_shell(&shell).map_err(|e| StageError::input("shell", shell_path, e))?;
-        let names = protected_names(ctx)?;
+        let names = protected_names(ctx, &params.protected_parts)?;
         let part_protected = protected_parts(&outer.part_names, &names);
-        let refs_cm = number_table(p, "reference_thickness_cm")?;
+        let refs_cm = params.reference_thickness_cm.clone();
         note_unknown_parts(
             ctx,
             "reference_thickness_cm",
             refs_cm.keys().cloned(),
             &outer,
         );
-        let s_cm = scale_from(ctx)?;
+        let s_cm = scale_from(ctx, params.s_cm)?;
         if let Some(u) = unit_scale(params.units, s_cm, &outer)? {
             settings.unit_scale = u;
         }
@@ -891,7 +882,7 @@ fure_stage_api::stage_params! {
         /// hit distance assumed when the inward ray hits nothing, fraction of D
         bound_miss_frac: f32 = float(DefurSettings::default().bound_miss_frac as f64).range(0.0, 10.0),
         /// per-part reference thickness h_p in cm (missing parts use W75; an explicit 0 stays 0); needs s_cm
-        reference_thickness_cm: BTreeMap<String, fure_stage_api::Value> = table(),
+        reference_thickness_cm: BTreeMap<String, f32> = table(),
         /// centimetres per scene unit, when no `scale` input is connected
         s_cm: Option<f64> = optional(ParamType::Float).positive(),
         /// non-fur part names kept fixed (case-insensitive)
