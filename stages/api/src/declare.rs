@@ -122,6 +122,34 @@ impl<T: FromParam> FromParam for Option<T> {
     }
 }
 
+/// Checks every set value against its spec's bounds and choices, as the engine does before a
+/// stage runs, so a struct read by `from_params` holds declared values whoever calls it (a
+/// stage's own `validate`, a test, a library user).
+pub fn check_declared(specs: &[crate::ParamSpec], p: &Params) -> Result<(), StageError> {
+    for spec in specs {
+        let Some(v) = p.get(spec.name) else {
+            continue;
+        };
+        let numbers: Vec<f64> = match v {
+            Value::List(l) => l.iter().filter_map(Value::as_f64).collect(),
+            other => other.as_f64().into_iter().collect(),
+        };
+        for x in numbers {
+            spec.check_bounds(x)
+                .map_err(|e| StageError::param(spec.name, e))?;
+        }
+        if let Some(text) = v.as_str() {
+            if !spec.choices.is_empty() && !spec.choices.contains(&text) {
+                return Err(StageError::param(
+                    spec.name,
+                    format!("`{text}`: expected one of {}", spec.choices.join(", ")),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Declares a stage's parameters once: a struct with one public field per parameter, its
 /// `specs()` (the [`ParamSpec`](crate::ParamSpec) list, in field order) and `from_params`
 /// (the typed values). See the [module doc](crate::declare).
@@ -175,8 +203,9 @@ macro_rules! stage_params {
                 ]
             }
 
-            /// The typed values of checked parameters.
+            /// The typed values, each checked against its declared bounds and choices.
             pub fn from_params(p: &$crate::Params) -> ::std::result::Result<Self, $crate::StageError> {
+                $crate::declare::check_declared(&Self::specs(), p)?;
                 Ok($name {
                     $( $field: <$ty as $crate::FromParam>::from_param(p, stringify!($field))?, )*
                 })
@@ -304,6 +333,10 @@ mod tests {
             e.contains("mode") && e.contains("slow") && e.contains("fast, exact"),
             "{e}"
         );
+        let mut out_of_bounds = ok.clone();
+        out_of_bounds.0.insert("n".into(), Value::Int(12));
+        let e = All::from_params(&out_of_bounds).unwrap_err().to_string();
+        assert!(e.contains('n') && e.contains("12"), "{e}");
         let mut missing = ok;
         missing.0.remove("rate");
         assert!(All::from_params(&missing)
