@@ -1,11 +1,11 @@
-//! Parameters declared once: [`stage_params!`] turns one list of fields into the stage's
-//! [`ParamSpec`] list (what the engine checks and `fure stages` prints) and a typed settings
+//! Parameters declared once: [`stage_params!`](crate::stage_params) turns one list of fields into the stage's
+//! [`ParamSpec`](crate::ParamSpec) list (what the engine checks and `fure stages` prints) and a typed settings
 //! struct read from [`Params`], so a parameter's name, type, default, bounds and doc are written
-//! in one place and the stage reads fields, not strings. [`param_enum!`] declares an enum whose
+//! in one place and the stage reads fields, not strings. [`param_enum!`](crate::param_enum) declares an enum whose
 //! values are a string parameter's choices.
 //!
 //! A field is `name: Type = constructor(args).chain(args)...`: the constructor and the chained
-//! calls are [`ParamSpec`]'s (`float`, `int`, `bool`, `string`, `str_list`, `float_list`, `table`,
+//! calls are [`ParamSpec`](crate::ParamSpec)'s (`float`, `int`, `bool`, `string`, `str_list`, `float_list`, `table`,
 //! `optional`, then `positive`, `range`, `choices`, ...) with the name and the doc left out: the
 //! name is the field's, the doc its `///` comment. The type says how the value is read
 //! ([`FromParam`]).
