@@ -319,7 +319,6 @@ impl GpuRenderer {
 
     /// One dispatch: binding 0 is `uniform` (a whole buffer or a 16-byte
     /// slice at `offset`), bindings 1.. the storage buffers in order.
-    #[allow(clippy::too_many_arguments)]
     fn dispatch(
         &self,
         enc: &mut wgpu::CommandEncoder,

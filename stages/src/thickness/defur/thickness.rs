@@ -77,7 +77,6 @@ pub struct Support {
 }
 
 /// Computes `tbar_i` and `c_i` for every outer vertex.
-#[allow(clippy::too_many_arguments)]
 pub fn supported_thickness(
     positions: &[Vec3],
     normals: &[Vec3],
