@@ -203,6 +203,19 @@ macro_rules! stage_params {
                 ]
             }
 
+            /// The declared defaults (unset optional parameters are `None`): the values a
+            /// pipeline gets when it sets nothing. Fails only for a parameter declared without
+            /// a default.
+            pub fn defaults() -> ::std::result::Result<Self, $crate::StageError> {
+                let p = $crate::Params(
+                    Self::specs()
+                        .into_iter()
+                        .filter_map(|s| s.default.map(|d| (s.name.to_string(), d)))
+                        .collect(),
+                );
+                Self::from_params(&p)
+            }
+
             /// The typed values, each checked against its declared bounds and choices.
             pub fn from_params(p: &$crate::Params) -> ::std::result::Result<Self, $crate::StageError> {
                 $crate::declare::check_declared(&Self::specs(), p)?;
@@ -322,6 +335,9 @@ mod tests {
             ("mode", Value::Str("exact".into())),
             ("names", Value::List(vec![Value::Str("b".into())])),
         ]);
+        let d = All::defaults().unwrap();
+        assert_eq!((d.n, d.rate, d.mode, d.scale), (3, 0.5, Mode::Fast, None));
+        assert_eq!(d.names, ["a"]);
         let a = All::from_params(&ok).unwrap();
         assert_eq!((a.n, a.rate, a.mode, a.scale), (4, 0.25, Mode::Exact, None));
         assert_eq!(a.mode.name(), "exact");

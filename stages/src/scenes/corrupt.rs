@@ -64,26 +64,27 @@ use crate::data::camera::Camera;
 use crate::data::image::ImageF32;
 use crate::formats::{self, cameras};
 
-/// Settings of one corruption run (the stage parameters, validated).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Corruption {
-    pub noise_sigma: f32,
-    pub jitter_deg: f32,
-    /// Training frames kept (0 = all).
-    pub views: usize,
-    pub mask_morph_px: i64,
-    pub seed: u64,
+fure_stage_api::stage_params! {
+    /// Settings of one corruption run: the `corrupt_views` stage's parameters.
+    #[derive(PartialEq)]
+    pub struct Corruption {
+        /// std of additive Gaussian noise on training RGB in [0, 1] (clamped; alpha > 0 pixels only when the image has alpha)
+        noise_sigma: f32 = float(0.0).range(0.0, 1.0),
+        /// each training camera orbits the object centre by exactly this angle (degrees) about a random axis
+        jitter_deg: f32 = float(0.0).range(0.0, 180.0),
+        /// training views kept, evenly spread by index (0 = all)
+        views: usize = int(0).min(0.0),
+        /// erode (< 0) or dilate (> 0) the training masks by a disc of this radius (pixels)
+        mask_morph_px: i64 = int(0).range(-64.0, 64.0),
+        /// seed of the noise and jitter streams
+        seed: u64 = int(0).min(0.0),
+    }
 }
 
 impl Default for Corruption {
+    /// No corruption at all (every parameter's default).
     fn default() -> Self {
-        Corruption {
-            noise_sigma: 0.0,
-            jitter_deg: 0.0,
-            views: 0,
-            mask_morph_px: 0,
-            seed: 0,
-        }
+        Self::defaults().expect("every corruption setting has a default")
     }
 }
 
@@ -516,35 +517,6 @@ fn first_channel(img: &ImageF32) -> ImageF32 {
     channel(img, 0)
 }
 
-fure_stage_api::stage_params! {
-    /// The `corrupt_views` stage's parameters (the engine checks their bounds).
-    pub struct CorruptViewsParams {
-        /// std of additive Gaussian noise on training RGB in [0, 1] (clamped; alpha > 0 pixels only when the image has alpha)
-        noise_sigma: f32 = float(0.0).range(0.0, 1.0),
-        /// each training camera orbits the object centre by exactly this angle (degrees) about a random axis
-        jitter_deg: f32 = float(0.0).range(0.0, 180.0),
-        /// training views kept, evenly spread by index (0 = all)
-        views: usize = int(0).min(0.0),
-        /// erode (< 0) or dilate (> 0) the training masks by a disc of this radius (pixels)
-        mask_morph_px: i64 = int(0).range(-64.0, 64.0),
-        /// seed of the noise and jitter streams
-        seed: u64 = int(0).min(0.0),
-    }
-}
-
-impl CorruptViewsParams {
-    /// The corruption these parameters ask for.
-    pub fn corruption(&self) -> Corruption {
-        Corruption {
-            noise_sigma: self.noise_sigma,
-            jitter_deg: self.jitter_deg,
-            views: self.views,
-            mask_morph_px: self.mask_morph_px,
-            seed: self.seed,
-        }
-    }
-}
-
 /// Stage `corrupt_views`.
 pub struct CorruptViewsStage;
 
@@ -562,7 +534,7 @@ impl Stage for CorruptViewsStage {
          untouched; with every corruption off the output is byte-identical to the input."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        CorruptViewsParams::specs()
+        Corruption::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::dir(
@@ -584,10 +556,10 @@ impl Stage for CorruptViewsStage {
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        CorruptViewsParams::from_params(params).map(|_| ())
+        Corruption::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let cfg = CorruptViewsParams::from_params(ctx.params)?.corruption();
+        let cfg = Corruption::from_params(ctx.params)?;
         let input = ctx.input("views")?;
         let output = ctx.output("views")?;
         ctx.progress.message("corrupting training views");

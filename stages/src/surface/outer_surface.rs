@@ -260,34 +260,32 @@ impl MaskView {
     }
 }
 
-/// Settings of the visual hull.
-#[derive(Debug, Clone)]
-pub struct HullSettings {
-    /// Voxels along the longest box side; `None`: from the image footprint.
-    pub resolution: Option<usize>,
-    /// Target voxel size in pixels for the automatic resolution.
-    pub voxel_pixels: f32,
-    /// Cap of the automatic resolution.
-    pub max_resolution: usize,
-    pub mask_threshold: f32,
-    pub min_views_outside: usize,
-    pub refine_steps: usize,
-    pub smoothing_iterations: usize,
-    pub keep_largest_component: bool,
+fure_stage_api::stage_params! {
+    /// Settings of the visual hull: the `outer_surface` stage's parameters.
+    pub struct HullSettings {
+        /// voxels along the longest side of the hull's box (default: from the image footprint, voxel_pixels per voxel, at most max_resolution)
+        resolution: Option<usize> = optional(ParamType::Int).range(8.0, 1024.0),
+        /// automatic resolution: voxel size in pixels of the median view at the box centre
+        voxel_pixels: f32 = float(1.5).range(0.25, 16.0),
+        /// cap of the automatic resolution (cost grows with its cube)
+        max_resolution: usize = int(160).range(16.0, 1024.0),
+        /// mask values above this are foreground
+        mask_threshold: f32 = float(0.5).range(0.01, 0.99),
+        /// how many views must see a point outside the mask to carve it (raise to tolerate bad masks)
+        min_views_outside: usize = int(1).range(1.0, 8.0),
+        /// bisection steps locating each surface crossing on the exact mask occupancy
+        refine_steps: usize = int(6).range(0.0, 20.0),
+        /// Taubin smoothing iterations (lambda 0.5, mu -0.53)
+        smoothing_iterations: usize = int(8).range(0.0, 200.0),
+        /// drop floating pieces (mask noise), keeping the largest connected surface
+        keep_largest_component: bool = bool(true),
+    }
 }
 
 impl Default for HullSettings {
     fn default() -> Self {
-        HullSettings {
-            resolution: None,
-            voxel_pixels: 1.5,
-            max_resolution: 160,
-            mask_threshold: 0.5,
-            min_views_outside: 1,
-            refine_steps: 6,
-            smoothing_iterations: 8,
-            keep_largest_component: true,
-        }
+        // Every parameter of the hull is declared with a default (tested).
+        Self::defaults().expect("every hull setting has a default")
     }
 }
 
@@ -1127,43 +1125,6 @@ pub struct OuterSurfaceStage;
 
 const VERSION: u32 = 2;
 
-fure_stage_api::stage_params! {
-    /// The `outer_surface` stage's parameters.
-    pub struct OuterSurfaceParams {
-        /// voxels along the longest side of the hull's box (default: from the image footprint, voxel_pixels per voxel, at most max_resolution)
-        resolution: Option<usize> = optional(ParamType::Int).range(8.0, 1024.0),
-        /// automatic resolution: voxel size in pixels of the median view at the box centre
-        voxel_pixels: f32 = float(1.5).range(0.25, 16.0),
-        /// cap of the automatic resolution (cost grows with its cube)
-        max_resolution: usize = int(160).range(16.0, 1024.0),
-        /// mask values above this are foreground
-        mask_threshold: f32 = float(0.5).range(0.01, 0.99),
-        /// how many views must see a point outside the mask to carve it (raise to tolerate bad masks)
-        min_views_outside: usize = int(1).range(1.0, 8.0),
-        /// bisection steps locating each surface crossing on the exact mask occupancy
-        refine_steps: usize = int(6).range(0.0, 20.0),
-        /// Taubin smoothing iterations (lambda 0.5, mu -0.53)
-        smoothing_iterations: usize = int(8).range(0.0, 200.0),
-        /// drop floating pieces (mask noise), keeping the largest connected surface
-        keep_largest_component: bool = bool(true),
-    }
-}
-
-impl OuterSurfaceParams {
-    fn settings(&self) -> HullSettings {
-        HullSettings {
-            resolution: self.resolution,
-            voxel_pixels: self.voxel_pixels,
-            max_resolution: self.max_resolution,
-            mask_threshold: self.mask_threshold,
-            min_views_outside: self.min_views_outside,
-            refine_steps: self.refine_steps,
-            smoothing_iterations: self.smoothing_iterations,
-            keep_largest_component: self.keep_largest_component,
-        }
-    }
-}
-
 /// Reads the training views' masks (see the module doc for the convention).
 pub fn read_mask_views(
     dir: &Path,
@@ -1230,7 +1191,7 @@ impl Stage for OuterSurfaceStage {
          `views` and `mesh`."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        OuterSurfaceParams::specs()
+        HullSettings::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
@@ -1254,7 +1215,7 @@ impl Stage for OuterSurfaceStage {
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
         let t0 = std::time::Instant::now();
-        let s = OuterSurfaceParams::from_params(ctx.params)?.settings();
+        let s = HullSettings::from_params(ctx.params)?;
         let (mesh, metrics) = match (ctx.input_opt("views"), ctx.input_opt("mesh")) {
             (Some(_), Some(_)) => return Err(StageError::failed(
                 "connect either `views` (carve a visual hull) or `mesh` (import an OBJ), not both",
