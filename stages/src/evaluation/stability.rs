@@ -435,17 +435,11 @@ pub struct ReportConfig {
 }
 
 impl Default for ReportConfig {
+    /// The stage's declared defaults.
     fn default() -> Self {
-        ReportConfig {
-            methods: vec![
-                ("FurE".into(), "evaluate".into()),
-                ("dense".into(), "evaluate_dense".into()),
-                ("fixed".into(), "evaluate_fixed".into()),
-            ],
-            defur_key: "defur.root_to_skin_mean_frac".into(),
-            baseline_drop: 0.25,
-            defur_rise: 0.5,
-        }
+        StabilityReportParams::defaults()
+            .and_then(|p| config(&p))
+            .expect("the declared defaults make a valid report configuration")
     }
 }
 
