@@ -326,28 +326,8 @@ pub fn corrupt_dir(
     output: &Path,
     cfg: &Corruption,
 ) -> Result<CorruptionReport, StageError> {
-    let train_name = ["transforms.json", "transforms_train.json"]
-        .into_iter()
-        .find(|n| input.join(n).is_file())
-        .ok_or_else(|| {
-            StageError::input(
-                "views",
-                input,
-                "no camera file: expected transforms.json or transforms_train.json",
-            )
-        })?;
-    let train_file = input.join(train_name);
-    let train = cameras::read_transforms(&train_file).map_err(fmt_err)?;
-    // Held-out frames: read only to protect their files (and to report their count).
-    let test = cameras::read_views(input).map_err(fmt_err)?.test;
-    if train.is_empty() {
-        return Err(StageError::input(
-            "views",
-            &train_file,
-            "lists no training frames",
-        ));
-    }
-    let files = list_files(input)?;
+    let views = SourceViews::read(input)?;
+    let (train, test) = (&views.train, &views.test);
     let kept = kept_indices(train.len(), cfg.views).map_err(|m| StageError::param("views", m))?;
     let mut report = CorruptionReport {
         training_views_in: train.len(),
@@ -355,133 +335,273 @@ pub fn corrupt_dir(
         test_views: test.len(),
         ..Default::default()
     };
+    let roles = FileRoles::of(&views, &kept);
 
-    // Files that belong to held-out frames or kept training frames are protected from dropping.
-    let mut protected: BTreeSet<&String> = BTreeSet::new();
-    for c in &test {
-        protected.extend(frame_files(&files, &c.file_path));
-    }
-    for &i in &kept {
-        protected.extend(frame_files(&files, &train[i].file_path));
-    }
-    let mut dropped: BTreeSet<&String> = BTreeSet::new();
-    let kept_set: BTreeSet<usize> = kept.iter().copied().collect();
-    for (i, c) in train.iter().enumerate() {
-        if !kept_set.contains(&i) {
-            dropped.extend(
-                frame_files(&files, &c.file_path)
-                    .into_iter()
-                    .filter(|f| !protected.contains(f)),
-            );
-        }
-    }
-    // Files of held-out frames are never rewritten, even if a training frame shares them.
-    let test_files: BTreeSet<&String> = test
-        .iter()
-        .flat_map(|c| frame_files(&files, &c.file_path))
-        .collect();
-
-    // The new training cameras and the files rewritten for them (relative path -> image).
-    let mut cams: Vec<Camera> = kept.iter().map(|&i| train[i].clone()).collect();
-    let mut rewritten: BTreeMap<String, ImageF32> = BTreeMap::new();
-    let mut replaced: BTreeSet<String> = BTreeSet::new();
-    let mut cameras_changed = cfg.views != 0 && kept.len() != train.len();
-
+    // The new training cameras and the files rewritten for them.
+    let mut edits = Rewrites {
+        cams: kept.iter().map(|&i| train[i].clone()).collect(),
+        images: BTreeMap::new(),
+        replaced: BTreeSet::new(),
+        cameras_changed: cfg.views != 0 && kept.len() != train.len(),
+    };
     if cfg.jitter_deg > 0.0 {
-        let pivot = axes_centre(&train).map_err(|m| StageError::input("views", &train_file, m))?;
-        report.pivot = Some(pivot.to_array());
-        let angle = (cfg.jitter_deg as f64).to_radians();
-        for (cam, &i) in cams.iter_mut().zip(&kept) {
-            let mut rng = stream(cfg.seed, STREAM_JITTER, i);
-            let axis = random_axis(&mut rng);
-            let new = orbit(cam, pivot, axis, angle);
-            ensure_finite("jittered camera", new.c2w.to_cols_array())?;
-            report
-                .rotation_deg
-                .push(rotation_between(&cam.c2w, &new.c2w).to_degrees());
-            report
-                .centre_shift
-                .push((new.center() - cam.center()).length() as f64);
-            *cam = new;
-        }
-        cameras_changed = true;
+        jitter_cameras(&views, &kept, cfg, &mut edits, &mut report)?;
     }
-
     if cfg.noise_sigma > 0.0 {
-        let (mut sq, mut n) = (0.0, 0u64);
-        for (cam, &i) in cams.iter_mut().zip(&kept) {
-            if test_files.contains(&cam.file_path) {
-                continue;
-            }
-            let src = cameras::image_path(input, cam);
-            let mut img = formats::images::read_image(&src).map_err(fmt_err)?;
-            let mut rng = stream(cfg.seed, STREAM_NOISE, i);
-            let (s, k) = add_noise(&mut img, cfg.noise_sigma as f64, &mut rng);
-            ensure_finite("noisy image", img.data.iter().copied())?;
-            sq += s;
-            n += k * if img.channels >= 3 { 3 } else { 1 };
-            let ext = formats_ext(&cam.file_path);
-            if ext == "png" || ext == "exr" {
-                rewritten.insert(cam.file_path.clone(), img);
-            } else {
-                // Lossy source: write a PNG next to it and point the camera there.
-                let new_path = format!("{}.png", stem_of(&cam.file_path));
-                replaced.insert(cam.file_path.clone());
-                rewritten.insert(new_path.clone(), img);
-                cam.file_path = new_path;
-                cameras_changed = true;
-            }
-        }
-        if n > 0 {
-            report.noise_std_measured = Some((sq / n as f64).sqrt());
-        }
+        add_image_noise(
+            input,
+            &kept,
+            cfg,
+            &roles.test_files,
+            &mut edits,
+            &mut report,
+        )?;
     }
-
     if cfg.mask_morph_px != 0 {
-        let (mut before, mut after) = (0.0f64, 0.0f64);
-        for cam in &cams {
-            let mpath = cameras::mask_path(input, cam);
-            let mask_rel = cameras::mask_file_path(&cam.file_path);
-            if test_files.contains(&mask_rel) {
-                continue;
-            }
-            let src = if mpath.is_file() {
-                let m = formats::images::read_png(&mpath).map_err(fmt_err)?;
-                first_channel(&m)
-            } else {
-                // Alpha as the mask, when there is one (a noisy rewrite keeps alpha unchanged).
-                let img = match rewritten.get(&cam.file_path) {
-                    Some(img) => img.clone(),
-                    None => formats::images::read_image(cameras::image_path(input, cam))
-                        .map_err(fmt_err)?,
-                };
-                match img.channels {
-                    2 | 4 => channel(&img, img.channels as usize - 1),
-                    _ => continue,
-                }
-            };
-            let out = morph_mask(&src, cfg.mask_morph_px);
-            before += src.data.iter().filter(|v| **v >= 0.5).count() as f64;
-            after += out.data.iter().sum::<f32>() as f64;
-            rewritten.insert(mask_rel, out);
+        morph_masks(input, cfg, &roles.test_files, &mut edits, &mut report)?;
+    }
+    write_output(input, output, &views, &roles.dropped, &edits, &mut report)?;
+    Ok(report)
+}
+
+/// What `corrupt_dir` reads of its input: the camera files and the list of files.
+struct SourceViews {
+    /// Name of the training camera file (`transforms.json` or `transforms_train.json`).
+    train_name: &'static str,
+    /// Path of the training camera file.
+    train_file: std::path::PathBuf,
+    /// The training frames.
+    train: Vec<Camera>,
+    /// The held-out frames (read only to protect their files and report their count).
+    test: Vec<Camera>,
+    /// Every file of the directory, relative with `/` separators, sorted.
+    files: Vec<String>,
+}
+
+impl SourceViews {
+    /// Reads the views directory `input`; fails without a training camera file or frames.
+    fn read(input: &Path) -> Result<SourceViews, StageError> {
+        let train_name = ["transforms.json", "transforms_train.json"]
+            .into_iter()
+            .find(|n| input.join(n).is_file())
+            .ok_or_else(|| {
+                StageError::input(
+                    "views",
+                    input,
+                    "no camera file: expected transforms.json or transforms_train.json",
+                )
+            })?;
+        let train_file = input.join(train_name);
+        let train = cameras::read_transforms(&train_file).map_err(fmt_err)?;
+        let test = cameras::read_views(input).map_err(fmt_err)?.test;
+        if train.is_empty() {
+            return Err(StageError::input(
+                "views",
+                &train_file,
+                "lists no training frames",
+            ));
         }
-        if before > 0.0 {
-            report.mask_area_ratio = Some(after / before);
+        let files = list_files(input)?;
+        Ok(SourceViews {
+            train_name,
+            train_file,
+            train,
+            test,
+            files,
+        })
+    }
+}
+
+/// The source files the corruption drops and those it must leave untouched.
+struct FileRoles<'a> {
+    /// Files of dropped training frames that no kept or held-out frame also owns.
+    dropped: BTreeSet<&'a String>,
+    /// Files of held-out frames: never rewritten, even if a training frame shares them.
+    test_files: BTreeSet<&'a String>,
+}
+
+impl<'a> FileRoles<'a> {
+    /// The roles of `views`' files when the training frames `kept` are kept.
+    fn of(views: &'a SourceViews, kept: &[usize]) -> FileRoles<'a> {
+        let files = &views.files;
+        // Files that belong to held-out frames or kept training frames are protected from dropping.
+        let mut protected: BTreeSet<&String> = BTreeSet::new();
+        for c in &views.test {
+            protected.extend(frame_files(files, &c.file_path));
+        }
+        for &i in kept {
+            protected.extend(frame_files(files, &views.train[i].file_path));
+        }
+        let mut dropped: BTreeSet<&String> = BTreeSet::new();
+        let kept_set: BTreeSet<usize> = kept.iter().copied().collect();
+        for (i, c) in views.train.iter().enumerate() {
+            if !kept_set.contains(&i) {
+                dropped.extend(
+                    frame_files(files, &c.file_path)
+                        .into_iter()
+                        .filter(|f| !protected.contains(f)),
+                );
+            }
+        }
+        let test_files: BTreeSet<&String> = views
+            .test
+            .iter()
+            .flat_map(|c| frame_files(files, &c.file_path))
+            .collect();
+        FileRoles {
+            dropped,
+            test_files,
         }
     }
+}
 
-    // Write: copies of everything else, the rewritten files, the camera file if it changed.
-    for f in &files {
-        if dropped.contains(f) || rewritten.contains_key(f) || replaced.contains(f) {
+/// The new training cameras and the files rewritten for them.
+struct Rewrites {
+    /// The kept training cameras, as they will be written.
+    cams: Vec<Camera>,
+    /// Relative path -> image written there instead of a copy.
+    images: BTreeMap<String, ImageF32>,
+    /// Lossy source images replaced by a PNG next to them (not copied).
+    replaced: BTreeSet<String>,
+    /// Whether the training camera file must be rewritten.
+    cameras_changed: bool,
+}
+
+/// Orbits every kept camera by `cfg.jitter_deg` about a random axis through the centre of the
+/// training cameras' optical axes, recording the pivot, rotation angles and centre shifts.
+fn jitter_cameras(
+    views: &SourceViews,
+    kept: &[usize],
+    cfg: &Corruption,
+    edits: &mut Rewrites,
+    report: &mut CorruptionReport,
+) -> Result<(), StageError> {
+    let pivot =
+        axes_centre(&views.train).map_err(|m| StageError::input("views", &views.train_file, m))?;
+    report.pivot = Some(pivot.to_array());
+    let angle = (cfg.jitter_deg as f64).to_radians();
+    for (cam, &i) in edits.cams.iter_mut().zip(kept) {
+        let mut rng = stream(cfg.seed, STREAM_JITTER, i);
+        let axis = random_axis(&mut rng);
+        let new = orbit(cam, pivot, axis, angle);
+        ensure_finite("jittered camera", new.c2w.to_cols_array())?;
+        report
+            .rotation_deg
+            .push(rotation_between(&cam.c2w, &new.c2w).to_degrees());
+        report
+            .centre_shift
+            .push((new.center() - cam.center()).length() as f64);
+        *cam = new;
+    }
+    edits.cameras_changed = true;
+    Ok(())
+}
+
+/// Adds `cfg.noise_sigma` Gaussian noise to every kept training image not shared with a held-out
+/// frame (lossy sources become PNGs), recording the measured noise level.
+fn add_image_noise(
+    input: &Path,
+    kept: &[usize],
+    cfg: &Corruption,
+    test_files: &BTreeSet<&String>,
+    edits: &mut Rewrites,
+    report: &mut CorruptionReport,
+) -> Result<(), StageError> {
+    let (mut sq, mut n) = (0.0, 0u64);
+    for (cam, &i) in edits.cams.iter_mut().zip(kept) {
+        if test_files.contains(&cam.file_path) {
             continue;
         }
-        if f == train_name && cameras_changed {
+        let src = cameras::image_path(input, cam);
+        let mut img = formats::images::read_image(&src).map_err(fmt_err)?;
+        let mut rng = stream(cfg.seed, STREAM_NOISE, i);
+        let (s, k) = add_noise(&mut img, cfg.noise_sigma as f64, &mut rng);
+        ensure_finite("noisy image", img.data.iter().copied())?;
+        sq += s;
+        n += k * if img.channels >= 3 { 3 } else { 1 };
+        let ext = formats_ext(&cam.file_path);
+        if ext == "png" || ext == "exr" {
+            edits.images.insert(cam.file_path.clone(), img);
+        } else {
+            // Lossy source: write a PNG next to it and point the camera there.
+            let new_path = format!("{}.png", stem_of(&cam.file_path));
+            edits.replaced.insert(cam.file_path.clone());
+            edits.images.insert(new_path.clone(), img);
+            cam.file_path = new_path;
+            edits.cameras_changed = true;
+        }
+    }
+    if n > 0 {
+        report.noise_std_measured = Some((sq / n as f64).sqrt());
+    }
+    Ok(())
+}
+
+/// Erodes or dilates the object mask (or, without one, the alpha) of every kept training frame
+/// by `cfg.mask_morph_px`, recording the ratio of mask areas after and before.
+fn morph_masks(
+    input: &Path,
+    cfg: &Corruption,
+    test_files: &BTreeSet<&String>,
+    edits: &mut Rewrites,
+    report: &mut CorruptionReport,
+) -> Result<(), StageError> {
+    let (mut before, mut after) = (0.0f64, 0.0f64);
+    for cam in &edits.cams {
+        let mpath = cameras::mask_path(input, cam);
+        let mask_rel = cameras::mask_file_path(&cam.file_path);
+        if test_files.contains(&mask_rel) {
+            continue;
+        }
+        let src = if mpath.is_file() {
+            let m = formats::images::read_png(&mpath).map_err(fmt_err)?;
+            first_channel(&m)
+        } else {
+            // Alpha as the mask, when there is one (a noisy rewrite keeps alpha unchanged).
+            let img = match edits.images.get(&cam.file_path) {
+                Some(img) => img.clone(),
+                None => {
+                    formats::images::read_image(cameras::image_path(input, cam)).map_err(fmt_err)?
+                }
+            };
+            match img.channels {
+                2 | 4 => channel(&img, img.channels as usize - 1),
+                _ => continue,
+            }
+        };
+        let out = morph_mask(&src, cfg.mask_morph_px);
+        before += src.data.iter().filter(|v| **v >= 0.5).count() as f64;
+        after += out.data.iter().sum::<f32>() as f64;
+        edits.images.insert(mask_rel, out);
+    }
+    if before > 0.0 {
+        report.mask_area_ratio = Some(after / before);
+    }
+    Ok(())
+}
+
+/// Writes `output`: copies of every file neither dropped nor rewritten, the rewritten images and,
+/// if a camera changed, the new training camera file.
+fn write_output(
+    input: &Path,
+    output: &Path,
+    views: &SourceViews,
+    dropped: &BTreeSet<&String>,
+    edits: &Rewrites,
+    report: &mut CorruptionReport,
+) -> Result<(), StageError> {
+    let train_name = views.train_name;
+    for f in &views.files {
+        if dropped.contains(f) || edits.images.contains_key(f) || edits.replaced.contains(f) {
+            continue;
+        }
+        if f == train_name && edits.cameras_changed {
             continue;
         }
         copy_file(&input.join(f), &output.join(f))?;
         report.files_copied += 1;
     }
-    for (rel, img) in &rewritten {
+    for (rel, img) in &edits.images {
         let dst = output.join(rel);
         if let Some(parent) = dst.parent() {
             std::fs::create_dir_all(parent).map_err(|e| StageError::io(parent, e))?;
@@ -489,11 +609,11 @@ pub fn corrupt_dir(
         formats::images::write_image(&dst, img)?;
         report.files_rewritten += 1;
     }
-    if cameras_changed {
-        cameras::write_transforms(output.join(train_name), &cams)?;
+    if edits.cameras_changed {
+        cameras::write_transforms(output.join(train_name), &edits.cams)?;
         report.files_rewritten += 1;
     }
-    Ok(report)
+    Ok(())
 }
 
 fn formats_ext(p: &str) -> String {

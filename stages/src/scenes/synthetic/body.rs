@@ -259,161 +259,39 @@ impl Body {
     /// The skin mesh by surface nets with grid spacing `cell` (scene units).
     pub fn mesh(&self, cell: f32) -> Mesh {
         let (lo, hi) = self.bounds();
-        let lo = lo - Vec3::splat(2.0 * cell);
-        let hi = hi + Vec3::splat(2.0 * cell);
-        let n = ((hi - lo) / cell).ceil().as_uvec3();
-        let (nx, ny, nz) = (n.x as usize, n.y as usize, n.z as usize);
-        let (sx, sy) = (nx + 1, ny + 1);
-        let node = |i: usize, j: usize, k: usize| i + sx * (j + sy * k);
-        let pos =
-            |i: usize, j: usize, k: usize| lo + Vec3::new(i as f32, j as f32, k as f32) * cell;
-        let band = 3.0 * cell + self.prims.iter().map(|p| p.blend).fold(0.0, f32::max);
-        let vals: Vec<f32> = (0..=nz)
+        let grid = NetGrid::around(lo, hi, cell);
+        let vals = self.sample_grid(&grid);
+        let (cell_vert, positions) = cell_vertices(&grid, &vals);
+        let triangles = edge_quads(&grid, &vals, &cell_vert, &positions);
+        self.project_onto_surface(&positions, triangles, cell)
+    }
+
+    /// The banded SDF at every grid node (x fastest, then y, then z), slices in parallel.
+    fn sample_grid(&self, grid: &NetGrid) -> Vec<f32> {
+        let band = 3.0 * grid.cell + self.prims.iter().map(|p| p.blend).fold(0.0, f32::max);
+        (0..=grid.nz)
             .into_par_iter()
             .map(|k| {
-                let mut v = Vec::with_capacity(sx * sy);
-                for j in 0..=ny {
-                    for i in 0..=nx {
-                        v.push(self.sdf_banded(pos(i, j, k), band));
+                let mut v = Vec::with_capacity((grid.nx + 1) * (grid.ny + 1));
+                for j in 0..=grid.ny {
+                    for i in 0..=grid.nx {
+                        v.push(self.sdf_banded(grid.pos(i, j, k), band));
                     }
                 }
                 v
             })
             .collect::<Vec<_>>()
-            .concat();
-        // Cell vertices.
-        let cid = |i: usize, j: usize, k: usize| i + nx * (j + ny * k);
-        let mut cell_vert = vec![u32::MAX; nx * ny * nz];
-        let mut positions = Vec::new();
-        const CORNERS: [(usize, usize, usize); 8] = [
-            (0, 0, 0),
-            (1, 0, 0),
-            (0, 1, 0),
-            (1, 1, 0),
-            (0, 0, 1),
-            (1, 0, 1),
-            (0, 1, 1),
-            (1, 1, 1),
-        ];
-        const EDGES: [(usize, usize); 12] = [
-            (0, 1),
-            (2, 3),
-            (4, 5),
-            (6, 7),
-            (0, 2),
-            (1, 3),
-            (4, 6),
-            (5, 7),
-            (0, 4),
-            (1, 5),
-            (2, 6),
-            (3, 7),
-        ];
-        for k in 0..nz {
-            for j in 0..ny {
-                for i in 0..nx {
-                    let f: [f32; 8] = CORNERS.map(|(a, b, c)| vals[node(i + a, j + b, k + c)]);
-                    let inside = f.iter().filter(|v| **v < 0.0).count();
-                    if inside == 0 || inside == 8 {
-                        continue;
-                    }
-                    let mut acc = Vec3::ZERO;
-                    let mut cnt = 0.0;
-                    for (e0, e1) in EDGES {
-                        if (f[e0] < 0.0) != (f[e1] < 0.0) {
-                            let t = f[e0] / (f[e0] - f[e1]);
-                            let (a0, b0, c0) = CORNERS[e0];
-                            let (a1, b1, c1) = CORNERS[e1];
-                            let p0 = Vec3::new(a0 as f32, b0 as f32, c0 as f32);
-                            let p1 = Vec3::new(a1 as f32, b1 as f32, c1 as f32);
-                            acc += p0 + (p1 - p0) * t;
-                            cnt += 1.0;
-                        }
-                    }
-                    cell_vert[cid(i, j, k)] = positions.len() as u32;
-                    positions.push(pos(i, j, k) + acc / cnt * cell);
-                }
-            }
-        }
-        // Quads around sign-changing edges.
-        let mut triangles: Vec<[u32; 3]> = Vec::new();
-        let mut emit = |c: [u32; 4], outward: Vec3, positions: &[Vec3]| {
-            if c.contains(&u32::MAX) {
-                return;
-            }
-            let p = c.map(|v| positions[v as usize]);
-            let nq = (p[2] - p[0]).cross(p[3] - p[1]);
-            let c = if nq.dot(outward) < 0.0 {
-                [c[3], c[2], c[1], c[0]]
-            } else {
-                c
-            };
-            let p = c.map(|v| positions[v as usize]);
-            if (p[2] - p[0]).length_squared() <= (p[3] - p[1]).length_squared() {
-                triangles.push([c[0], c[1], c[2]]);
-                triangles.push([c[0], c[2], c[3]]);
-            } else {
-                triangles.push([c[0], c[1], c[3]]);
-                triangles.push([c[1], c[2], c[3]]);
-            }
-        };
-        for k in 0..=nz {
-            for j in 0..=ny {
-                for i in 0..=nx {
-                    let f0 = vals[node(i, j, k)];
-                    let s = if f0 < 0.0 { 1.0 } else { -1.0 };
-                    if i < nx
-                        && j >= 1
-                        && k >= 1
-                        && j < ny
-                        && k < nz
-                        && (f0 < 0.0) != (vals[node(i + 1, j, k)] < 0.0)
-                    {
-                        let c = [
-                            cid(i, j - 1, k - 1),
-                            cid(i, j, k - 1),
-                            cid(i, j, k),
-                            cid(i, j - 1, k),
-                        ]
-                        .map(|c| cell_vert[c]);
-                        emit(c, Vec3::X * s, &positions);
-                    }
-                    if j < ny
-                        && i >= 1
-                        && k >= 1
-                        && i < nx
-                        && k < nz
-                        && (f0 < 0.0) != (vals[node(i, j + 1, k)] < 0.0)
-                    {
-                        let c = [
-                            cid(i - 1, j, k - 1),
-                            cid(i, j, k - 1),
-                            cid(i, j, k),
-                            cid(i - 1, j, k),
-                        ]
-                        .map(|c| cell_vert[c]);
-                        emit(c, Vec3::Y * s, &positions);
-                    }
-                    if k < nz
-                        && i >= 1
-                        && j >= 1
-                        && i < nx
-                        && j < ny
-                        && (f0 < 0.0) != (vals[node(i, j, k + 1)] < 0.0)
-                    {
-                        let c = [
-                            cid(i - 1, j - 1, k),
-                            cid(i, j - 1, k),
-                            cid(i, j, k),
-                            cid(i - 1, j, k),
-                        ]
-                        .map(|c| cell_vert[c]);
-                        emit(c, Vec3::Z * s, &positions);
-                    }
-                }
-            }
-        }
-        // Project onto the surface, normals from the gradient, labels by nearest primitive.
+            .concat()
+    }
+
+    /// The mesh from the net vertices projected onto the zero set (three clamped Newton steps,
+    /// kept in place if that fails), with SDF-gradient normals and nearest-primitive labels.
+    fn project_onto_surface(
+        &self,
+        positions: &[Vec3],
+        triangles: Vec<[u32; 3]>,
+        cell: f32,
+    ) -> Mesh {
         let projected: Vec<(Vec3, Vec3, u16)> = positions
             .par_iter()
             .map(|&p0| {
@@ -437,6 +315,208 @@ impl Body {
             part: projected.iter().map(|v| v.2).collect(),
             part_names: self.part_names.clone(),
         }
+    }
+}
+
+/// Corner offsets of a grid cell, bit 0 = x, bit 1 = y, bit 2 = z.
+const CORNERS: [(usize, usize, usize); 8] = [
+    (0, 0, 0),
+    (1, 0, 0),
+    (0, 1, 0),
+    (1, 1, 0),
+    (0, 0, 1),
+    (1, 0, 1),
+    (0, 1, 1),
+    (1, 1, 1),
+];
+
+/// The twelve cell edges as pairs of `CORNERS` indices.
+const EDGES: [(usize, usize); 12] = [
+    (0, 1),
+    (2, 3),
+    (4, 5),
+    (6, 7),
+    (0, 2),
+    (1, 3),
+    (4, 6),
+    (5, 7),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+];
+
+/// The regular surface-nets grid: `nx * ny * nz` cells of side `cell` from `lo`.
+struct NetGrid {
+    lo: Vec3,
+    cell: f32,
+    nx: usize,
+    ny: usize,
+    nz: usize,
+}
+
+impl NetGrid {
+    /// The grid covering `lo..hi` with a margin of two cells on every side.
+    fn around(lo: Vec3, hi: Vec3, cell: f32) -> NetGrid {
+        let lo = lo - Vec3::splat(2.0 * cell);
+        let hi = hi + Vec3::splat(2.0 * cell);
+        let n = ((hi - lo) / cell).ceil().as_uvec3();
+        NetGrid {
+            lo,
+            cell,
+            nx: n.x as usize,
+            ny: n.y as usize,
+            nz: n.z as usize,
+        }
+    }
+
+    /// Index of grid node `(i, j, k)` in the node samples.
+    fn node(&self, i: usize, j: usize, k: usize) -> usize {
+        i + (self.nx + 1) * (j + (self.ny + 1) * k)
+    }
+
+    /// Index of cell `(i, j, k)` in the cell-to-vertex map.
+    fn cell_id(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.nx * (j + self.ny * k)
+    }
+
+    /// Position of grid node `(i, j, k)`.
+    fn pos(&self, i: usize, j: usize, k: usize) -> Vec3 {
+        self.lo + Vec3::new(i as f32, j as f32, k as f32) * self.cell
+    }
+}
+
+/// One vertex per sign-changing cell: the cell-to-vertex map (`u32::MAX` where a cell has none)
+/// and the vertex positions.
+fn cell_vertices(grid: &NetGrid, vals: &[f32]) -> (Vec<u32>, Vec<Vec3>) {
+    let mut cell_vert = vec![u32::MAX; grid.nx * grid.ny * grid.nz];
+    let mut positions = Vec::new();
+    for k in 0..grid.nz {
+        for j in 0..grid.ny {
+            for i in 0..grid.nx {
+                let f: [f32; 8] = CORNERS.map(|(a, b, c)| vals[grid.node(i + a, j + b, k + c)]);
+                let Some(offset) = mean_edge_crossing(&f) else {
+                    continue;
+                };
+                cell_vert[grid.cell_id(i, j, k)] = positions.len() as u32;
+                positions.push(grid.pos(i, j, k) + offset * grid.cell);
+            }
+        }
+    }
+    (cell_vert, positions)
+}
+
+/// The mean of a cell's edge zero crossings in cell coordinates, given its corner values; `None`
+/// when all corners lie on one side.
+fn mean_edge_crossing(f: &[f32; 8]) -> Option<Vec3> {
+    let inside = f.iter().filter(|v| **v < 0.0).count();
+    if inside == 0 || inside == 8 {
+        return None;
+    }
+    let mut acc = Vec3::ZERO;
+    let mut cnt = 0.0;
+    for (e0, e1) in EDGES {
+        if (f[e0] < 0.0) != (f[e1] < 0.0) {
+            let t = f[e0] / (f[e0] - f[e1]);
+            let (a0, b0, c0) = CORNERS[e0];
+            let (a1, b1, c1) = CORNERS[e1];
+            let p0 = Vec3::new(a0 as f32, b0 as f32, c0 as f32);
+            let p1 = Vec3::new(a1 as f32, b1 as f32, c1 as f32);
+            acc += p0 + (p1 - p0) * t;
+            cnt += 1.0;
+        }
+    }
+    Some(acc / cnt)
+}
+
+/// The triangles of one quad around every sign-changing interior grid edge, each facing from
+/// the inside to the outside.
+fn edge_quads(
+    grid: &NetGrid,
+    vals: &[f32],
+    cell_vert: &[u32],
+    positions: &[Vec3],
+) -> Vec<[u32; 3]> {
+    let (nx, ny, nz) = (grid.nx, grid.ny, grid.nz);
+    let quad = |cells: [usize; 4]| cells.map(|c| cell_vert[c]);
+    let cid = |i: usize, j: usize, k: usize| grid.cell_id(i, j, k);
+    let mut triangles: Vec<[u32; 3]> = Vec::new();
+    for k in 0..=nz {
+        for j in 0..=ny {
+            for i in 0..=nx {
+                let f0 = vals[grid.node(i, j, k)];
+                let s = if f0 < 0.0 { 1.0 } else { -1.0 };
+                if i < nx
+                    && j >= 1
+                    && k >= 1
+                    && j < ny
+                    && k < nz
+                    && (f0 < 0.0) != (vals[grid.node(i + 1, j, k)] < 0.0)
+                {
+                    let c = quad([
+                        cid(i, j - 1, k - 1),
+                        cid(i, j, k - 1),
+                        cid(i, j, k),
+                        cid(i, j - 1, k),
+                    ]);
+                    push_quad(&mut triangles, c, Vec3::X * s, positions);
+                }
+                if j < ny
+                    && i >= 1
+                    && k >= 1
+                    && i < nx
+                    && k < nz
+                    && (f0 < 0.0) != (vals[grid.node(i, j + 1, k)] < 0.0)
+                {
+                    let c = quad([
+                        cid(i - 1, j, k - 1),
+                        cid(i, j, k - 1),
+                        cid(i, j, k),
+                        cid(i - 1, j, k),
+                    ]);
+                    push_quad(&mut triangles, c, Vec3::Y * s, positions);
+                }
+                if k < nz
+                    && i >= 1
+                    && j >= 1
+                    && i < nx
+                    && j < ny
+                    && (f0 < 0.0) != (vals[grid.node(i, j, k + 1)] < 0.0)
+                {
+                    let c = quad([
+                        cid(i - 1, j - 1, k),
+                        cid(i, j - 1, k),
+                        cid(i, j, k),
+                        cid(i - 1, j, k),
+                    ]);
+                    push_quad(&mut triangles, c, Vec3::Z * s, positions);
+                }
+            }
+        }
+    }
+    triangles
+}
+
+/// Appends quad `c` (vertex ids) as two triangles wound to face `outward` and split along the
+/// shorter diagonal; skipped where a cell of the quad has no vertex.
+fn push_quad(triangles: &mut Vec<[u32; 3]>, c: [u32; 4], outward: Vec3, positions: &[Vec3]) {
+    if c.contains(&u32::MAX) {
+        return;
+    }
+    let p = c.map(|v| positions[v as usize]);
+    let nq = (p[2] - p[0]).cross(p[3] - p[1]);
+    let c = if nq.dot(outward) < 0.0 {
+        [c[3], c[2], c[1], c[0]]
+    } else {
+        c
+    };
+    let p = c.map(|v| positions[v as usize]);
+    if (p[2] - p[0]).length_squared() <= (p[3] - p[1]).length_squared() {
+        triangles.push([c[0], c[1], c[2]]);
+        triangles.push([c[0], c[2], c[3]]);
+    } else {
+        triangles.push([c[0], c[1], c[3]]);
+        triangles.push([c[1], c[2], c[3]]);
     }
 }
 

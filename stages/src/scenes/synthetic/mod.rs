@@ -81,6 +81,7 @@ use serde_json::json;
 
 use crate::data::camera::{Camera, CameraSet};
 use crate::data::image::ImageF32;
+use crate::data::mesh::Mesh;
 use crate::data::scene::{PartInfo, SceneInfo};
 use crate::formats;
 use body::Body;
@@ -109,7 +110,7 @@ fn size_defaults(size: &str) -> (usize, usize, u32, u32) {
 pub struct Generated {
     pub preset: Preset,
     pub s_cm: f32,
-    pub mesh: crate::data::mesh::Mesh,
+    pub mesh: Mesh,
     pub fur: fur::Fur,
     /// The same animal regrown with another seed ([`regrow_seed`]): the ceiling a reconstruction
     /// can be scored against, since it differs from `fur` only in what the seed decides.
@@ -260,17 +261,69 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
     presets::apply_overrides(&mut preset, &st.parts)?;
     let s_cm = preset.body_length_cm / 2.0;
     let body = Body::from_preset(&preset, s_cm);
-    let max_len = preset
+    let max_len = longest_fur(&preset, s_cm);
+    let half = HALF_FOV_DEG.to_radians();
+    let res = st.resolution;
+    let (mesh, cell) = skin_mesh(&body, max_len, half, res)?;
+    let framing = Framing::around_skin(&mesh, max_len, half, res);
+    let pixel_units = framing.pixel_units;
+    let pixel_cm = pixel_units * s_cm;
+    let cfg = FurConfig {
+        s_cm,
+        base_density_per_cm2: st.strands_per_px2 / (pixel_cm * pixel_cm),
+        seg_len: st.seg_px * pixel_units,
+        width: st.width_px * pixel_units,
+        seed: st.seed,
+    };
+    check_strand_budget(&preset, &mesh, &cfg)?;
+    let fur = fur::grow(&preset, &body, &mesh, &cfg);
+    let regrown = fur::grow(
+        &preset,
+        &body,
+        &mesh,
+        &FurConfig {
+            seed: regrow_seed(st.seed),
+            ..cfg.clone()
+        },
+    );
+    ensure_finite(
+        "GT strands",
+        fur.strands.points.iter().flat_map(|p| p.to_array()),
+    )?;
+    let cameras = framing.cameras(st, half);
+    // Tracer.
+    let shiny = shiny_vertices(&preset, &mesh);
+    let colors = fur::skin_colors(&preset, &mesh, s_cm, st.seed);
+    let scene = Scene::new(&mesh, colors, shiny, &fur.strands);
+    Ok(Generated {
+        preset,
+        s_cm,
+        mesh,
+        fur,
+        regrown,
+        cameras,
+        scene,
+        pixel_units,
+        cell,
+        supersample: st.supersample,
+    })
+}
+
+/// The longest strand any fur part can grow (scene units).
+fn longest_fur(preset: &Preset, s_cm: f32) -> f32 {
+    preset
         .parts
         .iter()
         .map(|(_, f)| f.length_cm * (1.0 + f.length_jitter))
         .fold(0.0, f32::max)
-        / s_cm;
-    let half = HALF_FOV_DEG.to_radians();
-    let res = st.resolution;
-    // Provisional framing from the primitives' bounds sets the skin grid; the final framing
-    // is the bounding sphere of the skin (about its box centre) plus the longest fur.
-    let (lo, hi) = body_bounds(&body);
+        / s_cm
+}
+
+/// The skin mesh and its grid spacing, the pixel footprint of a provisional framing (from the
+/// primitives' bounds plus the longest fur `max_len`), at most 0.03 units; fails when the mesh
+/// is not finite or empty.
+fn skin_mesh(body: &Body, max_len: f32, half: f32, res: u32) -> Result<(Mesh, f32), StageError> {
+    let (lo, hi) = body_bounds(body);
     let r0 = (hi - lo).length() * 0.5 + max_len;
     let cell = (2.0 * r0 / half.sin() * half.tan() / res as f32).min(0.03);
     let mesh = body.mesh(cell);
@@ -281,26 +334,13 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
     if mesh.triangles.is_empty() {
         return Err(StageError::failed("the skin mesh came out empty"));
     }
-    let (mlo, mhi) = mesh.bounds();
-    let centre = (mlo + mhi) * 0.5;
-    let radius = mesh
-        .positions
-        .iter()
-        .map(|p| (*p - centre).length())
-        .fold(0.0, f32::max)
-        + max_len;
-    let dist = radius / half.sin();
-    let pixel_units = 2.0 * dist * half.tan() / res as f32;
-    let pixel_cm = pixel_units * s_cm;
-    let cfg = FurConfig {
-        s_cm,
-        base_density_per_cm2: st.strands_per_px2 / (pixel_cm * pixel_cm),
-        seg_len: st.seg_px * pixel_units,
-        width: st.width_px * pixel_units,
-        seed: st.seed,
-    };
-    // Refuse settings that would grow an unaffordable number of strands.
-    let areas = fur::part_areas_cm2(&mesh, s_cm);
+    Ok((mesh, cell))
+}
+
+/// Refuses settings that would grow more than [`MAX_STRANDS`] strands, naming the part that
+/// would grow the most.
+fn check_strand_budget(preset: &Preset, mesh: &Mesh, cfg: &FurConfig) -> Result<(), StageError> {
+    let areas = fur::part_areas_cm2(mesh, cfg.s_cm);
     let mut expected = 0.0f64;
     let mut biggest = ("", 0.0f64);
     for ((name, fp), area) in preset.parts.iter().zip(&areas) {
@@ -324,53 +364,82 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
             ),
         ));
     }
-    let fur = fur::grow(&preset, &body, &mesh, &cfg);
-    let regrown = fur::grow(
-        &preset,
-        &body,
-        &mesh,
-        &FurConfig {
-            seed: regrow_seed(st.seed),
-            ..cfg.clone()
-        },
-    );
-    ensure_finite(
-        "GT strands",
-        fur.strands.points.iter().flat_map(|p| p.to_array()),
-    )?;
-    // Cameras.
-    let f = 0.5 * res as f32 / half.tan();
-    let mk = |i: usize, el: f32, az: f32, dir: &str| -> Camera {
-        let eye = centre + dist * Vec3::new(el.cos() * az.cos(), el.sin(), el.cos() * az.sin());
-        Camera {
-            file_path: format!("{dir}/{i:03}.png"),
-            c2w: look_at(eye, centre),
-            fx: f,
-            fy: f,
-            cx: 0.5 * res as f32,
-            cy: 0.5 * res as f32,
-            width: res,
-            height: res,
+    Ok(())
+}
+
+/// The final framing: cameras look at the centre of the skin's bounding box from the distance
+/// where the skin's bounding sphere about it, grown by the longest fur, fills the field of view.
+struct Framing {
+    centre: Vec3,
+    dist: f32,
+    /// Width of a pixel at the camera distance (scene units).
+    pixel_units: f32,
+    res: u32,
+}
+
+impl Framing {
+    /// The framing of `mesh` with fur up to `max_len` long, half field of view `half` (radians)
+    /// and square images of `res` pixels.
+    fn around_skin(mesh: &Mesh, max_len: f32, half: f32, res: u32) -> Framing {
+        let (mlo, mhi) = mesh.bounds();
+        let centre = (mlo + mhi) * 0.5;
+        let radius = mesh
+            .positions
+            .iter()
+            .map(|p| (*p - centre).length())
+            .fold(0.0, f32::max)
+            + max_len;
+        let dist = radius / half.sin();
+        let pixel_units = 2.0 * dist * half.tan() / res as f32;
+        Framing {
+            centre,
+            dist,
+            pixel_units,
+            res,
         }
-    };
-    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
-    let (z0, z1) = ((-30f32).to_radians().sin(), 70f32.to_radians().sin());
-    let train: Vec<Camera> = (0..st.views)
-        .map(|i| {
-            let z = z0 + (z1 - z0) * (i as f32 + 0.5) / st.views as f32;
-            mk(i, z.asin(), i as f32 * golden, "train")
-        })
-        .collect();
-    let rings = [-12f32, 8.0, 28.0, 52.0];
-    let test: Vec<Camera> = (0..st.test_views)
-        .map(|i| {
-            let az = (i as f32 + 0.5) * std::f32::consts::TAU / st.test_views as f32 + 0.35;
-            mk(i, rings[i % 4].to_radians(), az, "test")
-        })
-        .collect();
-    // Tracer.
-    let shiny: Vec<bool> = mesh
-        .part
+    }
+
+    /// Training views on a Fibonacci spiral over elevations -30..70 degrees and held-out views
+    /// on four elevation rings, azimuths offset from the spiral.
+    fn cameras(&self, st: &Settings, half: f32) -> CameraSet {
+        let res = self.res;
+        let f = 0.5 * res as f32 / half.tan();
+        let mk = |i: usize, el: f32, az: f32, dir: &str| -> Camera {
+            let eye = self.centre
+                + self.dist * Vec3::new(el.cos() * az.cos(), el.sin(), el.cos() * az.sin());
+            Camera {
+                file_path: format!("{dir}/{i:03}.png"),
+                c2w: look_at(eye, self.centre),
+                fx: f,
+                fy: f,
+                cx: 0.5 * res as f32,
+                cy: 0.5 * res as f32,
+                width: res,
+                height: res,
+            }
+        };
+        let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+        let (z0, z1) = ((-30f32).to_radians().sin(), 70f32.to_radians().sin());
+        let train: Vec<Camera> = (0..st.views)
+            .map(|i| {
+                let z = z0 + (z1 - z0) * (i as f32 + 0.5) / st.views as f32;
+                mk(i, z.asin(), i as f32 * golden, "train")
+            })
+            .collect();
+        let rings = [-12f32, 8.0, 28.0, 52.0];
+        let test: Vec<Camera> = (0..st.test_views)
+            .map(|i| {
+                let az = (i as f32 + 0.5) * std::f32::consts::TAU / st.test_views as f32 + 0.35;
+                mk(i, rings[i % 4].to_radians(), az, "test")
+            })
+            .collect();
+        CameraSet { train, test }
+    }
+}
+
+/// Per skin vertex, whether the tracer shades it as a shiny part (eyes and nose).
+fn shiny_vertices(preset: &Preset, mesh: &Mesh) -> Vec<bool> {
+    mesh.part
         .iter()
         .map(|&p| {
             preset
@@ -379,21 +448,7 @@ pub fn generate(st: &Settings) -> Result<Generated, StageError> {
                 .map(|(n, _)| *n == "eyes" || *n == "nose")
                 .unwrap_or(false)
         })
-        .collect();
-    let colors = fur::skin_colors(&preset, &mesh, s_cm, st.seed);
-    let scene = Scene::new(&mesh, colors, shiny, &fur.strands);
-    Ok(Generated {
-        preset,
-        s_cm,
-        mesh,
-        fur,
-        regrown,
-        cameras: CameraSet { train, test },
-        scene,
-        pixel_units,
-        cell,
-        supersample: st.supersample,
-    })
+        .collect()
 }
 
 /// The written camera: `c` perturbed by the pose-jitter knobs (deterministic per view).
