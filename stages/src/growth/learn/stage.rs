@@ -524,39 +524,13 @@ fn setup(
 
     // Shape-prior ablation: no defurred mesh, roots on M_outer.
     let body_mesh = if p.length_mode == LengthMode::ShapePrior {
-        let q = MeshQuery::new(&outer)?;
-        for i in 0..roots.len() {
-            let (c, _, tri) = q.closest_point(roots.positions[i]);
-            roots.positions[i] = c;
-            if let Some(t) = outer.triangles.get(tri as usize) {
-                let [a, b, cc] = t.map(|v| outer.positions[v as usize]);
-                if let Some(nrm) = (b - a).cross(cc - a).try_normalize() {
-                    // Re-orthonormalise the frame around the envelope's normal.
-                    let tan = (roots.tangents[i] - nrm * nrm.dot(roots.tangents[i]))
-                        .try_normalize()
-                        .unwrap_or_else(|| nrm.any_orthonormal_vector());
-                    roots.normals[i] = nrm;
-                    roots.tangents[i] = tan;
-                    roots.bitangents[i] = nrm.cross(tan);
-                }
-            }
-        }
+        snap_roots_to_envelope(&mut roots, &outer)?;
         outer.clone()
     } else {
         root_mesh
     };
 
-    // Fur roots only, optionally a seeded subsample.
-    let mut keep: Vec<usize> = (0..roots.len()).filter(|&i| lengths_all[i] > 0.0).collect();
-    let max = p.max_strands;
-    if max > 0 && keep.len() > max {
-        let mut rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0x5EED_0FF0);
-        let mut pick: Vec<usize> = rand::seq::index::sample(&mut rng, keep.len(), max)
-            .into_iter()
-            .collect();
-        pick.sort_unstable();
-        keep = pick.into_iter().map(|j| keep[j]).collect();
-    }
+    let keep = fur_roots(&lengths_all, p.max_strands, p.seed);
     if keep.is_empty() {
         return Err(StageError::input(
             "roots",
@@ -599,15 +573,74 @@ fn setup(
     };
     let decoder = Decoder::new(&basis.mean, &basis.components[..k]);
 
-    // Distance grids over both meshes' box padded by 10% of the diagonal.
     ctx.progress.message("distance grids");
+    let geometry = distance_grids(ctx, p, &prep, &outer, &body_mesh)?;
+    Ok(Setup {
+        prep,
+        keep,
+        roots,
+        geometry,
+        decoder,
+        lengths,
+        body_mesh,
+        outer,
+    })
+}
+
+/// The shape-prior ablation's roots: each moved to its closest point on
+/// M_outer, its frame re-orthonormalised around the envelope's normal.
+fn snap_roots_to_envelope(roots: &mut Roots, outer: &Mesh) -> Result<(), StageError> {
+    let q = MeshQuery::new(outer)?;
+    for i in 0..roots.len() {
+        let (c, _, tri) = q.closest_point(roots.positions[i]);
+        roots.positions[i] = c;
+        if let Some(t) = outer.triangles.get(tri as usize) {
+            let [a, b, cc] = t.map(|v| outer.positions[v as usize]);
+            if let Some(nrm) = (b - a).cross(cc - a).try_normalize() {
+                let tan = (roots.tangents[i] - nrm * nrm.dot(roots.tangents[i]))
+                    .try_normalize()
+                    .unwrap_or_else(|| nrm.any_orthonormal_vector());
+                roots.normals[i] = nrm;
+                roots.tangents[i] = tan;
+                roots.bitangents[i] = nrm.cross(tan);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Indices of the fur roots (positive length), at most `max` of them (a
+/// seeded subsample in root order; 0 = all).
+fn fur_roots(lengths: &[f32], max: usize, seed: u64) -> Vec<usize> {
+    let keep: Vec<usize> = (0..lengths.len()).filter(|&i| lengths[i] > 0.0).collect();
+    if max == 0 || keep.len() <= max {
+        return keep;
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_0FF0);
+    let mut pick: Vec<usize> = rand::seq::index::sample(&mut rng, keep.len(), max)
+        .into_iter()
+        .collect();
+    pick.sort_unstable();
+    pick.into_iter().map(|j| keep[j]).collect()
+}
+
+/// L_chm's and L_sdf's distance grids over both meshes' box, padded by 10%
+/// of its diagonal, and the optional chamfer gate.
+fn distance_grids(
+    ctx: &StageContext<'_>,
+    p: &LearnParams,
+    prep: &Prepared,
+    outer: &Mesh,
+    body_mesh: &Mesh,
+) -> Result<Geometry, StageError> {
+    let (lo, hi) = outer.bounds();
     let (blo, bhi) = body_mesh.bounds();
     let lo = lo.min(blo);
     let hi = hi.max(bhi);
     let pad = 0.1 * (hi - lo).length();
     let res = p.sdf_resolution;
-    let oq = MeshQuery::new(&outer)?;
-    let bq = MeshQuery::new(&body_mesh)?;
+    let oq = MeshQuery::new(outer)?;
+    let bq = MeshQuery::new(body_mesh)?;
     let reach = p.chamfer_reach;
     let chamfer_gate = (reach > 0.0).then(|| {
         (0..prep.len())
@@ -640,16 +673,7 @@ fn setup(
             .chain(&geometry.body.values)
             .copied(),
     )?;
-    Ok(Setup {
-        prep,
-        keep,
-        roots,
-        geometry,
-        decoder,
-        lengths,
-        body_mesh,
-        outer,
-    })
+    Ok(geometry)
 }
 
 /// Strands from flat points, with the roots' parts and widths.
@@ -680,39 +704,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let s = setup(ctx, &p, pe_f, comps)?;
     let l = s.prep.points;
 
-    // The codec; the dense baseline starts from the basis mean on every root.
-    let (mut model, rates) = match &learner {
-        Learner::Codec(c) => {
-            let mlp = Mlp::new(
-                s.prep.feature_dim,
-                c.mlp_width,
-                c.mlp_depth,
-                s.decoder.k + c.learn_rotation as usize,
-                seed,
-            );
-            (
-                Model::Codec(Codec::new(
-                    mlp,
-                    s.decoder.clone(),
-                    c.finetune_decoder,
-                    c.learn_rotation,
-                )),
-                Rates {
-                    encoder: c.lr_encoder,
-                    decoder: c.lr_decoder,
-                    points: 0.0,
-                },
-            )
-        }
-        Learner::Dense(d) => (
-            Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len())),
-            Rates {
-                encoder: 0.0,
-                decoder: 0.0,
-                points: d.lr_points,
-            },
-        ),
-    };
+    let (mut model, rates) = initial_model(&learner, &s, seed);
     let mut cfg = TrainConfig {
         iterations: learner.iterations(),
         subset: p.strands_per_iteration,
@@ -726,39 +718,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         clock_start: 0.0,
     };
 
-    // Image losses when views are connected.
-    let mut image = match ctx.input_opt("views") {
-        Some(views) => {
-            ctx.progress.message("reading views");
-            let icfg = ImageConfig {
-                views_per_iteration: p.views_per_iteration,
-                lr_color: p.lr_color,
-                l_rgb: p.l_rgb,
-                l_sil: p.l_sil,
-                l_ori: p.l_ori,
-                l_mask: p.l_mask,
-                body_gaussians: p.body_gaussians,
-                seed,
-                ori_min_confidence: p.ori_min_confidence,
-                fit_color_views: p.fit_color_views,
-                held_out_coverage: match p.held_out_coverage {
-                    HeldOutCoverage::Opaque => Coverage::Opaque,
-                    HeldOutCoverage::Width => Coverage::Width,
-                },
-                device: crate::render::device::Renderer::from_params(ctx.params)?,
-            };
-            let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
-            Some(ImageLosses::new(
-                views,
-                ctx.input_opt("orientation"),
-                &s.body_mesh,
-                widths,
-                &icfg,
-            )?)
-        }
-        None => None,
-    };
-
+    let mut image = image_losses(ctx, &p, &s)?;
     if let Some(img) = image.as_ref() {
         ctx.progress
             .note(&format!("renders on {}", img.device_description()));
@@ -776,40 +736,8 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         }
     }
 
-    // Snapshots.
-    let snap_dir = ctx.output("snapshots")?.to_path_buf();
-    let mut index: Vec<SnapshotEntry> = Vec::new();
     let params_count = model.parameter_count();
-    let report: TrainReport = {
-        let mut snapshot = |m: &Model, it: usize, secs: f64| -> Result<(), StageError> {
-            let pts = m.all_points(&s.prep);
-            let strands = to_strands(&pts, l, &s, None);
-            let file = format!("snap_{:03}.hair", index.len());
-            formats::hair::write_hair(snap_dir.join(&file), &strands)?;
-            index.push(SnapshotEntry {
-                file,
-                seconds: secs,
-                iteration: it,
-                optimised_parameters: params_count,
-            });
-            Ok(())
-        };
-        ctx.progress.message(if dense {
-            "dense training"
-        } else {
-            "codec training"
-        });
-        train::train(
-            &mut model,
-            &s.prep,
-            &s.geometry,
-            image.as_mut().map(|i| i as &mut dyn ImageTerm),
-            &cfg,
-            ctx.progress,
-            &mut snapshot,
-        )?
-    };
-    formats::json::write_json(snap_dir.join("index.json"), &index)?;
+    let report = train_with_snapshots(ctx, &mut model, &s, image.as_mut(), &cfg, dense)?;
 
     // Final strands.
     let pts = model.all_points(&s.prep);
@@ -861,6 +789,127 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;
     Ok(())
+}
+
+/// The learner's model at its start and its initial learning rates: the
+/// codec's encoder and decoder, or the dense points on the basis mean.
+fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
+    match learner {
+        Learner::Codec(c) => {
+            let mlp = Mlp::new(
+                s.prep.feature_dim,
+                c.mlp_width,
+                c.mlp_depth,
+                s.decoder.k + c.learn_rotation as usize,
+                seed,
+            );
+            (
+                Model::Codec(Codec::new(
+                    mlp,
+                    s.decoder.clone(),
+                    c.finetune_decoder,
+                    c.learn_rotation,
+                )),
+                Rates {
+                    encoder: c.lr_encoder,
+                    decoder: c.lr_decoder,
+                    points: 0.0,
+                },
+            )
+        }
+        Learner::Dense(d) => (
+            Model::Dense(Dense::from_local(&s.decoder.mean(), s.prep.len())),
+            Rates {
+                encoder: 0.0,
+                decoder: 0.0,
+                points: d.lr_points,
+            },
+        ),
+    }
+}
+
+/// The image losses against the training views, when views are connected.
+fn image_losses(
+    ctx: &StageContext<'_>,
+    p: &LearnParams,
+    s: &Setup,
+) -> Result<Option<ImageLosses>, StageError> {
+    let Some(views) = ctx.input_opt("views") else {
+        return Ok(None);
+    };
+    ctx.progress.message("reading views");
+    let icfg = ImageConfig {
+        views_per_iteration: p.views_per_iteration,
+        lr_color: p.lr_color,
+        l_rgb: p.l_rgb,
+        l_sil: p.l_sil,
+        l_ori: p.l_ori,
+        l_mask: p.l_mask,
+        body_gaussians: p.body_gaussians,
+        seed: p.seed,
+        ori_min_confidence: p.ori_min_confidence,
+        fit_color_views: p.fit_color_views,
+        held_out_coverage: match p.held_out_coverage {
+            HeldOutCoverage::Opaque => Coverage::Opaque,
+            HeldOutCoverage::Width => Coverage::Width,
+        },
+        device: crate::render::device::Renderer::from_params(ctx.params)?,
+    };
+    let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
+    Ok(Some(ImageLosses::new(
+        views,
+        ctx.input_opt("orientation"),
+        &s.body_mesh,
+        widths,
+        &icfg,
+    )?))
+}
+
+/// Runs the shared loop, writing a snapshot of the strands (and the
+/// snapshot index) whenever the loop asks for one.
+fn train_with_snapshots(
+    ctx: &StageContext<'_>,
+    model: &mut Model,
+    s: &Setup,
+    image: Option<&mut ImageLosses>,
+    cfg: &TrainConfig,
+    dense: bool,
+) -> Result<TrainReport, StageError> {
+    let l = s.prep.points;
+    let snap_dir = ctx.output("snapshots")?.to_path_buf();
+    let mut index: Vec<SnapshotEntry> = Vec::new();
+    let params_count = model.parameter_count();
+    let report: TrainReport = {
+        let mut snapshot = |m: &Model, it: usize, secs: f64| -> Result<(), StageError> {
+            let pts = m.all_points(&s.prep);
+            let strands = to_strands(&pts, l, s, None);
+            let file = format!("snap_{:03}.hair", index.len());
+            formats::hair::write_hair(snap_dir.join(&file), &strands)?;
+            index.push(SnapshotEntry {
+                file,
+                seconds: secs,
+                iteration: it,
+                optimised_parameters: params_count,
+            });
+            Ok(())
+        };
+        ctx.progress.message(if dense {
+            "dense training"
+        } else {
+            "codec training"
+        });
+        train::train(
+            model,
+            &s.prep,
+            &s.geometry,
+            image.map(|i| i as &mut dyn ImageTerm),
+            cfg,
+            ctx.progress,
+            &mut snapshot,
+        )?
+    };
+    formats::json::write_json(snap_dir.join("index.json"), &index)?;
+    Ok(report)
 }
 
 #[cfg(test)]
