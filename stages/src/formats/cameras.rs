@@ -331,126 +331,22 @@ struct Level {
 }
 
 impl Level {
+    /// Reads and checks the intrinsics entries of `obj` (the file's top level or a frame, whose
+    /// field names start with `prefix`), refusing lens distortion and non-pinhole models.
     fn read(path: &Path, obj: &Map<String, Value>, prefix: &str) -> Result<Level, FormatError> {
-        let num = |key: &str| -> Result<Option<f64>, FormatError> {
-            match obj.get(key) {
-                None | Some(Value::Null) => Ok(None),
-                Some(Value::Number(n)) => {
-                    let v = n.as_f64().unwrap_or(f64::NAN);
-                    if v.is_finite() {
-                        Ok(Some(v))
-                    } else {
-                        Err(FormatError::at(
-                            path,
-                            field(&join_field(prefix, key)),
-                            "expected a finite number",
-                        ))
-                    }
-                }
-                Some(other) => Err(FormatError::at(
-                    path,
-                    field(&join_field(prefix, key)),
-                    format!("expected a number, found {}", kind(other)),
-                )),
-            }
-        };
-        let positive = |key: &str| -> Result<Option<f64>, FormatError> {
-            match num(key)? {
-                Some(v) if v <= 0.0 => Err(FormatError::at(
-                    path,
-                    field(&join_field(prefix, key)),
-                    format!("expected a positive value, found {v}"),
-                )),
-                other => Ok(other),
-            }
-        };
-        let size = |key: &str| -> Result<Option<u32>, FormatError> {
-            match positive(key)? {
-                None => Ok(None),
-                Some(v) if v.fract() == 0.0 && v <= u32::MAX as f64 => Ok(Some(v as u32)),
-                Some(v) => Err(FormatError::at(
-                    path,
-                    field(&join_field(prefix, key)),
-                    format!("expected a whole number of pixels, found {v}"),
-                )),
-            }
-        };
-        let k = match obj.get("intrinsic_matrix") {
-            None | Some(Value::Null) => None,
-            Some(v) => {
-                let f = join_field(prefix, "intrinsic_matrix");
-                let rows = matrix_rows(path, &f, v)?;
-                if !(rows.len() == 3 || rows.len() == 4) || rows.iter().any(|r| r.len() < 3) {
-                    return Err(FormatError::at(
-                        path,
-                        field(&f),
-                        "expected a 3x3 or 4x4 matrix as rows",
-                    ));
-                }
-                let kk = [rows[0][0], rows[1][1], rows[0][2], rows[1][2]];
-                if kk[0] <= 0.0 || kk[1] <= 0.0 {
-                    return Err(FormatError::at(
-                        path,
-                        field(&f),
-                        "expected positive focal lengths K[0][0] and K[1][1]",
-                    ));
-                }
-                Some(kk)
-            }
-        };
-        let angle = |key: &str| -> Result<Option<f64>, FormatError> {
-            match positive(key)? {
-                Some(a) if a >= std::f64::consts::PI => Err(FormatError::at(
-                    path,
-                    field(&join_field(prefix, key)),
-                    format!("expected a field of view in radians below pi, found {a}"),
-                )),
-                other => Ok(other),
-            }
-        };
-        // nerfstudio writes its COLMAP conversion's distortion and model here. A
-        // pinhole model is all fure renders: non-zero distortion or a fisheye
-        // model would be a silently wrong camera, so it is refused.
-        for key in DISTORTION_KEYS {
-            if let Some(v) = num(key)? {
-                if v != 0.0 {
-                    return Err(FormatError::at(
-                        path,
-                        field(&join_field(prefix, key)),
-                        format!(
-                            "lens distortion {key} = {v}: fure models pinhole cameras; undistort the \
-                             images first (nerfstudio: `ns-process-data` with an undistorting COLMAP \
-                             run; COLMAP: `colmap image_undistorter`) and write the undistorted intrinsics"
-                        ),
-                    ));
-                }
-            }
-        }
-        match obj.get("camera_model") {
-            None | Some(Value::Null) => {}
-            Some(Value::String(m)) if PINHOLE_MODELS.contains(&m.as_str()) => {}
-            Some(other) => {
-                return Err(FormatError::at(
-                    path,
-                    field(&join_field(prefix, "camera_model")),
-                    format!(
-                        "camera model {other}: expected one of {} (a pinhole camera, distortion zero); \
-                         undistort fisheye or equirectangular captures first",
-                        PINHOLE_MODELS.join(", ")
-                    ),
-                ))
-            }
-        }
+        let fields = LevelFields { path, obj, prefix };
+        let k = fields.intrinsic_matrix()?;
+        fields.check_pinhole()?;
         Ok(Level {
-            w: size("w")?,
-            h: size("h")?,
-            fl_x: positive("fl_x")?,
-            fl_y: positive("fl_y")?,
-            cx: num("cx")?,
-            cy: num("cy")?,
+            w: fields.size("w")?,
+            h: fields.size("h")?,
+            fl_x: fields.positive("fl_x")?,
+            fl_y: fields.positive("fl_y")?,
+            cx: fields.num("cx")?,
+            cy: fields.num("cy")?,
             k,
-            angle_x: angle("camera_angle_x")?,
-            angle_y: angle("camera_angle_y")?,
+            angle_x: fields.angle("camera_angle_x")?,
+            angle_y: fields.angle("camera_angle_y")?,
         })
     }
 
@@ -477,6 +373,146 @@ impl Level {
         match (self.cx, self.cy, self.k) {
             (None, None, Some(k)) => (Some(k[2]), Some(k[3])),
             (cx, cy, _) => (cx, cy),
+        }
+    }
+}
+
+/// Typed access to the intrinsics entries of one level, errors naming the field.
+struct LevelFields<'a> {
+    path: &'a Path,
+    obj: &'a Map<String, Value>,
+    /// Field path of the level (empty at the top level).
+    prefix: &'a str,
+}
+
+impl LevelFields<'_> {
+    /// The field position of `key` at this level.
+    fn at(&self, key: &str) -> Position {
+        field(&join_field(self.prefix, key))
+    }
+
+    /// A finite number, or `None` when absent or null.
+    fn num(&self, key: &str) -> Result<Option<f64>, FormatError> {
+        match self.obj.get(key) {
+            None | Some(Value::Null) => Ok(None),
+            Some(Value::Number(n)) => {
+                let v = n.as_f64().unwrap_or(f64::NAN);
+                if v.is_finite() {
+                    Ok(Some(v))
+                } else {
+                    Err(FormatError::at(
+                        self.path,
+                        self.at(key),
+                        "expected a finite number",
+                    ))
+                }
+            }
+            Some(other) => Err(FormatError::at(
+                self.path,
+                self.at(key),
+                format!("expected a number, found {}", kind(other)),
+            )),
+        }
+    }
+
+    /// A positive number, or `None`.
+    fn positive(&self, key: &str) -> Result<Option<f64>, FormatError> {
+        match self.num(key)? {
+            Some(v) if v <= 0.0 => Err(FormatError::at(
+                self.path,
+                self.at(key),
+                format!("expected a positive value, found {v}"),
+            )),
+            other => Ok(other),
+        }
+    }
+
+    /// A positive whole number of pixels, or `None`.
+    fn size(&self, key: &str) -> Result<Option<u32>, FormatError> {
+        match self.positive(key)? {
+            None => Ok(None),
+            Some(v) if v.fract() == 0.0 && v <= u32::MAX as f64 => Ok(Some(v as u32)),
+            Some(v) => Err(FormatError::at(
+                self.path,
+                self.at(key),
+                format!("expected a whole number of pixels, found {v}"),
+            )),
+        }
+    }
+
+    /// A positive field of view in radians below pi, or `None`.
+    fn angle(&self, key: &str) -> Result<Option<f64>, FormatError> {
+        match self.positive(key)? {
+            Some(a) if a >= std::f64::consts::PI => Err(FormatError::at(
+                self.path,
+                self.at(key),
+                format!("expected a field of view in radians below pi, found {a}"),
+            )),
+            other => Ok(other),
+        }
+    }
+
+    /// (fx, fy, cx, cy) of a 3x3 or 4x4 `intrinsic_matrix`, or `None`.
+    fn intrinsic_matrix(&self) -> Result<Option<[f64; 4]>, FormatError> {
+        let path = self.path;
+        match self.obj.get("intrinsic_matrix") {
+            None | Some(Value::Null) => Ok(None),
+            Some(v) => {
+                let f = join_field(self.prefix, "intrinsic_matrix");
+                let rows = matrix_rows(path, &f, v)?;
+                if !(rows.len() == 3 || rows.len() == 4) || rows.iter().any(|r| r.len() < 3) {
+                    return Err(FormatError::at(
+                        path,
+                        field(&f),
+                        "expected a 3x3 or 4x4 matrix as rows",
+                    ));
+                }
+                let kk = [rows[0][0], rows[1][1], rows[0][2], rows[1][2]];
+                if kk[0] <= 0.0 || kk[1] <= 0.0 {
+                    return Err(FormatError::at(
+                        path,
+                        field(&f),
+                        "expected positive focal lengths K[0][0] and K[1][1]",
+                    ));
+                }
+                Ok(Some(kk))
+            }
+        }
+    }
+
+    /// Refuses non-zero distortion and non-pinhole `camera_model`s.
+    ///
+    /// nerfstudio writes its COLMAP conversion's distortion and model here. A
+    /// pinhole model is all fure renders: non-zero distortion or a fisheye
+    /// model would be a silently wrong camera, so it is refused.
+    fn check_pinhole(&self) -> Result<(), FormatError> {
+        for key in DISTORTION_KEYS {
+            if let Some(v) = self.num(key)? {
+                if v != 0.0 {
+                    return Err(FormatError::at(
+                        self.path,
+                        self.at(key),
+                        format!(
+                            "lens distortion {key} = {v}: fure models pinhole cameras; undistort the \
+                             images first (nerfstudio: `ns-process-data` with an undistorting COLMAP \
+                             run; COLMAP: `colmap image_undistorter`) and write the undistorted intrinsics"
+                        ),
+                    ));
+                }
+            }
+        }
+        match self.obj.get("camera_model") {
+            None | Some(Value::Null) => Ok(()),
+            Some(Value::String(m)) if PINHOLE_MODELS.contains(&m.as_str()) => Ok(()),
+            Some(other) => Err(FormatError::at(
+                self.path,
+                self.at("camera_model"),
+                format!(
+                    "camera model {other}: expected one of {} (a pinhole camera, distortion zero); \
+                     undistort fisheye or equirectangular captures first",
+                    PINHOLE_MODELS.join(", ")
+                ),
+            )),
         }
     }
 }
@@ -527,6 +563,8 @@ fn matrix_rows(path: &Path, f: &str, v: &Value) -> Result<Vec<Vec<f64>>, FormatE
         .collect()
 }
 
+/// One frame of a transforms file: its image path, camera-to-world matrix and intrinsics (the
+/// frame's own, else the top level's `top`, else the image's size and centre).
 fn read_frame(
     path: &Path,
     dir: &Path,
@@ -534,6 +572,53 @@ fn read_frame(
     prefix: &str,
     top: &Level,
 ) -> Result<Camera, FormatError> {
+    let file_path = frame_file_path(path, dir, obj, prefix)?;
+    let c2w = frame_c2w(path, obj, prefix)?;
+    let local = Level::read(path, obj, prefix)?;
+    let (w, h) = frame_size(path, dir, &file_path, prefix, &local, top)?;
+    let (fx, fy) = local.focal(w, h).or_else(|| top.focal(w, h)).ok_or_else(|| {
+        FormatError::at(
+            path,
+            field(&join_field(prefix, "fl_x")),
+            "no focal length: expected fl_x, intrinsic_matrix or camera_angle_x in the frame or at the top level",
+        )
+    })?;
+    let (lcx, lcy) = local.principal();
+    let (tcx, tcy) = top.principal();
+    let cx = lcx.or(tcx).unwrap_or(0.5 * w as f64);
+    let cy = lcy.or(tcy).unwrap_or(0.5 * h as f64);
+    let camera = Camera {
+        file_path,
+        c2w,
+        fx: fx as f32,
+        fy: fy as f32,
+        cx: cx as f32,
+        cy: cy as f32,
+        width: w,
+        height: h,
+    };
+    if ![camera.fx, camera.fy, camera.cx, camera.cy]
+        .iter()
+        .all(|v| v.is_finite())
+        || camera.fx <= 0.0
+        || camera.fy <= 0.0
+    {
+        return Err(FormatError::at(
+            path,
+            field(prefix),
+            "intrinsics out of f32 range or not positive",
+        ));
+    }
+    Ok(camera)
+}
+
+/// The frame's `file_path`, required non-empty, normalised.
+fn frame_file_path(
+    path: &Path,
+    dir: &Path,
+    obj: &Map<String, Value>,
+    prefix: &str,
+) -> Result<String, FormatError> {
     let fp_field = join_field(prefix, "file_path");
     let raw_path = match obj.get("file_path") {
         Some(Value::String(s)) if !s.trim().is_empty() => s.as_str(),
@@ -552,8 +637,12 @@ fn read_frame(
             ))
         }
     };
-    let file_path = normalise_file_path(dir, raw_path);
+    Ok(normalise_file_path(dir, raw_path))
+}
 
+/// The frame's `transform_matrix`: 4 rows (or 3) of 4 numbers, a last row of `[0, 0, 0, 1]`,
+/// invertible and within f32 range.
+fn frame_c2w(path: &Path, obj: &Map<String, Value>, prefix: &str) -> Result<Mat4, FormatError> {
     let tm_field = join_field(prefix, "transform_matrix");
     let tm = obj.get("transform_matrix").ok_or_else(|| {
         FormatError::at(
@@ -606,12 +695,23 @@ fn read_frame(
             "matrix is singular or out of f32 range",
         ));
     }
+    Ok(c2w)
+}
 
-    let local = Level::read(path, obj, prefix)?;
-    let (w, h) = match (local.w.or(top.w), local.h.or(top.h)) {
+/// The frame's image size: `w` / `h` of the frame or the top level, the image's own for what
+/// neither gives.
+fn frame_size(
+    path: &Path,
+    dir: &Path,
+    file_path: &str,
+    prefix: &str,
+    local: &Level,
+    top: &Level,
+) -> Result<(u32, u32), FormatError> {
+    Ok(match (local.w.or(top.w), local.h.or(top.h)) {
         (Some(w), Some(h)) => (w, h),
         (w, h) => {
-            let img = dir.join(&file_path);
+            let img = dir.join(file_path);
             let (iw, ih) = super::images::image_size(&img).map_err(|e| {
                 FormatError::at(
                     path,
@@ -621,41 +721,7 @@ fn read_frame(
             })?;
             (w.unwrap_or(iw), h.unwrap_or(ih))
         }
-    };
-    let (fx, fy) = local.focal(w, h).or_else(|| top.focal(w, h)).ok_or_else(|| {
-        FormatError::at(
-            path,
-            field(&join_field(prefix, "fl_x")),
-            "no focal length: expected fl_x, intrinsic_matrix or camera_angle_x in the frame or at the top level",
-        )
-    })?;
-    let (lcx, lcy) = local.principal();
-    let (tcx, tcy) = top.principal();
-    let cx = lcx.or(tcx).unwrap_or(0.5 * w as f64);
-    let cy = lcy.or(tcy).unwrap_or(0.5 * h as f64);
-    let camera = Camera {
-        file_path,
-        c2w,
-        fx: fx as f32,
-        fy: fy as f32,
-        cx: cx as f32,
-        cy: cy as f32,
-        width: w,
-        height: h,
-    };
-    if ![camera.fx, camera.fy, camera.cx, camera.cy]
-        .iter()
-        .all(|v| v.is_finite())
-        || camera.fx <= 0.0
-        || camera.fy <= 0.0
-    {
-        return Err(FormatError::at(
-            path,
-            field(prefix),
-            "intrinsics out of f32 range or not positive",
-        ));
-    }
-    Ok(camera)
+    })
 }
 
 /// Normalises a frame's `file_path` (see the module doc).

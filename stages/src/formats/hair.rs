@@ -95,7 +95,29 @@ fn f32s(b: &[u8]) -> Vec<f32> {
         .collect()
 }
 
+/// Parses a `.hair` file: the header, the arrays its flags announce, then the strands.
 fn parse(path: &Path, bytes: &[u8]) -> Result<Strands, FormatError> {
+    let header = read_header(path, bytes)?;
+    let arrays = read_arrays(path, bytes, &header)?;
+    build_strands(path, &header, &arrays)
+}
+
+/// The fields of the 128-byte header that reading uses.
+struct HairHeader {
+    hair_count: usize,
+    point_count: usize,
+    flags: u32,
+    /// Segments per hair when the file has no segments array.
+    default_segments: usize,
+    /// Thickness of every hair when the file has no thickness array.
+    default_thickness: f32,
+    /// Colour of every hair when the file has no colour array.
+    default_color: [f32; 3],
+}
+
+/// Reads and checks the header: signature, size, and flags that include the points array and
+/// nothing unknown.
+fn read_header(path: &Path, bytes: &[u8]) -> Result<HairHeader, FormatError> {
     if bytes.len() < 4 || &bytes[..4] != b"HAIR" {
         return Err(FormatError::at(
             path,
@@ -113,12 +135,15 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Strands, FormatError> {
             ),
         ));
     }
-    let hair_count = u32_at(bytes, 4) as usize;
-    let point_count = u32_at(bytes, 8) as usize;
-    let flags = u32_at(bytes, 12);
-    let default_segments = u32_at(bytes, 16) as usize;
-    let default_thickness = f32_at(bytes, 20);
-    let default_color = [f32_at(bytes, 28), f32_at(bytes, 32), f32_at(bytes, 36)];
+    let header = HairHeader {
+        hair_count: u32_at(bytes, 4) as usize,
+        point_count: u32_at(bytes, 8) as usize,
+        flags: u32_at(bytes, 12),
+        default_segments: u32_at(bytes, 16) as usize,
+        default_thickness: f32_at(bytes, 20),
+        default_color: [f32_at(bytes, 28), f32_at(bytes, 32), f32_at(bytes, 36)],
+    };
+    let flags = header.flags;
     if flags & FLAG_POINTS == 0 {
         return Err(FormatError::at(
             path,
@@ -136,34 +161,31 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Strands, FormatError> {
             ),
         ));
     }
+    Ok(header)
+}
+
+/// The arrays of the file body; thickness and colour only when the flags announce them.
+struct HairArrays {
+    /// Segments of each hair.
+    segments: Vec<usize>,
+    /// Point coordinates, three per point.
+    points: Vec<f32>,
+    /// Thickness per point.
+    thickness: Option<Vec<f32>>,
+    /// Colour per point, three per point.
+    colors: Option<Vec<f32>>,
+}
+
+/// Reads the arrays after the header in file order (segments, points, thickness, transparency,
+/// colours), checking the point count, finite points and that nothing follows the last array.
+fn read_arrays(path: &Path, bytes: &[u8], header: &HairHeader) -> Result<HairArrays, FormatError> {
+    let (flags, point_count) = (header.flags, header.point_count);
     let mut cur = Cursor {
         path,
         bytes,
         pos: HEADER,
     };
-    let segments: Vec<usize> = if flags & FLAG_SEGMENTS != 0 {
-        cur.take(hair_count.saturating_mul(2), "segments array")?
-            .chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]) as usize)
-            .collect()
-    } else {
-        vec![default_segments; hair_count]
-    };
-    let total: usize = segments.iter().map(|s| s + 1).sum();
-    if total != point_count {
-        let at = if flags & FLAG_SEGMENTS != 0 {
-            HEADER
-        } else {
-            16
-        };
-        return Err(FormatError::at(
-            path,
-            Position::Byte(at as u64),
-            format!(
-                "segment counts add up to {total} points over {hair_count} hairs, but the header says {point_count} points"
-            ),
-        ));
-    }
+    let segments = read_segments(&mut cur, header)?;
     let points_start = cur.pos;
     let points = f32s(cur.take(point_count.saturating_mul(12), "points array")?);
     if let Some(i) = points.iter().position(|v| !v.is_finite()) {
@@ -200,17 +222,64 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Strands, FormatError> {
             ),
         ));
     }
+    Ok(HairArrays {
+        segments,
+        points,
+        thickness,
+        colors,
+    })
+}
 
+/// The segments of each hair (from the segments array, or the header default), which must add
+/// up to the header's point count.
+fn read_segments(cur: &mut Cursor<'_>, header: &HairHeader) -> Result<Vec<usize>, FormatError> {
+    let (flags, hair_count, point_count) = (header.flags, header.hair_count, header.point_count);
+    let segments: Vec<usize> = if flags & FLAG_SEGMENTS != 0 {
+        cur.take(hair_count.saturating_mul(2), "segments array")?
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]) as usize)
+            .collect()
+    } else {
+        vec![header.default_segments; hair_count]
+    };
+    let total: usize = segments.iter().map(|s| s + 1).sum();
+    if total != point_count {
+        let at = if flags & FLAG_SEGMENTS != 0 {
+            HEADER
+        } else {
+            16
+        };
+        return Err(FormatError::at(
+            cur.path,
+            Position::Byte(at as u64),
+            format!(
+                "segment counts add up to {total} points over {hair_count} hairs, but the header says {point_count} points"
+            ),
+        ));
+    }
+    Ok(segments)
+}
+
+/// The strands, each with the thickness and colour of its root point (or the header defaults);
+/// fails on non-finite thickness or colour values.
+fn build_strands(
+    path: &Path,
+    header: &HairHeader,
+    arrays: &HairArrays,
+) -> Result<Strands, FormatError> {
+    let (points, thickness, colors) = (&arrays.points, &arrays.thickness, &arrays.colors);
     let mut strands = Strands::new();
-    strands.points.reserve(point_count);
+    strands.points.reserve(header.point_count);
     let mut first = 0usize;
-    for &seg in &segments {
+    for &seg in &arrays.segments {
         let n = seg + 1;
         let pts: Vec<Vec3> = (first..first + n)
             .map(|i| Vec3::new(points[3 * i], points[3 * i + 1], points[3 * i + 2]))
             .collect();
-        let width = thickness.as_ref().map_or(default_thickness, |t| t[first]);
-        let color = colors.as_ref().map_or(default_color, |c| {
+        let width = thickness
+            .as_ref()
+            .map_or(header.default_thickness, |t| t[first]);
+        let color = colors.as_ref().map_or(header.default_color, |c| {
             [c[3 * first], c[3 * first + 1], c[3 * first + 2]]
         });
         strands.push(&pts, 0, width, color);

@@ -510,7 +510,41 @@ pub fn write_obj(path: impl AsRef<Path>, mesh: &Mesh) -> Result<(), FormatError>
     write_bytes(path, text.as_bytes())
 }
 
+/// The OBJ text of `mesh`: vertices, normals, faces grouped by part and, where the groups do not
+/// imply the exact vertex labels, the label runs.
 fn encode(path: &Path, mesh: &Mesh) -> Result<String, FormatError> {
+    check_writable(path, mesh)?;
+    let nv = mesh.positions.len();
+    let has_normals = !mesh.normals.is_empty();
+    let mut s = String::with_capacity(nv * 64 + mesh.triangles.len() * 32);
+    let _ = writeln!(
+        s,
+        "# fure mesh: {nv} vertices, {} triangles, {} parts",
+        mesh.triangles.len(),
+        mesh.part_names.len()
+    );
+    for p in &mesh.positions {
+        let _ = writeln!(s, "v {} {} {}", p.x, p.y, p.z);
+    }
+    for n in &mesh.normals {
+        let _ = writeln!(s, "vn {} {} {}", n.x, n.y, n.z);
+    }
+    if mesh.part_names.is_empty() {
+        for t in &mesh.triangles {
+            write_face(&mut s, t, has_normals);
+        }
+        return Ok(s);
+    }
+    let inferred = write_groups(&mut s, mesh, has_normals);
+    if inferred != mesh.part {
+        write_label_runs(&mut s, &mesh.part);
+    }
+    Ok(s)
+}
+
+/// Refuses meshes an OBJ cannot faithfully hold: mismatched normals, out-of-range indices,
+/// non-finite coordinates, and (when labelled) bad labels or part names.
+fn check_writable(path: &Path, mesh: &Mesh) -> Result<(), FormatError> {
     let nv = mesh.positions.len();
     let has_normals = !mesh.normals.is_empty();
     if has_normals && mesh.normals.len() != nv {
@@ -540,72 +574,69 @@ fn encode(path: &Path, mesh: &Mesh) -> Result<String, FormatError> {
         "normal coordinate",
         mesh.normals.iter().flat_map(|p| p.to_array()),
     )?;
-    let labelled = !mesh.part_names.is_empty();
-    if labelled {
-        if mesh.part.len() != nv {
-            return Err(FormatError::invalid(
-                path,
-                format!("{} part labels for {nv} vertices", mesh.part.len()),
-            ));
-        }
-        if let Some(i) = mesh
-            .part
-            .iter()
-            .position(|&p| p as usize >= mesh.part_names.len())
+    if !mesh.part_names.is_empty() {
+        check_labels(path, mesh)?;
+    }
+    Ok(())
+}
+
+/// Refuses part labels that are missing or beyond the names, and part names that cannot be OBJ
+/// group names.
+fn check_labels(path: &Path, mesh: &Mesh) -> Result<(), FormatError> {
+    let nv = mesh.positions.len();
+    if mesh.part.len() != nv {
+        return Err(FormatError::invalid(
+            path,
+            format!("{} part labels for {nv} vertices", mesh.part.len()),
+        ));
+    }
+    if let Some(i) = mesh
+        .part
+        .iter()
+        .position(|&p| p as usize >= mesh.part_names.len())
+    {
+        return Err(FormatError::invalid(
+            path,
+            format!(
+                "vertex {i} has part {} but there are {} part names",
+                mesh.part[i],
+                mesh.part_names.len()
+            ),
+        ));
+    }
+    for (k, name) in mesh.part_names.iter().enumerate() {
+        if name.is_empty()
+            || name.trim() != name
+            || name.contains(['\n', '\r', '#'])
+            || mesh.part_names[..k].contains(name)
         {
             return Err(FormatError::invalid(
                 path,
                 format!(
-                    "vertex {i} has part {} but there are {} part names",
-                    mesh.part[i],
-                    mesh.part_names.len()
+                    "part name {name:?} cannot be an OBJ group name (must be non-empty, unique, \
+                     without surrounding spaces, line breaks or `#`)"
                 ),
             ));
         }
-        for (k, name) in mesh.part_names.iter().enumerate() {
-            if name.is_empty()
-                || name.trim() != name
-                || name.contains(['\n', '\r', '#'])
-                || mesh.part_names[..k].contains(name)
-            {
-                return Err(FormatError::invalid(
-                    path,
-                    format!(
-                        "part name {name:?} cannot be an OBJ group name (must be non-empty, unique, \
-                         without surrounding spaces, line breaks or `#`)"
-                    ),
-                ));
-            }
-        }
     }
+    Ok(())
+}
 
-    let mut s = String::with_capacity(nv * 64 + mesh.triangles.len() * 32);
-    let _ = writeln!(
-        s,
-        "# fure mesh: {nv} vertices, {} triangles, {} parts",
-        mesh.triangles.len(),
-        mesh.part_names.len()
-    );
-    for p in &mesh.positions {
-        let _ = writeln!(s, "v {} {} {}", p.x, p.y, p.z);
-    }
-    for n in &mesh.normals {
-        let _ = writeln!(s, "vn {} {} {}", n.x, n.y, n.z);
-    }
-    let face = |s: &mut String, t: &[u32; 3]| {
-        let [a, b, c] = t.map(|i| i + 1);
-        let _ = if has_normals {
-            writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}")
-        } else {
-            writeln!(s, "f {a} {b} {c}")
-        };
+/// Writes the `f` line of triangle `t` (1-based indices, with `//n` normal indices if any).
+fn write_face(s: &mut String, t: &[u32; 3], has_normals: bool) {
+    let [a, b, c] = t.map(|i| i + 1);
+    let _ = if has_normals {
+        writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}")
+    } else {
+        writeln!(s, "f {a} {b} {c}")
     };
-    if !labelled {
-        for t in &mesh.triangles {
-            face(&mut s, t);
-        }
-        return Ok(s);
-    }
+}
+
+/// Writes the faces in one `g <part>` group per part (a triangle goes to the part of its first
+/// vertex, or of the other two when they agree) and returns the vertex labels a reader will infer
+/// from them (the group of the first face using each vertex).
+fn write_groups(s: &mut String, mesh: &Mesh, has_normals: bool) -> Vec<u16> {
+    let nv = mesh.positions.len();
     let groups: Vec<usize> = mesh
         .triangles
         .iter()
@@ -618,14 +649,13 @@ fn encode(path: &Path, mesh: &Mesh) -> Result<String, FormatError> {
     for (t, &g) in groups.iter().enumerate() {
         by_group[g].push(t);
     }
-    // What a reader will infer, to decide whether exact labels must be spelled out.
     let mut inferred = vec![0u16; nv];
     let mut seen = vec![false; nv];
     for (g, (name, tris)) in mesh.part_names.iter().zip(&by_group).enumerate() {
         let _ = writeln!(s, "g {name}");
         for &t in tris {
             let tri = &mesh.triangles[t];
-            face(&mut s, tri);
+            write_face(s, tri, has_normals);
             for &i in tri {
                 if !seen[i as usize] {
                     seen[i as usize] = true;
@@ -634,19 +664,22 @@ fn encode(path: &Path, mesh: &Mesh) -> Result<String, FormatError> {
             }
         }
     }
-    if inferred != mesh.part {
-        let mut i = 0;
-        while i < nv {
-            let p = mesh.part[i];
-            let mut j = i + 1;
-            while j < nv && mesh.part[j] == p {
-                j += 1;
-            }
-            let _ = writeln!(s, "{LABEL_COMMENT} {i} {} {p}", j - i);
-            i = j;
+    inferred
+}
+
+/// Spells out the exact vertex labels as runs: `<LABEL_COMMENT> <first> <count> <part>`.
+fn write_label_runs(s: &mut String, part: &[u16]) {
+    let nv = part.len();
+    let mut i = 0;
+    while i < nv {
+        let p = part[i];
+        let mut j = i + 1;
+        while j < nv && part[j] == p {
+            j += 1;
         }
+        let _ = writeln!(s, "{LABEL_COMMENT} {i} {} {p}", j - i);
+        i = j;
     }
-    Ok(s)
 }
 
 #[cfg(test)]

@@ -214,39 +214,56 @@ impl Ply {
     }
 }
 
+/// Parses a whole PLY file: the header, then the scalar `vertex` and `edge` columns of the body.
 fn parse(path: &Path, bytes: &[u8]) -> Result<Ply, FormatError> {
-    // Header: text lines up to and including `end_header`.
+    let header = parse_header(path, bytes)?;
+    let mut values = value_columns(&header.elements, bytes.len().saturating_sub(header.body));
+    match header.encoding {
+        Encoding::Ascii => parse_ascii(
+            path,
+            bytes,
+            header.body,
+            header.lines,
+            &header.elements,
+            &mut values,
+        )?,
+        encoding => parse_binary(
+            path,
+            bytes,
+            header.body,
+            encoding == Encoding::BinaryBe,
+            &header.elements,
+            &mut values,
+        )?,
+    }
+    Ok(Ply {
+        elements: header.elements,
+        comments: header.comments,
+        values,
+    })
+}
+
+/// What a PLY header declares, and where the body starts.
+struct Header {
+    encoding: Encoding,
+    elements: Vec<Element>,
+    comments: Vec<String>,
+    /// Byte offset of the body.
+    body: usize,
+    /// Number of header lines, `end_header` included.
+    lines: usize,
+}
+
+/// Parses the header: text lines from the magic `ply` up to and including `end_header`.
+fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, FormatError> {
     let mut pos = 0usize;
     let mut line_no = 0usize;
     let mut encoding = None;
     let mut elements: Vec<Element> = Vec::new();
     let mut comments = Vec::new();
     loop {
-        if pos >= bytes.len() {
-            return Err(FormatError::at(
-                path,
-                Position::Line(line_no + 1),
-                "file ends inside the header (expected `end_header`)",
-            ));
-        }
-        let end = bytes[pos..]
-            .iter()
-            .position(|&b| b == b'\n')
-            .map(|i| pos + i);
-        let (line_end, next) = match end {
-            Some(e) => (e, e + 1),
-            None => (bytes.len(), bytes.len()),
-        };
         line_no += 1;
-        let raw = &bytes[pos..line_end];
-        let raw = raw.strip_suffix(b"\r").unwrap_or(raw);
-        let line = std::str::from_utf8(raw).map_err(|_| {
-            FormatError::at(
-                path,
-                Position::Line(line_no),
-                "header line is not valid text",
-            )
-        })?;
+        let (line, next) = header_line(path, bytes, pos, line_no)?;
         pos = next;
         let here = Position::Line(line_no);
         if line_no == 1 {
@@ -264,81 +281,17 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Ply, FormatError> {
             continue;
         };
         match keyword {
-            "format" => {
-                let fmt = words.next().unwrap_or("");
-                let version = words.next().unwrap_or("");
-                encoding = Some(match fmt {
-                    "ascii" => Encoding::Ascii,
-                    "binary_little_endian" => Encoding::BinaryLe,
-                    "binary_big_endian" => Encoding::BinaryBe,
-                    other => {
-                        return Err(FormatError::at(
-                            path,
-                            here,
-                            format!("unknown format `{other}`: expected ascii, binary_little_endian or binary_big_endian"),
-                        ))
-                    }
-                });
-                if version != "1.0" {
-                    return Err(FormatError::at(
-                        path,
-                        here,
-                        format!("unsupported PLY version `{version}`: expected 1.0"),
-                    ));
-                }
-            }
+            "format" => encoding = Some(parse_format(path, here, words)?),
             "comment" | "obj_info" => {
                 let rest = line.trim_start()[keyword.len()..].trim();
                 comments.push(rest.to_string());
             }
-            "element" => {
-                let name = words.next().ok_or_else(|| {
-                    FormatError::at(path, here.clone(), "expected `element <name> <count>`")
-                })?;
-                let count = words
-                    .next()
-                    .and_then(|c| c.parse::<usize>().ok())
-                    .ok_or_else(|| {
-                        FormatError::at(path, here.clone(), "expected a non-negative element count")
-                    })?;
-                elements.push(Element {
-                    name: name.to_string(),
-                    count,
-                    props: Vec::new(),
-                });
-            }
+            "element" => elements.push(parse_element(path, here, words)?),
             "property" => {
                 let e = elements.last_mut().ok_or_else(|| {
                     FormatError::at(path, here.clone(), "`property` before any `element`")
                 })?;
-                let t = words.next().unwrap_or("");
-                let kind = if t == "list" {
-                    let c = words.next().and_then(Scalar::parse);
-                    let i = words.next().and_then(Scalar::parse);
-                    match (c, i) {
-                        (Some(count), Some(item)) if count.is_int() => {
-                            PropKind::List { count, item }
-                        }
-                        _ => {
-                            return Err(FormatError::at(
-                                path,
-                                here,
-                                "expected `property list <integer type> <type> <name>`",
-                            ))
-                        }
-                    }
-                } else {
-                    PropKind::Scalar(Scalar::parse(t).ok_or_else(|| {
-                        FormatError::at(path, here.clone(), format!("unknown property type `{t}`"))
-                    })?)
-                };
-                let name = words.next().ok_or_else(|| {
-                    FormatError::at(path, here.clone(), "property without a name")
-                })?;
-                e.props.push(Property {
-                    name: name.to_string(),
-                    kind,
-                });
+                e.props.push(parse_property(path, here, words)?);
             }
             "end_header" => break,
             other => {
@@ -352,16 +305,147 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Ply, FormatError> {
     }
     let encoding = encoding
         .ok_or_else(|| FormatError::at(path, Position::Line(2), "header has no `format` line"))?;
+    Ok(Header {
+        encoding,
+        elements,
+        comments,
+        body: pos,
+        lines: line_no,
+    })
+}
+
+/// Header line `line_no`, starting at byte `pos`, without its line break (LF or CRLF), and the
+/// offset of the next line.
+fn header_line<'a>(
+    path: &Path,
+    bytes: &'a [u8],
+    pos: usize,
+    line_no: usize,
+) -> Result<(&'a str, usize), FormatError> {
+    if pos >= bytes.len() {
+        return Err(FormatError::at(
+            path,
+            Position::Line(line_no),
+            "file ends inside the header (expected `end_header`)",
+        ));
+    }
+    let end = bytes[pos..]
+        .iter()
+        .position(|&b| b == b'\n')
+        .map(|i| pos + i);
+    let (line_end, next) = match end {
+        Some(e) => (e, e + 1),
+        None => (bytes.len(), bytes.len()),
+    };
+    let raw = &bytes[pos..line_end];
+    let raw = raw.strip_suffix(b"\r").unwrap_or(raw);
+    let line = std::str::from_utf8(raw).map_err(|_| {
+        FormatError::at(
+            path,
+            Position::Line(line_no),
+            "header line is not valid text",
+        )
+    })?;
+    Ok((line, next))
+}
+
+/// The encoding of a `format <encoding> 1.0` line (`words` after the keyword).
+fn parse_format(
+    path: &Path,
+    here: Position,
+    mut words: std::str::SplitWhitespace,
+) -> Result<Encoding, FormatError> {
+    let fmt = words.next().unwrap_or("");
+    let version = words.next().unwrap_or("");
+    let encoding = match fmt {
+        "ascii" => Encoding::Ascii,
+        "binary_little_endian" => Encoding::BinaryLe,
+        "binary_big_endian" => Encoding::BinaryBe,
+        other => {
+            return Err(FormatError::at(
+                path,
+                here,
+                format!("unknown format `{other}`: expected ascii, binary_little_endian or binary_big_endian"),
+            ))
+        }
+    };
+    if version != "1.0" {
+        return Err(FormatError::at(
+            path,
+            here,
+            format!("unsupported PLY version `{version}`: expected 1.0"),
+        ));
+    }
+    Ok(encoding)
+}
+
+/// The element of an `element <name> <count>` line (`words` after the keyword), no properties yet.
+fn parse_element(
+    path: &Path,
+    here: Position,
+    mut words: std::str::SplitWhitespace,
+) -> Result<Element, FormatError> {
+    let name = words
+        .next()
+        .ok_or_else(|| FormatError::at(path, here.clone(), "expected `element <name> <count>`"))?;
+    let count = words
+        .next()
+        .and_then(|c| c.parse::<usize>().ok())
+        .ok_or_else(|| {
+            FormatError::at(path, here.clone(), "expected a non-negative element count")
+        })?;
+    Ok(Element {
+        name: name.to_string(),
+        count,
+        props: Vec::new(),
+    })
+}
+
+/// The property of a `property <type> <name>` or `property list <count type> <type> <name>`
+/// line (`words` after the keyword).
+fn parse_property(
+    path: &Path,
+    here: Position,
+    mut words: std::str::SplitWhitespace,
+) -> Result<Property, FormatError> {
+    let t = words.next().unwrap_or("");
+    let kind = if t == "list" {
+        let c = words.next().and_then(Scalar::parse);
+        let i = words.next().and_then(Scalar::parse);
+        match (c, i) {
+            (Some(count), Some(item)) if count.is_int() => PropKind::List { count, item },
+            _ => {
+                return Err(FormatError::at(
+                    path,
+                    here,
+                    "expected `property list <integer type> <type> <name>`",
+                ))
+            }
+        }
+    } else {
+        PropKind::Scalar(Scalar::parse(t).ok_or_else(|| {
+            FormatError::at(path, here.clone(), format!("unknown property type `{t}`"))
+        })?)
+    };
+    let name = words
+        .next()
+        .ok_or_else(|| FormatError::at(path, here.clone(), "property without a name"))?;
+    Ok(Property {
+        name: name.to_string(),
+        kind,
+    })
+}
+
+/// Empty value columns for the scalar properties of `vertex` and `edge` (`None` for the others).
+/// Each reserves what the `body_len` bytes can hold at most (every row takes at least one byte
+/// per property), so a header claiming billions of rows cannot make us allocate before the data
+/// says otherwise.
+fn value_columns(elements: &[Element], body_len: usize) -> Vec<Vec<Option<Vec<f64>>>> {
     let wanted = |e: &Element, p: &Property| {
         (e.name == "vertex" || e.name == "edge") && matches!(p.kind, PropKind::Scalar(_))
     };
-    // Reserve what the file can hold at most (every row takes at least one byte per property), so
-    // a header claiming billions of rows cannot make us allocate before the data says otherwise.
-    let cap = |e: &Element| {
-        e.count
-            .min(bytes.len().saturating_sub(pos) / e.props.len().max(1))
-    };
-    let mut values: Vec<Vec<Option<Vec<f64>>>> = elements
+    let cap = |e: &Element| e.count.min(body_len / e.props.len().max(1));
+    elements
         .iter()
         .map(|e| {
             e.props
@@ -369,23 +453,7 @@ fn parse(path: &Path, bytes: &[u8]) -> Result<Ply, FormatError> {
                 .map(|p| wanted(e, p).then(|| Vec::with_capacity(cap(e))))
                 .collect()
         })
-        .collect();
-    match encoding {
-        Encoding::Ascii => parse_ascii(path, bytes, pos, line_no, &elements, &mut values)?,
-        _ => parse_binary(
-            path,
-            bytes,
-            pos,
-            encoding == Encoding::BinaryBe,
-            &elements,
-            &mut values,
-        )?,
-    }
-    Ok(Ply {
-        elements,
-        comments,
-        values,
-    })
+        .collect()
 }
 
 fn parse_binary(
@@ -567,67 +635,14 @@ fn parse_ascii(
 
 const PARTS_COMMENT: &str = "fure parts ";
 
+/// The strands of a parsed PLY: vertices, connectivity (fixed-length runs, a `strand` column or
+/// `edge` elements), per-strand attributes from each root vertex and the part names.
 fn assemble(path: &Path, ply: &Ply, fixed: Option<usize>) -> Result<Strands, FormatError> {
     let v = ply.element("vertex").ok_or_else(|| {
         FormatError::at(path, Position::Line(1), "no `vertex` element in the header")
     })?;
-    let n = ply.elements[v].count;
-    let coord = |name: &str| {
-        ply.column(v, name).map(|c| c.0).ok_or_else(|| {
-            FormatError::at(
-                path,
-                Position::Line(1),
-                format!("element `vertex` has no scalar property `{name}`"),
-            )
-        })
-    };
-    let (xs, ys, zs) = (coord("x")?, coord("y")?, coord("z")?);
-    let points: Vec<Vec3> = (0..n)
-        .map(|i| Vec3::new(xs[i] as f32, ys[i] as f32, zs[i] as f32))
-        .collect();
-    if let Some(i) = points.iter().position(|p| !p.is_finite()) {
-        return Err(FormatError::invalid(
-            path,
-            format!("vertex {i} has a non-finite (or out of f32 range) coordinate"),
-        ));
-    }
-
-    // Strands as vertex index sequences, root first.
-    let chains: Vec<Vec<usize>> = if let Some(k) = fixed {
-        if !n.is_multiple_of(k) {
-            return Err(FormatError::invalid(
-                path,
-                format!("{n} vertices do not split into strands of {k} points"),
-            ));
-        }
-        (0..n / k).map(|s| (s * k..(s + 1) * k).collect()).collect()
-    } else if let Some((ids, _)) = ply.column(v, "strand") {
-        let mut chains: Vec<Vec<usize>> = Vec::new();
-        for i in 0..n {
-            if i == 0 || ids[i] != ids[i - 1] {
-                chains.push(Vec::new());
-            }
-            chains.last_mut().unwrap().push(i);
-        }
-        chains
-    } else if let Some(e) = ply.element("edge") {
-        let a = ply.column(e, "vertex1");
-        let b = ply.column(e, "vertex2");
-        let (Some((a, _)), Some((b, _))) = (a, b) else {
-            return Err(FormatError::invalid(
-                path,
-                "element `edge` lacks scalar properties `vertex1` and `vertex2`",
-            ));
-        };
-        chains_from_edges(path, n, a, b)?
-    } else {
-        return Err(FormatError::invalid(
-            path,
-            "no connectivity: expected an `edge` element or a per-vertex `strand` property \
-             (a vertex-only PLY needs read_ply_points_as_strands with the points per strand)",
-        ));
-    };
-
+    let points = vertex_points(path, ply, v)?;
+    let chains = strand_chains(path, ply, v, fixed)?;
     let part_col = ply.column(v, "part").map(|c| c.0);
     let width_col = ply.column(v, "width").map(|c| c.0);
     let colour: Option<[(&[f64], Scalar); 3]> = match (
@@ -638,40 +653,7 @@ fn assemble(path: &Path, ply: &Ply, fixed: Option<usize>) -> Result<Strands, For
         (Some(r), Some(g), Some(b)) => Some([r, g, b]),
         _ => None,
     };
-    let mut part_names: Vec<String> = Vec::new();
-    for c in &ply.comments {
-        if let Some(json) = c.strip_prefix(PARTS_COMMENT) {
-            part_names = serde_json::from_str(json).map_err(|e| {
-                FormatError::invalid(
-                    path,
-                    format!("header comment `fure parts`: expected a JSON array of names ({e})"),
-                )
-            })?;
-        }
-    }
-    if let Some(parts) = part_col {
-        let max = parts.iter().copied().fold(-1.0f64, f64::max);
-        if let Some(i) = parts
-            .iter()
-            .position(|&p| p < 0.0 || p.fract() != 0.0 || p > u16::MAX as f64)
-        {
-            return Err(FormatError::invalid(
-                path,
-                format!("vertex {i}: part {} is not a valid part index", parts[i]),
-            ));
-        }
-        if part_names.is_empty() && max >= 0.0 {
-            part_names = (0..=max as usize).map(|i| format!("part{i}")).collect();
-        } else if max >= part_names.len() as f64 {
-            return Err(FormatError::invalid(
-                path,
-                format!(
-                    "part index {max} but the header names only {} parts",
-                    part_names.len()
-                ),
-            ));
-        }
-    }
+    let part_names = header_part_names(path, ply, part_col)?;
 
     let mut strands = Strands::new();
     strands.part_names = part_names;
@@ -706,6 +688,121 @@ fn assemble(path: &Path, ply: &Ply, fixed: Option<usize>) -> Result<Strands, For
         ));
     }
     Ok(strands)
+}
+
+/// The positions of vertex element `v` from its `x`, `y` and `z` columns; fails on a missing
+/// column or a non-finite coordinate.
+fn vertex_points(path: &Path, ply: &Ply, v: usize) -> Result<Vec<Vec3>, FormatError> {
+    let n = ply.elements[v].count;
+    let coord = |name: &str| {
+        ply.column(v, name).map(|c| c.0).ok_or_else(|| {
+            FormatError::at(
+                path,
+                Position::Line(1),
+                format!("element `vertex` has no scalar property `{name}`"),
+            )
+        })
+    };
+    let (xs, ys, zs) = (coord("x")?, coord("y")?, coord("z")?);
+    let points: Vec<Vec3> = (0..n)
+        .map(|i| Vec3::new(xs[i] as f32, ys[i] as f32, zs[i] as f32))
+        .collect();
+    if let Some(i) = points.iter().position(|p| !p.is_finite()) {
+        return Err(FormatError::invalid(
+            path,
+            format!("vertex {i} has a non-finite (or out of f32 range) coordinate"),
+        ));
+    }
+    Ok(points)
+}
+
+/// Strands as vertex index sequences, root first: runs of `fixed` points when given, else runs of
+/// equal `strand` values, else the open polylines of the `edge` element.
+fn strand_chains(
+    path: &Path,
+    ply: &Ply,
+    v: usize,
+    fixed: Option<usize>,
+) -> Result<Vec<Vec<usize>>, FormatError> {
+    let n = ply.elements[v].count;
+    if let Some(k) = fixed {
+        if !n.is_multiple_of(k) {
+            return Err(FormatError::invalid(
+                path,
+                format!("{n} vertices do not split into strands of {k} points"),
+            ));
+        }
+        Ok((0..n / k).map(|s| (s * k..(s + 1) * k).collect()).collect())
+    } else if let Some((ids, _)) = ply.column(v, "strand") {
+        let mut chains: Vec<Vec<usize>> = Vec::new();
+        for i in 0..n {
+            if i == 0 || ids[i] != ids[i - 1] {
+                chains.push(Vec::new());
+            }
+            chains.last_mut().unwrap().push(i);
+        }
+        Ok(chains)
+    } else if let Some(e) = ply.element("edge") {
+        let a = ply.column(e, "vertex1");
+        let b = ply.column(e, "vertex2");
+        let (Some((a, _)), Some((b, _))) = (a, b) else {
+            return Err(FormatError::invalid(
+                path,
+                "element `edge` lacks scalar properties `vertex1` and `vertex2`",
+            ));
+        };
+        chains_from_edges(path, n, a, b)
+    } else {
+        Err(FormatError::invalid(
+            path,
+            "no connectivity: expected an `edge` element or a per-vertex `strand` property \
+             (a vertex-only PLY needs read_ply_points_as_strands with the points per strand)",
+        ))
+    }
+}
+
+/// The part names: from the `fure parts` header comment (the last one wins), else `part<i>` up to
+/// the largest index of the `part` column; fails on invalid indices or one beyond the names.
+fn header_part_names(
+    path: &Path,
+    ply: &Ply,
+    part_col: Option<&[f64]>,
+) -> Result<Vec<String>, FormatError> {
+    let mut part_names: Vec<String> = Vec::new();
+    for c in &ply.comments {
+        if let Some(json) = c.strip_prefix(PARTS_COMMENT) {
+            part_names = serde_json::from_str(json).map_err(|e| {
+                FormatError::invalid(
+                    path,
+                    format!("header comment `fure parts`: expected a JSON array of names ({e})"),
+                )
+            })?;
+        }
+    }
+    if let Some(parts) = part_col {
+        let max = parts.iter().copied().fold(-1.0f64, f64::max);
+        if let Some(i) = parts
+            .iter()
+            .position(|&p| p < 0.0 || p.fract() != 0.0 || p > u16::MAX as f64)
+        {
+            return Err(FormatError::invalid(
+                path,
+                format!("vertex {i}: part {} is not a valid part index", parts[i]),
+            ));
+        }
+        if part_names.is_empty() && max >= 0.0 {
+            part_names = (0..=max as usize).map(|i| format!("part{i}")).collect();
+        } else if max >= part_names.len() as f64 {
+            return Err(FormatError::invalid(
+                path,
+                format!(
+                    "part index {max} but the header names only {} parts",
+                    part_names.len()
+                ),
+            ));
+        }
+    }
+    Ok(part_names)
 }
 
 fn chains_from_edges(
@@ -773,7 +870,22 @@ fn chains_from_edges(
 // ---------------------------------------------------------------------------------------------
 // Writing.
 
+/// The PLY file of `strands`: header, then vertices and edges, as text or little-endian binary.
 fn encode(path: &Path, strands: &Strands, ascii: bool) -> Result<Vec<u8>, FormatError> {
+    check_writable(path, strands)?;
+    let mut out = Vec::new();
+    out.extend_from_slice(encode_header(path, strands, ascii)?.as_bytes());
+    if ascii {
+        out.extend_from_slice(ascii_body(strands).as_bytes());
+    } else {
+        write_binary_body(strands, &mut out);
+    }
+    Ok(out)
+}
+
+/// Refuses strand sets a PLY cannot faithfully hold: inconsistent arrays, part indices beyond
+/// the names, non-finite values, more points than an `int` can index.
+fn check_writable(path: &Path, strands: &Strands) -> Result<(), FormatError> {
     let n = strands.len();
     if strands.starts.first().copied().unwrap_or(0) != 0
         || strands.starts.windows(2).any(|w| w[0] > w[1])
@@ -814,12 +926,17 @@ fn encode(path: &Path, strands: &Strands, ascii: bool) -> Result<Vec<u8>, Format
         "strand colour",
         strands.color.iter().flatten().copied(),
     )?;
-    let nv = strands.points.len();
-    if nv > i32::MAX as usize {
+    if strands.points.len() > i32::MAX as usize {
         return Err(FormatError::invalid(path, "more than 2^31 - 1 points"));
     }
+    Ok(())
+}
+
+/// The header: format, the part names as a `fure parts` comment, the `vertex` element with
+/// per-point strand attributes and the `edge` element.
+fn encode_header(path: &Path, strands: &Strands, ascii: bool) -> Result<String, FormatError> {
+    let nv = strands.points.len();
     let ne = strands.segment_count();
-    let mut out = Vec::new();
     let mut header = String::new();
     header.push_str("ply\n");
     header.push_str(if ascii {
@@ -850,51 +967,57 @@ fn encode(path: &Path, strands: &Strands, ascii: bool) -> Result<Vec<u8>, Format
     header.push_str(&format!(
         "element edge {ne}\nproperty int vertex1\nproperty int vertex2\nend_header\n"
     ));
-    out.extend_from_slice(header.as_bytes());
-    if ascii {
-        use std::fmt::Write;
-        let mut s = String::new();
-        for k in 0..n {
-            let [r, g, b] = strands.color[k];
-            for p in strands.strand(k) {
-                let _ = writeln!(
-                    s,
-                    "{} {} {} {k} {} {} {r} {g} {b}",
-                    p.x, p.y, p.z, strands.part[k], strands.width[k]
-                );
-            }
+    Ok(header)
+}
+
+/// The text body: one line per vertex, then one per edge.
+fn ascii_body(strands: &Strands) -> String {
+    use std::fmt::Write;
+    let n = strands.len();
+    let mut s = String::new();
+    for k in 0..n {
+        let [r, g, b] = strands.color[k];
+        for p in strands.strand(k) {
+            let _ = writeln!(
+                s,
+                "{} {} {} {k} {} {} {r} {g} {b}",
+                p.x, p.y, p.z, strands.part[k], strands.width[k]
+            );
         }
-        for k in 0..n {
-            let a = strands.starts[k];
-            for i in a..strands.starts[k + 1].saturating_sub(1) {
-                let _ = writeln!(s, "{i} {}", i + 1);
-            }
+    }
+    for k in 0..n {
+        let a = strands.starts[k];
+        for i in a..strands.starts[k + 1].saturating_sub(1) {
+            let _ = writeln!(s, "{i} {}", i + 1);
         }
-        out.extend_from_slice(s.as_bytes());
-    } else {
-        out.reserve(nv * 36 + ne * 8);
-        for k in 0..n {
-            for p in strands.strand(k) {
-                for v in p.to_array() {
-                    out.extend_from_slice(&v.to_le_bytes());
-                }
-                out.extend_from_slice(&(k as i32).to_le_bytes());
-                out.extend_from_slice(&(strands.part[k] as i32).to_le_bytes());
-                out.extend_from_slice(&strands.width[k].to_le_bytes());
-                for c in strands.color[k] {
-                    out.extend_from_slice(&c.to_le_bytes());
-                }
+    }
+    s
+}
+
+/// Appends the little-endian binary body to `out`: the vertex rows, then the edge rows.
+fn write_binary_body(strands: &Strands, out: &mut Vec<u8>) {
+    let n = strands.len();
+    out.reserve(strands.points.len() * 36 + strands.segment_count() * 8);
+    for k in 0..n {
+        for p in strands.strand(k) {
+            for v in p.to_array() {
+                out.extend_from_slice(&v.to_le_bytes());
             }
-        }
-        for k in 0..n {
-            let a = strands.starts[k];
-            for i in a..strands.starts[k + 1].saturating_sub(1) {
-                out.extend_from_slice(&(i as i32).to_le_bytes());
-                out.extend_from_slice(&((i + 1) as i32).to_le_bytes());
+            out.extend_from_slice(&(k as i32).to_le_bytes());
+            out.extend_from_slice(&(strands.part[k] as i32).to_le_bytes());
+            out.extend_from_slice(&strands.width[k].to_le_bytes());
+            for c in strands.color[k] {
+                out.extend_from_slice(&c.to_le_bytes());
             }
         }
     }
-    Ok(out)
+    for k in 0..n {
+        let a = strands.starts[k];
+        for i in a..strands.starts[k + 1].saturating_sub(1) {
+            out.extend_from_slice(&(i as i32).to_le_bytes());
+            out.extend_from_slice(&((i + 1) as i32).to_le_bytes());
+        }
+    }
 }
 
 #[cfg(test)]
