@@ -1080,28 +1080,9 @@ impl Stage for EvaluateStage {
         let bgv = &p.background;
         let bg = [bgv[0] as f32, bgv[1] as f32, bgv[2] as f32];
 
-        let scene_path = ctx.input("gt_scene")?;
-        let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
-        let s_cm = scene.s_cm;
-        if !(s_cm > 0.0 && s_cm.is_finite()) {
-            return Err(StageError::input(
-                "gt_scene",
-                scene_path,
-                format!("field `s_cm`: expected a positive number, found {s_cm}"),
-            ));
-        }
+        let s_cm = read_scale(ctx)?;
         ctx.progress.message("reading strands");
-        let pred = read_strands_any(ctx.input("strands")?)?;
-        let gt = read_strands_any(ctx.input("gt_strands")?)?;
-        ensure_finite_points("predicted strands", &pred)?;
-        ensure_finite_points("ground-truth strands", &gt)?;
-        if gt.is_empty() {
-            return Err(StageError::input(
-                "gt_strands",
-                ctx.input("gt_strands")?,
-                "holds no strands",
-            ));
-        }
+        let (pred, gt) = read_strand_sets(ctx)?;
         ctx.progress.set_total(4);
         ctx.progress
             .message("precision / recall (unsigned and signed)");
@@ -1113,13 +1094,7 @@ impl Stage for EvaluateStage {
         ctx.progress.message("geometry metrics");
         let geo = geometry_metrics(&pred, s_cm, spacing, neighbour);
         let geo_gt = geometry_metrics(&gt, s_cm, spacing, neighbour);
-        let skin = match ctx.input_opt("gt_skin") {
-            Some(path) => Some(
-                crate::formats::obj::read_obj(path)
-                    .map_err(|e| StageError::input("gt_skin", path, e))?,
-            ),
-            None => None,
-        };
+        let skin = read_skin(ctx)?;
         let direction_error = direction_error_deg(&pred, &gt, skin.as_ref())?;
         let ratio = |a: f64, b: f64| (b > 0.0 && a.is_finite()).then(|| a / b);
         let curvature_ratio = ratio(
@@ -1128,38 +1103,11 @@ impl Stage for EvaluateStage {
         );
         ctx.progress.advance(1);
 
-        let (psnr_v, ssim_v, n_views) = match (ctx.input_opt("renders"), ctx.input_opt("views")) {
-            (Some(r), Some(v)) => {
-                ctx.progress.message("PSNR / SSIM");
-                let (a, b, n) = image_metrics(r, v, bg)?;
-                (Some(a), Some(b), n)
-            }
-            (Some(_), None) | (None, Some(_)) => {
-                return Err(StageError::failed(
-                    "inputs `renders` and `views` must be connected together (or neither)",
-                ))
-            }
-            (None, None) => (None, None, 0),
-        };
+        let (psnr_v, ssim_v, n_views) = held_out_image_metrics(ctx, bg)?;
         ctx.progress.advance(1);
 
-        let (train_seconds, optimised_parameters) = match ctx.input_opt("train_report") {
-            Some(path) => {
-                let v: serde_json::Value = crate::formats::json::read_json(path)?;
-                (
-                    v.get("train_seconds").and_then(|x| x.as_f64()),
-                    v.get("optimised_parameters").and_then(|x| x.as_u64()),
-                )
-            }
-            None => (None, None),
-        };
-
-        let mut finite: Vec<f32> = Vec::new();
-        for x in prf.iter().chain(&prf_signed) {
-            finite.extend([x.precision, x.recall, x.fscore]);
-        }
-        finite.extend(psnr_v.into_iter().chain(ssim_v));
-        fure_stage_api::ensure_finite("evaluation metrics", finite)?;
+        let (train_seconds, optimised_parameters) = read_train_report(ctx)?;
+        ensure_finite_metrics(&prf, &prf_signed, psnr_v, ssim_v)?;
 
         let (np, ng) = (pred_set.len(), gt_set.len());
         let out = serde_json::json!({
@@ -1194,7 +1142,6 @@ impl Stage for EvaluateStage {
                  within the angle (prf: |dot|, direction sign ignored; prf_signed: dot); percent",
         });
         crate::formats::json::write_json(ctx.output("metrics")?, &out)?;
-        let f3 = prf.iter().find(|x| x.dist_cm == 3.0).map(|x| x.fscore);
         ctx.progress.note(&format!(
             "F-score (unsigned): {}; mean length {:.2} cm",
             prf.iter()
@@ -1203,9 +1150,100 @@ impl Stage for EvaluateStage {
                 .join(", "),
             geo.mean_length_cm
         ));
-        let _ = f3;
         Ok(())
     }
+}
+
+/// The scene scale `s_cm` (cm per scene unit) from `gt_scene`, required positive and finite.
+fn read_scale(ctx: &StageContext<'_>) -> Result<f32, StageError> {
+    let scene_path = ctx.input("gt_scene")?;
+    let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
+    let s_cm = scene.s_cm;
+    if !(s_cm > 0.0 && s_cm.is_finite()) {
+        return Err(StageError::input(
+            "gt_scene",
+            scene_path,
+            format!("field `s_cm`: expected a positive number, found {s_cm}"),
+        ));
+    }
+    Ok(s_cm)
+}
+
+/// The predicted and ground-truth strands, with finite points and at least one GT strand.
+fn read_strand_sets(ctx: &StageContext<'_>) -> Result<(Strands, Strands), StageError> {
+    let pred = read_strands_any(ctx.input("strands")?)?;
+    let gt = read_strands_any(ctx.input("gt_strands")?)?;
+    ensure_finite_points("predicted strands", &pred)?;
+    ensure_finite_points("ground-truth strands", &gt)?;
+    if gt.is_empty() {
+        return Err(StageError::input(
+            "gt_strands",
+            ctx.input("gt_strands")?,
+            "holds no strands",
+        ));
+    }
+    Ok((pred, gt))
+}
+
+/// The GT skin mesh, when `gt_skin` is connected.
+fn read_skin(ctx: &StageContext<'_>) -> Result<Option<crate::data::mesh::Mesh>, StageError> {
+    Ok(match ctx.input_opt("gt_skin") {
+        Some(path) => Some(
+            crate::formats::obj::read_obj(path)
+                .map_err(|e| StageError::input("gt_skin", path, e))?,
+        ),
+        None => None,
+    })
+}
+
+/// Mean PSNR and SSIM over the held-out views and how many there were, when `renders` and
+/// `views` are connected (both or neither).
+fn held_out_image_metrics(
+    ctx: &StageContext<'_>,
+    bg: [f32; 3],
+) -> Result<(Option<f32>, Option<f32>, usize), StageError> {
+    Ok(match (ctx.input_opt("renders"), ctx.input_opt("views")) {
+        (Some(r), Some(v)) => {
+            ctx.progress.message("PSNR / SSIM");
+            let (a, b, n) = image_metrics(r, v, bg)?;
+            (Some(a), Some(b), n)
+        }
+        (Some(_), None) | (None, Some(_)) => {
+            return Err(StageError::failed(
+                "inputs `renders` and `views` must be connected together (or neither)",
+            ))
+        }
+        (None, None) => (None, None, 0),
+    })
+}
+
+/// The training time and optimised parameter count from `train_report`, when connected.
+fn read_train_report(ctx: &StageContext<'_>) -> Result<(Option<f64>, Option<u64>), StageError> {
+    Ok(match ctx.input_opt("train_report") {
+        Some(path) => {
+            let v: serde_json::Value = crate::formats::json::read_json(path)?;
+            (
+                v.get("train_seconds").and_then(|x| x.as_f64()),
+                v.get("optimised_parameters").and_then(|x| x.as_u64()),
+            )
+        }
+        None => (None, None),
+    })
+}
+
+/// Refuses non-finite precision, recall, F-score, PSNR or SSIM values.
+fn ensure_finite_metrics(
+    prf: &[Prf],
+    prf_signed: &[Prf],
+    psnr_v: Option<f32>,
+    ssim_v: Option<f32>,
+) -> Result<(), StageError> {
+    let mut finite: Vec<f32> = Vec::new();
+    for x in prf.iter().chain(prf_signed) {
+        finite.extend([x.precision, x.recall, x.fscore]);
+    }
+    finite.extend(psnr_v.into_iter().chain(ssim_v));
+    fure_stage_api::ensure_finite("evaluation metrics", finite)
 }
 
 fn ensure_finite_points(what: &str, s: &Strands) -> Result<(), StageError> {

@@ -440,105 +440,27 @@ impl Stage for SpeedAccuracyStage {
         let spacing = p.spacing_cm;
         let max_q = p.max_queries;
         let size = (p.width, p.height);
-        let scene_path = ctx.input("gt_scene")?;
-        let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
-        if !(scene.s_cm > 0.0 && scene.s_cm.is_finite()) {
-            return Err(StageError::input(
-                "gt_scene",
-                scene_path,
-                format!(
-                    "field `s_cm`: expected a positive number, found {}",
-                    scene.s_cm
-                ),
-            ));
-        }
-        let gt = crate::evaluation::evaluate::read_strands_any(ctx.input("gt_strands")?)?;
-        if gt.is_empty() {
-            return Err(StageError::input(
-                "gt_strands",
-                ctx.input("gt_strands")?,
-                "holds no strands",
-            ));
-        }
+        let s_cm = read_scene_scale(ctx)?;
+        let gt = read_gt_strands(ctx)?;
         // The ground truth's oriented points and grid, built once for every snapshot.
         let cell = match_cell(&PAPER_THRESHOLDS);
-        let gt_set = OrientedSet::new(&gt, scene.s_cm, spacing, cell);
-        let mut scored: Vec<Vec<ScoredSnapshot>> = Vec::new();
-        let lists: Vec<(&str, PathBuf, Vec<Snapshot>)> = ["codec", "dense"]
-            .iter()
-            .map(|m| read_snapshots(m, ctx.input(m)?).map(|(d, l)| (*m, d, l)))
-            .collect::<Result<_, _>>()?;
-        ctx.progress
-            .set_total(lists.iter().map(|l| l.2.len() as u64).sum());
-        for (method, dir, list) in &lists {
-            let mut v = Vec::new();
-            for s in list {
-                ctx.progress
-                    .message(&format!("scoring {method} {}", s.file));
-                let strands: Strands =
-                    crate::evaluation::evaluate::read_strands_any(&dir.join(&s.file))?;
-                let pred = OrientedSet::new(&strands, scene.s_cm, spacing, cell);
-                let (prf, _) = strand_prf_sets(&pred, &gt_set, &PAPER_THRESHOLDS, max_q);
-                fure_stage_api::ensure_finite(
-                    "snapshot scores",
-                    prf.iter().flat_map(|x| [x.precision, x.recall, x.fscore]),
-                )?;
-                v.push(ScoredSnapshot {
-                    method: method.to_string(),
-                    file: s.file.clone(),
-                    seconds: s.seconds,
-                    iteration: s.iteration,
-                    optimised_parameters: s.optimised_parameters,
-                    prf,
-                });
-                ctx.progress.advance(1);
-            }
-            // Time order (the learners write them in order; sorting makes it a guarantee).
-            v.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
-            scored.push(v);
-        }
+        let scoring = Scoring {
+            gt_set: OrientedSet::new(&gt, s_cm, spacing, cell),
+            s_cm,
+            spacing,
+            cell,
+            max_q,
+        };
+        let scored = scoring.score_all(ctx)?;
         let (codec, dense) = (&scored[0], &scored[1]);
         let sp =
             speedup(codec, dense).ok_or_else(|| StageError::failed("no snapshots to compare"))?;
         ctx.progress.note(&sp.speedup_note);
 
         ctx.progress.message("drawing charts");
-        let series: Vec<(&str, &[ScoredSnapshot])> =
-            vec![("codec", codec.as_slice()), ("dense", dense.as_slice())];
-        let finals: Vec<(&str, f64, f64)> = series
-            .iter()
-            .filter_map(|(n, s)| {
-                s.last()
-                    .map(|l| (*n, l.optimised_parameters as f64, l.f3()))
-            })
-            .collect();
-        let df = Some(sp.dense_final_fscore);
-        write_png_chart(ctx.output("chart_time")?, size, |r| {
-            draw_time_chart(r, &series, df)
-        })?;
-        write_svg_chart(ctx.output("chart_time_svg")?, size, |r| {
-            draw_time_chart(r, &series, df)
-        })?;
-        write_png_chart(ctx.output("chart_params")?, size, |r| {
-            draw_params_chart(r, &finals)
-        })?;
-        write_svg_chart(ctx.output("chart_params_svg")?, size, |r| {
-            draw_params_chart(r, &finals)
-        })?;
-
+        write_charts(ctx, size, codec, dense, sp.dense_final_fscore)?;
         let all: Vec<ScoredSnapshot> = scored.iter().flatten().cloned().collect();
-        let (md, csv) = tables(&all);
-        let md = format!(
-            "# Speed against accuracy\n\n{}\n\nSpeed-up to the dense final F-score at 3cm/30deg: {}\n\n{md}",
-            sp.speedup_note,
-            sp.speedup_to_dense_final_fscore
-                .map(|x| format!("{x:.2}x"))
-                .unwrap_or_else(|| "n/a".into())
-        );
-        let md_path = ctx.output("table_md")?;
-        std::fs::write(md_path, md).map_err(|e| StageError::io(md_path, e))?;
-        let csv_path = ctx.output("table_csv")?;
-        std::fs::write(csv_path, csv).map_err(|e| StageError::io(csv_path, e))?;
+        write_tables(ctx, &all, &sp)?;
         let metrics = serde_json::json!({
             "speedup_to_dense_final_fscore": sp.speedup_to_dense_final_fscore,
             "speedup_low": sp.speedup_bracket.map(|b| b.0),
@@ -560,12 +482,150 @@ impl Stage for SpeedAccuracyStage {
             "codec_reached_dense_final_at_start": u8::from(sp.codec_seconds_to_dense_final == Some(0.0)),
             "spacing_cm": spacing,
             "max_queries": max_q,
-            "gt_oriented_points": gt_set.len(),
+            "gt_oriented_points": scoring.gt_set.len(),
             "snapshots": all,
         });
         crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
         Ok(())
     }
+}
+
+/// The scene scale `s_cm` (cm per scene unit) from `gt_scene`, required positive and finite.
+fn read_scene_scale(ctx: &StageContext<'_>) -> Result<f32, StageError> {
+    let scene_path = ctx.input("gt_scene")?;
+    let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
+    if !(scene.s_cm > 0.0 && scene.s_cm.is_finite()) {
+        return Err(StageError::input(
+            "gt_scene",
+            scene_path,
+            format!(
+                "field `s_cm`: expected a positive number, found {}",
+                scene.s_cm
+            ),
+        ));
+    }
+    Ok(scene.s_cm)
+}
+
+/// The ground-truth strands, at least one.
+fn read_gt_strands(ctx: &StageContext<'_>) -> Result<Strands, StageError> {
+    let gt = crate::evaluation::evaluate::read_strands_any(ctx.input("gt_strands")?)?;
+    if gt.is_empty() {
+        return Err(StageError::input(
+            "gt_strands",
+            ctx.input("gt_strands")?,
+            "holds no strands",
+        ));
+    }
+    Ok(gt)
+}
+
+/// Scores snapshots against the ground truth's oriented points at the paper's thresholds.
+struct Scoring {
+    gt_set: OrientedSet,
+    s_cm: f32,
+    spacing: f32,
+    cell: f32,
+    max_q: usize,
+}
+
+impl Scoring {
+    /// The scored snapshots of `codec`, then `dense`, each in time order.
+    fn score_all(&self, ctx: &StageContext<'_>) -> Result<Vec<Vec<ScoredSnapshot>>, StageError> {
+        let lists: Vec<(&str, PathBuf, Vec<Snapshot>)> = ["codec", "dense"]
+            .iter()
+            .map(|m| read_snapshots(m, ctx.input(m)?).map(|(d, l)| (*m, d, l)))
+            .collect::<Result<_, _>>()?;
+        ctx.progress
+            .set_total(lists.iter().map(|l| l.2.len() as u64).sum());
+        let mut scored: Vec<Vec<ScoredSnapshot>> = Vec::new();
+        for (method, dir, list) in &lists {
+            let mut v = Vec::new();
+            for s in list {
+                ctx.progress
+                    .message(&format!("scoring {method} {}", s.file));
+                v.push(self.score(method, dir, s)?);
+                ctx.progress.advance(1);
+            }
+            // Time order (the learners write them in order; sorting makes it a guarantee).
+            v.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
+            scored.push(v);
+        }
+        Ok(scored)
+    }
+
+    /// One snapshot of `method` (in directory `dir`) with its precision, recall and F-scores.
+    fn score(&self, method: &str, dir: &Path, s: &Snapshot) -> Result<ScoredSnapshot, StageError> {
+        let strands: Strands = crate::evaluation::evaluate::read_strands_any(&dir.join(&s.file))?;
+        let pred = OrientedSet::new(&strands, self.s_cm, self.spacing, self.cell);
+        let (prf, _) = strand_prf_sets(&pred, &self.gt_set, &PAPER_THRESHOLDS, self.max_q);
+        fure_stage_api::ensure_finite(
+            "snapshot scores",
+            prf.iter().flat_map(|x| [x.precision, x.recall, x.fscore]),
+        )?;
+        Ok(ScoredSnapshot {
+            method: method.to_string(),
+            file: s.file.clone(),
+            seconds: s.seconds,
+            iteration: s.iteration,
+            optimised_parameters: s.optimised_parameters,
+            prf,
+        })
+    }
+}
+
+/// The F-score charts against training time (with the dense final F-score `dense_final`) and
+/// against optimised parameters, each as PNG and SVG.
+fn write_charts(
+    ctx: &StageContext<'_>,
+    size: (u32, u32),
+    codec: &[ScoredSnapshot],
+    dense: &[ScoredSnapshot],
+    dense_final: f64,
+) -> Result<(), StageError> {
+    let series: Vec<(&str, &[ScoredSnapshot])> = vec![("codec", codec), ("dense", dense)];
+    let finals: Vec<(&str, f64, f64)> = series
+        .iter()
+        .filter_map(|(n, s)| {
+            s.last()
+                .map(|l| (*n, l.optimised_parameters as f64, l.f3()))
+        })
+        .collect();
+    let df = Some(dense_final);
+    write_png_chart(ctx.output("chart_time")?, size, |r| {
+        draw_time_chart(r, &series, df)
+    })?;
+    write_svg_chart(ctx.output("chart_time_svg")?, size, |r| {
+        draw_time_chart(r, &series, df)
+    })?;
+    write_png_chart(ctx.output("chart_params")?, size, |r| {
+        draw_params_chart(r, &finals)
+    })?;
+    write_svg_chart(ctx.output("chart_params_svg")?, size, |r| {
+        draw_params_chart(r, &finals)
+    })?;
+    Ok(())
+}
+
+/// The Markdown (headed by the speed-up) and CSV tables of all snapshots.
+fn write_tables(
+    ctx: &StageContext<'_>,
+    all: &[ScoredSnapshot],
+    sp: &Speedup,
+) -> Result<(), StageError> {
+    let (md, csv) = tables(all);
+    let md = format!(
+        "# Speed against accuracy\n\n{}\n\nSpeed-up to the dense final F-score at 3cm/30deg: {}\n\n{md}",
+        sp.speedup_note,
+        sp.speedup_to_dense_final_fscore
+            .map(|x| format!("{x:.2}x"))
+            .unwrap_or_else(|| "n/a".into())
+    );
+    let md_path = ctx.output("table_md")?;
+    std::fs::write(md_path, md).map_err(|e| StageError::io(md_path, e))?;
+    let csv_path = ctx.output("table_csv")?;
+    std::fs::write(csv_path, csv).map_err(|e| StageError::io(csv_path, e))?;
+    Ok(())
 }
 
 #[cfg(test)]

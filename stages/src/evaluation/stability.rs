@@ -54,6 +54,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -806,6 +807,46 @@ pub fn draw_chart<DB: DrawingBackend>(
         .titled(&d.title, ("sans-serif", 22))
         .map_err(chart_err)?;
     let (top, bottom) = root.split_vertically((root.dim_in_pixel().1 as f64 * 0.58) as u32);
+    let x = XAxis {
+        range: x_range(d),
+        ticks: d.tick_labels.clone(),
+    };
+    let fmt_x = |v: &f64| x.label(v);
+    draw_fscore_panel(&top, d, x.range, &fmt_x)?;
+    draw_defur_panel(&bottom, d, x.range, &fmt_x)?;
+    root.present().map_err(chart_err)?;
+    Ok(())
+}
+
+/// A panel's cartesian chart: x along the swept axis, y the panel's value.
+type Panel<'a, DB> = ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// The shared x axis of both panels: its range and, for non-numeric axes, the tick labels.
+struct XAxis {
+    range: (f64, f64),
+    ticks: Option<Vec<String>>,
+}
+
+impl XAxis {
+    /// The tick label at `x`: the listed value at whole positions of a non-numeric axis (empty
+    /// between them), else the number.
+    fn label(&self, x: &f64) -> String {
+        match &self.ticks {
+            Some(t) => {
+                let i = x.round();
+                if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < t.len() {
+                    t[i as usize].clone()
+                } else {
+                    String::new()
+                }
+            }
+            None => fmt_value(*x),
+        }
+    }
+}
+
+/// The x range of all points of both panels, padded by 12 % of its width (1 if it has none).
+fn x_range(d: &ChartData) -> (f64, f64) {
     let xs: Vec<f64> = d
         .methods
         .iter()
@@ -820,27 +861,23 @@ pub fn draw_chart<DB: DrawingBackend>(
         (x0, x1) = (0.0, 1.0);
     }
     let pad = if x1 > x0 { 0.12 * (x1 - x0) } else { 1.0 };
-    let (x0, x1) = (x0 - pad, x1 + pad);
-    let ticks = d.tick_labels.clone();
-    let fmt_x = move |x: &f64| match &ticks {
-        Some(t) => {
-            let i = x.round();
-            if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < t.len() {
-                t[i as usize].clone()
-            } else {
-                String::new()
-            }
-        }
-        None => fmt_value(*x),
-    };
-    // Top: F-score.
+    (x0 - pad, x1 + pad)
+}
+
+/// The top panel: each method's F-score line with its status markers, and the legend.
+fn draw_fscore_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    d: &ChartData,
+    (x0, x1): (f64, f64),
+    fmt_x: &dyn Fn(&f64) -> String,
+) -> Result<(), String> {
     let fmax = d
         .methods
         .iter()
         .flat_map(|(_, p)| p.iter().filter_map(|q| q.1))
         .fold(0.0, f64::max);
     let ymax = ((fmax / 10.0).ceil() * 10.0 + 10.0).clamp(10.0, 110.0);
-    let mut chart = ChartBuilder::on(&top)
+    let mut chart = ChartBuilder::on(area)
         .caption(
             "F-score (dot ok, ring degraded, cross on the axis failed)",
             ("sans-serif", 15),
@@ -855,53 +892,14 @@ pub fn draw_chart<DB: DrawingBackend>(
         .x_desc(d.axis.as_str())
         .y_desc("F-score 3 cm / 30\u{b0} (%)")
         .x_labels(12)
-        .x_label_formatter(&fmt_x)
+        .x_label_formatter(fmt_x)
         .y_label_formatter(&|y| format!("{y:.0}"))
         .label_style(("sans-serif", 13))
         .axis_desc_style(("sans-serif", 14))
         .draw()
         .map_err(chart_err)?;
     for (mi, (name, pts)) in d.methods.iter().enumerate() {
-        let c = method_color(mi);
-        let line: Vec<(f64, f64)> = pts.iter().filter_map(|p| p.1.map(|f| (p.0, f))).collect();
-        chart
-            .draw_series(LineSeries::new(line.clone(), c.stroke_width(2)))
-            .map_err(chart_err)?
-            .label(name.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-        for p in pts {
-            match (p.1, p.2) {
-                (Some(f), Status::Ok) => {
-                    chart
-                        .draw_series(std::iter::once(Circle::new((p.0, f), 4, c.filled())))
-                        .map_err(chart_err)?;
-                }
-                (Some(f), _) => {
-                    chart
-                        .draw_series(std::iter::once(Circle::new((p.0, f), 6, c.stroke_width(2))))
-                        .map_err(chart_err)?;
-                }
-                (None, _) => {
-                    chart
-                        .draw_series(std::iter::once(Cross::new(
-                            (p.0, 0.0),
-                            7,
-                            c.stroke_width(3),
-                        )))
-                        .map_err(chart_err)?;
-                    chart
-                        .draw_series(std::iter::once(Text::new(
-                            format!("{name} failed"),
-                            (p.0, ymax * (0.05 + 0.07 * mi as f64)),
-                            ("sans-serif", 13)
-                                .into_font()
-                                .color(&c)
-                                .pos(Pos::new(HPos::Center, VPos::Bottom)),
-                        )))
-                        .map_err(chart_err)?;
-                }
-            }
-        }
+        draw_method_series(&mut chart, mi, name, pts, ymax)?;
     }
     chart
         .configure_series_labels()
@@ -911,10 +909,72 @@ pub fn draw_chart<DB: DrawingBackend>(
         .label_font(("sans-serif", 13))
         .draw()
         .map_err(chart_err)?;
-    // Bottom: defurring error.
+    Ok(())
+}
+
+/// Method `mi`'s F-score line (in the legend) and one marker per point: a dot when ok, a ring
+/// when degraded, a cross on the axis with a "failed" note (stacked per method) when failed.
+fn draw_method_series<DB: DrawingBackend>(
+    chart: &mut Panel<'_, DB>,
+    mi: usize,
+    name: &str,
+    pts: &[(f64, Option<f64>, Status)],
+    ymax: f64,
+) -> Result<(), String> {
+    let c = method_color(mi);
+    let line: Vec<(f64, f64)> = pts.iter().filter_map(|p| p.1.map(|f| (p.0, f))).collect();
+    chart
+        .draw_series(LineSeries::new(line.clone(), c.stroke_width(2)))
+        .map_err(chart_err)?
+        .label(name)
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+    for p in pts {
+        match (p.1, p.2) {
+            (Some(f), Status::Ok) => {
+                chart
+                    .draw_series(std::iter::once(Circle::new((p.0, f), 4, c.filled())))
+                    .map_err(chart_err)?;
+            }
+            (Some(f), _) => {
+                chart
+                    .draw_series(std::iter::once(Circle::new((p.0, f), 6, c.stroke_width(2))))
+                    .map_err(chart_err)?;
+            }
+            (None, _) => {
+                chart
+                    .draw_series(std::iter::once(Cross::new(
+                        (p.0, 0.0),
+                        7,
+                        c.stroke_width(3),
+                    )))
+                    .map_err(chart_err)?;
+                chart
+                    .draw_series(std::iter::once(Text::new(
+                        format!("{name} failed"),
+                        (p.0, ymax * (0.05 + 0.07 * mi as f64)),
+                        ("sans-serif", 13)
+                            .into_font()
+                            .color(&c)
+                            .pos(Pos::new(HPos::Center, VPos::Bottom)),
+                    )))
+                    .map_err(chart_err)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The bottom panel: the defurring error line shared by all methods, with a cross and the
+/// failure label where it is missing.
+fn draw_defur_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    d: &ChartData,
+    (x0, x1): (f64, f64),
+    fmt_x: &dyn Fn(&f64) -> String,
+) -> Result<(), String> {
     let dmax = d.defur.iter().filter_map(|q| q.1).fold(0.0, f64::max);
     let dy = if dmax > 0.0 { dmax * 1.3 } else { 1.0 };
-    let mut chart = ChartBuilder::on(&bottom)
+    let mut chart = ChartBuilder::on(area)
         .margin(10)
         .x_label_area_size(36)
         .y_label_area_size(56)
@@ -925,7 +985,7 @@ pub fn draw_chart<DB: DrawingBackend>(
         .x_desc(d.axis.as_str())
         .y_desc("defurring error (x GT thickness)")
         .x_labels(12)
-        .x_label_formatter(&fmt_x)
+        .x_label_formatter(fmt_x)
         .y_label_formatter(&|y| format!("{y:.2}"))
         .label_style(("sans-serif", 13))
         .axis_desc_style(("sans-serif", 14))
@@ -972,7 +1032,6 @@ pub fn draw_chart<DB: DrawingBackend>(
         .label_font(("sans-serif", 13))
         .draw()
         .map_err(chart_err)?;
-    root.present().map_err(chart_err)?;
     Ok(())
 }
 
@@ -1025,6 +1084,14 @@ pub fn summaries(
     survives: &Json,
 ) -> (String, String) {
     let mut md = String::new();
+    write_md_overview(&mut md, rec, cfg, rows);
+    write_md_survival(&mut md, cfg, survives);
+    write_md_variants(&mut md, rec, cfg, rows);
+    (md, summary_csv(rec, cfg, rows))
+}
+
+/// The Markdown title, the status rules and the per-method status counts.
+fn write_md_overview(md: &mut String, rec: &SweepRecord, cfg: &ReportConfig, rows: &[Row]) {
     let name = if rec.pipeline.is_empty() {
         "sweep"
     } else {
@@ -1053,6 +1120,10 @@ pub fn summaries(
             c[0], c[1], c[2]
         );
     }
+}
+
+/// The Markdown table of the largest corruption each method survived as ok, per axis and group.
+fn write_md_survival(md: &mut String, cfg: &ReportConfig, survives: &Json) {
     let _ = writeln!(md, "\n## Largest corruption survived as ok\n");
     let _ = write!(md, "| axis | group |");
     for (n, _) in &cfg.methods {
@@ -1085,44 +1156,57 @@ pub fn summaries(
             }
         }
     }
-    let row_md = |md: &mut String, r: &Row, value: &str, base: bool| {
-        let v = &rec.variants[r.variant];
-        let _ = writeln!(
-            md,
-            "| {}{} | {} | {} | **{}** | {} | {} | {} | {} | {} |",
-            value,
-            if base { " (clean)" } else { "" },
-            md_cell(&v.name),
-            cfg.methods[r.method].0,
-            r.status.as_str(),
-            fmt_opt(r.f[0], 1),
-            fmt_opt(r.f[1], 1),
-            fmt_opt(r.f[2], 1),
-            fmt_opt(r.defur, 3),
-            md_cell(&r.reason)
-        );
-    };
+}
+
+/// Per group and axis, a Markdown table of every variant's rows along the axis.
+fn write_md_variants(md: &mut String, rec: &SweepRecord, cfg: &ReportConfig, rows: &[Row]) {
     for g in groups(rec) {
         let _ = writeln!(md, "\n## {g}");
-        for (axis, values) in &rec.each {
+        for (axis, _) in &rec.each {
             let _ = writeln!(
                 md,
                 "\n### `{axis}`\n\n| value | variant | method | status | F 2cm | F 3cm | F 4cm | defur error | reason |\n|---|---|---|---|---:|---:|---:|---:|---|"
             );
             for vi in axis_points(rec, &g, axis) {
                 let v = &rec.variants[vi];
-                let _ = values;
                 for r in rows.iter().filter(|r| r.variant == vi) {
-                    row_md(
-                        &mut md,
-                        r,
-                        &value_label(&v.settings[axis]),
-                        v.varied.is_none(),
-                    );
+                    let value = value_label(&v.settings[axis]);
+                    write_md_row(md, rec, cfg, r, &value, v.varied.is_none());
                 }
             }
         }
     }
+}
+
+/// One Markdown table row: the axis value (marked when it is the clean base point), variant,
+/// method, status, F-scores, defurring error and reason.
+fn write_md_row(
+    md: &mut String,
+    rec: &SweepRecord,
+    cfg: &ReportConfig,
+    r: &Row,
+    value: &str,
+    base: bool,
+) {
+    let v = &rec.variants[r.variant];
+    let _ = writeln!(
+        md,
+        "| {}{} | {} | {} | **{}** | {} | {} | {} | {} | {} |",
+        value,
+        if base { " (clean)" } else { "" },
+        md_cell(&v.name),
+        cfg.methods[r.method].0,
+        r.status.as_str(),
+        fmt_opt(r.f[0], 1),
+        fmt_opt(r.f[1], 1),
+        fmt_opt(r.f[2], 1),
+        fmt_opt(r.defur, 3),
+        md_cell(&r.reason)
+    );
+}
+
+/// The CSV summary: one line per row, in row order.
+fn summary_csv(rec: &SweepRecord, cfg: &ReportConfig, rows: &[Row]) -> String {
     let mut csv =
         String::from("group,axis,value,variant,method,status,reason,f2,f3,f4,defur_error\n");
     for r in rows {
@@ -1148,7 +1232,7 @@ pub fn summaries(
             num(r.defur)
         );
     }
-    (md, csv)
+    csv
 }
 
 /// Everything the stage writes, from a record: charts into `charts`, the other outputs to paths.
