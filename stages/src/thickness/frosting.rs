@@ -851,6 +851,255 @@ pub fn fit_gaussians(
     fit_gaussians_on(&render::device::Renderer::Cpu, mesh, views, s, progress)
 }
 
+/// The mean foreground colour of the training views (mask-weighted), the
+/// Gaussians' initial colour; mid-grey when no pixel is foreground.
+fn mean_foreground_rgb(views: &[TrainView]) -> Vec3 {
+    let (mut csum, mut wsum) = (glam::DVec3::ZERO, 0.0f64);
+    for v in views {
+        for (px, m) in v.rgb.data.chunks_exact(3).zip(&v.mask.data) {
+            csum += glam::DVec3::new(px[0] as f64, px[1] as f64, px[2] as f64);
+            wsum += *m as f64;
+        }
+    }
+    if wsum > 0.0 {
+        (csum / wsum).as_vec3().clamp(Vec3::ZERO, Vec3::ONE)
+    } else {
+        Vec3::splat(0.5)
+    }
+}
+
+/// Fisher-Yates shuffle of the view order with the seeded generator.
+fn shuffle_views(order: &mut [usize], rng: &mut ChaCha8Rng) {
+    for i in (1..order.len()).rev() {
+        let j = rng.gen_range(0..=i);
+        order.swap(i, j);
+    }
+}
+
+/// The fit's loss on one rendered view, `(1 - lambda) L1 + lambda D-SSIM`
+/// plus the weighted silhouette term, and its gradient on the outputs.
+fn view_loss(
+    out: &render::RenderOutput,
+    v: &TrainView,
+    s: &FitSettings,
+) -> Result<(f32, OutputGrads), StageError> {
+    let (l_rgb, g_rgb) = losses::l1_dssim(&out.rgb, &v.rgb, None, s.lambda_dssim)?;
+    let (l_sil, mut g_sil) = losses::silhouette(&out.alpha, &v.mask, None)?;
+    for x in &mut g_sil.data {
+        *x *= s.silhouette_weight;
+    }
+    let loss = l_rgb + s.silhouette_weight * l_sil;
+    let dl = OutputGrads {
+        rgb: Some(g_rgb),
+        alpha: Some(g_sil),
+        ..Default::default()
+    };
+    Ok((loss, dl))
+}
+
+/// The Adam group ids of the fit, one per [`FitParams`] field.
+struct FitGroups {
+    mean: usize,
+    scale: usize,
+    rot: usize,
+    op: usize,
+    col: usize,
+}
+
+impl FitGroups {
+    /// Registers the five groups for `n` Gaussians with the settings' learning rates.
+    fn add(adam: &mut Adam, s: &FitSettings, d: f32, n: usize) -> Self {
+        FitGroups {
+            mean: adam.add_group("means", s.lr_position_frac * d, 3 * n),
+            scale: adam.add_group("log_scales", s.lr_scale, 3 * n),
+            rot: adam.add_group("rotations", s.lr_rotation, 4 * n),
+            op: adam.add_group("logit_opacity", s.lr_opacity, n),
+            col: adam.add_group("sh0", s.lr_color, 3 * n),
+        }
+    }
+
+    /// Every group with its stride (floats per Gaussian).
+    fn with_strides(&self) -> [(usize, usize); 5] {
+        [
+            (self.mean, 3),
+            (self.scale, 3),
+            (self.rot, 4),
+            (self.op, 1),
+            (self.col, 3),
+        ]
+    }
+}
+
+/// The optimiser's state during the fit: parameters, Adam and its groups,
+/// the accumulated opacity gradient (`touched`, for pruning) and the
+/// densification statistics.
+struct FitState {
+    p: FitParams,
+    adam: Adam,
+    groups: FitGroups,
+    touched: Vec<f32>,
+    /// Summed view-space positional gradient since the last event.
+    grad_sum: Vec<f32>,
+    /// Number of views that saw the Gaussian since the last event.
+    grad_views: Vec<u32>,
+}
+
+impl FitState {
+    /// The state for the initial Gaussians `g` (zero moments and statistics).
+    fn new(g: &Gaussians, s: &FitSettings, d: f32) -> Self {
+        let p = FitParams::from_gaussians(g);
+        let n0 = p.len();
+        let mut adam = Adam::new(0.9, 0.999, 1e-15);
+        let groups = FitGroups::add(&mut adam, s, d, n0);
+        FitState {
+            p,
+            adam,
+            groups,
+            touched: vec![0.0f32; n0],
+            grad_sum: vec![0.0f32; n0],
+            grad_views: vec![0u32; n0],
+        }
+    }
+
+    /// Adds one view's view-space positional gradient, in loss per pixel of
+    /// displacement summed over the image (so independent of the
+    /// resolution's pixel count): |dL/dmu| * (distance / focal) * pixels.
+    fn accumulate_view_space_grad(&mut self, gr: &render::GaussianGrads, g: &Gaussians, cam: &Camera) {
+        let centre = cam.center();
+        let per_px = (cam.width as f32 * cam.height as f32) / cam.fx.max(1e-6);
+        for i in 0..self.p.len() {
+            if gr.opacities[i] != 0.0 {
+                self.grad_sum[i] += gr.means[i].length() * (g.means[i] - centre).length() * per_px;
+                self.grad_views[i] += 1;
+            }
+        }
+    }
+
+    /// Chains the renderer's gradients through the activations, takes one
+    /// Adam step on every group and clamps the log-scales to [smin, smax].
+    fn step(
+        &mut self,
+        gr: &render::GaussianGrads,
+        g: &Gaussians,
+        (smin, smax): (f32, f32),
+    ) -> Result<(), StageError> {
+        let gm = render::adam::flat_vec3(&gr.means);
+        let gs: Vec<f32> = gr
+            .scales
+            .iter()
+            .zip(&g.scales)
+            .flat_map(|(d, s)| [d.x * s.x, d.y * s.y, d.z * s.z])
+            .collect();
+        let grot: Vec<f32> = gr.rotations.iter().flat_map(|q| q.to_array()).collect();
+        let gop: Vec<f32> = gr
+            .opacities
+            .iter()
+            .zip(&g.opacities)
+            .map(|(d, o)| d * o * (1.0 - o))
+            .collect();
+        for (t, d) in self.touched.iter_mut().zip(&gr.opacities) {
+            *t += d.abs();
+        }
+        let gcol: Vec<f32> = gr.sh.iter().flat_map(|c| c[0].to_array()).collect();
+        let (ids, p) = (&self.groups, &mut self.p);
+        self.adam.step(ids.mean, &mut p.means, &gm)?;
+        self.adam.step(ids.scale, &mut p.log_scales, &gs)?;
+        self.adam.step(ids.rot, &mut p.rots, &grot)?;
+        self.adam.step(ids.op, &mut p.logit_op, &gop)?;
+        self.adam.step(ids.col, &mut p.sh0, &gcol)?;
+        p.clamp(smin, smax);
+        Ok(())
+    }
+
+    /// One densification event: [`densify`] on the mean gradients, then the
+    /// optimiser moments and `touched` follow their Gaussians and the
+    /// statistics restart. The first event's gradient percentiles go to the report.
+    fn densify_event(
+        &mut self,
+        s: &FitSettings,
+        d: f32,
+        rng: &mut ChaCha8Rng,
+        report: &mut FitReport,
+    ) -> Result<(), StageError> {
+        let mean_grad: Vec<f32> = self
+            .grad_sum
+            .iter()
+            .zip(&self.grad_views)
+            .map(|(g, &c)| if c > 0 { g / c as f32 } else { 0.0 })
+            .collect();
+        if report.densify_grad_p90 == 0.0 {
+            let seen: Vec<f32> = mean_grad.iter().copied().filter(|g| *g > 0.0).collect();
+            report.densify_grad_p50 = percentile(&seen, 50.0).unwrap_or(0.0);
+            report.densify_grad_p90 = percentile(&seen, 90.0).unwrap_or(0.0);
+        }
+        let cap = s.gaussians.saturating_mul(s.max_gaussians_factor.max(1));
+        let sources = densify(&mut self.p, &mean_grad, s, d, cap, rng, report);
+        for (id, stride) in self.groups.with_strides() {
+            self.adam.remap_group(id, &sources, stride)?;
+        }
+        self.touched = sources
+            .iter()
+            .map(|s| s.map_or(0.0, |i| self.touched[i]))
+            .collect();
+        self.grad_sum = vec![0.0; self.p.len()];
+        self.grad_views = vec![0; self.p.len()];
+        Ok(())
+    }
+}
+
+/// Drops the fitted Gaussians that never touched a training pixel, are
+/// more transparent than `prune_opacity` or seen by fewer than
+/// `prune_visibility` views, counting each reason in the report.
+fn prune_fitted(
+    g: &Gaussians,
+    touched: &[f32],
+    views: &[TrainView],
+    s: &FitSettings,
+    report: &mut FitReport,
+) -> Result<Gaussians, StageError> {
+    let n = g.len();
+    let seen: Vec<f32> = if s.prune_visibility > 0.0 {
+        let cams: Vec<&Camera> = views.iter().map(|v| &v.camera).collect();
+        visibility(g, &cams)?
+    } else {
+        vec![f32::INFINITY; n]
+    };
+    let keep: Vec<usize> = (0..n)
+        .filter(|&i| {
+            touched[i] > 0.0 && g.opacities[i] >= s.prune_opacity && seen[i] >= s.prune_visibility
+        })
+        .collect();
+    report.pruned_unseen = touched.iter().filter(|&&t| t <= 0.0).count();
+    report.pruned_transparent = (0..n)
+        .filter(|&i| touched[i] > 0.0 && g.opacities[i] < s.prune_opacity)
+        .count();
+    report.pruned_invisible = n - keep.len() - report.pruned_unseen - report.pruned_transparent;
+    Ok(Gaussians {
+        means: keep.iter().map(|&i| g.means[i]).collect(),
+        scales: keep.iter().map(|&i| g.scales[i]).collect(),
+        rotations: keep.iter().map(|&i| g.rotations[i]).collect(),
+        opacities: keep.iter().map(|&i| g.opacities[i]).collect(),
+        sh: keep.iter().map(|&i| g.sh[i]).collect(),
+        fur: keep.iter().map(|&i| g.fur[i]).collect(),
+    })
+}
+
+/// Mean training PSNR (all views, RGB) of the Gaussians `g`.
+fn training_psnr(
+    device: &render::device::Renderer,
+    g: &Gaussians,
+    views: &[TrainView],
+    settings: &RenderSettings,
+) -> Result<f32, StageError> {
+    let mut ps = 0.0;
+    for v in views {
+        let (out, _) = device.render(g, &v.camera, settings)?;
+        // Capped: identical images would give infinity.
+        ps += psnr(&out.rgb, &v.rgb).min(100.0);
+    }
+    Ok(ps / views.len() as f32)
+}
+
 /// [`fit_gaussians`] with the renderer on `device` (the `device` parameter).
 pub fn fit_gaussians_on(
     device: &render::device::Renderer,
@@ -867,19 +1116,7 @@ pub fn fit_gaussians_on(
         return Err(StageError::failed("the outer mesh has no triangles"));
     }
     let d = mesh.diagonal().max(1e-9);
-    // Mean foreground colour as the initial colour.
-    let (mut csum, mut wsum) = (glam::DVec3::ZERO, 0.0f64);
-    for v in views {
-        for (px, m) in v.rgb.data.chunks_exact(3).zip(&v.mask.data) {
-            csum += glam::DVec3::new(px[0] as f64, px[1] as f64, px[2] as f64);
-            wsum += *m as f64;
-        }
-    }
-    let mean_rgb = if wsum > 0.0 {
-        (csum / wsum).as_vec3().clamp(Vec3::ZERO, Vec3::ONE)
-    } else {
-        Vec3::splat(0.5)
-    };
+    let mean_rgb = mean_foreground_rgb(views);
     let mut g = init_gaussians(
         mesh,
         s.gaussians,
@@ -890,25 +1127,13 @@ pub fn fit_gaussians_on(
         s.band_both_sides,
     );
     let settings = RenderSettings::default();
-    let mut p = FitParams::from_gaussians(&g);
-    let n0 = p.len();
-    let mut adam = Adam::new(0.9, 0.999, 1e-15);
-    let gid_mean = adam.add_group("means", s.lr_position_frac * d, 3 * n0);
-    let gid_scale = adam.add_group("log_scales", s.lr_scale, 3 * n0);
-    let gid_rot = adam.add_group("rotations", s.lr_rotation, 4 * n0);
-    let gid_op = adam.add_group("logit_opacity", s.lr_opacity, n0);
-    let gid_col = adam.add_group("sh0", s.lr_color, 3 * n0);
-    let (smin, smax) = ((1e-5 * d).ln(), (0.05 * d).ln());
-    let mut touched = vec![0.0f32; n0];
-    // Densification statistics: summed view-space positional gradient and
-    // the number of views that saw the Gaussian since the last event.
-    let mut grad_sum = vec![0.0f32; n0];
-    let mut grad_views = vec![0u32; n0];
+    let mut st = FitState::new(&g, s, d);
+    let scale_range = ((1e-5 * d).ln(), (0.05 * d).ln());
     let mut order: Vec<usize> = (0..views.len()).collect();
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x9e37_79b9_7f4a_7c15);
     let mut split_rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x5851_f42d_4c95_7f2d);
     let mut report = FitReport {
-        gaussians_init: n0,
+        gaussians_init: st.p.len(),
         iterations: s.iterations,
         ..Default::default()
     };
@@ -917,138 +1142,31 @@ pub fn fit_gaussians_on(
     for it in 0..s.iterations {
         let k = it % views.len();
         if k == 0 {
-            // Fisher-Yates with the seeded generator.
-            for i in (1..order.len()).rev() {
-                let j = rng.gen_range(0..=i);
-                order.swap(i, j);
-            }
+            shuffle_views(&mut order, &mut rng);
         }
         let v = &views[order[k]];
         let (out, state) = device.render(&g, &v.camera, &settings)?;
-        let (l_rgb, g_rgb) = losses::l1_dssim(&out.rgb, &v.rgb, None, s.lambda_dssim)?;
-        let (l_sil, mut g_sil) = losses::silhouette(&out.alpha, &v.mask, None)?;
-        for x in &mut g_sil.data {
-            *x *= s.silhouette_weight;
-        }
-        let loss = l_rgb + s.silhouette_weight * l_sil;
+        let (loss, dl) = view_loss(&out, v, s)?;
         if it == 0 {
             report.loss_first = loss;
         }
         recent.push(loss);
-        let dl = OutputGrads {
-            rgb: Some(g_rgb),
-            alpha: Some(g_sil),
-            ..Default::default()
-        };
         let gr = device.backward(&g, &v.camera, &settings, &state, &dl)?;
-        // View-space positional gradient, in loss per pixel of displacement
-        // summed over the image (so independent of the resolution's pixel
-        // count): |dL/dmu| * (distance / focal) * pixels. Only when densifying.
         if s.densify_every > 0 {
-            let centre = v.camera.center();
-            let per_px = (v.camera.width as f32 * v.camera.height as f32) / v.camera.fx.max(1e-6);
-            for i in 0..p.len() {
-                if gr.opacities[i] != 0.0 {
-                    grad_sum[i] += gr.means[i].length() * (g.means[i] - centre).length() * per_px;
-                    grad_views[i] += 1;
-                }
-            }
+            st.accumulate_view_space_grad(&gr, &g, &v.camera);
         }
-        // Chain through the activations.
-        let gm = render::adam::flat_vec3(&gr.means);
-        let gs: Vec<f32> = gr
-            .scales
-            .iter()
-            .zip(&g.scales)
-            .flat_map(|(d, s)| [d.x * s.x, d.y * s.y, d.z * s.z])
-            .collect();
-        let grot: Vec<f32> = gr.rotations.iter().flat_map(|q| q.to_array()).collect();
-        let gop: Vec<f32> = gr
-            .opacities
-            .iter()
-            .zip(&g.opacities)
-            .map(|(d, o)| d * o * (1.0 - o))
-            .collect();
-        for (t, d) in touched.iter_mut().zip(&gr.opacities) {
-            *t += d.abs();
-        }
-        let gcol: Vec<f32> = gr.sh.iter().flat_map(|c| c[0].to_array()).collect();
-        adam.step(gid_mean, &mut p.means, &gm)?;
-        adam.step(gid_scale, &mut p.log_scales, &gs)?;
-        adam.step(gid_rot, &mut p.rots, &grot)?;
-        adam.step(gid_op, &mut p.logit_op, &gop)?;
-        adam.step(gid_col, &mut p.sh0, &gcol)?;
-        p.clamp(smin, smax);
+        st.step(&gr, &g, scale_range)?;
         if s.densify_every > 0 && it + 1 < s.densify_until && (it + 1) % s.densify_every == 0 {
-            let mean_grad: Vec<f32> = grad_sum
-                .iter()
-                .zip(&grad_views)
-                .map(|(g, &c)| if c > 0 { g / c as f32 } else { 0.0 })
-                .collect();
-            if report.densify_grad_p90 == 0.0 {
-                let seen: Vec<f32> = mean_grad.iter().copied().filter(|g| *g > 0.0).collect();
-                report.densify_grad_p50 = percentile(&seen, 50.0).unwrap_or(0.0);
-                report.densify_grad_p90 = percentile(&seen, 90.0).unwrap_or(0.0);
-            }
-            let cap = s.gaussians.saturating_mul(s.max_gaussians_factor.max(1));
-            let sources = densify(&mut p, &mean_grad, s, d, cap, &mut split_rng, &mut report);
-            for (id, stride) in [
-                (gid_mean, 3),
-                (gid_scale, 3),
-                (gid_rot, 4),
-                (gid_op, 1),
-                (gid_col, 3),
-            ] {
-                adam.remap_group(id, &sources, stride)?;
-            }
-            touched = sources
-                .iter()
-                .map(|s| s.map_or(0.0, |i| touched[i]))
-                .collect();
-            grad_sum = vec![0.0; p.len()];
-            grad_views = vec![0; p.len()];
+            st.densify_event(s, d, &mut split_rng, &mut report)?;
         }
-        g = p.to_gaussians();
+        g = st.p.to_gaussians();
         progress.advance(1);
     }
-    let n = g.len();
     let tail = recent.len().min(views.len()).max(1);
     report.loss_last = recent.iter().rev().take(tail).sum::<f32>() / tail as f32;
-    // Prune.
-    let seen: Vec<f32> = if s.prune_visibility > 0.0 {
-        let cams: Vec<&Camera> = views.iter().map(|v| &v.camera).collect();
-        visibility(&g, &cams)?
-    } else {
-        vec![f32::INFINITY; n]
-    };
-    let keep: Vec<usize> = (0..n)
-        .filter(|&i| {
-            touched[i] > 0.0 && g.opacities[i] >= s.prune_opacity && seen[i] >= s.prune_visibility
-        })
-        .collect();
-    report.pruned_unseen = touched.iter().filter(|&&t| t <= 0.0).count();
-    report.pruned_transparent = (0..n)
-        .filter(|&i| touched[i] > 0.0 && g.opacities[i] < s.prune_opacity)
-        .count();
-    report.pruned_invisible = n - keep.len() - report.pruned_unseen - report.pruned_transparent;
-    let pick = |g: &Gaussians| Gaussians {
-        means: keep.iter().map(|&i| g.means[i]).collect(),
-        scales: keep.iter().map(|&i| g.scales[i]).collect(),
-        rotations: keep.iter().map(|&i| g.rotations[i]).collect(),
-        opacities: keep.iter().map(|&i| g.opacities[i]).collect(),
-        sh: keep.iter().map(|&i| g.sh[i]).collect(),
-        fur: keep.iter().map(|&i| g.fur[i]).collect(),
-    };
-    let kept = pick(&g);
+    let kept = prune_fitted(&g, &st.touched, views, s, &mut report)?;
     report.gaussians_kept = kept.len();
-    // Training PSNR (all views, RGB).
-    let mut ps = 0.0;
-    for v in views {
-        let (out, _) = device.render(&kept, &v.camera, &settings)?;
-        // Capped: identical images would give infinity.
-        ps += psnr(&out.rgb, &v.rgb).min(100.0);
-    }
-    report.psnr_train = ps / views.len() as f32;
+    report.psnr_train = training_psnr(device, &kept, views, &settings)?;
     report.seconds_fit = t0.elapsed().as_secs_f64();
     Ok((kept, report))
 }
@@ -1435,6 +1553,176 @@ fn read_train_views(dir: &std::path::Path) -> Result<Vec<TrainView>, StageError>
     out.into_iter().collect()
 }
 
+/// The shell widths per vertex and how they were obtained (fitted or imported).
+struct WidthsOutcome {
+    widths: Vec<f32>,
+    /// The Gaussian fit's report; `None` for imported widths.
+    fit: Option<FitReport>,
+    /// Per vertex: whether its density samples crossed the level.
+    crossed: Vec<bool>,
+    seconds_widths: f64,
+    source: &'static str,
+    offsets: Offsets,
+}
+
+/// M_outer from the `mesh` input, with normals (recomputed when missing).
+fn read_outer_mesh(ctx: &StageContext<'_>) -> Result<Mesh, StageError> {
+    let mesh_path = ctx.input("mesh")?;
+    let mut mesh = crate::formats::obj::read_obj(mesh_path)?;
+    if mesh.triangles.is_empty() {
+        return Err(StageError::input(
+            "mesh",
+            mesh_path,
+            "the mesh has no triangles",
+        ));
+    }
+    if mesh.normals.len() != mesh.positions.len() {
+        mesh.recompute_normals();
+    }
+    Ok(mesh)
+}
+
+/// Imported widths (`wp` on the mesh `mp`) moved onto M_outer's vertices by
+/// closest point, floored at `min_width`.
+fn import_widths(
+    mesh: &Mesh,
+    wp: &std::path::Path,
+    mp: &std::path::Path,
+    min_width: f32,
+) -> Result<WidthsOutcome, StageError> {
+    let values = crate::formats::scalars::read_scalars(wp)?;
+    let src = crate::formats::obj::read_obj(mp)?;
+    if src.triangles.is_empty() {
+        return Err(StageError::input(
+            "imported_mesh",
+            mp,
+            "the mesh has no triangles",
+        ));
+    }
+    let t = std::time::Instant::now();
+    let w = transfer_closest_point(&src, &values, &mesh.positions)
+        .map_err(|e| StageError::input("imported_widths", wp, e))?;
+    let w: Vec<f32> = w.into_iter().map(|x| x.max(min_width)).collect();
+    let n = w.len();
+    Ok(WidthsOutcome {
+        widths: w,
+        fit: None,
+        crossed: vec![true; n],
+        seconds_widths: t.elapsed().as_secs_f64(),
+        source: "imported",
+        offsets: Offsets::default(),
+    })
+}
+
+/// Fits Gaussians to the training views in `dir` and measures the shell
+/// widths on their density field.
+fn fit_widths(
+    ctx: &StageContext<'_>,
+    device: &render::device::Renderer,
+    mesh: &Mesh,
+    params: &FrostingParams,
+    ws: &WidthSettings,
+    dir: &std::path::Path,
+) -> Result<WidthsOutcome, StageError> {
+    ctx.progress.message("reading training views");
+    let train = read_train_views(dir)?;
+    ctx.progress.message("fitting Gaussians");
+    let fs = params.fit_settings();
+    let (g, rep) = fit_gaussians_on(device, mesh, &train, &fs, ctx.progress)?;
+    ctx.progress.note(&format!(
+            "fitted {} Gaussians ({} kept) in {} iterations, loss {:.4} -> {:.4}, train PSNR {:.2} dB, {:.1} s",
+            rep.gaussians_init, rep.gaussians_kept, rep.iterations, rep.loss_first, rep.loss_last, rep.psnr_train, rep.seconds_fit
+        ));
+    if g.is_empty() {
+        return Err(StageError::failed(
+                "no Gaussian survived the fit (none touched a training pixel): check that the cameras see M_outer",
+            ));
+    }
+    ctx.progress.message("measuring shell widths");
+    let t = std::time::Instant::now();
+    let field = DensityField::new(&g, ws.knn)?;
+    let mut ws = ws.clone();
+    if params.medial_clamp {
+        ws.inner_limit = medial_limits(mesh)?;
+    }
+    let r = shell_widths(&field, &mesh.positions, &mesh.normals, &ws)?;
+    let n = r.widths.len().max(1) as f32;
+    let offsets = Offsets {
+        outer: r.outer,
+        inner: r.inner,
+        sigma_n: r.sigma_n,
+        saturated_outer_fraction: r.saturated_outer as f32 / n,
+        saturated_inner_fraction: r.saturated_inner as f32 / n,
+    };
+    Ok(WidthsOutcome {
+        widths: r.widths,
+        fit: Some(rep),
+        crossed: r.crossed,
+        seconds_widths: t.elapsed().as_secs_f64(),
+        source: "fit",
+        offsets,
+    })
+}
+
+/// Summary statistics of the widths for the metrics (`d`: the scene scale).
+fn width_stats(out: &WidthsOutcome, d: f32, min_width: f32) -> WidthStats {
+    let widths = &out.widths;
+    let n = widths.len().max(1) as f32;
+    WidthStats {
+        mean: widths.iter().sum::<f32>() / n,
+        p25: percentile(widths, 25.0).unwrap_or(0.0),
+        p50: percentile(widths, 50.0).unwrap_or(0.0),
+        p75: percentile(widths, 75.0).unwrap_or(0.0),
+        p95: percentile(widths, 95.0).unwrap_or(0.0),
+        min: widths.iter().copied().fold(f32::INFINITY, f32::min),
+        max: widths.iter().copied().fold(0.0, f32::max),
+        mean_frac_d: widths.iter().sum::<f32>() / n / d.max(1e-12),
+        crossed_fraction: out.crossed.iter().filter(|c| **c).count() as f32 / n,
+        saturated_outer_fraction: out.offsets.saturated_outer_fraction,
+        saturated_inner_fraction: out.offsets.saturated_inner_fraction,
+        at_min_fraction: widths
+            .iter()
+            .filter(|w| **w <= min_width * 1.0001)
+            .count() as f32
+            / n,
+    }
+}
+
+/// The median width of each mesh part.
+fn part_median_widths(mesh: &Mesh, widths: &[f32]) -> BTreeMap<String, f32> {
+    let mut by_part: BTreeMap<String, Vec<f32>> = BTreeMap::new();
+    for (i, w) in widths.iter().enumerate() {
+        by_part
+            .entry(mesh.part_name(i).to_string())
+            .or_default()
+            .push(*w);
+    }
+    by_part
+        .iter()
+        .map(|(k, v)| (k.clone(), percentile(v, 50.0).unwrap_or(0.0)))
+        .collect()
+}
+
+/// The per-vertex correlation with the GT skin (optional `gt_skin`), over
+/// the fur parts when `gt_scene` says which they are.
+fn gt_skin_correlation(
+    ctx: &StageContext<'_>,
+    mesh: &Mesh,
+    widths: &[f32],
+    gt_scene: Option<&crate::data::scene::SceneInfo>,
+) -> Result<Option<GtVertexCorrelation>, StageError> {
+    let Some(path) = ctx.input_opt("gt_skin") else {
+        return Ok(None);
+    };
+    ctx.progress.message("correlating widths with the GT skin");
+    let skin = crate::formats::obj::read_obj(path)
+        .map_err(|e| StageError::input("gt_skin", path, e))?;
+    let fur = |i: usize| {
+        gt_scene.is_none_or(|sc| sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur))
+    };
+    gt_vertex_correlation(mesh, widths, &skin, fur)
+}
+
 impl Stage for FrostingStage {
     fn kind(&self) -> &'static str {
         "frosting"
@@ -1519,18 +1807,7 @@ impl Stage for FrostingStage {
         let device = render::device::Renderer::from_params(ctx.params)?;
         ctx.progress
             .note(&format!("renders on {}", device.describe()));
-        let mesh_path = ctx.input("mesh")?;
-        let mut mesh = crate::formats::obj::read_obj(mesh_path)?;
-        if mesh.triangles.is_empty() {
-            return Err(StageError::input(
-                "mesh",
-                mesh_path,
-                "the mesh has no triangles",
-            ));
-        }
-        if mesh.normals.len() != mesh.positions.len() {
-            mesh.recompute_normals();
-        }
+        let mesh = read_outer_mesh(ctx)?;
         let d = mesh.diagonal();
         let params = FrostingParams::from_params(ctx.params)?;
         let ws = params.width_settings(d);
@@ -1538,34 +1815,11 @@ impl Stage for FrostingStage {
             Some(dir) => Some((dir, crate::formats::cameras::read_views(dir)?)),
             None => None,
         };
-        let (widths, fit, crossed, seconds_widths, source, offsets) = match (
+        let out = match (
             ctx.input_opt("imported_widths"),
             ctx.input_opt("imported_mesh"),
         ) {
-            (Some(wp), Some(mp)) => {
-                let values = crate::formats::scalars::read_scalars(wp)?;
-                let src = crate::formats::obj::read_obj(mp)?;
-                if src.triangles.is_empty() {
-                    return Err(StageError::input(
-                        "imported_mesh",
-                        mp,
-                        "the mesh has no triangles",
-                    ));
-                }
-                let t = std::time::Instant::now();
-                let w = transfer_closest_point(&src, &values, &mesh.positions)
-                    .map_err(|e| StageError::input("imported_widths", wp, e))?;
-                let w: Vec<f32> = w.into_iter().map(|x| x.max(ws.min_width)).collect();
-                let n = w.len();
-                (
-                    w,
-                    None,
-                    vec![true; n],
-                    t.elapsed().as_secs_f64(),
-                    "imported",
-                    Offsets::default(),
-                )
-            }
+            (Some(wp), Some(mp)) => import_widths(&mesh, wp, mp, ws.min_width)?,
             (Some(_), None) | (None, Some(_)) => {
                 return Err(StageError::failed(
                     "imported widths need both `imported_widths` and `imported_mesh`",
@@ -1577,46 +1831,10 @@ impl Stage for FrostingStage {
                             "connect `views` (fit Gaussians to the images) or `imported_widths` + `imported_mesh`",
                         ));
                 };
-                ctx.progress.message("reading training views");
-                let train = read_train_views(dir)?;
-                ctx.progress.message("fitting Gaussians");
-                let fs = params.fit_settings();
-                let (g, rep) = fit_gaussians_on(&device, &mesh, &train, &fs, ctx.progress)?;
-                ctx.progress.note(&format!(
-                        "fitted {} Gaussians ({} kept) in {} iterations, loss {:.4} -> {:.4}, train PSNR {:.2} dB, {:.1} s",
-                        rep.gaussians_init, rep.gaussians_kept, rep.iterations, rep.loss_first, rep.loss_last, rep.psnr_train, rep.seconds_fit
-                    ));
-                if g.is_empty() {
-                    return Err(StageError::failed(
-                            "no Gaussian survived the fit (none touched a training pixel): check that the cameras see M_outer",
-                        ));
-                }
-                ctx.progress.message("measuring shell widths");
-                let t = std::time::Instant::now();
-                let field = DensityField::new(&g, ws.knn)?;
-                let mut ws = ws.clone();
-                if params.medial_clamp {
-                    ws.inner_limit = medial_limits(&mesh)?;
-                }
-                let r = shell_widths(&field, &mesh.positions, &mesh.normals, &ws)?;
-                let n = r.widths.len().max(1) as f32;
-                let offsets = Offsets {
-                    outer: r.outer,
-                    inner: r.inner,
-                    sigma_n: r.sigma_n,
-                    saturated_outer_fraction: r.saturated_outer as f32 / n,
-                    saturated_inner_fraction: r.saturated_inner as f32 / n,
-                };
-                (
-                    r.widths,
-                    Some(rep),
-                    r.crossed,
-                    t.elapsed().as_secs_f64(),
-                    "fit",
-                    offsets,
-                )
+                fit_widths(ctx, &device, &mesh, &params, &ws, dir)?
             }
         };
+        let widths = &out.widths;
         ensure_finite("shell widths", widths.iter().copied())?;
         let shell = ShellWidths {
             positions: mesh.positions.clone(),
@@ -1624,43 +1842,15 @@ impl Stage for FrostingStage {
             widths: widths.clone(),
         };
         crate::formats::json::write_json(ctx.output("shell")?, &shell)?;
-        crate::formats::json::write_json(ctx.output("offsets")?, &offsets)?;
+        crate::formats::json::write_json(ctx.output("offsets")?, &out.offsets)?;
         let cam = match views.as_ref().and_then(|(_, set)| set.train.first()) {
             Some(c) => c.clone(),
             None => default_camera(&mesh),
         };
-        let img = preview(&mesh, &widths, &cam)?;
+        let img = preview(&mesh, widths, &cam)?;
         crate::formats::images::write_png(ctx.output("preview")?, &img)?;
-        let mut by_part: BTreeMap<String, Vec<f32>> = BTreeMap::new();
-        for (i, w) in widths.iter().enumerate() {
-            by_part
-                .entry(mesh.part_name(i).to_string())
-                .or_default()
-                .push(*w);
-        }
-        let n = widths.len().max(1) as f32;
-        let stats = WidthStats {
-            mean: widths.iter().sum::<f32>() / n,
-            p25: percentile(&widths, 25.0).unwrap_or(0.0),
-            p50: percentile(&widths, 50.0).unwrap_or(0.0),
-            p75: percentile(&widths, 75.0).unwrap_or(0.0),
-            p95: percentile(&widths, 95.0).unwrap_or(0.0),
-            min: widths.iter().copied().fold(f32::INFINITY, f32::min),
-            max: widths.iter().copied().fold(0.0, f32::max),
-            mean_frac_d: widths.iter().sum::<f32>() / n / d.max(1e-12),
-            crossed_fraction: crossed.iter().filter(|c| **c).count() as f32 / n,
-            saturated_outer_fraction: offsets.saturated_outer_fraction,
-            saturated_inner_fraction: offsets.saturated_inner_fraction,
-            at_min_fraction: widths
-                .iter()
-                .filter(|w| **w <= ws.min_width * 1.0001)
-                .count() as f32
-                / n,
-        };
-        let part_median_width: BTreeMap<String, f32> = by_part
-            .iter()
-            .map(|(k, v)| (k.clone(), percentile(v, 50.0).unwrap_or(0.0)))
-            .collect();
+        let stats = width_stats(&out, d, ws.min_width);
+        let part_median_width = part_median_widths(&mesh, widths);
         let gt_scene: Option<crate::data::scene::SceneInfo> = match ctx.input_opt("gt_scene") {
             Some(p) => Some(crate::formats::json::read_json(p)?),
             None => None,
@@ -1668,31 +1858,18 @@ impl Stage for FrostingStage {
         let gt = gt_scene
             .as_ref()
             .and_then(|sc| gt_comparison(sc, &part_median_width));
-        let gt_vertex = match ctx.input_opt("gt_skin") {
-            Some(path) => {
-                ctx.progress.message("correlating widths with the GT skin");
-                let skin = crate::formats::obj::read_obj(path)
-                    .map_err(|e| StageError::input("gt_skin", path, e))?;
-                let fur = |i: usize| {
-                    gt_scene
-                        .as_ref()
-                        .is_none_or(|sc| sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur))
-                };
-                gt_vertex_correlation(&mesh, &widths, &skin, fur)?
-            }
-            None => None,
-        };
+        let gt_vertex = gt_skin_correlation(ctx, &mesh, widths, gt_scene.as_ref())?;
         let metrics = Metrics {
-            source,
+            source: out.source,
             vertices: mesh.positions.len(),
             diagonal: d,
-            fit,
+            fit: out.fit,
             widths: stats,
             part_median_width,
             gt,
             width_truth_pearson: gt_vertex.as_ref().map(|v| v.pearson),
             gt_vertex,
-            seconds_widths,
+            seconds_widths: out.seconds_widths,
             seconds: t0.elapsed().as_secs_f64(),
             device: ctx.params.get("device").map(|_| device.metrics()),
         };
