@@ -311,6 +311,102 @@ fure_stage_api::stage_params! {
     }
 }
 
+/// The Frosting shell widths at `path`, checked: at least one position, one
+/// non-negative finite width per position.
+fn read_shell(path: &Path) -> Result<ShellWidths, StageError> {
+    let shell: ShellWidths = read_json(path)?;
+    if shell.positions.is_empty() || shell.widths.len() != shell.positions.len() {
+        return Err(StageError::input(
+            "shell",
+            path,
+            format!(
+                "{} positions and {} widths: need as many widths as (at least one) positions",
+                shell.positions.len(),
+                shell.widths.len()
+            ),
+        ));
+    }
+    if let Some(i) = shell
+        .widths
+        .iter()
+        .position(|w| !(w.is_finite() && *w >= 0.0))
+    {
+        return Err(StageError::input(
+            "shell",
+            path,
+            format!("width {i} is not a non-negative number"),
+        ));
+    }
+    Ok(shell)
+}
+
+/// The multipliers `m_p`: the defaults overridden by the `multiplier` table.
+fn part_multipliers(p: &LengthsParams) -> BTreeMap<String, f32> {
+    let mut multipliers: BTreeMap<String, f32> = DEFAULT_MULTIPLIERS
+        .iter()
+        .map(|(k, v)| (k.to_string(), *v))
+        .collect();
+    multipliers.extend(p.multiplier.clone());
+    multipliers
+}
+
+/// V2's reference lengths in cm: the species table's, overridden by
+/// `reference_length_cm`.
+fn reference_lengths_cm(p: &LengthsParams) -> Result<BTreeMap<String, f32>, StageError> {
+    let mut references_cm = match p.species.as_deref() {
+        Some(species) => species_reference_lengths_cm(species).ok_or_else(|| {
+            StageError::param(
+                "species",
+                format!(
+                    "unknown species `{species}`; expected one of {}",
+                    SPECIES.join(", ")
+                ),
+            )
+        })?,
+        None => BTreeMap::new(),
+    };
+    references_cm.extend(p.reference_length_cm.clone());
+    Ok(references_cm)
+}
+
+/// Adds the errors against the ground truth to the metrics `m`: of the
+/// scale and, per fur part with a GT mean length, of the length.
+fn insert_gt_errors(
+    m: &mut serde_json::Map<String, serde_json::Value>,
+    table: &LengthTable,
+    gt: &SceneInfo,
+    s_cm: f32,
+) {
+    m.insert("s_cm_gt".into(), gt.s_cm.into());
+    m.insert(
+        "s_cm_error_pct".into(),
+        (100.0 * (s_cm - gt.s_cm) / gt.s_cm).into(),
+    );
+    let mut abs = serde_json::Map::new();
+    let mut signed = serde_json::Map::new();
+    let mut worst = 0.0f32;
+    for (name, l) in &table.parts {
+        let Some(info) = gt.parts.get(name) else {
+            continue;
+        };
+        let Some(g) = info.mean_length_cm.filter(|&g| info.fur && g > 0.0) else {
+            continue;
+        };
+        let e = 100.0 * (l.length_cm - g) / g;
+        worst = worst.max(e.abs());
+        abs.insert(name.clone(), e.abs().into());
+        signed.insert(name.clone(), e.into());
+    }
+    m.insert("length_error_pct".into(), abs.clone().into());
+    m.insert("length_error_signed_pct".into(), signed.into());
+    m.insert("length_error_max_pct".into(), worst.into());
+    let n = abs.len().max(1) as f64;
+    let mean_abs: f64 = abs.values().filter_map(|v| v.as_f64()).sum::<f64>() / n;
+    if !abs.is_empty() {
+        m.insert("length_error_mean_pct".into(), mean_abs.into());
+    }
+}
+
 /// The `lengths` stage.
 pub struct LengthsStage;
 
@@ -374,29 +470,7 @@ impl Stage for LengthsStage {
         let p = LengthsParams::from_params(ctx.params)?;
         let outer = read_labelled_mesh(ctx, "outer")?;
         let shell_path = ctx.input("shell")?;
-        let shell: ShellWidths = read_json(shell_path)?;
-        if shell.positions.is_empty() || shell.widths.len() != shell.positions.len() {
-            return Err(StageError::input(
-                "shell",
-                shell_path,
-                format!(
-                    "{} positions and {} widths: need as many widths as (at least one) positions",
-                    shell.positions.len(),
-                    shell.widths.len()
-                ),
-            ));
-        }
-        if let Some(i) = shell
-            .widths
-            .iter()
-            .position(|w| !(w.is_finite() && *w >= 0.0))
-        {
-            return Err(StageError::input(
-                "shell",
-                shell_path,
-                format!("width {i} is not a non-negative number"),
-            ));
-        }
+        let shell = read_shell(shell_path)?;
         let reference = match ctx.input_opt("scene") {
             Some(path) => read_reference(path)?,
             None => MetricReference::default(),
@@ -417,25 +491,9 @@ impl Stage for LengthsStage {
         let names = crate::surface::parts::protected_names(ctx, &p.protected_parts)?;
         let prot = protected_parts(&outer.part_names, &names);
         let fur: Vec<bool> = prot.iter().map(|&pr| !pr).collect();
-        let mut multipliers: BTreeMap<String, f32> = DEFAULT_MULTIPLIERS
-            .iter()
-            .map(|(k, v)| (k.to_string(), *v))
-            .collect();
-        multipliers.extend(p.multiplier.clone());
+        let multipliers = part_multipliers(&p);
         let v2 = p.variant == Variant::V2;
-        let mut references_cm = match p.species.as_deref() {
-            Some(species) => species_reference_lengths_cm(species).ok_or_else(|| {
-                StageError::param(
-                    "species",
-                    format!(
-                        "unknown species `{species}`; expected one of {}",
-                        SPECIES.join(", ")
-                    ),
-                )
-            })?,
-            None => BTreeMap::new(),
-        };
-        references_cm.extend(p.reference_length_cm.clone());
+        let references_cm = reference_lengths_cm(&p)?;
         if v2 && references_cm.is_empty() {
             ctx.progress
                 .note("variant v2 without reference lengths: V2 = V1");
@@ -477,34 +535,7 @@ impl Stage for LengthsStage {
         m.insert("length_cm".into(), lengths.into());
         if let Some(gp) = ctx.input_opt("gt_scene") {
             let gt: SceneInfo = read_json(gp)?;
-            m.insert("s_cm_gt".into(), gt.s_cm.into());
-            m.insert(
-                "s_cm_error_pct".into(),
-                (100.0 * (s_cm - gt.s_cm) / gt.s_cm).into(),
-            );
-            let mut abs = serde_json::Map::new();
-            let mut signed = serde_json::Map::new();
-            let mut worst = 0.0f32;
-            for (name, l) in &table.parts {
-                let Some(info) = gt.parts.get(name) else {
-                    continue;
-                };
-                let Some(g) = info.mean_length_cm.filter(|&g| info.fur && g > 0.0) else {
-                    continue;
-                };
-                let e = 100.0 * (l.length_cm - g) / g;
-                worst = worst.max(e.abs());
-                abs.insert(name.clone(), e.abs().into());
-                signed.insert(name.clone(), e.into());
-            }
-            m.insert("length_error_pct".into(), abs.clone().into());
-            m.insert("length_error_signed_pct".into(), signed.into());
-            m.insert("length_error_max_pct".into(), worst.into());
-            let n = abs.len().max(1) as f64;
-            let mean_abs: f64 = abs.values().filter_map(|v| v.as_f64()).sum::<f64>() / n;
-            if !abs.is_empty() {
-                m.insert("length_error_mean_pct".into(), mean_abs.into());
-            }
+            insert_gt_errors(&mut m, &table, &gt, s_cm);
         }
         write_json(ctx.output("metrics")?, &serde_json::Value::Object(m))?;
         Ok(())

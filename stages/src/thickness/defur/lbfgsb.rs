@@ -193,6 +193,30 @@ where
     minimize_preconditioned(f, x0, lower, upper, None, settings)
 }
 
+/// The start point `x0` projected onto the box, with its gradient and
+/// objective value (one evaluation); non-finite values are an error.
+fn evaluate_start<F>(
+    f: &mut F,
+    x0: &[f64],
+    lower: &[f64],
+    upper: &[f64],
+) -> Result<(Vec<f64>, Vec<f64>, f64), SolverError>
+where
+    F: FnMut(&[f64], &mut [f64]) -> f64,
+{
+    if !all_finite(x0) {
+        return Err(SolverError::NonFinite { iteration: 0 });
+    }
+    let mut x = x0.to_vec();
+    project(&mut x, lower, upper);
+    let mut g = vec![0.0; x0.len()];
+    let fx = f(&x, &mut g);
+    if !fx.is_finite() || !all_finite(&g) {
+        return Err(SolverError::NonFinite { iteration: 0 });
+    }
+    Ok((x, g, fx))
+}
+
 /// [`minimize`] with an optional diagonal preconditioner `h0`: positive
 /// per-variable scales used as the initial inverse Hessian of the two-loop
 /// recursion (`H0 = gamma diag(h0)`, `gamma = s.y / (y.diag(h0).y)`), and
@@ -215,18 +239,8 @@ where
     let n = x0.len();
     let h0 = check_inputs(x0, lower, upper, h0, settings)?;
     let preconditioned = h0.iter().any(|&v| v != 1.0);
-    if !all_finite(x0) {
-        return Err(SolverError::NonFinite { iteration: 0 });
-    }
-
-    let mut x = x0.to_vec();
-    project(&mut x, lower, upper);
-    let mut g = vec![0.0; n];
-    let mut fx = f(&x, &mut g);
+    let (mut x, mut g, mut fx) = evaluate_start(&mut f, x0, lower, upper)?;
     let mut evaluations = 1usize;
-    if !fx.is_finite() || !all_finite(&g) {
-        return Err(SolverError::NonFinite { iteration: 0 });
-    }
 
     // Correction pairs (s, y), newest last.
     let mut pairs: VecDeque<(Vec<f64>, Vec<f64>)> = VecDeque::with_capacity(settings.memory);

@@ -288,16 +288,9 @@ fn check_shell(shell: &ShellWidths) -> Result<(), DefurError> {
     Ok(())
 }
 
-/// The whole defurring of `outer` with shell widths `shell`.
-/// `part_protected[p]` marks non-fur parts; `reference_h` maps part names
-/// to reference thicknesses `h_p` in scene units.
-pub fn defur(
-    outer: &Mesh,
-    shell: &ShellWidths,
-    part_protected: &[bool],
-    reference_h: &BTreeMap<String, f32>,
-    s: &DefurSettings,
-) -> Result<DefurResult, DefurError> {
+/// Checks the mesh's and the shell's arrays and returns the scene scale
+/// (the mesh's bounding-box diagonal).
+fn checked_scale(outer: &Mesh, shell: &ShellWidths) -> Result<f32, DefurError> {
     let nv = outer.positions.len();
     if nv == 0 || outer.triangles.is_empty() {
         return Err(DefurError::EmptyMesh);
@@ -314,24 +307,34 @@ pub fn defur(
     if !(scale > 0.0 && scale.is_finite()) {
         return Err(DefurError::ZeroScale);
     }
-    let normals = vertex_normals(outer);
-    let query = MeshQuery::new(outer)?;
-    let outer_index = PointIndex::new(&outer.positions)?;
-    let shell_index = PointIndex::new(&shell.positions)?;
+    Ok(scale)
+}
 
-    // 1. Raw widths and shell labels.
-    let tau = thickness::raw_widths(shell, &shell_index, &outer.positions);
-    let shell_part = thickness::shell_labels(shell, &outer_index, &outer.part);
+/// The shell as seen from the outer mesh: its point index and each shell
+/// point's part label.
+struct LabelledShell<'a> {
+    shell: &'a ShellWidths,
+    index: &'a PointIndex,
+    part: &'a [u16],
+}
 
-    // 2. Supported local thickness.
-    let width_threshold = percentile(&shell.widths, s.width_percentile).unwrap_or(0.0);
+/// Step 2: the supported local thickness, with the width percentile
+/// (`width_percentile`) above which shell widths are not trusted.
+fn supported_local_thickness(
+    outer: &Mesh,
+    normals: &[Vec3],
+    shell: &LabelledShell<'_>,
+    s: &DefurSettings,
+    scale: f32,
+) -> (f32, thickness::Support) {
+    let width_threshold = percentile(&shell.shell.widths, s.width_percentile).unwrap_or(0.0);
     let support = thickness::supported_thickness(
         &outer.positions,
-        &normals,
+        normals,
         &outer.part,
-        shell,
-        &shell_part,
-        &shell_index,
+        shell.shell,
+        shell.part,
+        shell.index,
         &SupportSettings {
             radius: s.support_radius_frac * scale,
             max_neighbours: s.max_neighbours,
@@ -340,15 +343,16 @@ pub fn defur(
             sigma: (s.support_sigma_frac * scale).max(f32::MIN_POSITIVE),
         },
     );
+    (width_threshold, support)
+}
 
-    // 3. Part calibration.
-    let calibration = thickness::calibrate_parts(
-        &tau,
-        &outer.part,
-        &outer.part_names,
-        part_protected,
-        reference_h,
-    );
+/// Step 3 per vertex: its part's calibrated offset `b` and whether its part
+/// is protected (non-fur).
+fn per_vertex_calibration(
+    outer: &Mesh,
+    calibration: &[PartCalibration],
+    part_protected: &[bool],
+) -> (Vec<f32>, Vec<bool>) {
     let b: Vec<f32> = outer
         .part
         .iter()
@@ -359,6 +363,98 @@ pub fn defur(
         .iter()
         .map(|&p| part_protected.get(p as usize).copied().unwrap_or(false))
         .collect();
+    (b, protected)
+}
+
+/// The displacement solved by step 5, clamped to its bounds, with the
+/// solver's summary and the seconds it took.
+struct SolvedDisplacement {
+    d: Vec<f32>,
+    solver: SolverSummary,
+    seconds: f64,
+}
+
+/// Step 5: solves the problem and clamps the solution to `[0, upper]`.
+fn solve_displacement(
+    problem: &DefurProblem,
+    s: &DefurSettings,
+) -> Result<SolvedDisplacement, DefurError> {
+    let t0 = Instant::now();
+    let report = problem.solve(&s.solver, s.precondition)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let d: Vec<f32> = report
+        .x
+        .iter()
+        .zip(&problem.upper)
+        .map(|(&x, &u)| (x.clamp(0.0, u)) as f32)
+        .collect();
+    if d.iter().any(|x| !x.is_finite()) {
+        return Err(DefurError::NonFinite("the solved displacement"));
+    }
+    Ok(SolvedDisplacement {
+        d,
+        solver: SolverSummary {
+            iterations: report.iterations,
+            evaluations: report.evaluations,
+            termination: report.termination.as_str(),
+            converged: report.termination.converged(),
+            projected_gradient: report.projected_gradient,
+            objective: report.f,
+            preconditioned: s.precondition,
+        },
+        seconds,
+    })
+}
+
+/// Step 7: the root mesh, `outer` displaced inward by `d` along `normals`.
+fn root_mesh(outer: &Mesh, normals: &[Vec3], d: &[f32]) -> Result<Mesh, DefurError> {
+    let mut root = outer.clone();
+    root.positions = postcheck::displace(&outer.positions, normals, d);
+    root.recompute_normals();
+    if root.positions.iter().any(|p| !p.is_finite()) {
+        return Err(DefurError::NonFinite("the root mesh"));
+    }
+    Ok(root)
+}
+
+/// The whole defurring of `outer` with shell widths `shell`.
+/// `part_protected[p]` marks non-fur parts; `reference_h` maps part names
+/// to reference thicknesses `h_p` in scene units.
+pub fn defur(
+    outer: &Mesh,
+    shell: &ShellWidths,
+    part_protected: &[bool],
+    reference_h: &BTreeMap<String, f32>,
+    s: &DefurSettings,
+) -> Result<DefurResult, DefurError> {
+    let nv = outer.positions.len();
+    let scale = checked_scale(outer, shell)?;
+    let normals = vertex_normals(outer);
+    let query = MeshQuery::new(outer)?;
+    let outer_index = PointIndex::new(&outer.positions)?;
+    let shell_index = PointIndex::new(&shell.positions)?;
+
+    // 1. Raw widths and shell labels.
+    let tau = thickness::raw_widths(shell, &shell_index, &outer.positions);
+    let shell_part = thickness::shell_labels(shell, &outer_index, &outer.part);
+
+    // 2. Supported local thickness.
+    let labelled = LabelledShell {
+        shell,
+        index: &shell_index,
+        part: &shell_part,
+    };
+    let (width_threshold, support) = supported_local_thickness(outer, &normals, &labelled, s, scale);
+
+    // 3. Part calibration.
+    let calibration = thickness::calibrate_parts(
+        &tau,
+        &outer.part,
+        &outer.part_names,
+        part_protected,
+        reference_h,
+    );
+    let (b, protected) = per_vertex_calibration(outer, &calibration, part_protected);
 
     // 4. Bounds.
     let (upper, hits) = thickness::displacement_bounds(
@@ -393,21 +489,10 @@ pub fn defur(
         cross_part_weight: s.cross_part_weight,
         scale: scale as f64,
     });
-    let t0 = Instant::now();
-    let report = problem.solve(&s.solver, s.precondition)?;
-    let seconds_solve = t0.elapsed().as_secs_f64();
-    let d_solved: Vec<f32> = report
-        .x
-        .iter()
-        .zip(&problem.upper)
-        .map(|(&x, &u)| (x.clamp(0.0, u)) as f32)
-        .collect();
-    if d_solved.iter().any(|x| !x.is_finite()) {
-        return Err(DefurError::NonFinite("the solved displacement"));
-    }
+    let solved = solve_displacement(&problem, s)?;
 
     // 6. Post-check.
-    let mut d = d_solved.clone();
+    let mut d = solved.d.clone();
     let postcheck = postcheck::post_check(
         &outer.positions,
         &normals,
@@ -417,16 +502,11 @@ pub fn defur(
     );
 
     // 7. The root mesh.
-    let mut root = outer.clone();
-    root.positions = postcheck::displace(&outer.positions, &normals, &d);
-    root.recompute_normals();
-    if root.positions.iter().any(|p| !p.is_finite()) {
-        return Err(DefurError::NonFinite("the root mesh"));
-    }
+    let root = root_mesh(outer, &normals, &d)?;
 
     Ok(DefurResult {
         d,
-        d_solved,
+        d_solved: solved.d,
         root,
         normals,
         tau,
@@ -437,17 +517,9 @@ pub fn defur(
         calibration,
         width_threshold,
         scale,
-        solver: SolverSummary {
-            iterations: report.iterations,
-            evaluations: report.evaluations,
-            termination: report.termination.as_str(),
-            converged: report.termination.converged(),
-            projected_gradient: report.projected_gradient,
-            objective: report.f,
-            preconditioned: s.precondition,
-        },
+        solver: solved.solver,
         postcheck,
-        seconds_solve,
+        seconds_solve: solved.seconds,
     })
 }
 
