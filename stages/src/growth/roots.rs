@@ -276,25 +276,18 @@ pub struct Alignment {
     pub weight: f64,
 }
 
-/// The smoothest degree-2 face field with one constraint per connected piece, or, with an
-/// [`Alignment`], the field minimising smoothness plus the weighted distance to the references
-/// (no hard constraint then; a piece where every reference is normal to the surface keeps
-/// the hard one).
-pub fn tangent_field(
+/// Per face `f`, for each adjacent face `g`, the transport `r_{g->f}` of the
+/// degree-2 field across their shared edge: `z_f ~ r z_g`.
+fn face_transports(
     mesh: &Mesh,
-    max_iterations: usize,
-    align: Option<&Alignment>,
-) -> TangentField {
-    let nf = mesh.triangles.len();
-    let frames: Vec<(Vec3, Vec3, Vec3)> =
-        mesh.triangles.iter().map(|t| face_frame(mesh, t)).collect();
-    let adj = face_adjacency(mesh);
-    // Transport r_{g->f} for each adjacency entry of f: z_f ~ r z_g.
+    frames: &[(Vec3, Vec3, Vec3)],
+    adj: &[Vec<(u32, [u32; 2])>],
+) -> Vec<Vec<(u32, C64)>> {
     let angle = |f: usize, e: Vec3| -> f64 {
         let (e1, e2, _) = frames[f];
         (e.dot(e2) as f64).atan2(e.dot(e1) as f64)
     };
-    let trans: Vec<Vec<(u32, C64)>> = (0..nf)
+    (0..frames.len())
         .map(|f| {
             adj[f]
                 .iter()
@@ -305,8 +298,13 @@ pub fn tangent_field(
                 })
                 .collect()
         })
-        .collect();
-    // Pieces and their constrained first faces.
+        .collect()
+}
+
+/// The connected pieces of the face graph: per face the id of its piece
+/// (the piece's first face), and the first faces in order.
+fn connected_pieces(adj: &[Vec<(u32, [u32; 2])>]) -> (Vec<u32>, Vec<usize>) {
+    let nf = adj.len();
     let mut piece = vec![u32::MAX; nf];
     let mut roots = Vec::new();
     for s in 0..nf {
@@ -325,8 +323,17 @@ pub fn tangent_field(
             }
         }
     }
-    // Soft alignment: per face weight w_f (the reference's in-plane fraction squared) and target
-    // z*_f = e^{2 i theta_f}, theta_f the reference's angle in the face frame.
+    (piece, roots)
+}
+
+/// Soft alignment per face: weight `w_f` (the reference's in-plane fraction
+/// squared, times the alignment weight) and target `z*_f = e^{2 i theta_f}`,
+/// theta_f the reference's angle in the face frame. All zero without `align`.
+fn alignment_targets(
+    frames: &[(Vec3, Vec3, Vec3)],
+    align: Option<&Alignment>,
+) -> (Vec<f64>, Vec<C64>) {
+    let nf = frames.len();
     let mut wgt = vec![0.0f64; nf];
     let mut target = vec![C64::default(); nf];
     if let Some(al) = align {
@@ -341,6 +348,170 @@ pub fn tangent_field(
             }
         }
     }
+    (wgt, target)
+}
+
+/// `<a, b> = sum conj(a) b`.
+#[inline]
+fn cdot(a: &[C64], b: &[C64]) -> C64 {
+    let mut s = C64::default();
+    for (x, y) in a.iter().zip(b) {
+        let v = x.conj().mul(*y);
+        s.re += v.re;
+        s.im += v.im;
+    }
+    s
+}
+
+/// The tangent field's linear system: transports, alignment weights and the
+/// faces held fixed (hard constraints).
+struct FieldSystem {
+    trans: Vec<Vec<(u32, C64)>>,
+    wgt: Vec<f64>,
+    fixed: Vec<bool>,
+}
+
+impl FieldSystem {
+    /// A z over free faces: `(Az)_f = (deg_f + w_f) z_f - sum r_{g->f} z_g`
+    /// over the free (or, with `include_fixed`, the fixed) neighbours.
+    #[inline]
+    fn apply(&self, x: &[C64], out: &mut [C64], include_fixed: bool) {
+        for f in 0..self.fixed.len() {
+            if self.fixed[f] {
+                out[f] = C64::default();
+                continue;
+            }
+            let diag = self.trans[f].len() as f64 + self.wgt[f];
+            let mut acc = C64 {
+                re: diag * x[f].re,
+                im: diag * x[f].im,
+            };
+            for &(g, r) in &self.trans[f] {
+                if self.fixed[g as usize] != include_fixed {
+                    continue;
+                }
+                let v = r.mul(x[g as usize]);
+                acc.re -= v.re;
+                acc.im -= v.im;
+            }
+            out[f] = acc;
+        }
+    }
+
+    /// Right side: `b_f = w_f z*_f + sum over fixed neighbours r z_g`.
+    fn right_side(&self, target: &[C64], z: &[C64]) -> Vec<C64> {
+        let nf = self.fixed.len();
+        let mut bvec = vec![C64::default(); nf];
+        for f in 0..nf {
+            if self.fixed[f] {
+                continue;
+            }
+            bvec[f].re += self.wgt[f] * target[f].re;
+            bvec[f].im += self.wgt[f] * target[f].im;
+            for &(g, r) in &self.trans[f] {
+                if self.fixed[g as usize] {
+                    let v = r.mul(z[g as usize]);
+                    bvec[f].re += v.re;
+                    bvec[f].im += v.im;
+                }
+            }
+        }
+        bvec
+    }
+
+    /// Conjugate gradients from x = 0 on the free unknowns (fixed entries
+    /// held at 0 in x). Returns x, the iterations and the residual's and the
+    /// right side's norms.
+    fn solve(&self, bvec: &[C64], max_iterations: usize) -> (Vec<C64>, usize, f64, f64) {
+        let nf = self.fixed.len();
+        let mut x = vec![C64::default(); nf];
+        let mut r = bvec.to_vec();
+        let mut p = r.clone();
+        let mut ap = vec![C64::default(); nf];
+        let bnorm = cdot(bvec, bvec).re.sqrt();
+        let mut rr = cdot(&r, &r).re;
+        let mut it = 0;
+        let tol = 1e-10 * bnorm.max(f64::MIN_POSITIVE);
+        // Faces with no neighbours and not fixed have a zero row: skip them via deg = 0 (they stay 0).
+        while it < max_iterations && rr.sqrt() > tol {
+            self.apply(&p, &mut ap, false);
+            let pap = cdot(&p, &ap).re;
+            if !(pap > 0.0) {
+                break;
+            }
+            let alpha = rr / pap;
+            for f in 0..nf {
+                x[f].re += alpha * p[f].re;
+                x[f].im += alpha * p[f].im;
+                r[f].re -= alpha * ap[f].re;
+                r[f].im -= alpha * ap[f].im;
+            }
+            let rr_new = cdot(&r, &r).re;
+            let beta = rr_new / rr;
+            for f in 0..nf {
+                p[f].re = r[f].re + beta * p[f].re;
+                p[f].im = r[f].im + beta * p[f].im;
+            }
+            rr = rr_new;
+            it += 1;
+        }
+        (x, it, rr.sqrt(), bnorm)
+    }
+}
+
+/// Unit face directions from the degree-2 field `z` (half its angle), signs
+/// aligned breadth-first from each piece's first face.
+fn aligned_directions(
+    frames: &[(Vec3, Vec3, Vec3)],
+    z: &[C64],
+    adj: &[Vec<(u32, [u32; 2])>],
+    roots: &[usize],
+) -> Vec<Vec3> {
+    let nf = frames.len();
+    let mut dirs: Vec<Vec3> = (0..nf)
+        .map(|f| {
+            let (e1, e2, _) = frames[f];
+            let phi = 0.5 * z[f].im.atan2(z[f].re);
+            (e1 * phi.cos() as f32 + e2 * phi.sin() as f32).normalize_or(e1)
+        })
+        .collect();
+    let mut seen = vec![false; nf];
+    for &s in roots {
+        seen[s] = true;
+        let mut q = VecDeque::from([s]);
+        while let Some(f) = q.pop_front() {
+            for &(g, _) in &adj[f] {
+                let g = g as usize;
+                if !seen[g] {
+                    seen[g] = true;
+                    if dirs[g].dot(dirs[f]) < 0.0 {
+                        dirs[g] = -dirs[g];
+                    }
+                    q.push_back(g);
+                }
+            }
+        }
+    }
+    dirs
+}
+
+/// The smoothest degree-2 face field with one constraint per connected piece, or, with an
+/// [`Alignment`], the field minimising smoothness plus the weighted distance to the references
+/// (no hard constraint then; a piece where every reference is normal to the surface keeps
+/// the hard one).
+pub fn tangent_field(
+    mesh: &Mesh,
+    max_iterations: usize,
+    align: Option<&Alignment>,
+) -> TangentField {
+    let nf = mesh.triangles.len();
+    let frames: Vec<(Vec3, Vec3, Vec3)> =
+        mesh.triangles.iter().map(|t| face_frame(mesh, t)).collect();
+    let adj = face_adjacency(mesh);
+    let trans = face_transports(mesh, &frames, &adj);
+    // Pieces and their constrained first faces.
+    let (piece, roots) = connected_pieces(&adj);
+    let (wgt, target) = alignment_targets(&frames, align);
     let mut fixed = vec![false; nf];
     let mut z = vec![C64::default(); nf];
     let mut aligned_pieces = std::collections::HashSet::new();
@@ -358,122 +529,18 @@ pub fn tangent_field(
         hard += 1;
         z[r] = C64 { re: 1.0, im: 0.0 };
     }
-    // A z over free faces: (Az)_f = (deg_f + w_f) z_f - sum r_{g->f} z_g (fixed z_g moved to
-    // the right side).
-    let apply = |x: &[C64], out: &mut [C64], include_fixed: bool| {
-        for f in 0..nf {
-            if fixed[f] {
-                out[f] = C64::default();
-                continue;
-            }
-            let diag = trans[f].len() as f64 + wgt[f];
-            let mut acc = C64 {
-                re: diag * x[f].re,
-                im: diag * x[f].im,
-            };
-            for &(g, r) in &trans[f] {
-                if fixed[g as usize] != include_fixed {
-                    continue;
-                }
-                let v = r.mul(x[g as usize]);
-                acc.re -= v.re;
-                acc.im -= v.im;
-            }
-            out[f] = acc;
-        }
-    };
-    let dot = |a: &[C64], b: &[C64]| -> C64 {
-        // <a, b> = sum conj(a) b
-        let mut s = C64::default();
-        for (x, y) in a.iter().zip(b) {
-            let v = x.conj().mul(*y);
-            s.re += v.re;
-            s.im += v.im;
-        }
-        s
-    };
-    // Right side: b_f = w_f z*_f + sum over fixed neighbours r z_g.
-    let mut bvec = vec![C64::default(); nf];
+    let system = FieldSystem { trans, wgt, fixed };
+    let bvec = system.right_side(&target, &z);
+    let (x, it, residual, bnorm) = system.solve(&bvec, max_iterations);
     for f in 0..nf {
-        if fixed[f] {
-            continue;
-        }
-        bvec[f].re += wgt[f] * target[f].re;
-        bvec[f].im += wgt[f] * target[f].im;
-        for &(g, r) in &trans[f] {
-            if fixed[g as usize] {
-                let v = r.mul(z[g as usize]);
-                bvec[f].re += v.re;
-                bvec[f].im += v.im;
-            }
-        }
-    }
-    // Conjugate gradients from x = 0 on the free unknowns (fixed entries held at 0 in x).
-    let mut x = vec![C64::default(); nf];
-    let mut r = bvec.clone();
-    let mut p = r.clone();
-    let mut ap = vec![C64::default(); nf];
-    let bnorm = dot(&bvec, &bvec).re.sqrt();
-    let mut rr = dot(&r, &r).re;
-    let mut it = 0;
-    let tol = 1e-10 * bnorm.max(f64::MIN_POSITIVE);
-    // Faces with no neighbours and not fixed have a zero row: skip them via deg = 0 (they stay 0).
-    while it < max_iterations && rr.sqrt() > tol {
-        apply(&p, &mut ap, false);
-        let pap = dot(&p, &ap).re;
-        if !(pap > 0.0) {
-            break;
-        }
-        let alpha = rr / pap;
-        for f in 0..nf {
-            x[f].re += alpha * p[f].re;
-            x[f].im += alpha * p[f].im;
-            r[f].re -= alpha * ap[f].re;
-            r[f].im -= alpha * ap[f].im;
-        }
-        let rr_new = dot(&r, &r).re;
-        let beta = rr_new / rr;
-        for f in 0..nf {
-            p[f].re = r[f].re + beta * p[f].re;
-            p[f].im = r[f].im + beta * p[f].im;
-        }
-        rr = rr_new;
-        it += 1;
-    }
-    for f in 0..nf {
-        if !fixed[f] {
+        if !system.fixed[f] {
             z[f] = x[f];
         }
     }
-    // Directions and breadth-first sign alignment.
-    let mut dirs: Vec<Vec3> = (0..nf)
-        .map(|f| {
-            let (e1, e2, _) = frames[f];
-            let phi = 0.5 * z[f].im.atan2(z[f].re);
-            (e1 * phi.cos() as f32 + e2 * phi.sin() as f32).normalize_or(e1)
-        })
-        .collect();
-    let mut seen = vec![false; nf];
-    for &s in &roots {
-        seen[s] = true;
-        let mut q = VecDeque::from([s]);
-        while let Some(f) = q.pop_front() {
-            for &(g, _) in &adj[f] {
-                let g = g as usize;
-                if !seen[g] {
-                    seen[g] = true;
-                    if dirs[g].dot(dirs[f]) < 0.0 {
-                        dirs[g] = -dirs[g];
-                    }
-                    q.push_back(g);
-                }
-            }
-        }
-    }
     TangentField {
-        faces: dirs,
+        faces: aligned_directions(&frames, &z, &adj, &roots),
         cg_iterations: it,
-        relative_residual: rr.sqrt() / bnorm.max(f64::MIN_POSITIVE),
+        relative_residual: residual / bnorm.max(f64::MIN_POSITIVE),
         constrained_faces: hard,
     }
 }
@@ -606,14 +673,14 @@ pub struct RootReport {
     pub prior_flipped: usize,
 }
 
-/// Samples roots and their frames on `mesh`; `vertex_rho` is per vertex in [0, 1].
-pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots, RootReport) {
-    let tparts = triangle_parts(mesh);
+/// Expected roots per triangle (density x area in cm^2), scaled down
+/// uniformly when the total would exceed `max_roots`; returns the scale too.
+fn expected_roots(mesh: &Mesh, tparts: &[u16], s: &RootSettings) -> (Vec<f64>, f64) {
     let s2 = (s.s_cm as f64).powi(2);
     let mut expected: Vec<f64> = mesh
         .triangles
         .iter()
-        .zip(&tparts)
+        .zip(tparts)
         .map(|(t, &p)| {
             s.density.get(p as usize).copied().unwrap_or(0.0) as f64 * tri_area(mesh, t) as f64 * s2
         })
@@ -627,6 +694,68 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
     for e in expected.iter_mut() {
         *e *= scale;
     }
+    (expected, scale)
+}
+
+/// Per-vertex area-weighted sum of the field's aligned face directions.
+fn vertex_directions(mesh: &Mesh, field: &TangentField) -> Vec<Vec3> {
+    let mut vdir = vec![Vec3::ZERO; mesh.positions.len()];
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        let a = tri_area(mesh, t);
+        for &i in t {
+            vdir[i as usize] += field.faces[f] * a;
+        }
+    }
+    vdir
+}
+
+/// The mesh's vertex normals, recomputed when they are not one per vertex.
+fn complete_normals(mesh: &Mesh) -> Vec<Vec3> {
+    if mesh.normals.len() == mesh.positions.len() {
+        mesh.normals.clone()
+    } else {
+        let mut m = mesh.clone();
+        m.recompute_normals();
+        m.normals
+    }
+}
+
+/// Per part: its area in cm^2 (`s2` = cm^2 per square scene unit), its
+/// root count (`root_parts`: each root's part) and their density.
+fn part_roots(
+    mesh: &Mesh,
+    tparts: &[u16],
+    root_parts: &[u16],
+    s2: f64,
+) -> BTreeMap<String, PartRoots> {
+    let mut parts: BTreeMap<String, PartRoots> = BTreeMap::new();
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        let name = mesh
+            .part_names
+            .get(tparts[f] as usize)
+            .cloned()
+            .unwrap_or_default();
+        parts.entry(name).or_default().area_cm2 += tri_area(mesh, t) as f64 * s2;
+    }
+    for &p in root_parts {
+        let name = mesh.part_names.get(p as usize).cloned().unwrap_or_default();
+        parts.entry(name).or_default().roots += 1;
+    }
+    for v in parts.values_mut() {
+        v.density_per_cm2 = if v.area_cm2 > 0.0 {
+            v.roots as f64 / v.area_cm2
+        } else {
+            0.0
+        };
+    }
+    parts
+}
+
+/// Samples roots and their frames on `mesh`; `vertex_rho` is per vertex in [0, 1].
+pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots, RootReport) {
+    let tparts = triangle_parts(mesh);
+    let s2 = (s.s_cm as f64).powi(2);
+    let (expected, scale) = expected_roots(mesh, &tparts, s);
     let samples = sample_triangles(&expected, s.seed);
     let prior = if s.direction_prior {
         GrowthPrior::from_mesh(mesh)
@@ -639,21 +768,8 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
         _ => None,
     };
     let field = tangent_field(mesh, s.cg_iterations, align.as_ref());
-    // Per-vertex area-weighted sum of aligned face directions.
-    let mut vdir = vec![Vec3::ZERO; mesh.positions.len()];
-    for (f, t) in mesh.triangles.iter().enumerate() {
-        let a = tri_area(mesh, t);
-        for &i in t {
-            vdir[i as usize] += field.faces[f] * a;
-        }
-    }
-    let normals = if mesh.normals.len() == mesh.positions.len() {
-        mesh.normals.clone()
-    } else {
-        let mut m = mesh.clone();
-        m.recompute_normals();
-        m.normals
-    };
+    let vdir = vertex_directions(mesh, &field);
+    let normals = complete_normals(mesh);
     let mut roots = Roots {
         part_names: mesh.part_names.clone(),
         s_cm: s.s_cm,
@@ -713,30 +829,10 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
             .push(s.width.get(p as usize).copied().unwrap_or(0.0));
         roots.rho.push(rho.clamp(0.0, 1.0));
     }
-    let mut parts: BTreeMap<String, PartRoots> = BTreeMap::new();
-    for (f, t) in mesh.triangles.iter().enumerate() {
-        let name = mesh
-            .part_names
-            .get(tparts[f] as usize)
-            .cloned()
-            .unwrap_or_default();
-        parts.entry(name).or_default().area_cm2 += tri_area(mesh, t) as f64 * s2;
-    }
-    for &p in &roots.part {
-        let name = mesh.part_names.get(p as usize).cloned().unwrap_or_default();
-        parts.entry(name).or_default().roots += 1;
-    }
-    for v in parts.values_mut() {
-        v.density_per_cm2 = if v.area_cm2 > 0.0 {
-            v.roots as f64 / v.area_cm2
-        } else {
-            0.0
-        };
-    }
     let report = RootReport {
         total: roots.len(),
         density_scale: scale,
-        parts,
+        parts: part_roots(mesh, &tparts, &roots.part, s2),
         cg_iterations: field.cg_iterations,
         cg_relative_residual: field.relative_residual,
         constrained_faces: field.constrained_faces,
@@ -825,6 +921,94 @@ fure_stage_api::stage_params! {
     }
 }
 
+/// The `lengths` table at `path`, with a positive metric scale.
+fn read_length_table(path: &std::path::Path) -> Result<LengthTable, StageError> {
+    let table: LengthTable = read_json(path)?;
+    if !(table.s_cm.is_finite() && table.s_cm > 0.0) {
+        return Err(StageError::input(
+            "lengths",
+            path,
+            format!("s_cm = {} is not positive", table.s_cm),
+        ));
+    }
+    Ok(table)
+}
+
+/// Per part index of the root mesh: root density, strand length and width
+/// (all zero for protected, non-fur or zero-length parts).
+struct PartValues {
+    density: Vec<f32>,
+    length: Vec<f32>,
+    width: Vec<f32>,
+}
+
+/// The [`PartValues`] of `mesh`'s parts from the length table (every part
+/// needs an entry) and the `density` parameters.
+fn part_values(
+    mesh: &Mesh,
+    table: &LengthTable,
+    lengths_path: &std::path::Path,
+    p: &RootsParams,
+) -> Result<PartValues, StageError> {
+    let names = p.protected_parts.clone();
+    let prot = protected_parts(&mesh.part_names, &names);
+    let densities = &p.density;
+    let default_density = p.default_density;
+    let mut density = Vec::new();
+    let mut length = Vec::new();
+    let mut width = Vec::new();
+    for (i, name) in mesh.part_names.iter().enumerate() {
+        let entry = table.parts.get(name).ok_or_else(|| {
+            StageError::input(
+                "lengths",
+                lengths_path,
+                format!(
+                    "no entry for part `{name}` of the root mesh (parts listed: {})",
+                    table.parts.keys().cloned().collect::<Vec<_>>().join(", ")
+                ),
+            )
+        })?;
+        let fur = entry.fur && !prot[i] && entry.length > 0.0;
+        density.push(if fur {
+            densities.get(name).copied().unwrap_or(default_density)
+        } else {
+            0.0
+        });
+        length.push(if fur { entry.length } else { 0.0 });
+        width.push(if fur { entry.width } else { 0.0 });
+    }
+    Ok(PartValues {
+        density,
+        length,
+        width,
+    })
+}
+
+/// The shell feature rho per vertex of `mesh`: its raw nearest-shell width
+/// over the widths' 97.5th percentile, clamped to [0, 1]; returns the
+/// normaliser too.
+fn vertex_rho(
+    shell: &ShellWidths,
+    shell_path: &std::path::Path,
+    mesh: &Mesh,
+) -> Result<(Vec<f32>, f32), StageError> {
+    let index = PointIndex::new(&shell.positions)
+        .map_err(|e| StageError::input("shell", shell_path, e))?;
+    let w = raw_widths(shell, &index, &mesh.positions);
+    let norm = percentile(&shell.widths, 97.5).unwrap_or(0.0);
+    let vertex_rho: Vec<f32> = w
+        .iter()
+        .map(|&x| {
+            if norm > 0.0 {
+                (x / norm).clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    Ok((vertex_rho, norm))
+}
+
 /// The `roots` stage.
 pub struct RootsStage;
 
@@ -880,14 +1064,7 @@ impl Stage for RootsStage {
         let t0 = Instant::now();
         let mesh = read_labelled_mesh(ctx, "root_mesh")?;
         let lengths_path = ctx.input("lengths")?;
-        let table: LengthTable = read_json(lengths_path)?;
-        if !(table.s_cm.is_finite() && table.s_cm > 0.0) {
-            return Err(StageError::input(
-                "lengths",
-                lengths_path,
-                format!("s_cm = {} is not positive", table.s_cm),
-            ));
-        }
+        let table = read_length_table(lengths_path)?;
         let shell_path = ctx.input("shell")?;
         let shell: ShellWidths = read_json(shell_path)?;
         if shell.positions.is_empty() || shell.widths.len() != shell.positions.len() {
@@ -897,34 +1074,9 @@ impl Stage for RootsStage {
                 "need one width per shell position (and at least one)",
             ));
         }
-        let names = p.protected_parts.clone();
-        let prot = protected_parts(&mesh.part_names, &names);
-        let densities = p.density.clone();
-        let default_density = p.default_density;
-        let mut density = Vec::new();
-        let mut length = Vec::new();
-        let mut width = Vec::new();
-        for (i, name) in mesh.part_names.iter().enumerate() {
-            let entry = table.parts.get(name).ok_or_else(|| {
-                StageError::input(
-                    "lengths",
-                    lengths_path,
-                    format!(
-                        "no entry for part `{name}` of the root mesh (parts listed: {})",
-                        table.parts.keys().cloned().collect::<Vec<_>>().join(", ")
-                    ),
-                )
-            })?;
-            let fur = entry.fur && !prot[i] && entry.length > 0.0;
-            density.push(if fur {
-                densities.get(name).copied().unwrap_or(default_density)
-            } else {
-                0.0
-            });
-            length.push(if fur { entry.length } else { 0.0 });
-            width.push(if fur { entry.width } else { 0.0 });
-        }
-        let unknown: Vec<&String> = densities
+        let per_part = part_values(&mesh, &table, lengths_path, &p)?;
+        let unknown: Vec<&String> = p
+            .density
             .keys()
             .filter(|k| !mesh.part_names.contains(k))
             .collect();
@@ -932,21 +1084,7 @@ impl Stage for RootsStage {
             ctx.progress
                 .note(&format!("density: no part named {unknown:?} in the mesh"));
         }
-        // rho per vertex.
-        let index = PointIndex::new(&shell.positions)
-            .map_err(|e| StageError::input("shell", shell_path, e))?;
-        let w = raw_widths(&shell, &index, &mesh.positions);
-        let norm = percentile(&shell.widths, 97.5).unwrap_or(0.0);
-        let vertex_rho: Vec<f32> = w
-            .iter()
-            .map(|&x| {
-                if norm > 0.0 {
-                    (x / norm).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                }
-            })
-            .collect();
+        let (vertex_rho, norm) = vertex_rho(&shell, shell_path, &mesh)?;
         ctx.progress
             .message("sampling roots and solving the tangent field");
         let (roots, report) = build_roots(
@@ -954,9 +1092,9 @@ impl Stage for RootsStage {
             &vertex_rho,
             &RootSettings {
                 s_cm: table.s_cm,
-                density,
-                length,
-                width,
+                density: per_part.density,
+                length: per_part.length,
+                width: per_part.width,
                 max_roots: p.max_roots,
                 seed: p.seed,
                 cg_iterations: p.cg_iterations,
