@@ -313,6 +313,67 @@ pub fn fit(target: &Mesh, templates: &[Template], st: &FitSettings) -> Result<Fi
     let target_index = PointIndex::new(&target.positions)?;
     let query = MeshQuery::new(target)?;
 
+    let axes = TargetAxes {
+        index: &target_index,
+        centroid: gc,
+        axes: ga,
+        rms: grms,
+    };
+    let (k, sim, scores) = best_similarity(target, templates, &axes, st.icp_iterations)?;
+    let tpl = &templates[k];
+
+    // Non-rigid, coarse to fine.
+    let start: Vec<Vec3> = tpl.mesh.positions.iter().map(|&p| sim.apply(p)).collect();
+    let v = deform_nonrigid(&start, &tpl.mesh, target, &query, st.nonrigid_iterations)?;
+    let (_, _, sq) = symmetric_pairs(&v, &target.positions, &target_index)?;
+    let residual = sq.sqrt() / grms;
+
+    // Eyes: the similarity, then the local displacement.
+    let start_index = PointIndex::new(&start)?;
+    let eyes = tpl.eyes.map(|e| {
+        let p = sim.apply(e);
+        let near = start_index.nearest_n(p, 8);
+        let (mut acc, mut wsum) = (Vec3::ZERO, 0.0f32);
+        for (i, dist) in near {
+            let w = 1.0 / (dist + 1e-6 * grms);
+            acc += (v[i] - start[i]) * w;
+            wsum += w;
+        }
+        p + acc / wsum
+    });
+
+    let mut mesh = tpl.mesh.clone();
+    mesh.positions = v;
+    mesh.recompute_normals();
+    Ok(Fit {
+        preset: tpl.name.clone(),
+        mesh,
+        eyes,
+        eye_separation_cm: tpl.eye_separation_cm,
+        similarity: sim,
+        scores,
+        residual,
+    })
+}
+
+/// The target's point index, centroid, principal axes and RMS radius.
+struct TargetAxes<'a> {
+    index: &'a PointIndex,
+    centroid: Vec3,
+    axes: Mat3,
+    rms: f32,
+}
+
+/// The best similarity over every template and its eight starts (ICP
+/// from each): the winning template's index, its similarity and every
+/// template's best score by name.
+fn best_similarity(
+    target: &Mesh,
+    templates: &[Template],
+    ax: &TargetAxes<'_>,
+    icp_iterations: usize,
+) -> Result<(usize, Similarity, BTreeMap<String, f32>), FitError> {
+    let (gc, ga, grms) = (ax.centroid, ax.axes, ax.rms);
     let mut scores = BTreeMap::new();
     let mut best: Option<(usize, Similarity, f32)> = None;
     for (k, tpl) in templates.iter().enumerate() {
@@ -323,9 +384,9 @@ pub fn fit(target: &Mesh, templates: &[Template], st: &FitSettings) -> Result<Fi
             let r = icp(
                 &tpl.mesh.positions,
                 &target.positions,
-                &target_index,
+                ax.index,
                 start,
-                st.icp_iterations,
+                icp_iterations,
                 grms,
             )?;
             if preset_best.is_none_or(|b| r.1 < b.1) {
@@ -339,13 +400,21 @@ pub fn fit(target: &Mesh, templates: &[Template], st: &FitSettings) -> Result<Fi
         }
     }
     let (k, sim, _) = best.expect("at least one template");
-    let tpl = &templates[k];
+    Ok((k, sim, scores))
+}
 
-    // Non-rigid, coarse to fine.
-    let start: Vec<Vec3> = tpl.mesh.positions.iter().map(|&p| sim.apply(p)).collect();
-    let mut v = start.clone();
-    let nb = vertex_neighbours(&tpl.mesh);
-    let rounds = st.nonrigid_iterations;
+/// The non-rigid fit, coarse to fine: `rounds` rounds moving the template's
+/// vertices (from `start`) half-way along their smoothed displacement towards
+/// the target (closest points both ways); fewer smoothing passes each round.
+fn deform_nonrigid(
+    start: &[Vec3],
+    tpl_mesh: &Mesh,
+    target: &Mesh,
+    query: &MeshQuery,
+    rounds: usize,
+) -> Result<Vec<Vec3>, FitError> {
+    let mut v = start.to_vec();
+    let nb = vertex_neighbours(tpl_mesh);
     for round in 0..rounds {
         let moved_index = PointIndex::new(&v)?;
         let fwd: Vec<Vec3> = v
@@ -393,35 +462,7 @@ pub fn fit(target: &Mesh, templates: &[Template], st: &FitSettings) -> Result<Fi
             *p += 0.5 * *dp;
         }
     }
-    let (_, _, sq) = symmetric_pairs(&v, &target.positions, &target_index)?;
-    let residual = sq.sqrt() / grms;
-
-    // Eyes: the similarity, then the local displacement.
-    let start_index = PointIndex::new(&start)?;
-    let eyes = tpl.eyes.map(|e| {
-        let p = sim.apply(e);
-        let near = start_index.nearest_n(p, 8);
-        let (mut acc, mut wsum) = (Vec3::ZERO, 0.0f32);
-        for (i, dist) in near {
-            let w = 1.0 / (dist + 1e-6 * grms);
-            acc += (v[i] - start[i]) * w;
-            wsum += w;
-        }
-        p + acc / wsum
-    });
-
-    let mut mesh = tpl.mesh.clone();
-    mesh.positions = v;
-    mesh.recompute_normals();
-    Ok(Fit {
-        preset: tpl.name.clone(),
-        mesh,
-        eyes,
-        eye_separation_cm: tpl.eye_separation_cm,
-        similarity: sim,
-        scores,
-        residual,
-    })
+    Ok(v)
 }
 
 /// The clicked eyes and eye separation of a scene file (everything else ignored).

@@ -464,18 +464,14 @@ const CORNER: [[usize; 3]; 8] = [
     [1, 1, 1],
 ];
 
-/// Extracts a closed, outward-oriented, manifold surface of `{f(p) > iso}` sampled on
-/// the grid (`values[idx]`), locating crossings with `refine` (bisection on the exact
-/// field when given, linear interpolation otherwise). Border corners count as outside.
-/// Returns the mesh and the number of ambiguous cells fixed.
-fn surface_nets(
-    grid: &Grid,
-    values: &[f32],
-    iso: f32,
-    refine: &(dyn Fn(Vec3, Vec3, f32, f32) -> Vec3 + Sync),
-) -> (Mesh, usize) {
+/// A crossing edge: its axis, the grid index of its lower corner and that
+/// corner's coordinates.
+type CrossingEdge = (usize, usize, [usize; 3]);
+
+/// Corners strictly above `iso`; the grid's border corners are always outside.
+fn inside_corners(grid: &Grid, values: &[f32], iso: f32) -> Vec<bool> {
     let [nx, ny, nz] = grid.n;
-    let mut inside: Vec<bool> = (0..values.len())
+    (0..values.len())
         .map(|i| {
             let x = i % nx;
             let y = (i / nx) % ny;
@@ -483,27 +479,36 @@ fn surface_nets(
             let border = x == 0 || y == 0 || z == 0 || x == nx - 1 || y == ny - 1 || z == nz - 1;
             !border && values[i] > iso
         })
-        .collect();
-    let table = disk_table();
-    let cfg_of = |inside: &[bool], x: usize, y: usize, z: usize| -> usize {
-        let mut c = 0;
-        for (b, o) in CORNER.iter().enumerate() {
-            if inside[grid.idx(x + o[0], y + o[1], z + o[2])] {
-                c |= 1 << b;
-            }
+        .collect()
+}
+
+/// The cell at `(x, y, z)`'s configuration: bit b set when corner `CORNER[b]` is inside.
+#[inline]
+fn cell_config(grid: &Grid, inside: &[bool], x: usize, y: usize, z: usize) -> usize {
+    let mut c = 0;
+    for (b, o) in CORNER.iter().enumerate() {
+        if inside[grid.idx(x + o[0], y + o[1], z + o[2])] {
+            c |= 1 << b;
         }
-        c
-    };
-    // Fix ambiguous cells until none is left (monotone: only sets corners inside).
+    }
+    c
+}
+
+/// Fixes ambiguous cells (configurations whose surface is not a disk) by
+/// setting their non-border corners inside, until none is left (monotone).
+/// Returns the number of cells fixed.
+fn fix_ambiguous_cells(grid: &Grid, inside: &mut [bool]) -> usize {
+    let [nx, ny, nz] = grid.n;
+    let table = disk_table();
     let mut fixed = 0;
     loop {
+        let current: &[bool] = inside;
         let bad: Vec<(usize, usize, usize)> = (0..nz - 1)
             .into_par_iter()
             .flat_map_iter(|z| {
-                let inside = &inside;
                 (0..ny - 1).flat_map(move |y| {
                     (0..nx - 1).filter_map(move |x| {
-                        let c = cfg_of(inside, x, y, z);
+                        let c = cell_config(grid, current, x, y, z);
                         (!table[c]).then_some((x, y, z))
                     })
                 })
@@ -523,15 +528,23 @@ fn surface_nets(
                 }
             }
         }
-        if fixed > values.len() {
+        if fixed > inside.len() {
             break; // cannot happen (monotone), but never loop forever
         }
     }
+    fixed
+}
 
-    // Crossing edges: (axis, corner index of the lower end).
-    let mut crossings: Vec<(u64, Vec3)> = Vec::new();
-    let edge_key = |axis: usize, ci: usize| -> u64 { (ci as u64) * 3 + axis as u64 };
-    let mut edge_list: Vec<(usize, usize, [usize; 3])> = Vec::new();
+/// The sort key of the crossing edge along `axis` from grid corner `ci`.
+#[inline]
+fn edge_key(axis: usize, ci: usize) -> u64 {
+    (ci as u64) * 3 + axis as u64
+}
+
+/// The grid edges whose ends lie on different sides, in key order.
+fn crossing_edges(grid: &Grid, inside: &[bool]) -> Vec<CrossingEdge> {
+    let [nx, ny, nz] = grid.n;
+    let mut edge_list: Vec<CrossingEdge> = Vec::new();
     for z in 0..nz {
         for y in 0..ny {
             for x in 0..nx {
@@ -549,6 +562,25 @@ fn surface_nets(
             }
         }
     }
+    edge_list
+}
+
+/// The values sampled on the grid and which corners are inside.
+struct SampledGrid<'a> {
+    grid: &'a Grid,
+    values: &'a [f32],
+    inside: &'a [bool],
+}
+
+/// The crossing point on each crossing edge (`refine` from the inside end
+/// to the outside one), keyed by [`edge_key`] and sorted by key.
+fn edge_crossings(
+    sg: &SampledGrid<'_>,
+    edge_list: &[CrossingEdge],
+    refine: &(dyn Fn(Vec3, Vec3, f32, f32) -> Vec3 + Sync),
+) -> Vec<(u64, Vec3)> {
+    let (grid, values, inside) = (sg.grid, sg.values, sg.inside);
+    let mut crossings: Vec<(u64, Vec3)> = Vec::new();
     crossings.par_extend(edge_list.par_iter().map(|&(axis, ci, [x, y, z])| {
         let mut q = [x, y, z];
         q[axis] += 1;
@@ -563,7 +595,21 @@ fn surface_nets(
         };
         (edge_key(axis, ci), p)
     }));
-    // `edge_list` was built in key order, so `crossings` is sorted by key.
+    crossings
+}
+
+/// The index of cell `(x, y, z)` among the grid's cells.
+#[inline]
+fn cell_index(grid: &Grid, x: usize, y: usize, z: usize) -> usize {
+    let [nx, ny, _] = grid.n;
+    (z * (ny - 1) + y) * (nx - 1) + x
+}
+
+/// One vertex per boundary cell, the mean of the crossings on its 12 edges.
+/// Returns each cell's vertex (`u32::MAX`: none) and the positions.
+fn cell_vertices(grid: &Grid, inside: &[bool], crossings: &[(u64, Vec3)]) -> (Vec<u32>, Vec<Vec3>) {
+    let [nx, ny, nz] = grid.n;
+    // `crossings` is sorted by key.
     let crossing_at = |axis: usize, x: usize, y: usize, z: usize| -> Option<Vec3> {
         let key = edge_key(axis, grid.idx(x, y, z));
         crossings
@@ -571,16 +617,13 @@ fn surface_nets(
             .ok()
             .map(|i| crossings[i].1)
     };
-
-    // One vertex per boundary cell.
     let cells = (nx - 1) * (ny - 1) * (nz - 1);
-    let cell_idx = |x: usize, y: usize, z: usize| (z * (ny - 1) + y) * (nx - 1) + x;
     let mut cell_vertex = vec![u32::MAX; cells];
     let mut positions = Vec::new();
     for z in 0..nz - 1 {
         for y in 0..ny - 1 {
             for x in 0..nx - 1 {
-                let c = cfg_of(&inside, x, y, z);
+                let c = cell_config(grid, inside, x, y, z);
                 if c == 0 || c == 255 {
                     continue;
                 }
@@ -599,15 +642,25 @@ fn surface_nets(
                         }
                     }
                 }
-                cell_vertex[cell_idx(x, y, z)] = positions.len() as u32;
+                cell_vertex[cell_index(grid, x, y, z)] = positions.len() as u32;
                 positions.push(sum / cnt.max(1) as f32);
             }
         }
     }
+    (cell_vertex, positions)
+}
 
-    // One quad per crossing edge, split along the shorter diagonal.
+/// One quad per crossing edge joining the vertices of its four cells
+/// (oriented outward), split along the shorter diagonal.
+fn edge_quads(
+    grid: &Grid,
+    edge_list: &[CrossingEdge],
+    inside: &[bool],
+    cell_vertex: &[u32],
+    positions: &[Vec3],
+) -> Vec<[u32; 3]> {
     let mut triangles = Vec::new();
-    for &(axis, ci, [x, y, z]) in &edge_list {
+    for &(axis, ci, [x, y, z]) in edge_list {
         let (a1, a2) = ((axis + 1) % 3, (axis + 2) % 3);
         let mut base = [x, y, z];
         // Crossing edges are interior along a1 and a2 (border corners are outside).
@@ -620,7 +673,7 @@ fn surface_nets(
             let mut q = base;
             q[a1] += d1;
             q[a2] += d2;
-            cell_vertex[cell_idx(q[0], q[1], q[2])]
+            cell_vertex[cell_index(grid, q[0], q[1], q[2])]
         };
         // Counter-clockwise around +axis in the (a1, a2) plane.
         let mut quad = [cell(0, 0), cell(1, 0), cell(1, 1), cell(0, 1)];
@@ -639,6 +692,31 @@ fn surface_nets(
             triangles.push([quad[1], quad[2], quad[3]]);
         }
     }
+    triangles
+}
+
+/// Extracts a closed, outward-oriented, manifold surface of `{f(p) > iso}` sampled on
+/// the grid (`values[idx]`), locating crossings with `refine` (bisection on the exact
+/// field when given, linear interpolation otherwise). Border corners count as outside.
+/// Returns the mesh and the number of ambiguous cells fixed.
+fn surface_nets(
+    grid: &Grid,
+    values: &[f32],
+    iso: f32,
+    refine: &(dyn Fn(Vec3, Vec3, f32, f32) -> Vec3 + Sync),
+) -> (Mesh, usize) {
+    let mut inside = inside_corners(grid, values, iso);
+    let fixed = fix_ambiguous_cells(grid, &mut inside);
+    // Crossing edges: (axis, corner index of the lower end), in key order.
+    let edge_list = crossing_edges(grid, &inside);
+    let sampled = SampledGrid {
+        grid,
+        values,
+        inside: &inside,
+    };
+    let crossings = edge_crossings(&sampled, &edge_list, refine);
+    let (cell_vertex, positions) = cell_vertices(grid, &inside, &crossings);
+    let triangles = edge_quads(grid, &edge_list, &inside, &cell_vertex, &positions);
     let mut mesh = Mesh {
         positions,
         triangles,

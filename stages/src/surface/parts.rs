@@ -595,6 +595,95 @@ fure_stage_api::stage_params! {
     }
 }
 
+/// How the mesh got its part labels.
+struct Labelling<'a> {
+    source: &'static str,
+    /// The nearest-vertex transfer's report (`labels` only).
+    transfer: Option<TransferReport>,
+    /// The labelled mesh's alignment with the mesh (`labels` only).
+    alignment: Option<Alignment>,
+    /// `labels`: its path, the labelled mesh and the query on the mesh, for
+    /// the coverage check once the protected parts are known.
+    label_source: Option<(&'a Path, Mesh, crate::maths::geom::MeshQuery)>,
+}
+
+/// Labels `mesh`'s vertices from `labels` (an OBJ whose groups are
+/// transferred by nearest vertex, after an alignment check) or
+/// `vertex_labels` (one name per vertex); exactly one must be connected.
+fn label_mesh<'a>(ctx: &'a StageContext<'_>, mesh: &mut Mesh) -> Result<Labelling<'a>, StageError> {
+    match (ctx.input_opt("labels"), ctx.input_opt("vertex_labels")) {
+        (Some(_), Some(_)) => {
+            Err(StageError::failed("connect either `labels` (OBJ) or `vertex_labels` (JSON), not both"))
+        }
+        (None, None) => {
+            Err(StageError::failed(
+                "connect `labels` (an OBJ with one group per part) or `vertex_labels` (JSON list of names)",
+            ))
+        }
+        (Some(path), None) => {
+            let src = crate::formats::obj::read_obj(path).map_err(|e| e.for_input("labels"))?;
+            if src.positions.is_empty() {
+                return Err(StageError::input("labels", path, "the labelled mesh has no vertices"));
+            }
+            let query = crate::maths::geom::MeshQuery::new(mesh)?;
+            // Before the transfer: a mesh in another frame would be "transferred" all the same.
+            let a = check_alignment(&src, mesh, &query).map_err(|e| StageError::input("labels", path, e))?;
+            let rep = transfer_nearest(mesh, &src).map_err(|e| StageError::input("labels", path, e))?;
+            Ok(Labelling {
+                source: "nearest_vertex",
+                transfer: Some(rep),
+                alignment: Some(a),
+                label_source: Some((path, src, query)),
+            })
+        }
+        (None, Some(path)) => {
+            let labels: Vec<String> = crate::formats::json::read_json(path)?;
+            apply_vertex_labels(mesh, &labels, path)?;
+            Ok(Labelling {
+                source: "vertex_labels",
+                transfer: None,
+                alignment: None,
+                label_source: None,
+            })
+        }
+    }
+}
+
+/// Vertices per part name (every part listed, even with none).
+fn part_vertex_counts(mesh: &Mesh) -> BTreeMap<String, usize> {
+    let mut counts: BTreeMap<String, usize> =
+        mesh.part_names.iter().map(|n| (n.clone(), 0)).collect();
+    for &p in &mesh.part {
+        if let Some(n) = mesh.part_names.get(p as usize) {
+            *counts.entry(n.clone()).or_insert(0) += 1;
+        }
+    }
+    counts
+}
+
+/// The error for a mesh whose every vertex is in a protected part, on the
+/// port the labels came from.
+fn no_fur_error(ctx: &StageContext<'_>, mesh_path: &Path, counts: &BTreeMap<String, usize>) -> StageError {
+    let labelled: Vec<&str> = counts
+        .iter()
+        .filter(|(_, c)| **c > 0)
+        .map(|(n, _)| n.as_str())
+        .collect();
+    let (port, path) = match (ctx.input_opt("labels"), ctx.input_opt("vertex_labels")) {
+        (Some(p), _) => ("labels", p),
+        (_, Some(p)) => ("vertex_labels", p),
+        _ => ("mesh", mesh_path),
+    };
+    StageError::input(
+        port,
+        path,
+        format!(
+            "the mesh has no fur parts: every vertex is in a protected part ({}), so there is no fur to reconstruct; expected at least one part that is not in the `protected` parameter (nor `fur = false` in scene.json)",
+            labelled.join(", ")
+        ),
+    )
+}
+
 /// The `parts` stage.
 pub struct PartsStage;
 
@@ -685,72 +774,25 @@ impl Stage for PartsStage {
         for w in &import.warnings {
             ctx.progress.note(&format!("mesh: {w}"));
         }
-        let mut alignment = None;
-        let mut label_source = None;
-        let (source, transfer) = match (ctx.input_opt("labels"), ctx.input_opt("vertex_labels")) {
-            (Some(_), Some(_)) => {
-                return Err(StageError::failed("connect either `labels` (OBJ) or `vertex_labels` (JSON), not both"))
-            }
-            (None, None) => {
-                return Err(StageError::failed(
-                    "connect `labels` (an OBJ with one group per part) or `vertex_labels` (JSON list of names)",
-                ))
-            }
-            (Some(path), None) => {
-                let src = crate::formats::obj::read_obj(path).map_err(|e| e.for_input("labels"))?;
-                if src.positions.is_empty() {
-                    return Err(StageError::input("labels", path, "the labelled mesh has no vertices"));
-                }
-                let query = crate::maths::geom::MeshQuery::new(&mesh)?;
-                // Before the transfer: a mesh in another frame would be "transferred" all the same.
-                let a = check_alignment(&src, &mesh, &query).map_err(|e| StageError::input("labels", path, e))?;
-                alignment = Some(a);
-                let rep = transfer_nearest(&mut mesh, &src).map_err(|e| StageError::input("labels", path, e))?;
-                label_source = Some((path, src, query));
-                ("nearest_vertex", Some(rep))
-            }
-            (None, Some(path)) => {
-                let labels: Vec<String> = crate::formats::json::read_json(path)?;
-                apply_vertex_labels(&mut mesh, &labels, path)?;
-                ("vertex_labels", None)
-            }
-        };
+        let Labelling {
+            source,
+            transfer,
+            alignment,
+            label_source,
+        } = label_mesh(ctx, &mut mesh)?;
         let scene: Option<SceneInfo> = match ctx.input_opt("scene") {
             Some(p) => Some(crate::formats::json::read_json(p)?),
             None => None,
         };
         let wanted = PartsParams::from_params(ctx.params)?.protected;
         let protected = protected_in(&mesh.part_names, &wanted, scene.as_ref());
-        let mut counts: BTreeMap<String, usize> =
-            mesh.part_names.iter().map(|n| (n.clone(), 0)).collect();
-        for &p in &mesh.part {
-            if let Some(n) = mesh.part_names.get(p as usize) {
-                *counts.entry(n.clone()).or_insert(0) += 1;
-            }
-        }
+        let counts = part_vertex_counts(&mesh);
         let protected_vertices: usize = protected
             .iter()
             .map(|n| counts.get(n).copied().unwrap_or(0))
             .sum();
         if protected_vertices >= mesh.positions.len() {
-            let labelled: Vec<&str> = counts
-                .iter()
-                .filter(|(_, c)| **c > 0)
-                .map(|(n, _)| n.as_str())
-                .collect();
-            let (port, path) = match (ctx.input_opt("labels"), ctx.input_opt("vertex_labels")) {
-                (Some(p), _) => ("labels", p),
-                (_, Some(p)) => ("vertex_labels", p),
-                _ => ("mesh", mesh_path),
-            };
-            return Err(StageError::input(
-                port,
-                path,
-                format!(
-                    "the mesh has no fur parts: every vertex is in a protected part ({}), so there is no fur to reconstruct; expected at least one part that is not in the `protected` parameter (nor `fur = false` in scene.json)",
-                    labelled.join(", ")
-                ),
-            ));
+            return Err(no_fur_error(ctx, mesh_path, &counts));
         }
         if let Some((path, src, query)) = &label_source {
             check_coverage(src, &mesh, &protected, query)
