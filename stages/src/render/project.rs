@@ -291,28 +291,32 @@ pub struct ParamGrad {
     pub cov3d: [f32; 6],
 }
 
-/// Adjoint of [`project_one`] for a visible splat.
-#[allow(clippy::too_many_arguments)]
-pub fn project_backward(
-    mean: Vec3,
-    scale: Vec3,
-    rot: Quat,
-    sh: &[Vec3; 4],
-    splat: &Splat,
-    g: &SplatGrad,
-    cam: &CamData,
-    s: &RenderSettings,
-) -> ParamGrad {
-    let mut out = ParamGrad {
-        rot: Quat::from_xyzw(0.0, 0.0, 0.0, 0.0),
-        ..Default::default()
-    };
-    if !splat.visible {
-        return out;
+/// One Gaussian's parameters that [`project_backward`] reads.
+#[derive(Debug, Clone, Copy)]
+pub struct GaussianParams<'a> {
+    pub mean: Vec3,
+    pub scale: Vec3,
+    pub rot: Quat,
+    pub sh: &'a [Vec3; 4],
+}
+
+impl<'a> GaussianParams<'a> {
+    /// Gaussian `i` of `g`.
+    #[inline]
+    pub fn of(g: &'a super::Gaussians, i: usize) -> Self {
+        GaussianParams {
+            mean: g.means[i],
+            scale: g.scales[i],
+            rot: g.rotations[i],
+            sh: &g.sh[i],
+        }
     }
-    out.opacity = g.opacity;
-    let pr = jacobian(cam, mean);
-    let z = pr.z;
+}
+
+/// Adjoint of the conic (the inverse screen covariance) and of the
+/// orientation feature: the gradient on the screen covariance `(a, b, c)`.
+#[inline]
+fn screen_cov_grad(splat: &Splat, g: &SplatGrad) -> (f32, f32, f32) {
     let [a, b, c] = splat.cov;
     let [ca, cb, cc] = splat.conic;
     // Conic (A, B, C) = (c, -b, a) / det.
@@ -329,17 +333,14 @@ pub fn project_backward(
     da += gox * 2.0 * c * inv2 - goy * 2.0 * b * inv2;
     dc += -gox * 2.0 * a * inv2 - goy * 2.0 * b * inv2;
     db += goy * 2.0 / sum;
-    // Sigma2 = T Sigma3 T^T.
-    let sig = cov3(scale, rot);
-    let t0 = cam.w.transpose() * pr.j0;
-    let t1 = cam.w.transpose() * pr.j1;
-    let st0 = sig * t0;
-    let st1 = sig * t1;
-    let g3 = outer(t0, t0) * da + (outer(t0, t1) + outer(t1, t0)) * (0.5 * db) + outer(t1, t1) * dc;
-    let dt0 = 2.0 * da * st0 + db * st1;
-    let dt1 = 2.0 * dc * st1 + db * st0;
-    let dj0 = cam.w * dt0;
-    let dj1 = cam.w * dt1;
+    (da, db, dc)
+}
+
+/// Adjoint onto the camera-space mean `t`: through the Jacobian's entries
+/// (gradients `dj0`, `dj1` on its rows), the screen mean and the depth feature.
+#[inline]
+fn camera_space_grad(pr: &Proj, (dj0, dj1): (Vec3, Vec3), g: &SplatGrad, cam: &CamData) -> Vec3 {
+    let z = pr.z;
     // J entries -> camera-space t.
     let (fx, fy) = (cam.fx, cam.fy);
     let z2 = z * z;
@@ -368,9 +369,21 @@ pub fn project_backward(
     dz += gv * fy * pr.t.y / z2;
     // Depth feature.
     dz += g.feat[F_DEPTH];
-    let dt = Vec3::new(dtx, dty, -dz);
-    out.mean = cam.w.transpose() * dt;
-    // Colour (SH).
+    Vec3::new(dtx, dty, -dz)
+}
+
+/// Adjoint of the SH colour: the bands' gradients into `out.sh` and, from
+/// band 1, the view direction's share into `out.mean`.
+#[inline]
+fn sh_backward(
+    out: &mut ParamGrad,
+    p: &GaussianParams<'_>,
+    splat: &Splat,
+    g: &SplatGrad,
+    cam: &CamData,
+    s: &RenderSettings,
+) {
+    let sh = p.sh;
     let dcol = Vec3::new(
         if splat.rgb_clamped[0] { 0.0 } else { g.feat[0] },
         if splat.rgb_clamped[1] { 0.0 } else { g.feat[1] },
@@ -378,7 +391,7 @@ pub fn project_backward(
     );
     out.sh[0] = SH_C0 * dcol;
     if s.sh_degree >= 1 {
-        let rel = mean - cam.center;
+        let rel = p.mean - cam.center;
         let len = rel.length();
         if len > 0.0 {
             let dir = rel / len;
@@ -389,7 +402,13 @@ pub fn project_backward(
             out.mean += (ddir - dir * dir.dot(ddir)) / len;
         }
     }
-    // Sigma3 = sum_k s_k^2 r_k r_k^T.
+}
+
+/// Adjoint of `Sigma3 = sum_k s_k^2 r_k r_k^T` given its gradient `g3`:
+/// `out.cov3d`, `out.scale` and `out.rot` (through the raw quaternion's
+/// normalisation).
+#[inline]
+fn cov3_backward(out: &mut ParamGrad, g3: Mat3, scale: Vec3, rot: Quat) {
     let g3c = [g3.x_axis, g3.y_axis, g3.z_axis];
     out.cov3d = [
         g3c[0].x,
@@ -425,5 +444,42 @@ pub fn project_backward(
         let draw = (dq - qn * qn.dot(dq)) / n;
         out.rot = Quat::from_xyzw(draw.x, draw.y, draw.z, draw.w);
     }
+}
+
+/// Adjoint of [`project_one`] for a visible splat.
+pub fn project_backward(
+    p: GaussianParams<'_>,
+    splat: &Splat,
+    g: &SplatGrad,
+    cam: &CamData,
+    s: &RenderSettings,
+) -> ParamGrad {
+    let mut out = ParamGrad {
+        rot: Quat::from_xyzw(0.0, 0.0, 0.0, 0.0),
+        ..Default::default()
+    };
+    if !splat.visible {
+        return out;
+    }
+    out.opacity = g.opacity;
+    let pr = jacobian(cam, p.mean);
+    let (da, db, dc) = screen_cov_grad(splat, g);
+    // Sigma2 = T Sigma3 T^T.
+    let sig = cov3(p.scale, p.rot);
+    let t0 = cam.w.transpose() * pr.j0;
+    let t1 = cam.w.transpose() * pr.j1;
+    let st0 = sig * t0;
+    let st1 = sig * t1;
+    let g3 = outer(t0, t0) * da + (outer(t0, t1) + outer(t1, t0)) * (0.5 * db) + outer(t1, t1) * dc;
+    let dt0 = 2.0 * da * st0 + db * st1;
+    let dt1 = 2.0 * dc * st1 + db * st0;
+    let dj0 = cam.w * dt0;
+    let dj1 = cam.w * dt1;
+    let dt = camera_space_grad(&pr, (dj0, dj1), g, cam);
+    out.mean = cam.w.transpose() * dt;
+    // Colour (SH).
+    sh_backward(&mut out, &p, splat, g, cam, s);
+    // Sigma3 = sum_k s_k^2 r_k r_k^T.
+    cov3_backward(&mut out, g3, p.scale, p.rot);
     out
 }

@@ -12,13 +12,13 @@
 // `!(x > y)` is deliberate: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
-use glam::{Vec2, Vec3};
+use glam::Vec2;
 use rayon::prelude::*;
 
 use super::gaussians::{GaussianGrads, Gaussians};
 use super::project::{
-    project_backward, project_one, CamData, Splat, SplatGrad, F_ALPHA, F_DEPTH, F_FUR, F_OX, F_OY,
-    NF,
+    project_backward, project_one, CamData, GaussianParams, Splat, SplatGrad, F_ALPHA, F_DEPTH,
+    F_FUR, F_OX, F_OY, NF,
 };
 use super::{RenderError, RenderSettings, TILE};
 use crate::data::camera::Camera;
@@ -511,17 +511,9 @@ fn scatter(
     (out, t_final, n_contrib, evaluations)
 }
 
-/// Gradients of all Gaussian parameters given dL/d(outputs). `g`, `cam` and
-/// `s` must be the ones `st` was rendered with.
-pub fn backward(
-    g: &Gaussians,
-    cam: &Camera,
-    s: &RenderSettings,
-    st: &RenderState,
-    dl: &OutputGrads,
-) -> Result<GaussianGrads, RenderError> {
-    s.validate()?;
-    let cd = CamData::new(cam)?;
+/// Checks that the camera and the Gaussians are the ones the render state
+/// was made with, and that the Gaussians are valid.
+fn check_backward_inputs(g: &Gaussians, cd: &CamData, st: &RenderState) -> Result<(), RenderError> {
     let (w, h) = (st.width, st.height);
     if cd.width != w || cd.height != h {
         return Err(RenderError::Camera(format!(
@@ -537,7 +529,12 @@ pub fn backward(
         });
     }
     g.validate()?;
-    // Per-pixel output gradients in feature layout.
+    Ok(())
+}
+
+/// The per-pixel output gradients in feature layout (absent images: zero),
+/// checked for size and finiteness.
+fn pixel_grads(dl: &OutputGrads, w: u32, h: u32) -> Result<Vec<[f32; NF]>, RenderError> {
     let mut gpix = vec![[0.0f32; NF]; (w * h) as usize];
     let chans: [(&Option<ImageF32>, &'static str, u32, usize); 5] = [
         (&dl.rgb, "rgb gradient", 3, 0),
@@ -560,102 +557,116 @@ pub fn backward(
             }
         }
     }
-    let (tx, n_tiles) = (w.div_ceil(TILE), st.tile_ranges.len());
-    let bg = s.background;
-    // Per-instance gradients, one disjoint slice per tile.
-    let mut inst = vec![SplatGrad::default(); st.instances.len()];
-    {
-        let mut slices = Vec::with_capacity(n_tiles);
-        let mut rest: &mut [SplatGrad] = &mut inst;
-        for &(a, b) in &st.tile_ranges {
-            let (head, tail) = rest.split_at_mut((b - a) as usize);
-            slices.push(head);
-            rest = tail;
-        }
-        slices.into_par_iter().enumerate().for_each(|(t, out)| {
-            let rect = tile_rect(t, tx, w, h);
-            let (x0, y0, x1, y1) = rect;
-            let mut tr = [0.0f32; TP];
-            let mut sacc = [[0.0f32; NF]; TP];
-            let mut gp = [[0.0f32; NF]; TP];
-            let mut nc = [0u32; TP];
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
-                    let q = (y as u32 * w + x as u32) as usize;
-                    tr[p] = st.t_final[q];
-                    sacc[p][0] = bg.x * tr[p];
-                    sacc[p][1] = bg.y * tr[p];
-                    sacc[p][2] = bg.z * tr[p];
-                    gp[p] = gpix[q];
-                    nc[p] = st.n_contrib[q];
-                }
-            }
-            let (a, _) = st.tile_ranges[t];
-            let recs = gather(
-                &st.splats,
-                &st.instances[a as usize..a as usize + out.len()],
-            );
-            for k in (0..recs.len()).rev() {
-                let sp = &recs[k];
-                let [ca, cb, cc] = sp.conic;
-                let mut gr = SplatGrad::default();
-                for_each_covered(sp, rect, |x, y, p| {
-                    if k as u32 >= nc[p] {
-                        return;
-                    }
-                    let Some((alpha, gauss, dx, dy, clamped)) = eval(sp, x, y, s) else {
-                        return;
-                    };
-                    let inv_one_m = 1.0 / (1.0 - alpha);
-                    let ti = tr[p] * inv_one_m;
-                    let wgt = alpha * ti;
-                    let mut dalpha = 0.0f32;
-                    for c in 0..NF {
-                        dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] * inv_one_m);
-                        gr.feat[c] += gp[p][c] * wgt;
-                        sacc[p][c] += sp.feat[c] * wgt;
-                    }
-                    tr[p] = ti;
-                    if !clamped {
-                        gr.opacity += dalpha * gauss;
-                        let dp = dalpha * alpha;
-                        gr.mean[0] += dp * (ca * dx + cb * dy);
-                        gr.mean[1] += dp * (cb * dx + cc * dy);
-                        gr.conic[0] += -0.5 * dp * dx * dx;
-                        gr.conic[1] += -dp * dx * dy;
-                        gr.conic[2] += -0.5 * dp * dy * dy;
-                    }
-                });
-                out[k] = gr;
-            }
-        });
+    Ok(gpix)
+}
+
+/// Splits the per-instance gradients into one disjoint slice per tile.
+fn tile_slices<'a>(inst: &'a mut [SplatGrad], tile_ranges: &[(u32, u32)]) -> Vec<&'a mut [SplatGrad]> {
+    let mut slices = Vec::with_capacity(tile_ranges.len());
+    let mut rest: &mut [SplatGrad] = inst;
+    for &(a, b) in tile_ranges {
+        let (head, tail) = rest.split_at_mut((b - a) as usize);
+        slices.push(head);
+        rest = tail;
     }
-    // Sum per Gaussian in instance order (deterministic).
-    let mut acc = vec![SplatGrad::default(); g.len()];
+    slices
+}
+
+/// The screen-space gradient of every (tile, Gaussian) instance: per tile
+/// (in parallel), its splats back to front over its pixels, undoing the
+/// compositing from the final transmittance.
+fn instance_grads(st: &RenderState, gpix: &[[f32; NF]], s: &RenderSettings) -> Vec<SplatGrad> {
+    let (w, h) = (st.width, st.height);
+    let tx = w.div_ceil(TILE);
+    let bg = s.background;
+    let mut inst = vec![SplatGrad::default(); st.instances.len()];
+    let slices = tile_slices(&mut inst, &st.tile_ranges);
+    slices.into_par_iter().enumerate().for_each(|(t, out)| {
+        let rect = tile_rect(t, tx, w, h);
+        let (x0, y0, x1, y1) = rect;
+        let mut tr = [0.0f32; TP];
+        let mut sacc = [[0.0f32; NF]; TP];
+        let mut gp = [[0.0f32; NF]; TP];
+        let mut nc = [0u32; TP];
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
+                let q = (y as u32 * w + x as u32) as usize;
+                tr[p] = st.t_final[q];
+                sacc[p][0] = bg.x * tr[p];
+                sacc[p][1] = bg.y * tr[p];
+                sacc[p][2] = bg.z * tr[p];
+                gp[p] = gpix[q];
+                nc[p] = st.n_contrib[q];
+            }
+        }
+        let (a, _) = st.tile_ranges[t];
+        let recs = gather(
+            &st.splats,
+            &st.instances[a as usize..a as usize + out.len()],
+        );
+        for k in (0..recs.len()).rev() {
+            let sp = &recs[k];
+            let [ca, cb, cc] = sp.conic;
+            let mut gr = SplatGrad::default();
+            for_each_covered(sp, rect, |x, y, p| {
+                if k as u32 >= nc[p] {
+                    return;
+                }
+                let Some((alpha, gauss, dx, dy, clamped)) = eval(sp, x, y, s) else {
+                    return;
+                };
+                let inv_one_m = 1.0 / (1.0 - alpha);
+                let ti = tr[p] * inv_one_m;
+                let wgt = alpha * ti;
+                let mut dalpha = 0.0f32;
+                for c in 0..NF {
+                    dalpha += gp[p][c] * (sp.feat[c] * ti - sacc[p][c] * inv_one_m);
+                    gr.feat[c] += gp[p][c] * wgt;
+                    sacc[p][c] += sp.feat[c] * wgt;
+                }
+                tr[p] = ti;
+                if !clamped {
+                    gr.opacity += dalpha * gauss;
+                    let dp = dalpha * alpha;
+                    gr.mean[0] += dp * (ca * dx + cb * dy);
+                    gr.mean[1] += dp * (cb * dx + cc * dy);
+                    gr.conic[0] += -0.5 * dp * dx * dx;
+                    gr.conic[1] += -dp * dx * dy;
+                    gr.conic[2] += -0.5 * dp * dy * dy;
+                }
+            });
+            out[k] = gr;
+        }
+    });
+    inst
+}
+
+/// Sums the instances' gradients per Gaussian in instance order (deterministic).
+fn sum_per_gaussian(st: &RenderState, inst: Vec<SplatGrad>, n: usize) -> Vec<SplatGrad> {
+    let mut acc = vec![SplatGrad::default(); n];
     for (j, &gi) in st.instances.iter().enumerate() {
         acc[gi as usize].add(&inst[j]);
     }
-    drop(inst);
-    // Projection adjoint, independent per Gaussian.
+    acc
+}
+
+/// The projection's adjoint, independent per Gaussian (in chunks): the
+/// parameter gradients from the summed screen-space ones `acc`.
+fn projection_adjoint(
+    g: &Gaussians,
+    st: &RenderState,
+    acc: &[SplatGrad],
+    cd: &CamData,
+    s: &RenderSettings,
+) -> GaussianGrads {
     let mut out = GaussianGrads::zeros(g.len());
     let n = g.len();
     let parts: Vec<Vec<super::project::ParamGrad>> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
         .map(|c| {
             (c * CHUNK..((c + 1) * CHUNK).min(n))
-                .map(|i| {
-                    project_backward(
-                        g.means[i],
-                        g.scales[i],
-                        g.rotations[i],
-                        &g.sh[i],
-                        &st.splats[i],
-                        &acc[i],
-                        &cd,
-                        s,
-                    )
-                })
+                .map(|i| project_backward(GaussianParams::of(g, i), &st.splats[i], &acc[i], cd, s))
                 .collect()
         })
         .collect();
@@ -668,8 +679,25 @@ pub fn backward(
         out.cov3d[i] = pg.cov3d;
         out.means2d[i] = Vec2::new(acc[i].mean[0], acc[i].mean[1]);
     }
-    let _ = Vec3::ZERO;
-    Ok(out)
+    out
+}
+
+/// Gradients of all Gaussian parameters given dL/d(outputs). `g`, `cam` and
+/// `s` must be the ones `st` was rendered with.
+pub fn backward(
+    g: &Gaussians,
+    cam: &Camera,
+    s: &RenderSettings,
+    st: &RenderState,
+    dl: &OutputGrads,
+) -> Result<GaussianGrads, RenderError> {
+    s.validate()?;
+    let cd = CamData::new(cam)?;
+    check_backward_inputs(g, &cd, st)?;
+    let gpix = pixel_grads(dl, st.width, st.height)?;
+    let inst = instance_grads(st, &gpix, s);
+    let acc = sum_per_gaussian(st, inst, g.len());
+    Ok(projection_adjoint(g, st, &acc, &cd, s))
 }
 
 #[cfg(test)]
