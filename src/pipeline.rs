@@ -529,21 +529,12 @@ impl Ctx<'_> {
     }
 }
 
+/// Parses one pipeline file's text into its sections, collecting every
+/// problem rather than stopping at the first.
 fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineErrors> {
     let lines = LineIndex::new(text);
     let file: Arc<str> = Arc::from(label);
-    let doc = ImDocument::parse(text).map_err(|e| {
-        let (line, col) = e.span().map(|s| lines.line_col(s.start)).unwrap_or((1, 1));
-        let msg = e.message().trim().to_string();
-        PipelineError::at(
-            &Loc {
-                file: file.clone(),
-                line,
-                col,
-            },
-            format!("invalid TOML: {msg}"),
-        )
-    })?;
+    let doc = parse_toml(text, &file, &lines)?;
     let cx = Ctx {
         file: file.clone(),
         lines: &lines,
@@ -574,32 +565,7 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
             },
             "pipeline" => match item.as_table_like() {
                 None => errors.push(PipelineError::at(&loc, "`pipeline` must be a table")),
-                Some(t) => {
-                    for (k, v) in t.iter() {
-                        let kloc = cx.key_loc(t, k);
-                        match (k, v.as_str()) {
-                            ("name", Some(s)) => {
-                                if valid_name(s) {
-                                    out.name = Some((s.to_string(), kloc))
-                                } else {
-                                    errors.push(PipelineError::at(
-                                        &cx.item_loc(v),
-                                        format!("pipeline name `{s}`: expected letters, digits, `_` or `-`"),
-                                    ))
-                                }
-                            }
-                            ("description", Some(s)) => out.description = Some(s.to_string()),
-                            ("name" | "description", None) => errors.push(PipelineError::at(
-                                &kloc,
-                                format!("`pipeline.{k}` must be a string"),
-                            )),
-                            _ => errors.push(PipelineError::at(
-                                &kloc,
-                                format!("unknown field `pipeline.{k}` (expected `name` or `description`)"),
-                            )),
-                        }
-                    }
-                }
+                Some(t) => parse_pipeline_table(&cx, t, &mut out, &mut errors),
             },
             "stages" => match item.as_table_like() {
                 None => errors.push(PipelineError::at(&loc, "`stages` must be a table of tables")),
@@ -614,105 +580,20 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
             },
             "sweep" => match item.as_table_like() {
                 None => errors.push(PipelineError::at(&loc, "`sweep` must be a table")),
-                Some(t) => {
-                    for (k, v) in t.iter() {
-                        let kloc = cx.key_loc(t, k);
-                        if k == "each" {
-                            if let Some(each) = v.as_table_like() {
-                                for (k, v) in each.iter() {
-                                    let kloc = cx.key_loc(each, k);
-                                    if let Some(l) = sweep_axis(&cx, "sweep.each", k, v, &kloc, &mut errors) {
-                                        if out.sweep.contains_key(k) {
-                                            errors.push(PipelineError::at(
-                                                &kloc,
-                                                format!("sweep key `{k}` is both crossed (`[sweep]`) and varied one at a time (`[sweep.each]`); keep one"),
-                                            ));
-                                        } else {
-                                            out.sweep_each.push((k.to_string(), l, kloc));
-                                        }
-                                    }
-                                }
-                            } else {
-                                errors.push(PipelineError::at(
-                                    &kloc,
-                                    "`sweep.each` must be a table of \"STAGE.PARAM\" = [values]",
-                                ));
-                            }
-                            continue;
-                        }
-                        if let Some(l) = sweep_axis(&cx, "sweep", k, v, &kloc, &mut errors) {
-                            if out.sweep_each.iter().any(|(e, _, _)| e == k) {
-                                errors.push(PipelineError::at(
-                                    &kloc,
-                                    format!("sweep key `{k}` is both crossed (`[sweep]`) and varied one at a time (`[sweep.each]`); keep one"),
-                                ));
-                            } else {
-                                out.sweep.insert(k.to_string(), (l, kloc));
-                            }
-                        }
-                    }
-                }
+                Some(t) => parse_sweep_table(&cx, t, &mut out, &mut errors),
             },
             "aggregate" => match item.as_table_like() {
                 None => errors.push(PipelineError::at(&loc, "`aggregate` must be a table of tables")),
-                Some(t) => {
-                    for (name, st) in t.iter() {
-                        match parse_stage(&cx, t, name, st) {
-                            Ok(s) => {
-                                // The one input is bound by the engine (see `crate::sweep`).
-                                if let Some(inp) = s.inputs.values().next() {
-                                    errors.push(PipelineError::at(
-                                        &inp.loc,
-                                        format!("aggregate `{name}`: no `inputs` expected (its one input port is bound to the sweep record by the engine)"),
-                                    ));
-                                } else {
-                                    out.aggregates.push(s);
-                                }
-                            }
-                            Err(e) => errors.extend(e.into_iter().map(|mut e| {
-                                e.message = e.message.replace("`stages.", "`aggregate.");
-                                e
-                            })),
-                        }
-                    }
-                }
+                Some(t) => parse_aggregate_table(&cx, t, &mut out, &mut errors),
             },
             "publish" => match item.as_table_like() {
                 None => errors.push(PipelineError::at(
                     &loc,
                     "`publish` must be a table of \"AGGREGATE.PORT\" = \"destination path\"",
                 )),
-                Some(t) => {
-                    for (k, v) in t.iter() {
-                        let kloc = cx.key_loc(t, k);
-                        match (k.split_once('.'), v.as_str()) {
-                            (Some((a, port)), Some(dest)) if !a.is_empty() && !port.is_empty() && !dest.is_empty() => {
-                                out.publish.insert(k.to_string(), (cx.base.join(dest), kloc));
-                            }
-                            (None, _) | (Some(_), Some(_)) => errors.push(PipelineError::at(
-                                &kloc,
-                                format!("publish key `{k}`: expected \"AGGREGATE.PORT\" = \"destination path\""),
-                            )),
-                            (Some(_), None) => errors.push(PipelineError::at(
-                                &cx.item_loc(v),
-                                format!("publish `{k}`: expected a destination path (a string)"),
-                            )),
-                        }
-                    }
-                }
+                Some(t) => parse_publish_table(&cx, t, &mut out, &mut errors),
             },
-            "executor" => match item_to_value(item, &loc, cx.lines) {
-                Ok(v @ Value::Table(_)) => {
-                    match crate::slurm::ExecutorConfig::from_value(&v, &loc.to_string()) {
-                        Ok(_) => out.executor = Some((v, loc)),
-                        Err(crate::slurm::SlurmError::Config { message, .. }) => errors
-                            .push(PipelineError::at(&loc, format!("[executor]: {message}"))),
-                        Err(e) => errors.push(PipelineError::at(&loc, e.to_string())),
-                    }
-                }
-                Ok(_) => errors.push(PipelineError::at(&loc, "`executor` must be a table")),
-                Err(e) => errors.push(e),
-            },
+            "executor" => parse_executor_table(&cx, item, &loc, &mut out, &mut errors),
             other => errors.push(PipelineError::at(
                 &loc,
                 format!(
@@ -725,6 +606,196 @@ fn parse_file(text: &str, label: &str, base: &Path) -> Result<RawFile, PipelineE
         Ok(out)
     } else {
         Err(PipelineErrors(errors))
+    }
+}
+
+/// The TOML document itself; a syntax error is located in `file`.
+fn parse_toml<'t>(
+    text: &'t str,
+    file: &Arc<str>,
+    lines: &LineIndex,
+) -> Result<ImDocument<&'t str>, PipelineError> {
+    ImDocument::parse(text).map_err(|e| {
+        let (line, col) = e.span().map(|s| lines.line_col(s.start)).unwrap_or((1, 1));
+        let msg = e.message().trim().to_string();
+        PipelineError::at(
+            &Loc {
+                file: file.clone(),
+                line,
+                col,
+            },
+            format!("invalid TOML: {msg}"),
+        )
+    })
+}
+
+/// `[pipeline]`: the optional `name` and `description`.
+fn parse_pipeline_table(
+    cx: &Ctx<'_>,
+    t: &dyn TableLike,
+    out: &mut RawFile,
+    errors: &mut Vec<PipelineError>,
+) {
+    for (k, v) in t.iter() {
+        let kloc = cx.key_loc(t, k);
+        match (k, v.as_str()) {
+            ("name", Some(s)) => {
+                if valid_name(s) {
+                    out.name = Some((s.to_string(), kloc))
+                } else {
+                    errors.push(PipelineError::at(
+                        &cx.item_loc(v),
+                        format!("pipeline name `{s}`: expected letters, digits, `_` or `-`"),
+                    ))
+                }
+            }
+            ("description", Some(s)) => out.description = Some(s.to_string()),
+            ("name" | "description", None) => errors.push(PipelineError::at(
+                &kloc,
+                format!("`pipeline.{k}` must be a string"),
+            )),
+            _ => errors.push(PipelineError::at(
+                &kloc,
+                format!("unknown field `pipeline.{k}` (expected `name` or `description`)"),
+            )),
+        }
+    }
+}
+
+/// `[sweep]`: crossed axes, and its `[sweep.each]` subtable where it appears.
+fn parse_sweep_table(
+    cx: &Ctx<'_>,
+    t: &dyn TableLike,
+    out: &mut RawFile,
+    errors: &mut Vec<PipelineError>,
+) {
+    for (k, v) in t.iter() {
+        let kloc = cx.key_loc(t, k);
+        if k == "each" {
+            if let Some(each) = v.as_table_like() {
+                parse_sweep_each_table(cx, each, out, errors);
+            } else {
+                errors.push(PipelineError::at(
+                    &kloc,
+                    "`sweep.each` must be a table of \"STAGE.PARAM\" = [values]",
+                ));
+            }
+            continue;
+        }
+        if let Some(l) = sweep_axis(cx, "sweep", k, v, &kloc, errors) {
+            if out.sweep_each.iter().any(|(e, _, _)| e == k) {
+                errors.push(PipelineError::at(
+                    &kloc,
+                    format!("sweep key `{k}` is both crossed (`[sweep]`) and varied one at a time (`[sweep.each]`); keep one"),
+                ));
+            } else {
+                out.sweep.insert(k.to_string(), (l, kloc));
+            }
+        }
+    }
+}
+
+/// `[sweep.each]`: axes varied one at a time, in declaration order.
+fn parse_sweep_each_table(
+    cx: &Ctx<'_>,
+    each: &dyn TableLike,
+    out: &mut RawFile,
+    errors: &mut Vec<PipelineError>,
+) {
+    for (k, v) in each.iter() {
+        let kloc = cx.key_loc(each, k);
+        if let Some(l) = sweep_axis(cx, "sweep.each", k, v, &kloc, errors) {
+            if out.sweep.contains_key(k) {
+                errors.push(PipelineError::at(
+                    &kloc,
+                    format!("sweep key `{k}` is both crossed (`[sweep]`) and varied one at a time (`[sweep.each]`); keep one"),
+                ));
+            } else {
+                out.sweep_each.push((k.to_string(), l, kloc));
+            }
+        }
+    }
+}
+
+/// `[aggregate.NAME]` tables: stages without `inputs` (the engine binds their
+/// one input to the sweep record).
+fn parse_aggregate_table(
+    cx: &Ctx<'_>,
+    t: &dyn TableLike,
+    out: &mut RawFile,
+    errors: &mut Vec<PipelineError>,
+) {
+    for (name, st) in t.iter() {
+        match parse_stage(cx, t, name, st) {
+            Ok(s) => {
+                // The one input is bound by the engine (see `crate::sweep`).
+                if let Some(inp) = s.inputs.values().next() {
+                    errors.push(PipelineError::at(
+                        &inp.loc,
+                        format!("aggregate `{name}`: no `inputs` expected (its one input port is bound to the sweep record by the engine)"),
+                    ));
+                } else {
+                    out.aggregates.push(s);
+                }
+            }
+            Err(e) => errors.extend(e.into_iter().map(|mut e| {
+                e.message = e.message.replace("`stages.", "`aggregate.");
+                e
+            })),
+        }
+    }
+}
+
+/// `[publish]`: `"AGGREGATE.PORT" = "destination path"`, the destination
+/// resolved against this file's directory.
+fn parse_publish_table(
+    cx: &Ctx<'_>,
+    t: &dyn TableLike,
+    out: &mut RawFile,
+    errors: &mut Vec<PipelineError>,
+) {
+    for (k, v) in t.iter() {
+        let kloc = cx.key_loc(t, k);
+        match (k.split_once('.'), v.as_str()) {
+            (Some((a, port)), Some(dest))
+                if !a.is_empty() && !port.is_empty() && !dest.is_empty() =>
+            {
+                out.publish
+                    .insert(k.to_string(), (cx.base.join(dest), kloc));
+            }
+            (None, _) | (Some(_), Some(_)) => errors.push(PipelineError::at(
+                &kloc,
+                format!("publish key `{k}`: expected \"AGGREGATE.PORT\" = \"destination path\""),
+            )),
+            (Some(_), None) => errors.push(PipelineError::at(
+                &cx.item_loc(v),
+                format!("publish `{k}`: expected a destination path (a string)"),
+            )),
+        }
+    }
+}
+
+/// `[executor]`: kept as a value, but checked now so that a bad one is a
+/// located load error.
+fn parse_executor_table(
+    cx: &Ctx<'_>,
+    item: &Item,
+    loc: &Loc,
+    out: &mut RawFile,
+    errors: &mut Vec<PipelineError>,
+) {
+    match item_to_value(item, loc, cx.lines) {
+        Ok(v @ Value::Table(_)) => {
+            match crate::slurm::ExecutorConfig::from_value(&v, &loc.to_string()) {
+                Ok(_) => out.executor = Some((v, loc.clone())),
+                Err(crate::slurm::SlurmError::Config { message, .. }) => {
+                    errors.push(PipelineError::at(loc, format!("[executor]: {message}")))
+                }
+                Err(e) => errors.push(PipelineError::at(loc, e.to_string())),
+            }
+        }
+        Ok(_) => errors.push(PipelineError::at(loc, "`executor` must be a table")),
+        Err(e) => errors.push(e),
     }
 }
 
