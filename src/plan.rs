@@ -23,11 +23,13 @@ use std::collections::{BTreeMap, BTreeSet, BinaryHeap};
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use fure_stage_api::{ParamType, Params, PortKind, PortSpec, Stage, Value};
+use fure_stage_api::{ParamSpec, ParamType, Params, PortKind, PortSpec, Stage, Value};
 use petgraph::graph::{DiGraph, NodeIndex};
 
 use crate::command;
-use crate::pipeline::{InputDecl, Loc, Pipeline, PipelineError, PipelineErrors, StageDecl};
+use crate::pipeline::{
+    InputDecl, Loc, ParamDecl, Pipeline, PipelineError, PipelineErrors, StageDecl,
+};
 
 /// The stage kinds an engine knows: the caller's plus the built-in `command`.
 #[derive(Clone)]
@@ -194,71 +196,112 @@ pub fn plan(pipeline: &Pipeline, registry: &Registry) -> Result<Plan, PipelineEr
     for decl in &pipeline.stages {
         partials.push(check_stage(decl, registry, &mut errors));
     }
+    let resolved = resolve_inputs(pipeline, &partials, &mut errors);
+    if !errors.is_empty() {
+        return Err(PipelineErrors(errors));
+    }
+    let (graph, nodes) = dependency_graph(&resolved);
+    if petgraph::algo::toposort(&graph, None).is_err() {
+        return Err(cycle_error(&graph, pipeline, &resolved).into());
+    }
+    let order = declaration_ordered_toposort(&graph, &nodes);
+    let partials: Vec<Partial<'_>> = partials
+        .into_iter()
+        .map(|p| p.expect("checked"))
+        .collect::<Vec<_>>();
+    Ok(Plan {
+        name: pipeline.name.clone(),
+        description: pipeline.description.clone(),
+        file: pipeline.file.clone(),
+        stages: planned_stages(partials, resolved, &order),
+    })
+}
+
+/// The second pass: every stage's inputs resolved against the outputs now
+/// known, per stage in declaration order.
+fn resolve_inputs(
+    pipeline: &Pipeline,
+    partials: &[Option<Partial<'_>>],
+    errors: &mut Vec<PipelineError>,
+) -> Vec<Vec<Input>> {
     let names: BTreeMap<&str, usize> = pipeline
         .stages
         .iter()
         .enumerate()
         .map(|(i, s)| (s.name.as_str(), i))
         .collect();
-    // Resolve inputs (second pass: every stage's outputs are known now).
     let mut resolved: Vec<Vec<Input>> = vec![Vec::new(); pipeline.stages.len()];
     for (i, p) in partials.iter().enumerate() {
         let Some(p) = p else { continue };
-        let mut connected = BTreeSet::new();
-        for (port, inp) in &p.inputs_decl {
-            let Some(spec) = p.input_specs.iter().find(|s| &s.name == port) else {
-                errors.push(PipelineError::at(
-                    &inp.loc,
-                    format!(
-                        "stage `{}` (kind `{}`) has no input port `{port}` (expected one of: {})",
-                        p.decl.name,
-                        p.stage.kind(),
-                        list_ports(&p.input_specs)
-                    ),
-                ));
-                continue;
-            };
-            connected.insert(port.clone());
-            match resolve_source(inp, &names, &partials, pipeline) {
-                Err(e) => errors.push(e),
-                Ok(source) => {
-                    if let Err(e) = check_port_kinds(p, spec, &source, inp, &partials) {
-                        errors.push(e);
-                        continue;
-                    }
-                    resolved[i].push(Input {
-                        port: port.clone(),
-                        spec: spec.clone(),
-                        source,
-                        loc: inp.loc.clone(),
-                    });
+        resolved[i] = resolve_stage_inputs(p, &names, partials, pipeline, errors);
+    }
+    resolved
+}
+
+/// One stage's inputs: each declared one checked against the kind's ports
+/// and resolved to its source, then every required port checked connected.
+fn resolve_stage_inputs(
+    p: &Partial<'_>,
+    names: &BTreeMap<&str, usize>,
+    partials: &[Option<Partial<'_>>],
+    pipeline: &Pipeline,
+    errors: &mut Vec<PipelineError>,
+) -> Vec<Input> {
+    let mut inputs = Vec::new();
+    let mut connected = BTreeSet::new();
+    for (port, inp) in &p.inputs_decl {
+        let Some(spec) = p.input_specs.iter().find(|s| &s.name == port) else {
+            errors.push(PipelineError::at(
+                &inp.loc,
+                format!(
+                    "stage `{}` (kind `{}`) has no input port `{port}` (expected one of: {})",
+                    p.decl.name,
+                    p.stage.kind(),
+                    list_ports(&p.input_specs)
+                ),
+            ));
+            continue;
+        };
+        connected.insert(port.clone());
+        match resolve_source(inp, names, partials, pipeline) {
+            Err(e) => errors.push(e),
+            Ok(source) => {
+                if let Err(e) = check_port_kinds(p, spec, &source, inp, partials) {
+                    errors.push(e);
+                    continue;
                 }
-            }
-        }
-        for spec in &p.input_specs {
-            if spec.required && !connected.contains(&spec.name) {
-                errors.push(PipelineError::at(
-                    &p.decl.loc,
-                    format!(
-                        "stage `{}` (kind `{}`): missing input `{}` ({}); connect it with `inputs = {{ {} = \"STAGE.PORT\" }}` or a file path",
-                        p.decl.name,
-                        p.stage.kind(),
-                        spec.name,
-                        spec.doc,
-                        spec.name
-                    ),
-                ));
+                inputs.push(Input {
+                    port: port.clone(),
+                    spec: spec.clone(),
+                    source,
+                    loc: inp.loc.clone(),
+                });
             }
         }
     }
-    if !errors.is_empty() {
-        return Err(PipelineErrors(errors));
+    for spec in &p.input_specs {
+        if spec.required && !connected.contains(&spec.name) {
+            errors.push(PipelineError::at(
+                &p.decl.loc,
+                format!(
+                    "stage `{}` (kind `{}`): missing input `{}` ({}); connect it with `inputs = {{ {} = \"STAGE.PORT\" }}` or a file path",
+                    p.decl.name,
+                    p.stage.kind(),
+                    spec.name,
+                    spec.doc,
+                    spec.name
+                ),
+            ));
+        }
     }
-    // The DAG.
+    inputs
+}
+
+/// The DAG: node `i` is declared stage `i`, with an edge from each stage to
+/// every stage reading one of its outputs.
+fn dependency_graph(resolved: &[Vec<Input>]) -> (DiGraph<usize, ()>, Vec<NodeIndex>) {
     let mut graph: DiGraph<usize, ()> = DiGraph::new();
-    let nodes: Vec<NodeIndex> = (0..pipeline.stages.len())
-        .map(|i| graph.add_node(i))
-        .collect();
+    let nodes: Vec<NodeIndex> = (0..resolved.len()).map(|i| graph.add_node(i)).collect();
     for (i, ins) in resolved.iter().enumerate() {
         for inp in ins {
             if let Source::Upstream { stage, .. } = inp.source {
@@ -266,11 +309,13 @@ pub fn plan(pipeline: &Pipeline, registry: &Registry) -> Result<Plan, PipelineEr
             }
         }
     }
-    if petgraph::algo::toposort(&graph, None).is_err() {
-        return Err(cycle_error(&graph, pipeline, &resolved).into());
-    }
-    // Kahn's algorithm, ties by declaration order.
-    let n = pipeline.stages.len();
+    (graph, nodes)
+}
+
+/// Kahn's algorithm over an acyclic `graph`, ties broken by declaration order
+/// (so listings and logs are stable): the declared indices in run order.
+fn declaration_ordered_toposort(graph: &DiGraph<usize, ()>, nodes: &[NodeIndex]) -> Vec<usize> {
+    let n = nodes.len();
     let mut indeg: Vec<usize> = (0..n)
         .map(|i| {
             graph
@@ -295,6 +340,17 @@ pub fn plan(pipeline: &Pipeline, registry: &Registry) -> Result<Plan, PipelineEr
             }
         }
     }
+    order
+}
+
+/// The checked stages in run `order`, their upstream references renumbered
+/// from declared indices to positions in that order.
+fn planned_stages(
+    partials: Vec<Partial<'_>>,
+    mut resolved: Vec<Vec<Input>>,
+    order: &[usize],
+) -> Vec<PlannedStage> {
+    let n = order.len();
     let pos: Vec<usize> = {
         let mut pos = vec![0; n];
         for (k, &i) in order.iter().enumerate() {
@@ -302,13 +358,9 @@ pub fn plan(pipeline: &Pipeline, registry: &Registry) -> Result<Plan, PipelineEr
         }
         pos
     };
-    let mut partials: Vec<Partial<'_>> = partials
-        .into_iter()
-        .map(|p| p.expect("checked"))
-        .collect::<Vec<_>>();
     let mut stages = Vec::with_capacity(n);
-    let mut taken: Vec<Option<Partial<'_>>> = partials.drain(..).map(Some).collect();
-    for &i in &order {
+    let mut taken: Vec<Option<Partial<'_>>> = partials.into_iter().map(Some).collect();
+    for &i in order {
         let p = taken[i].take().expect("each stage once");
         let mut inputs = std::mem::take(&mut resolved[i]);
         for inp in &mut inputs {
@@ -338,12 +390,7 @@ pub fn plan(pipeline: &Pipeline, registry: &Registry) -> Result<Plan, PipelineEr
             loc: p.decl.loc.clone(),
         });
     }
-    Ok(Plan {
-        name: pipeline.name.clone(),
-        description: pipeline.description.clone(),
-        file: pipeline.file.clone(),
-        stages,
-    })
+    stages
 }
 
 fn list_ports(specs: &[PortSpec]) -> String {
@@ -358,11 +405,45 @@ fn list_ports(specs: &[PortSpec]) -> String {
     }
 }
 
+/// First pass over one stage: its kind, parameters (checked, defaults
+/// filled, the kind's own `validate`) and ports; `None` once it has an error.
 fn check_stage<'a>(
     decl: &'a StageDecl,
     registry: &Registry,
     errors: &mut Vec<PipelineError>,
 ) -> Option<Partial<'a>> {
+    let (kind, stage) = resolve_kind(decl, registry, errors)?;
+    let specs = stage.params();
+    let before = errors.len();
+    let mut inputs_decl = decl.inputs.clone();
+    let mut params = check_declared_params(decl, kind, &specs, &mut inputs_decl, errors);
+    fill_defaults(decl, kind, &specs, &mut params, errors);
+    if errors.len() > before {
+        return None;
+    }
+    let params = Params(params);
+    if let Err(e) = stage.validate(&params) {
+        errors.push(validate_error(decl, kind, e));
+        return None;
+    }
+    let input_specs = stage.inputs(&params);
+    let outputs = stage.outputs(&params);
+    Some(Partial {
+        decl,
+        stage: stage.clone(),
+        params,
+        inputs_decl,
+        input_specs,
+        outputs,
+    })
+}
+
+/// The stage's `kind`, which must be written and registered.
+fn resolve_kind<'a, 'r>(
+    decl: &'a StageDecl,
+    registry: &'r Registry,
+    errors: &mut Vec<PipelineError>,
+) -> Option<(&'a str, &'r Arc<dyn Stage>)> {
     let Some((kind, kloc)) = &decl.kind else {
         errors.push(PipelineError::at(
             &decl.loc,
@@ -385,28 +466,25 @@ fn check_stage<'a>(
         ));
         return None;
     };
-    let specs = stage.params();
-    let before = errors.len();
+    Some((kind, stage))
+}
+
+/// The parameters as written, each checked against its spec; a command
+/// stage's `deps` become inputs (added to `inputs_decl`), its parameter
+/// keeping only the port names.
+fn check_declared_params(
+    decl: &StageDecl,
+    kind: &str,
+    specs: &[ParamSpec],
+    inputs_decl: &mut BTreeMap<String, InputDecl>,
+    errors: &mut Vec<PipelineError>,
+) -> BTreeMap<String, Value> {
     let mut params = BTreeMap::new();
-    let mut inputs_decl = decl.inputs.clone();
     for (name, p) in &decl.params {
-        // The command kind's `deps` are sources: they become inputs.
         if kind == command::KIND && name == "deps" {
             match command_deps(&p.value) {
                 Ok(list) => {
-                    let mut ports = Vec::new();
-                    for (port, text) in list {
-                        ports.push(Value::Str(port.clone()));
-                        inputs_decl.insert(
-                            port,
-                            InputDecl {
-                                text,
-                                loc: p.loc.clone(),
-                                base: p.base.clone(),
-                            },
-                        );
-                    }
-                    params.insert(name.clone(), Value::List(ports));
+                    params.insert(name.clone(), bind_command_deps(p, list, inputs_decl));
                 }
                 Err(m) => errors.push(PipelineError::at(
                     &p.loc,
@@ -437,7 +515,42 @@ fn check_stage<'a>(
             )),
         }
     }
-    for spec in &specs {
+    params
+}
+
+/// Turns a command stage's `deps` (port, source) pairs into input
+/// declarations located at the `deps` value; returns the port-name list the
+/// parameter keeps.
+fn bind_command_deps(
+    deps: &ParamDecl,
+    list: Vec<(String, String)>,
+    inputs_decl: &mut BTreeMap<String, InputDecl>,
+) -> Value {
+    let mut ports = Vec::new();
+    for (port, text) in list {
+        ports.push(Value::Str(port.clone()));
+        inputs_decl.insert(
+            port,
+            InputDecl {
+                text,
+                loc: deps.loc.clone(),
+                base: deps.base.clone(),
+            },
+        );
+    }
+    Value::List(ports)
+}
+
+/// Every parameter not written takes its default; a required one without a
+/// default is an error.
+fn fill_defaults(
+    decl: &StageDecl,
+    kind: &str,
+    specs: &[ParamSpec],
+    params: &mut BTreeMap<String, Value>,
+    errors: &mut Vec<PipelineError>,
+) {
+    for spec in specs {
         if params.contains_key(spec.name) {
             continue;
         }
@@ -459,35 +572,20 @@ fn check_stage<'a>(
             )),
         }
     }
-    if errors.len() > before {
-        return None;
-    }
-    let params = Params(params);
-    if let Err(e) = stage.validate(&params) {
-        let loc = match &e {
-            fure_stage_api::StageError::Param { name, .. } => decl
-                .params
-                .get(name)
-                .map(|p| p.loc.clone())
-                .unwrap_or_else(|| decl.loc.clone()),
-            _ => decl.loc.clone(),
-        };
-        errors.push(PipelineError::at(
-            &loc,
-            format!("stage `{}` (kind `{kind}`): {e}", decl.name),
-        ));
-        return None;
-    }
-    let input_specs = stage.inputs(&params);
-    let outputs = stage.outputs(&params);
-    Some(Partial {
-        decl,
-        stage: stage.clone(),
-        params,
-        inputs_decl,
-        input_specs,
-        outputs,
-    })
+}
+
+/// The kind's own `validate` refusal, located at the parameter it names
+/// (else at the stage).
+fn validate_error(decl: &StageDecl, kind: &str, e: fure_stage_api::StageError) -> PipelineError {
+    let loc = match &e {
+        fure_stage_api::StageError::Param { name, .. } => decl
+            .params
+            .get(name)
+            .map(|p| p.loc.clone())
+            .unwrap_or_else(|| decl.loc.clone()),
+        _ => decl.loc.clone(),
+    };
+    PipelineError::at(&loc, format!("stage `{}` (kind `{kind}`): {e}", decl.name))
 }
 
 /// The `deps` of a command stage: a list (ports `0`, `1`, ...) or a table.
