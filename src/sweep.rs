@@ -113,13 +113,15 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use fure_stage_api::{PortKind, Value};
+use fure_stage_api::{PortKind, Stage, Value};
 use serde_json::json;
 
 use crate::cache::Cache;
 use crate::command;
 use crate::exec::{self, RunOptions, RunReport, Status};
-use crate::pipeline::{InputDecl, Loc, ParamDecl, Pipeline, PipelineError, PipelineErrors};
+use crate::pipeline::{
+    InputDecl, Loc, ParamDecl, Pipeline, PipelineError, PipelineErrors, StageDecl,
+};
 use crate::plan::{self, show, Plan, Source};
 use crate::Engine;
 
@@ -682,100 +684,10 @@ pub fn plan_aggregates(
     let mut errors = Vec::new();
     let mut decls = Vec::new();
     for decl in &pipeline.aggregates {
-        let mut d = decl.clone();
-        if pipeline.stage(&d.name).is_some() {
-            errors.push(PipelineError::at(
-                &d.loc,
-                format!(
-                    "aggregate `{}` has the name of a stage (both would write out/{}/{}/); rename one",
-                    d.name, pipeline.name, d.name
-                ),
-            ));
-            continue;
+        match bind_record(engine, pipeline, decl, &record_text) {
+            Ok(d) => decls.push(d),
+            Err(e) => errors.push(e),
         }
-        let Some((kind, kloc)) = d.kind.clone() else {
-            decls.push(d); // the planner reports the missing kind
-            continue;
-        };
-        let Some(stage) = engine.registry.get(&kind) else {
-            decls.push(d); // the planner reports the unknown kind
-            continue;
-        };
-        let base = Arc::new(PathBuf::from("/"));
-        if kind == command::KIND {
-            if let Some(p) = d.params.get("deps") {
-                errors.push(PipelineError::at(
-                    &p.loc,
-                    format!(
-                        "aggregate `{}` (kind `command`): `deps` is set by the engine ({{deps.sweep}} is the sweep record); remove it",
-                        d.name
-                    ),
-                ));
-                continue;
-            }
-            d.params.insert(
-                "deps".into(),
-                ParamDecl {
-                    value: Value::Table(BTreeMap::from([(
-                        "sweep".to_string(),
-                        Value::Str(record_text.clone()),
-                    )])),
-                    loc: kloc.clone(),
-                    base,
-                },
-            );
-            decls.push(d);
-            continue;
-        }
-        // The kind's input ports under the given parameters (checked ones
-        // where they check; the planner reports the others).
-        let specs = stage.params();
-        let mut params = BTreeMap::new();
-        for spec in &specs {
-            let v = match d.params.get(spec.name) {
-                Some(p) => plan::check_value(spec, &p.value).ok(),
-                None => spec.default.clone(),
-            };
-            if let Some(v) = v {
-                params.insert(spec.name.to_string(), v);
-            }
-        }
-        let ports = stage.inputs(&fure_stage_api::Params(params));
-        let json_port = match ports.as_slice() {
-            [p] if p.kind == PortKind::File { ext: "json" } => Some(p.name.clone()),
-            _ => None,
-        };
-        let Some(port) = json_port else {
-            let have = if ports.is_empty() {
-                "none".to_string()
-            } else {
-                ports
-                    .iter()
-                    .map(|p| match p.kind {
-                        PortKind::Dir => format!("`{}` (directory)", p.name),
-                        PortKind::File { ext } => format!("`{}` (.{ext})", p.name),
-                    })
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            };
-            errors.push(PipelineError::at(
-                &kloc,
-                format!(
-                    "aggregate `{}`: kind `{kind}` must declare exactly one input port, a `.json` file, to receive the sweep record (it declares: {have})",
-                    d.name
-                ),
-            ));
-            continue;
-        };
-        d.inputs.insert(
-            port,
-            InputDecl {
-                text: record_text.clone(),
-                loc: kloc.clone(),
-                base,
-            },
-        );
-        decls.push(d);
     }
     if !errors.is_empty() {
         return Err(PipelineErrors(errors));
@@ -801,6 +713,118 @@ pub fn plan_aggregates(
         }
     }
     Ok(Some(plan))
+}
+
+/// One aggregate as an ordinary stage whose one input is the sweep record
+/// (`record_text`): a command's `deps`, else the kind's one `.json` port.
+/// A missing or unknown kind is left for the planner to report.
+fn bind_record(
+    engine: &Engine,
+    pipeline: &Pipeline,
+    decl: &StageDecl,
+    record_text: &str,
+) -> Result<StageDecl, PipelineError> {
+    let mut d = decl.clone();
+    if pipeline.stage(&d.name).is_some() {
+        return Err(PipelineError::at(
+            &d.loc,
+            format!(
+                "aggregate `{}` has the name of a stage (both would write out/{}/{}/); rename one",
+                d.name, pipeline.name, d.name
+            ),
+        ));
+    }
+    let Some((kind, kloc)) = d.kind.clone() else {
+        return Ok(d); // the planner reports the missing kind
+    };
+    let Some(stage) = engine.registry.get(&kind) else {
+        return Ok(d); // the planner reports the unknown kind
+    };
+    let base = Arc::new(PathBuf::from("/"));
+    if kind == command::KIND {
+        if let Some(p) = d.params.get("deps") {
+            return Err(PipelineError::at(
+                &p.loc,
+                format!(
+                    "aggregate `{}` (kind `command`): `deps` is set by the engine ({{deps.sweep}} is the sweep record); remove it",
+                    d.name
+                ),
+            ));
+        }
+        d.params.insert(
+            "deps".into(),
+            ParamDecl {
+                value: Value::Table(BTreeMap::from([(
+                    "sweep".to_string(),
+                    Value::Str(record_text.to_string()),
+                )])),
+                loc: kloc,
+                base,
+            },
+        );
+        return Ok(d);
+    }
+    let port = record_port(&**stage, &d, &kind, &kloc)?;
+    d.inputs.insert(
+        port,
+        InputDecl {
+            text: record_text.to_string(),
+            loc: kloc,
+            base,
+        },
+    );
+    Ok(d)
+}
+
+/// The port an aggregate of an ordinary kind receives the record on: its
+/// kind must declare exactly one input port, a `.json` file, under the
+/// aggregate's parameters.
+fn record_port(
+    stage: &dyn Stage,
+    d: &StageDecl,
+    kind: &str,
+    kloc: &Loc,
+) -> Result<String, PipelineError> {
+    // The kind's input ports under the given parameters (checked ones
+    // where they check; the planner reports the others).
+    let specs = stage.params();
+    let mut params = BTreeMap::new();
+    for spec in &specs {
+        let v = match d.params.get(spec.name) {
+            Some(p) => plan::check_value(spec, &p.value).ok(),
+            None => spec.default.clone(),
+        };
+        if let Some(v) = v {
+            params.insert(spec.name.to_string(), v);
+        }
+    }
+    let ports = stage.inputs(&fure_stage_api::Params(params));
+    let json_port = match ports.as_slice() {
+        [p] if p.kind == PortKind::File { ext: "json" } => Some(p.name.clone()),
+        _ => None,
+    };
+    if let Some(port) = json_port {
+        return Ok(port);
+    }
+    let have = if ports.is_empty() {
+        "none".to_string()
+    } else {
+        ports
+            .iter()
+            .map(|p| match p.kind {
+                PortKind::Dir => format!("`{}` (directory)", p.name),
+                PortKind::File { ext } => format!("`{}` (.{ext})", p.name),
+            })
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    Err(PipelineError::at(
+        kloc,
+        format!(
+            "aggregate `{}`: kind `{kind}` must declare exactly one input port, a `.json` file, to receive the sweep record (it declares: {have})",
+            d.name
+        ),
+    ))
 }
 
 /// Runs the aggregate stages on the record file (`None` when there are none).
