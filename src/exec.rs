@@ -465,9 +465,14 @@ impl<'a> Scheduler<'a> {
             let progress = ui.started(&st.name, &reason);
             self.run_reasons[i] = reason;
             let k = self.keyed[i].as_ref().expect("queued stages are keyed");
-            let key = k.key.clone();
-            let preimage = k.preimage.clone();
-            let inputs = stage_inputs(plan, i, &self.states);
+            let work = Computation {
+                pipeline: plan.name.clone(),
+                stage: st,
+                key: k.key.clone(),
+                preimage: k.preimage.clone(),
+                inputs: stage_inputs(plan, i, &self.states),
+                threads: tokens,
+            };
             let job = match &opts.executor {
                 Executor::Local => None,
                 Executor::Slurm(s) => {
@@ -475,15 +480,11 @@ impl<'a> Scheduler<'a> {
                 }
             };
             let tx = tx.clone();
-            let pipeline = plan.name.clone();
             let spawned = std::thread::Builder::new()
                 .name(format!("fure-stage-{}", st.name))
                 .spawn_scoped(scope, move || {
                     let result = match job {
-                        None => execute(
-                            cache, &pipeline, st, &key, preimage, inputs, tokens, &progress, ui,
-                            inproc,
-                        ),
+                        None => execute(cache, work, &progress, ui, inproc),
                         Some((slurm, spec)) => execute_remote(&slurm, cache, st, &spec),
                     };
                     let _ = tx.send(WorkDone {
@@ -958,43 +959,98 @@ fn execute_remote(
     }
 }
 
+/// One stage to compute in this process: which stage of which pipeline,
+/// under which key and preimage, from which inputs, on how many threads.
+pub(crate) struct Computation<'a> {
+    pub pipeline: String,
+    pub stage: &'a PlannedStage,
+    pub key: String,
+    pub preimage: Preimage,
+    pub inputs: Vec<(String, InputPath)>,
+    /// The size of the stage's rayon pool (its CPU tokens).
+    pub threads: usize,
+}
+
 /// Computes one stage in this process, as a `fure worker` does for a job:
 /// under the key's lock, rechecking for an entry first, through the same
 /// code as a local run (so the entry is the same, byte for byte).
 /// Ok((manifest, computed_here)).
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn compute_stage(
     cache: &Cache,
-    pipeline: &str,
-    st: &PlannedStage,
-    key: &str,
-    preimage: Preimage,
-    inputs: Vec<(String, InputPath)>,
-    threads: usize,
+    work: Computation<'_>,
     ui: &Ui,
 ) -> Result<(Manifest, bool), String> {
-    let progress = ui.started(&st.name, "slurm job");
+    let progress = ui.started(&work.stage.name, "slurm job");
     let inproc = AtomicUsize::new(0);
-    execute(
-        cache, pipeline, st, key, preimage, inputs, threads, &progress, ui, &inproc,
-    )
+    execute(cache, work, &progress, ui, &inproc)
 }
 
 /// Computes one stage (worker thread). Ok((manifest, computed_here)).
-#[allow(clippy::too_many_arguments)]
 fn execute(
     cache: &Cache,
-    pipeline: &str,
-    st: &PlannedStage,
-    key: &str,
-    preimage: Preimage,
-    inputs: Vec<(String, InputPath)>,
-    threads: usize,
+    work: Computation<'_>,
     progress: &StageProgress,
     ui: &Ui,
     inproc: &AtomicUsize,
 ) -> Result<(Manifest, bool), String> {
-    let _lock = cache
+    let st = work.stage;
+    let key = work.key.as_str();
+    let _lock = lock_key_for(cache, st, key, ui)?;
+    // Another process may have finished it while we waited.
+    if let Some(m) = fitting_entry(cache, st, key) {
+        return Ok((m, false));
+    }
+    let staging = cache.staging(key).map_err(|e| e.to_string())?;
+    let in_dir = staging.path.join("in");
+    let out_dir = staging.path.join("out");
+    fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+    let ctx = StageContext {
+        name: &st.name,
+        params: &st.params,
+        inputs: stage_input_paths(cache, &in_dir, work.inputs)?,
+        outputs: stage_output_paths(st, &out_dir)?,
+        progress,
+    };
+    let t = Instant::now();
+    let (result, peak) = if st.kind == command::KIND {
+        match command::run_command(&ctx) {
+            Ok(peak) => (Ok(()), peak),
+            Err(e) => (Err(e.to_string()), 0),
+        }
+    } else {
+        run_in_process(st, &ctx, work.threads, inproc)?
+    };
+    let seconds = t.elapsed().as_secs_f64();
+    result?;
+    let outputs = store_outputs(cache, st, &ctx.outputs)?;
+    let m = Manifest {
+        schema: cache::CACHE_SCHEMA,
+        key: key.to_string(),
+        kind: st.kind.clone(),
+        pipeline: work.pipeline,
+        stage: st.name.clone(),
+        preimage: work.preimage,
+        outputs,
+        seconds,
+        peak_rss_bytes: peak,
+        fure_version: FURE_VERSION.to_string(),
+        created_unix: cache::created_now(),
+        notes: progress.notes(),
+        seal: String::new(),
+    }
+    .seal();
+    cache.write_manifest(&m).map_err(|e| e.to_string())?;
+    Ok((m, true))
+}
+
+/// Takes the key's lock, saying who computes it while it waits.
+fn lock_key_for(
+    cache: &Cache,
+    st: &PlannedStage,
+    key: &str,
+    ui: &Ui,
+) -> Result<cache::KeyLock, String> {
+    cache
         .lock_key(key, &|holder| {
             ui.line(&format!(
                 "wait    {}  ({})",
@@ -1006,20 +1062,16 @@ fn execute(
                 }
             ))
         })
-        .map_err(|e| e.to_string())?;
-    // Another process may have finished it while we waited.
-    if let Ok(Some(m)) = cache.lookup_checked(key) {
-        if entry_fits(st, &m)
-            .and_then(|()| cache.check_entry(&m))
-            .is_ok()
-        {
-            return Ok((m, false));
-        }
-    }
-    let staging = cache.staging(key).map_err(|e| e.to_string())?;
-    let in_dir = staging.path.join("in");
-    let out_dir = staging.path.join("out");
-    fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+        .map_err(|e| e.to_string())
+}
+
+/// Each input port's path for the stage: paths as they are, cache objects
+/// linked under `in_dir` (the stage reads only these).
+fn stage_input_paths(
+    cache: &Cache,
+    in_dir: &Path,
+    inputs: Vec<(String, InputPath)>,
+) -> Result<BTreeMap<String, PathBuf>, String> {
     let mut ctx_inputs = BTreeMap::new();
     for (port, p) in inputs {
         let path = match p {
@@ -1033,6 +1085,14 @@ fn execute(
         };
         ctx_inputs.insert(port, path);
     }
+    Ok(ctx_inputs)
+}
+
+/// Each output port's path under `out_dir` (directory ports created).
+fn stage_output_paths(
+    st: &PlannedStage,
+    out_dir: &Path,
+) -> Result<BTreeMap<String, PathBuf>, String> {
     let mut ctx_outputs = BTreeMap::new();
     for spec in &st.outputs {
         let p = out_dir.join(spec.file_name());
@@ -1041,42 +1101,46 @@ fn execute(
         }
         ctx_outputs.insert(spec.name.clone(), p);
     }
-    let ctx = StageContext {
-        name: &st.name,
-        params: &st.params,
-        inputs: ctx_inputs,
-        outputs: ctx_outputs,
-        progress,
+    Ok(ctx_outputs)
+}
+
+/// Runs an in-process stage inside its own rayon pool of `threads`, a panic
+/// caught as its failure: (the stage's result, peak RSS). The peak is reset
+/// first when no other in-process stage runs (see the module doc).
+fn run_in_process(
+    st: &PlannedStage,
+    ctx: &StageContext<'_>,
+    threads: usize,
+    inproc: &AtomicUsize,
+) -> Result<(Result<(), String>, u64), String> {
+    if inproc.fetch_add(1, Ordering::SeqCst) == 0 {
+        let _ = fs::write("/proc/self/clear_refs", "5");
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.max(1))
+        .thread_name(|i| format!("fure-stage-pool-{i}"))
+        .build()
+        .map_err(|e| format!("cannot build a thread pool: {e}"))?;
+    let r = pool.install(|| std::panic::catch_unwind(AssertUnwindSafe(|| st.stage.run(ctx))));
+    inproc.fetch_sub(1, Ordering::SeqCst);
+    let r = match r {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(payload) => Err(format!("panicked: {}", panic_message(&payload))),
     };
-    let t = Instant::now();
-    let (result, peak) = if st.kind == command::KIND {
-        match command::run_command(&ctx) {
-            Ok(peak) => (Ok(()), peak),
-            Err(e) => (Err(e.to_string()), 0),
-        }
-    } else {
-        if inproc.fetch_add(1, Ordering::SeqCst) == 0 {
-            let _ = fs::write("/proc/self/clear_refs", "5");
-        }
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads.max(1))
-            .thread_name(|i| format!("fure-stage-pool-{i}"))
-            .build()
-            .map_err(|e| format!("cannot build a thread pool: {e}"))?;
-        let r = pool.install(|| std::panic::catch_unwind(AssertUnwindSafe(|| st.stage.run(&ctx))));
-        inproc.fetch_sub(1, Ordering::SeqCst);
-        let r = match r {
-            Ok(Ok(())) => Ok(()),
-            Ok(Err(e)) => Err(e.to_string()),
-            Err(payload) => Err(format!("panicked: {}", panic_message(&payload))),
-        };
-        (r, peak_rss())
-    };
-    let seconds = t.elapsed().as_secs_f64();
-    result?;
+    Ok((r, peak_rss()))
+}
+
+/// Checks every output the stage wrote (present, of its port's type, no
+/// link) and stores it as cache objects, in port order.
+fn store_outputs(
+    cache: &Cache,
+    st: &PlannedStage,
+    paths: &BTreeMap<String, PathBuf>,
+) -> Result<BTreeMap<String, OutputRecord>, String> {
     let mut outputs = BTreeMap::new();
     for spec in &st.outputs {
-        let p = &ctx.outputs[&spec.name];
+        let p = &paths[&spec.name];
         // lstat: an output that is a link is refused by store_output, not followed.
         let md = fs::symlink_metadata(p).map_err(|_| {
             format!(
@@ -1104,24 +1168,7 @@ fn execute(
             .map_err(|e| e.to_string())?;
         outputs.insert(spec.name.clone(), rec);
     }
-    let m = Manifest {
-        schema: cache::CACHE_SCHEMA,
-        key: key.to_string(),
-        kind: st.kind.clone(),
-        pipeline: pipeline.to_string(),
-        stage: st.name.clone(),
-        preimage,
-        outputs,
-        seconds,
-        peak_rss_bytes: peak,
-        fure_version: FURE_VERSION.to_string(),
-        created_unix: cache::created_now(),
-        notes: progress.notes(),
-        seal: String::new(),
-    }
-    .seal();
-    cache.write_manifest(&m).map_err(|e| e.to_string())?;
-    Ok((m, true))
+    Ok(outputs)
 }
 
 /// The message of a panic payload.

@@ -87,7 +87,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use fure_stage_api::Value;
+use fure_stage_api::{Params, PortKind, PortSpec, Stage, Value};
 use serde::{Deserialize, Serialize};
 
 /// Version of the job spec format (a worker refuses another).
@@ -573,54 +573,14 @@ impl Slurm {
             return Ok(Outcome::Found);
         }
         let _slot = inner.take_slot().ok_or_else(|| inner.interrupted())?;
-        let n = inner.counter.fetch_add(1, Ordering::Relaxed);
-        let stem = format!(
-            "{n}-{}-{}",
-            file_part(&spec.pipeline),
-            file_part(&spec.stage)
+        let files = JobFiles::new(
+            &inner.run_dir,
+            inner.counter.fetch_add(1, Ordering::Relaxed),
+            spec,
         );
-        let spec_path = inner.run_dir.join(format!("{stem}.job.json"));
-        let result_path = inner.run_dir.join(format!("{stem}.result.json"));
-        let script_path = inner.run_dir.join(format!("{stem}.sh"));
-        let log_path = inner.run_dir.join(format!("{stem}.log"));
-        let _ = fs::remove_file(&result_path);
-        let json = serde_json::to_vec_pretty(spec).map_err(|e| e.to_string())?;
-        crate::cache::write_atomic(&spec_path, &json, true)
-            .map_err(|e| format!("{}: {e}", spec_path.display()))?;
-        let script = format!(
-            "#!/bin/sh\n# fure worker: pipeline {}, stage {}, key {}\nexec {} --cache {} worker {}\n",
-            spec.pipeline,
-            spec.stage,
-            spec.key,
-            shell_quote(&inner.fure_bin.to_string_lossy()),
-            shell_quote(&inner.cache_root.to_string_lossy()),
-            shell_quote(&spec_path.to_string_lossy()),
-        );
-        crate::cache::write_atomic(&script_path, script.as_bytes(), true)
-            .map_err(|e| format!("{}: {e}", script_path.display()))?;
+        inner.write_job(spec, &files)?;
         let res = inner.config.resources(&spec.kind);
-        let mut args = vec![
-            "--parsable".to_string(),
-            format!("--job-name=fure:{}:{}", spec.pipeline, spec.stage),
-            format!("--output={}", log_path.display()),
-            "--open-mode=append".to_string(),
-        ];
-        if let Ok(cwd) = std::env::current_dir() {
-            args.push(format!("--chdir={}", cwd.display()));
-        }
-        args.extend(res.args());
-        args.push(script_path.display().to_string());
-        if crate::signals::received().is_some() {
-            return Err(inner.interrupted());
-        }
-        let out = slurm_command("sbatch", &args).map_err(|e| format!("submitting the job: {e}"))?;
-        // --parsable: "ID" or "ID;CLUSTER".
-        let id: u64 = out
-            .trim()
-            .split(';')
-            .next()
-            .and_then(|s| s.parse().ok())
-            .ok_or_else(|| format!("sbatch printed no job id: {out:?}"))?;
+        let id = inner.submit(spec, &files, &res)?;
         inner.track(id);
         inner.say(&format!(
             "slurm   {label}  submitted as job {id}{}",
@@ -630,46 +590,49 @@ impl Slurm {
                 .unwrap_or_default()
         ));
         let end = inner.wait(id, &label);
-        let result = read_result(&result_path, &end);
+        let result = read_result(&files.result, &end);
         let ok = end.state.starts_with("COMPLETED") && result.as_ref().is_some_and(|r| r.ok);
         if ok {
             let computed = result.map(|r| r.computed).unwrap_or(true);
-            for p in [&spec_path, &result_path, &script_path, &log_path] {
-                let _ = fs::remove_file(p);
-            }
+            files.remove();
             inner.say(&format!("slurm   {label}  job {id} completed"));
             return Ok(Outcome::Ran { computed });
         }
-        let mut job = format!("slurm job {id} {}", end.state);
-        if !end.reason.is_empty() && end.reason != "None" {
-            job.push_str(&format!(" ({})", end.reason));
-        }
-        if !end.exit_code.is_empty() {
-            job.push_str(&format!(", exit code {}", end.exit_code));
-        }
-        if !end.nodes.is_empty() && end.nodes != "(null)" {
-            job.push_str(&format!(", on {}", end.nodes));
-        }
-        if inner.cancelled.load(Ordering::SeqCst) {
-            job.push_str(": cancelled because fure was interrupted");
-        }
-        let mut msg = match result.and_then(|r| r.error) {
-            // A stage that failed by itself: its own error first, as a local
-            // run gives it (sweep reasons are its first line).
-            Some(e) if end.state.starts_with("FAILED") => format!("{e}\n{job}"),
-            // Slurm stopped it (time limit, memory, cancellation, node
-            // failure): that first, then what the worker saw.
-            Some(e) => format!("{job}\n{e}"),
-            None => job,
-        };
-        msg.push_str(&format!("; log {}", log_path.display()));
-        let t = tail(&log_path, LOG_TAIL);
-        if !t.is_empty() {
-            msg.push_str(":\n");
-            msg.push_str(&t);
-        }
+        let msg = inner.failure_message(id, &end, result, &files.log);
         inner.say(&format!("slurm   {label}  job {id} {}", end.state));
         Err(msg)
+    }
+}
+
+/// The files of one job under the run directory, named after the job's
+/// number in this process and its pipeline and stage.
+struct JobFiles {
+    spec: PathBuf,
+    result: PathBuf,
+    script: PathBuf,
+    log: PathBuf,
+}
+
+impl JobFiles {
+    fn new(run_dir: &Path, n: u64, spec: &JobSpec) -> JobFiles {
+        let stem = format!(
+            "{n}-{}-{}",
+            file_part(&spec.pipeline),
+            file_part(&spec.stage)
+        );
+        JobFiles {
+            spec: run_dir.join(format!("{stem}.job.json")),
+            result: run_dir.join(format!("{stem}.result.json")),
+            script: run_dir.join(format!("{stem}.sh")),
+            log: run_dir.join(format!("{stem}.log")),
+        }
+    }
+
+    /// Removes them all (a job that succeeded leaves nothing behind).
+    fn remove(&self) {
+        for p in [&self.spec, &self.result, &self.script, &self.log] {
+            let _ = fs::remove_file(p);
+        }
     }
 }
 
@@ -708,6 +671,93 @@ impl Drop for Slot<'_> {
 }
 
 impl Inner {
+    /// Writes a job's spec and the script that runs `fure worker` on it
+    /// (removing any stale result first).
+    fn write_job(&self, spec: &JobSpec, files: &JobFiles) -> Result<(), String> {
+        let _ = fs::remove_file(&files.result);
+        let json = serde_json::to_vec_pretty(spec).map_err(|e| e.to_string())?;
+        crate::cache::write_atomic(&files.spec, &json, true)
+            .map_err(|e| format!("{}: {e}", files.spec.display()))?;
+        let script = format!(
+            "#!/bin/sh\n# fure worker: pipeline {}, stage {}, key {}\nexec {} --cache {} worker {}\n",
+            spec.pipeline,
+            spec.stage,
+            spec.key,
+            shell_quote(&self.fure_bin.to_string_lossy()),
+            shell_quote(&self.cache_root.to_string_lossy()),
+            shell_quote(&files.spec.to_string_lossy()),
+        );
+        crate::cache::write_atomic(&files.script, script.as_bytes(), true)
+            .map_err(|e| format!("{}: {e}", files.script.display()))
+    }
+
+    /// `sbatch`es a job's script with its kind's resources (unless a signal
+    /// came first): the job id.
+    fn submit(&self, spec: &JobSpec, files: &JobFiles, res: &Resources) -> Result<u64, String> {
+        let mut args = vec![
+            "--parsable".to_string(),
+            format!("--job-name=fure:{}:{}", spec.pipeline, spec.stage),
+            format!("--output={}", files.log.display()),
+            "--open-mode=append".to_string(),
+        ];
+        if let Ok(cwd) = std::env::current_dir() {
+            args.push(format!("--chdir={}", cwd.display()));
+        }
+        args.extend(res.args());
+        args.push(files.script.display().to_string());
+        if crate::signals::received().is_some() {
+            return Err(self.interrupted());
+        }
+        let out = slurm_command("sbatch", &args).map_err(|e| format!("submitting the job: {e}"))?;
+        // --parsable: "ID" or "ID;CLUSTER".
+        out.trim()
+            .split(';')
+            .next()
+            .and_then(|s| s.parse().ok())
+            .ok_or_else(|| format!("sbatch printed no job id: {out:?}"))
+    }
+
+    /// A failed job's stage error: the worker's error and Slurm's state,
+    /// reason, exit code and node (in the order that explains it best),
+    /// then the job's log and its tail.
+    fn failure_message(
+        &self,
+        id: u64,
+        end: &JobState,
+        result: Option<JobResult>,
+        log: &Path,
+    ) -> String {
+        let mut job = format!("slurm job {id} {}", end.state);
+        if !end.reason.is_empty() && end.reason != "None" {
+            job.push_str(&format!(" ({})", end.reason));
+        }
+        if !end.exit_code.is_empty() {
+            job.push_str(&format!(", exit code {}", end.exit_code));
+        }
+        if !end.nodes.is_empty() && end.nodes != "(null)" {
+            job.push_str(&format!(", on {}", end.nodes));
+        }
+        if self.cancelled.load(Ordering::SeqCst) {
+            job.push_str(": cancelled because fure was interrupted");
+        }
+        let mut msg = match result.and_then(|r| r.error) {
+            // A stage that failed by itself: its own error first, as a local
+            // run gives it (sweep reasons are its first line).
+            Some(e) if end.state.starts_with("FAILED") => format!("{e}\n{job}"),
+            // Slurm stopped it (time limit, memory, cancellation, node
+            // failure): that first, then what the worker saw.
+            Some(e) => format!("{job}\n{e}"),
+            None => job,
+        };
+        msg.push_str(&format!("; log {}", log.display()));
+        let t = tail(log, LOG_TAIL);
+        if !t.is_empty() {
+            msg.push_str(":\n");
+            msg.push_str(&t);
+        }
+        msg
+    }
+
     fn say(&self, text: &str) {
         if self.verbose {
             let _g = self.print.lock().unwrap_or_else(|e| e.into_inner());
@@ -831,105 +881,119 @@ impl Inner {
             if ids.is_empty() {
                 continue;
             }
-            let list = ids.iter().map(u64::to_string).collect::<Vec<_>>().join(",");
-            let listed = match slurm_command(
-                "squeue",
-                &[
-                    "-h".into(),
-                    "-t".into(),
-                    "all".into(),
-                    "-j".into(),
-                    list,
-                    "-o".into(),
-                    "%i|%T|%r|%N".into(),
-                ],
-            ) {
-                Ok(out) => out,
-                Err(e) => {
-                    // All of them purged already answers "Invalid job id";
-                    // anything else: say so now and then, keep trying.
-                    if !e.to_string().contains("Invalid job id")
-                        && warned.is_none_or(|w| w.elapsed() > Duration::from_secs(60))
-                    {
-                        warned = Some(Instant::now());
-                        self.say(&format!("slurm   warning: {e}"));
-                    }
-                    if !e.to_string().contains("Invalid job id") {
-                        continue;
-                    }
-                    String::new()
-                }
+            let Some(listed) = self.squeue(&ids, &mut warned) else {
+                continue;
             };
-            let mut seen = BTreeMap::new();
-            for line in listed.lines() {
-                let f: Vec<&str> = line.trim().split('|').collect();
-                if f.len() < 4 {
-                    continue;
-                }
-                if let Ok(id) = f[0].parse::<u64>() {
-                    seen.insert(id, (f[1].to_string(), f[2].to_string(), f[3].to_string()));
-                }
-            }
-            let mut ended = Vec::new();
-            {
-                let mut jobs = self.jobs.lock().unwrap_or_else(|e| e.into_inner());
-                for id in &ids {
-                    let Some(j) = jobs.get_mut(id) else { continue };
-                    match seen.get(id) {
-                        Some((state, reason, nodes)) => {
-                            j.last_seen = Some(Instant::now());
-                            j.state = state.clone();
-                            j.reason = reason.clone();
-                            if !nodes.is_empty() {
-                                j.nodes = nodes.clone();
-                            }
-                            if is_terminal(state) {
-                                ended.push(*id);
-                            }
-                        }
-                        // Gone from the controller's memory (or not yet
-                        // there, just after sbatch): ask the others.
-                        None => {
-                            if j.submitted
-                                .is_some_and(|t| t.elapsed() > Duration::from_secs(5))
-                                || j.last_seen.is_some()
-                            {
-                                ended.push(*id);
-                            }
-                        }
-                    }
-                }
-            }
-            for id in ended {
-                let fin = final_state(id);
-                let mut jobs = self.jobs.lock().unwrap_or_else(|e| e.into_inner());
-                if let Some(j) = jobs.get_mut(&id) {
-                    match fin {
-                        Some(f) => {
-                            if !is_terminal(&f.state) {
-                                // Still going after all (squeue was late).
-                                continue;
-                            }
-                            j.state = f.state;
-                            if !f.reason.is_empty() {
-                                j.reason = f.reason;
-                            }
-                            if !f.nodes.is_empty() {
-                                j.nodes = f.nodes;
-                            }
-                            j.exit_code = f.exit_code;
-                        }
-                        None if is_terminal(&j.state) => {}
-                        None => {
-                            j.state = "UNKNOWN".into();
-                            j.reason =
-                                "the job is known neither to squeue, scontrol nor sacct".into();
-                        }
-                    }
-                    j.terminal = true;
-                }
-            }
+            let ended = self.record_listed(&ids, &parse_squeue(&listed));
+            self.finalise(ended);
             self.changed.notify_all();
+        }
+    }
+
+    /// `squeue` on the jobs in flight (all states, so recently finished ones
+    /// are seen): its lines, or None when it failed (warned about now and
+    /// then). All of them purged already is an empty listing.
+    fn squeue(&self, ids: &[u64], warned: &mut Option<Instant>) -> Option<String> {
+        let list = ids.iter().map(u64::to_string).collect::<Vec<_>>().join(",");
+        match slurm_command(
+            "squeue",
+            &[
+                "-h".into(),
+                "-t".into(),
+                "all".into(),
+                "-j".into(),
+                list,
+                "-o".into(),
+                "%i|%T|%r|%N".into(),
+            ],
+        ) {
+            Ok(out) => Some(out),
+            Err(e) => {
+                // All of them purged already answers "Invalid job id";
+                // anything else: say so now and then, keep trying.
+                if !e.to_string().contains("Invalid job id")
+                    && warned.is_none_or(|w| w.elapsed() > Duration::from_secs(60))
+                {
+                    *warned = Some(Instant::now());
+                    self.say(&format!("slurm   warning: {e}"));
+                }
+                if !e.to_string().contains("Invalid job id") {
+                    return None;
+                }
+                Some(String::new())
+            }
+        }
+    }
+
+    /// Updates the jobs in flight from squeue's listing: the ones that ended
+    /// (a terminal state, or gone from the controller's memory).
+    fn record_listed(
+        &self,
+        ids: &[u64],
+        seen: &BTreeMap<u64, (String, String, String)>,
+    ) -> Vec<u64> {
+        let mut ended = Vec::new();
+        let mut jobs = self.jobs.lock().unwrap_or_else(|e| e.into_inner());
+        for id in ids {
+            let Some(j) = jobs.get_mut(id) else { continue };
+            match seen.get(id) {
+                Some((state, reason, nodes)) => {
+                    j.last_seen = Some(Instant::now());
+                    j.state = state.clone();
+                    j.reason = reason.clone();
+                    if !nodes.is_empty() {
+                        j.nodes = nodes.clone();
+                    }
+                    if is_terminal(state) {
+                        ended.push(*id);
+                    }
+                }
+                // Gone from the controller's memory (or not yet
+                // there, just after sbatch): ask the others.
+                None => {
+                    if j.submitted
+                        .is_some_and(|t| t.elapsed() > Duration::from_secs(5))
+                        || j.last_seen.is_some()
+                    {
+                        ended.push(*id);
+                    }
+                }
+            }
+        }
+        ended
+    }
+
+    /// Marks ended jobs terminal with their final state, reason, nodes and
+    /// exit code from scontrol or sacct (a job those still see running is
+    /// left in flight).
+    fn finalise(&self, ended: Vec<u64>) {
+        for id in ended {
+            let fin = final_state(id);
+            let mut jobs = self.jobs.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(j) = jobs.get_mut(&id) {
+                match fin {
+                    Some(f) => {
+                        if !is_terminal(&f.state) {
+                            // Still going after all (squeue was late).
+                            continue;
+                        }
+                        j.state = f.state;
+                        if !f.reason.is_empty() {
+                            j.reason = f.reason;
+                        }
+                        if !f.nodes.is_empty() {
+                            j.nodes = f.nodes;
+                        }
+                        j.exit_code = f.exit_code;
+                    }
+                    None if is_terminal(&j.state) => {}
+                    None => {
+                        j.state = "UNKNOWN".into();
+                        j.reason = "the job is known neither to squeue, scontrol nor sacct".into();
+                    }
+                }
+                j.terminal = true;
+            }
         }
     }
 
@@ -958,6 +1022,21 @@ impl Inner {
         drop(jobs);
         self.changed.notify_all();
     }
+}
+
+/// squeue's `%i|%T|%r|%N` lines: job id -> (state, reason, nodes).
+fn parse_squeue(listed: &str) -> BTreeMap<u64, (String, String, String)> {
+    let mut seen = BTreeMap::new();
+    for line in listed.lines() {
+        let f: Vec<&str> = line.trim().split('|').collect();
+        if f.len() < 4 {
+            continue;
+        }
+        if let Ok(id) = f[0].parse::<u64>() {
+            seen.insert(id, (f[1].to_string(), f[2].to_string(), f[3].to_string()));
+        }
+    }
+    seen
 }
 
 /// The final (or current) state of a job from `scontrol show job`, else
@@ -1099,104 +1178,35 @@ pub fn worker(
     spec: &JobSpec,
     ui: &crate::ui::Ui,
 ) -> Result<bool, WorkerError> {
-    use crate::exec::InputPath;
-    use fure_stage_api::{Params, PortKind};
-
-    let stage = registry
-        .get(&spec.kind)
-        .ok_or_else(|| WorkerError::UnknownKind(spec.kind.clone()))?
-        .clone();
-    if stage.version() != spec.version {
-        return Err(WorkerError::Version {
-            kind: spec.kind.clone(),
-            here: stage.version(),
-            driver: spec.version,
-        });
-    }
-    let params = Params(spec.params.clone());
-    stage.validate(&params).map_err(|e| WorkerError::Params {
-        stage: spec.stage.clone(),
-        message: e.to_string(),
-    })?;
-    let in_specs = stage.inputs(&params);
-    for port in spec.inputs.keys() {
-        if !in_specs.iter().any(|p| &p.name == port) {
-            return Err(WorkerError::Input {
-                port: port.clone(),
-                message: format!("kind `{}` has no such input port", spec.kind),
-            });
-        }
-    }
+    let (stage, params, in_specs) = worker_stage(registry, spec)?;
     let mut hashes = BTreeMap::new();
     let mut inputs = Vec::new();
     for (port, inp) in &spec.inputs {
-        let err = |message: String| WorkerError::Input {
-            port: port.clone(),
-            message,
-        };
-        let want_dir = in_specs
-            .iter()
-            .find(|p| &p.name == port)
-            .is_some_and(|p| p.kind == PortKind::Dir);
         let (hash, path) = match inp {
             JobInput::Upstream {
                 key,
                 port: up,
                 blake3,
-            } => {
-                let m = cache
-                    .lookup_checked(key)
-                    .map_err(|e| err(format!("upstream entry {}: {e}", crate::cache::short(key))))?
-                    .ok_or_else(|| {
-                        err(format!(
-                            "upstream entry {} is not in the cache {} (do the nodes share it?)",
-                            crate::cache::short(key),
-                            cache.root().display()
-                        ))
-                    })?;
-                cache.check_entry(&m).map_err(|e| {
-                    err(format!("upstream entry {}: {e}", crate::cache::short(key)))
-                })?;
-                let rec = m.outputs.get(up).cloned().ok_or_else(|| {
-                    err(format!(
-                        "upstream entry {} has no output `{up}`",
-                        crate::cache::short(key)
-                    ))
-                })?;
-                if &rec.blake3 != blake3 {
-                    return Err(err(format!(
-                        "upstream output `{up}` is {} here but {} for the driver",
-                        crate::cache::short(&rec.blake3),
-                        crate::cache::short(blake3)
-                    )));
-                }
-                (rec.blake3.clone(), InputPath::Object(rec))
-            }
+            } => upstream_input(cache, key, up, blake3),
             JobInput::Path {
                 path,
                 written,
                 blake3,
             } => {
-                let (h, _, is_dir) = cache.hash_source(path).map_err(|e| {
-                    err(format!("cannot read `{written}` ({}): {e}", path.display()))
-                })?;
-                if spec.kind != crate::command::KIND && is_dir != want_dir {
-                    return Err(err(format!(
-                        "`{written}` is a {} but the port expects a {}",
-                        if is_dir { "directory" } else { "file" },
-                        if want_dir { "directory" } else { "file" }
-                    )));
-                }
-                if &h != blake3 {
-                    return Err(err(format!(
-                        "`{written}` ({}) changed since the driver keyed the stage, or differs \
-                         on this node",
-                        path.display()
-                    )));
-                }
-                (h, InputPath::Path(path.clone()))
+                // Command deps take files and directories alike.
+                let expect_dir = (spec.kind != crate::command::KIND).then(|| {
+                    in_specs
+                        .iter()
+                        .find(|p| &p.name == port)
+                        .is_some_and(|p| p.kind == PortKind::Dir)
+                });
+                path_input(cache, path, written, blake3, expect_dir)
             }
-        };
+        }
+        .map_err(|message| WorkerError::Input {
+            port: port.clone(),
+            message,
+        })?;
         hashes.insert(port.clone(), hash);
         inputs.push((port.clone(), path));
     }
@@ -1226,23 +1236,128 @@ pub fn worker(
             driver: spec.key.clone(),
         });
     }
-    let threads = std::env::var("SLURM_CPUS_PER_TASK")
+    let work = crate::exec::Computation {
+        pipeline: spec.pipeline.clone(),
+        stage: &st,
+        key: spec.key.clone(),
+        preimage,
+        inputs,
+        threads: worker_threads(),
+    };
+    let (_, computed) = crate::exec::compute_stage(cache, work, ui).map_err(WorkerError::Stage)?;
+    Ok(computed)
+}
+
+/// The job's stage from this binary's registry, at the driver's version,
+/// with its parameters validated and its input ports (every port of the
+/// spec must be one of them).
+fn worker_stage(
+    registry: &crate::plan::Registry,
+    spec: &JobSpec,
+) -> Result<(Arc<dyn Stage>, Params, Vec<PortSpec>), WorkerError> {
+    let stage = registry
+        .get(&spec.kind)
+        .ok_or_else(|| WorkerError::UnknownKind(spec.kind.clone()))?
+        .clone();
+    if stage.version() != spec.version {
+        return Err(WorkerError::Version {
+            kind: spec.kind.clone(),
+            here: stage.version(),
+            driver: spec.version,
+        });
+    }
+    let params = Params(spec.params.clone());
+    stage.validate(&params).map_err(|e| WorkerError::Params {
+        stage: spec.stage.clone(),
+        message: e.to_string(),
+    })?;
+    let in_specs = stage.inputs(&params);
+    for port in spec.inputs.keys() {
+        if !in_specs.iter().any(|p| &p.name == port) {
+            return Err(WorkerError::Input {
+                port: port.clone(),
+                message: format!("kind `{}` has no such input port", spec.kind),
+            });
+        }
+    }
+    Ok((stage, params, in_specs))
+}
+
+/// An upstream input: output `up` of the entry `key`, which must be in the
+/// shared cache, valid, and hold the hash the driver keyed with. Err: why
+/// not (the caller names the port).
+fn upstream_input(
+    cache: &crate::cache::Cache,
+    key: &str,
+    up: &str,
+    blake3: &str,
+) -> Result<(String, crate::exec::InputPath), String> {
+    let m = cache
+        .lookup_checked(key)
+        .map_err(|e| format!("upstream entry {}: {e}", crate::cache::short(key)))?
+        .ok_or_else(|| {
+            format!(
+                "upstream entry {} is not in the cache {} (do the nodes share it?)",
+                crate::cache::short(key),
+                cache.root().display()
+            )
+        })?;
+    cache
+        .check_entry(&m)
+        .map_err(|e| format!("upstream entry {}: {e}", crate::cache::short(key)))?;
+    let rec = m.outputs.get(up).cloned().ok_or_else(|| {
+        format!(
+            "upstream entry {} has no output `{up}`",
+            crate::cache::short(key)
+        )
+    })?;
+    if rec.blake3 != blake3 {
+        return Err(format!(
+            "upstream output `{up}` is {} here but {} for the driver",
+            crate::cache::short(&rec.blake3),
+            crate::cache::short(blake3)
+        ));
+    }
+    Ok((rec.blake3.clone(), crate::exec::InputPath::Object(rec)))
+}
+
+/// A path input, rehashed on this node: it must be a directory or a file
+/// as `expect_dir` says (when it says) and unchanged since the driver keyed
+/// the stage. Err: why not (the caller names the port).
+fn path_input(
+    cache: &crate::cache::Cache,
+    path: &Path,
+    written: &str,
+    blake3: &str,
+    expect_dir: Option<bool>,
+) -> Result<(String, crate::exec::InputPath), String> {
+    let (h, _, is_dir) = cache
+        .hash_source(path)
+        .map_err(|e| format!("cannot read `{written}` ({}): {e}", path.display()))?;
+    if let Some(want_dir) = expect_dir.filter(|&want_dir| want_dir != is_dir) {
+        return Err(format!(
+            "`{written}` is a {} but the port expects a {}",
+            if is_dir { "directory" } else { "file" },
+            if want_dir { "directory" } else { "file" }
+        ));
+    }
+    if h != blake3 {
+        return Err(format!(
+            "`{written}` ({}) changed since the driver keyed the stage, or differs \
+             on this node",
+            path.display()
+        ));
+    }
+    Ok((h, crate::exec::InputPath::Path(path.to_path_buf())))
+}
+
+/// The worker's threads: the job's `SLURM_CPUS_PER_TASK`, else every core.
+fn worker_threads() -> usize {
+    std::env::var("SLURM_CPUS_PER_TASK")
         .ok()
         .and_then(|s| s.parse::<usize>().ok())
         .filter(|&n| n > 0)
-        .unwrap_or_else(crate::exec::available_cores);
-    let (_, computed) = crate::exec::compute_stage(
-        cache,
-        &spec.pipeline,
-        &st,
-        &spec.key,
-        preimage,
-        inputs,
-        threads,
-        ui,
-    )
-    .map_err(WorkerError::Stage)?;
-    Ok(computed)
+        .unwrap_or_else(crate::exec::available_cores)
 }
 
 /// Writes a job's result file (atomically, fsynced: the driver reads it
