@@ -1178,7 +1178,11 @@ pub fn worker(
     spec: &JobSpec,
     ui: &crate::ui::Ui,
 ) -> Result<bool, WorkerError> {
-    let (stage, params, in_specs) = worker_stage(registry, spec)?;
+    let WorkerStage {
+        stage,
+        params,
+        in_specs,
+    } = worker_stage(registry, spec)?;
     let mut hashes = BTreeMap::new();
     let mut inputs = Vec::new();
     for (port, inp) in &spec.inputs {
@@ -1248,13 +1252,22 @@ pub fn worker(
     Ok(computed)
 }
 
+/// A job's stage as this binary has it.
+struct WorkerStage {
+    stage: Arc<dyn Stage>,
+    /// The spec's parameters, validated by the stage.
+    params: Params,
+    /// Its input ports under those parameters.
+    in_specs: Vec<PortSpec>,
+}
+
 /// The job's stage from this binary's registry, at the driver's version,
 /// with its parameters validated and its input ports (every port of the
 /// spec must be one of them).
 fn worker_stage(
     registry: &crate::plan::Registry,
     spec: &JobSpec,
-) -> Result<(Arc<dyn Stage>, Params, Vec<PortSpec>), WorkerError> {
+) -> Result<WorkerStage, WorkerError> {
     let stage = registry
         .get(&spec.kind)
         .ok_or_else(|| WorkerError::UnknownKind(spec.kind.clone()))?
@@ -1280,7 +1293,11 @@ fn worker_stage(
             });
         }
     }
-    Ok((stage, params, in_specs))
+    Ok(WorkerStage {
+        stage,
+        params,
+        in_specs,
+    })
 }
 
 /// An upstream input: output `up` of the entry `key`, which must be in the
