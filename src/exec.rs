@@ -1113,14 +1113,15 @@ fn run_in_process(
     threads: usize,
     inproc: &AtomicUsize,
 ) -> Result<(Result<(), String>, u64), String> {
-    if inproc.fetch_add(1, Ordering::SeqCst) == 0 {
-        let _ = fs::write("/proc/self/clear_refs", "5");
-    }
+    // The pool first: a failure to build it must not leave the stage counted in.
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads.max(1))
         .thread_name(|i| format!("fure-stage-pool-{i}"))
         .build()
         .map_err(|e| format!("cannot build a thread pool: {e}"))?;
+    if inproc.fetch_add(1, Ordering::SeqCst) == 0 {
+        let _ = fs::write("/proc/self/clear_refs", "5");
+    }
     let r = pool.install(|| std::panic::catch_unwind(AssertUnwindSafe(|| st.stage.run(ctx))));
     inproc.fetch_sub(1, Ordering::SeqCst);
     let r = match r {
