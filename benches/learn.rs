@@ -16,7 +16,7 @@
 use std::time::Instant;
 
 use fure_stages::growth::learn::mlp::{Mlp, PositionalEncoding};
-use fure_stages::growth::learn::model::{Codec, Dense, Model, Prepared, Rates};
+use fure_stages::growth::learn::model::{Codec, Dense, Model, Prepared, Rates, RootInputs};
 use fure_stages::growth::learn::placement::Decoder;
 use fure_stages::growth::learn::train::subset;
 use fure_stages::render::{Mat3, Vec3};
@@ -44,16 +44,14 @@ fn prepared(rng: &mut Rng) -> Prepared {
     let parts: Vec<u16> = (0..STRANDS).map(|i| (i % PARTS) as u16).collect();
     let rho: Vec<f32> = (0..STRANDS).map(|_| rng.next()).collect();
     let pe = PositionalEncoding::new(10, [-1.0; 3], [1.0; 3]);
-    Prepared::new(
-        POINTS,
-        roots,
-        vec![Mat3::IDENTITY; STRANDS],
-        vec![0.04; STRANDS],
-        &parts,
-        PARTS,
-        &rho,
-        &pe,
-    )
+    let inputs = RootInputs {
+        positions: roots,
+        frames: vec![Mat3::IDENTITY; STRANDS],
+        lengths: vec![0.04; STRANDS],
+        parts,
+        rho,
+    };
+    Prepared::new(POINTS, inputs, PARTS, &pe)
 }
 
 /// A straight mean strand and small random components.

@@ -191,18 +191,20 @@ fn jacobian(cam: &CamData, p: Vec3) -> Proj {
     }
 }
 
-/// Projects Gaussian `i`.
-#[allow(clippy::too_many_arguments)]
+/// Projects one Gaussian with its `opacity` and fur flag.
 pub fn project_one(
-    mean: Vec3,
-    scale: Vec3,
-    rot: Quat,
+    gaussian: GaussianParams,
     opacity: f32,
-    sh: &[Vec3; 4],
     fur: bool,
     cam: &CamData,
     s: &RenderSettings,
 ) -> Splat {
+    let GaussianParams {
+        mean,
+        scale,
+        rot,
+        sh,
+    } = gaussian;
     let mut out = Splat::default();
     let pr = jacobian(cam, mean);
     if !(pr.z >= s.near) || !(opacity > s.alpha_min) || !(opacity > 0.0) {
@@ -291,7 +293,8 @@ pub struct ParamGrad {
     pub cov3d: [f32; 6],
 }
 
-/// One Gaussian's parameters that [`project_backward`] reads.
+/// One Gaussian's geometry and colour, read by [`project_one`] and
+/// [`project_backward`].
 #[derive(Debug, Clone, Copy)]
 pub struct GaussianParams<'a> {
     pub mean: Vec3,

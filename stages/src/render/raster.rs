@@ -275,16 +275,7 @@ fn project_all(g: &Gaussians, cd: &CamData, s: &RenderSettings) -> Vec<Splat> {
         .for_each(|(c, out)| {
             for (j, sp) in out.iter_mut().enumerate() {
                 let i = c * CHUNK + j;
-                *sp = project_one(
-                    g.means[i],
-                    g.scales[i],
-                    g.rotations[i],
-                    g.opacities[i],
-                    &g.sh[i],
-                    g.fur[i],
-                    cd,
-                    s,
-                );
+                *sp = project_one(GaussianParams::of(g, i), g.opacities[i], g.fur[i], cd, s);
                 if sp.visible {
                     sp.rows = row_range(sp);
                 }
@@ -561,7 +552,10 @@ fn pixel_grads(dl: &OutputGrads, w: u32, h: u32) -> Result<Vec<[f32; NF]>, Rende
 }
 
 /// Splits the per-instance gradients into one disjoint slice per tile.
-fn tile_slices<'a>(inst: &'a mut [SplatGrad], tile_ranges: &[(u32, u32)]) -> Vec<&'a mut [SplatGrad]> {
+fn tile_slices<'a>(
+    inst: &'a mut [SplatGrad],
+    tile_ranges: &[(u32, u32)],
+) -> Vec<&'a mut [SplatGrad]> {
     let mut slices = Vec::with_capacity(tile_ranges.len());
     let mut rest: &mut [SplatGrad] = inst;
     for &(a, b) in tile_ranges {

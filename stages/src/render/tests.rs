@@ -313,21 +313,10 @@ fn strand_gradients_match_finite_differences() {
 
 /// A brute-force reference: every Gaussian at every pixel, depth-sorted.
 fn brute_force(g: &Gaussians, cam: &Camera, s: &RenderSettings) -> RenderOutput {
-    use super::project::{project_one, CamData, F_DEPTH, NF};
+    use super::project::{project_one, CamData, GaussianParams, F_DEPTH, NF};
     let cd = CamData::new(cam).unwrap();
     let mut sp: Vec<_> = (0..g.len())
-        .map(|i| {
-            project_one(
-                g.means[i],
-                g.scales[i],
-                g.rotations[i],
-                g.opacities[i],
-                &g.sh[i],
-                g.fur[i],
-                &cd,
-                s,
-            )
-        })
+        .map(|i| project_one(GaussianParams::of(g, i), g.opacities[i], g.fur[i], &cd, s))
         .filter(|p| p.visible)
         .collect();
     sp.sort_by(|a, b| a.feat[F_DEPTH].total_cmp(&b.feat[F_DEPTH]));

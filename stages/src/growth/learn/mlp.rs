@@ -144,6 +144,19 @@ fn exp_approx(x: f32) -> f32 {
 #[derive(Clone, Copy)]
 struct Strides(usize, usize);
 
+/// A read-only matrix operand: elements laid out by `strides`.
+#[derive(Clone, Copy)]
+struct MatRef<'a> {
+    data: &'a [f32],
+    strides: Strides,
+}
+
+/// A writable matrix operand: elements laid out by `strides`.
+struct MatMut<'a> {
+    data: &'a mut [f32],
+    strides: Strides,
+}
+
 /// Largest element index touched by an `rows x cols` operand with strides `s`
 /// plus one (0 for an empty operand).
 fn extent(rows: usize, cols: usize, s: Strides) -> usize {
@@ -218,24 +231,24 @@ const AXPY_COLS: usize = 16;
 const AXPY_NARROW: usize = 4;
 
 /// `C[i0 + r, j0 + q] += sum_p A[i0 + r, p] B[p, j0 + q]` for `R` rows and
-/// `W` columns, `B` and `C` contiguous along their rows. Each element adds
-/// its products in the order `p = 0, 1, ...` onto its current value,
-/// exactly as one row update `C[i, :] += A[i, p] B[p, :]` per `p` would;
-/// the block stays in registers over the whole `p` loop instead of being
-/// loaded and stored once per `p`.
-#[allow(clippy::too_many_arguments)]
+/// `W` columns, `B` and `C` contiguous along their rows (their column
+/// strides are not read). Each element adds its products in the order
+/// `p = 0, 1, ...` onto its current value, exactly as one row update
+/// `C[i, :] += A[i, p] B[p, :]` per `p` would; the block stays in registers
+/// over the whole `p` loop instead of being loaded and stored once per `p`.
 #[inline(always)]
 fn axpy_block<const R: usize, const W: usize>(
     k: usize,
-    a: &[f32],
-    sa: Strides,
+    a: MatRef,
+    b: MatRef,
+    c: &mut MatMut,
     i0: usize,
-    b: &[f32],
-    sb0: usize,
     j0: usize,
-    c: &mut [f32],
-    sc0: usize,
 ) {
+    let (a, sa) = (a.data, a.strides);
+    let (b, sb0) = (b.data, b.strides.0);
+    let sc0 = c.strides.0;
+    let c = &mut *c.data;
     let mut acc = [[0.0f32; W]; R];
     for (r, acc_r) in acc.iter_mut().enumerate() {
         acc_r.copy_from_slice(&c[(i0 + r) * sc0 + j0..(i0 + r) * sc0 + j0 + W]);
@@ -258,30 +271,19 @@ fn axpy_block<const R: usize, const W: usize>(
 
 /// Row updates of rows `i0 .. i0 + R`, all columns: blocks of
 /// [`AXPY_COLS`], then of [`AXPY_NARROW`], then one column at a time.
-#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn axpy_rows<const R: usize>(
-    k: usize,
-    n: usize,
-    a: &[f32],
-    sa: Strides,
-    i0: usize,
-    b: &[f32],
-    sb0: usize,
-    c: &mut [f32],
-    sc0: usize,
-) {
+fn axpy_rows<const R: usize>(k: usize, n: usize, a: MatRef, b: MatRef, c: &mut MatMut, i0: usize) {
     let mut j = 0;
     while j + AXPY_COLS <= n {
-        axpy_block::<R, AXPY_COLS>(k, a, sa, i0, b, sb0, j, c, sc0);
+        axpy_block::<R, AXPY_COLS>(k, a, b, c, i0, j);
         j += AXPY_COLS;
     }
     while j + AXPY_NARROW <= n {
-        axpy_block::<R, AXPY_NARROW>(k, a, sa, i0, b, sb0, j, c, sc0);
+        axpy_block::<R, AXPY_NARROW>(k, a, b, c, i0, j);
         j += AXPY_NARROW;
     }
     for j in j..n {
-        axpy_block::<R, 1>(k, a, sa, i0, b, sb0, j, c, sc0);
+        axpy_block::<R, 1>(k, a, b, c, i0, j);
     }
 }
 
@@ -305,20 +307,8 @@ fn axpy_rows<const R: usize>(
 ///
 /// The slices are checked against the strides first (a mismatch is a bug in
 /// this module, hence a panic, not an input error).
-#[allow(clippy::too_many_arguments)]
-fn gemm(
-    m: usize,
-    k: usize,
-    n: usize,
-    a: &[f32],
-    sa: Strides,
-    b: &[f32],
-    sb: Strides,
-    beta: f32,
-    c: &mut [f32],
-    sc: Strides,
-) {
-    let mut run = || gemm_portable(m, k, n, a, sa, b, sb, beta, c, sc);
+fn gemm(m: usize, k: usize, n: usize, a: MatRef, b: MatRef, beta: f32, c: MatMut) {
+    let run = || gemm_portable(m, k, n, a, b, beta, c);
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2 (checked just above).
@@ -337,29 +327,18 @@ unsafe fn with_avx2(f: impl FnOnce()) {
     f()
 }
 
-#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn gemm_portable(
-    m: usize,
-    k: usize,
-    n: usize,
-    a: &[f32],
-    sa: Strides,
-    b: &[f32],
-    sb: Strides,
-    beta: f32,
-    c: &mut [f32],
-    sc: Strides,
-) {
-    assert!(a.len() >= extent(m, k, sa), "gemm: A too short");
-    assert!(b.len() >= extent(k, n, sb), "gemm: B too short");
-    assert!(c.len() >= extent(m, n, sc), "gemm: C too short");
+fn gemm_portable(m: usize, k: usize, n: usize, a: MatRef, b: MatRef, beta: f32, mut c: MatMut) {
+    let (sa, sb, sc) = (a.strides, b.strides, c.strides);
+    assert!(a.data.len() >= extent(m, k, sa), "gemm: A too short");
+    assert!(b.data.len() >= extent(k, n, sb), "gemm: B too short");
+    assert!(c.data.len() >= extent(m, n, sc), "gemm: C too short");
     if m == 0 || n == 0 {
         return;
     }
     if k == 0 {
         if beta == 0.0 {
-            c.iter_mut().for_each(|v| *v = 0.0);
+            c.data.iter_mut().for_each(|v| *v = 0.0);
         }
         return;
     }
@@ -367,13 +346,13 @@ fn gemm_portable(
         // Not `beta * c`: `c` may hold anything, NaN included, and 0 x NaN is NaN.
         for i in 0..m {
             for j in 0..n {
-                c[i * sc.0 + j * sc.1] = 0.0;
+                c.data[i * sc.0 + j * sc.1] = 0.0;
             }
         }
     } else if beta != 1.0 {
         for i in 0..m {
             for j in 0..n {
-                c[i * sc.0 + j * sc.1] *= beta;
+                c.data[i * sc.0 + j * sc.1] *= beta;
             }
         }
     }
@@ -383,21 +362,21 @@ fn gemm_portable(
         let mut bt = vec![0.0f32; k * n];
         for j in 0..n {
             for p in 0..k {
-                bt[p * n + j] = b[j * sb.1 + p];
+                bt[p * n + j] = b.data[j * sb.1 + p];
             }
         }
         for i in 0..m {
-            let a_row = &a[i * sa.0..i * sa.0 + k];
+            let a_row = &a.data[i * sa.0..i * sa.0 + k];
             let mut j = 0;
             while j + DOT_COLS <= n {
                 let d = dot8_block::<DOT_COLS>(a_row, &bt, n, j);
                 for (q, dq) in d.iter().enumerate() {
-                    c[i * sc.0 + (j + q) * sc.1] += dq;
+                    c.data[i * sc.0 + (j + q) * sc.1] += dq;
                 }
                 j += DOT_COLS;
             }
             for j in j..n {
-                c[i * sc.0 + j * sc.1] += dot8_block::<1>(a_row, &bt, n, j)[0];
+                c.data[i * sc.0 + j * sc.1] += dot8_block::<1>(a_row, &bt, n, j)[0];
             }
         }
         return;
@@ -405,13 +384,14 @@ fn gemm_portable(
     if sb.1 == 1 && sc.1 == 1 {
         let full_rows = m - m % AXPY_ROWS;
         for i in (0..full_rows).step_by(AXPY_ROWS) {
-            axpy_rows::<AXPY_ROWS>(k, n, a, sa, i, b, sb.0, c, sc.0);
+            axpy_rows::<AXPY_ROWS>(k, n, a, b, &mut c, i);
         }
         for i in full_rows..m {
-            axpy_rows::<1>(k, n, a, sa, i, b, sb.0, c, sc.0);
+            axpy_rows::<1>(k, n, a, b, &mut c, i);
         }
         return;
     }
+    let (a, b, c) = (a.data, b.data, c.data);
     for i in 0..m {
         for p in 0..k {
             let a_ip = a[i * sa.0 + p * sa.1];
@@ -494,13 +474,19 @@ impl Mlp {
                 batch,
                 n_in,
                 n_out,
-                x,
-                Strides(n_in, 1),
-                w,
-                Strides(1, n_in),
+                MatRef {
+                    data: x,
+                    strides: Strides(n_in, 1),
+                },
+                MatRef {
+                    data: w,
+                    strides: Strides(1, n_in),
+                },
                 1.0,
-                &mut z,
-                Strides(n_out, 1),
+                MatMut {
+                    data: &mut z,
+                    strides: Strides(n_out, 1),
+                },
             );
             if l + 1 < layers {
                 let s: Vec<f32> = z.iter().map(|&v| sigmoid(v)).collect();
@@ -546,13 +532,19 @@ impl Mlp {
                     n_out,
                     batch,
                     n_in,
-                    &g,
-                    Strides(1, n_out),
-                    x,
-                    Strides(n_in, 1),
+                    MatRef {
+                        data: &g,
+                        strides: Strides(1, n_out),
+                    },
+                    MatRef {
+                        data: x,
+                        strides: Strides(n_in, 1),
+                    },
                     1.0,
-                    gw,
-                    Strides(n_in, 1),
+                    MatMut {
+                        data: gw,
+                        strides: Strides(n_in, 1),
+                    },
                 );
                 for gr in g.chunks_exact(n_out) {
                     for (b, v) in gb.iter_mut().zip(gr) {
@@ -571,13 +563,19 @@ impl Mlp {
                 batch,
                 n_out,
                 n_in,
-                &g,
-                Strides(n_out, 1),
-                w,
-                Strides(n_in, 1),
+                MatRef {
+                    data: &g,
+                    strides: Strides(n_out, 1),
+                },
+                MatRef {
+                    data: w,
+                    strides: Strides(n_in, 1),
+                },
                 0.0,
-                &mut gx,
-                Strides(n_in, 1),
+                MatMut {
+                    data: &mut gx,
+                    strides: Strides(n_in, 1),
+                },
             );
             let z = &tape.pre[l - 1];
             let sg = &tape.sig[l - 1];
@@ -602,17 +600,8 @@ mod tests {
     }
 
     /// The unblocked definition of `gemm`'s order for one element of `C`.
-    #[allow(clippy::too_many_arguments)]
-    fn reference_element(
-        i: usize,
-        j: usize,
-        k: usize,
-        a: &[f32],
-        sa: Strides,
-        b: &[f32],
-        sb: Strides,
-        c0: f32,
-    ) -> f32 {
+    fn reference_element(i: usize, j: usize, k: usize, a: MatRef, b: MatRef, c0: f32) -> f32 {
+        let (a, sa, b, sb) = (a.data, a.strides, b.data, b.strides);
         let av = |p: usize| a[i * sa.0 + p * sa.1];
         let bv = |p: usize| b[p * sb.0 + j * sb.1];
         if sa.1 == 1 && sb.0 == 1 {
@@ -663,7 +652,19 @@ mod tests {
                     let b: Vec<f32> = (0..k * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
                     let c_in: Vec<f32> = (0..m * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
                     let mut c = c_in.clone();
-                    gemm(m, k, n, &a, sa, &b, sb, beta, &mut c, sc);
+                    let a = MatRef {
+                        data: &a,
+                        strides: sa,
+                    };
+                    let b = MatRef {
+                        data: &b,
+                        strides: sb,
+                    };
+                    let c_out = MatMut {
+                        data: &mut c,
+                        strides: sc,
+                    };
+                    gemm(m, k, n, a, b, beta, c_out);
                     for i in 0..m {
                         for j in 0..n {
                             let at = i * sc.0 + j * sc.1;
@@ -674,7 +675,7 @@ mod tests {
                             } else {
                                 c_in[at] * beta
                             };
-                            let want = reference_element(i, j, k, &a, sa, &b, sb, c0);
+                            let want = reference_element(i, j, k, a, b, c0);
                             assert_eq!(
                                 c[at].to_bits(),
                                 want.to_bits(),

@@ -38,19 +38,34 @@ pub struct Prepared {
     pub feature_dim: usize,
 }
 
+/// What [`Prepared::new`] is built from, one entry per root.
+#[derive(Debug, Clone)]
+pub struct RootInputs {
+    pub positions: Vec<Vec3>,
+    pub frames: Vec<Mat3>,
+    /// Target strand lengths (scene units).
+    pub lengths: Vec<f32>,
+    /// Part indices (below the `part_count` given to [`Prepared::new`]).
+    pub parts: Vec<u16>,
+    pub rho: Vec<f32>,
+}
+
 impl Prepared {
-    /// Builds the features. `parts` are part indices below `part_count`.
-    #[allow(clippy::too_many_arguments)]
+    /// Builds the features of strands with `points` points each; the part
+    /// one-hot has `part_count` entries.
     pub fn new(
         points: usize,
-        roots: Vec<Vec3>,
-        frames: Vec<Mat3>,
-        lengths: Vec<f32>,
-        parts: &[u16],
+        inputs: RootInputs,
         part_count: usize,
-        rho: &[f32],
         pe: &PositionalEncoding,
     ) -> Self {
+        let RootInputs {
+            positions: roots,
+            frames,
+            lengths,
+            parts,
+            rho,
+        } = inputs;
         let lmax = lengths.iter().copied().fold(0.0f32, f32::max).max(1e-12);
         let feature_dim = pe.dim() + part_count + 2;
         let mut features = vec![0.0f32; roots.len() * feature_dim];
@@ -506,16 +521,14 @@ mod tests {
             Vec3::ONE * 0.3,
         ];
         let frames = vec![Mat3::IDENTITY; 3];
-        let prep = Prepared::new(
-            l,
-            roots,
+        let inputs = RootInputs {
+            positions: roots,
             frames,
-            vec![0.5, 0.7, 0.3],
-            &[0, 1, 1],
-            2,
-            &[0.1, 0.5, 0.9],
-            &pe,
-        );
+            lengths: vec![0.5, 0.7, 0.3],
+            parts: vec![0, 1, 1],
+            rho: vec![0.1, 0.5, 0.9],
+        };
+        let prep = Prepared::new(l, inputs, 2, &pe);
         let mut mlp = Mlp::new(prep.feature_dim, 6, 2, 2 + rotation as usize, 9);
         for (i, w) in mlp.params.iter_mut().enumerate().rev().take(21) {
             *w = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
@@ -598,16 +611,14 @@ mod sized {
             .collect();
         let parts: Vec<u16> = (0..n).map(|i| (i % 6) as u16).collect();
         let rho: Vec<f32> = (0..n).map(|i| (i % 11) as f32 / 10.0).collect();
-        let prep = Prepared::new(
-            l,
-            roots,
-            vec![Mat3::IDENTITY; n],
-            vec![0.04; n],
-            &parts,
-            6,
-            &rho,
-            &pe,
-        );
+        let inputs = RootInputs {
+            positions: roots,
+            frames: vec![Mat3::IDENTITY; n],
+            lengths: vec![0.04; n],
+            parts,
+            rho,
+        };
+        let prep = Prepared::new(l, inputs, 6, &pe);
         let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 7.0).collect();
         let comps: Vec<Vec<Vec3>> = (0..21)
             .map(|c| {

@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::geomloss::DistanceGrid;
 use super::image::{Coverage, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
-use super::model::{Codec, Dense, Model, Prepared, Rates};
+use super::model::{Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
 use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
 use crate::data::mesh::Mesh;
@@ -548,23 +548,20 @@ fn setup(
     let (lo, hi) = outer.bounds();
     let pe = PositionalEncoding::new(pe_frequencies, lo.to_array(), hi.to_array());
     let lengths: Vec<f32> = keep.iter().map(|&i| lengths_all[i]).collect();
-    let prep = Prepared::new(
-        basis.points,
-        keep.iter().map(|&i| roots.positions[i]).collect(),
-        {
-            // A deliberately wrong start for stability tests: every frame
-            // turned about its normal.
-            let turn = Mat3::from_rotation_z(p.frame_rotation_deg.to_radians());
-            keep.iter()
-                .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
-                .collect()
-        },
-        lengths.clone(),
-        &keep.iter().map(|&i| roots.part[i]).collect::<Vec<_>>(),
-        part_count,
-        &keep.iter().map(|&i| roots.rho[i]).collect::<Vec<_>>(),
-        &pe,
-    );
+    // A deliberately wrong start for stability tests: every frame turned
+    // about its normal.
+    let turn = Mat3::from_rotation_z(p.frame_rotation_deg.to_radians());
+    let inputs = RootInputs {
+        positions: keep.iter().map(|&i| roots.positions[i]).collect(),
+        frames: keep
+            .iter()
+            .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
+            .collect(),
+        lengths: lengths.clone(),
+        parts: keep.iter().map(|&i| roots.part[i]).collect(),
+        rho: keep.iter().map(|&i| roots.rho[i]).collect(),
+    };
+    let prep = Prepared::new(basis.points, inputs, part_count, &pe);
     let k = if components == 0 {
         basis.k()
     } else {

@@ -221,7 +221,7 @@ pub fn train(
 mod tests {
     use super::*;
     use crate::growth::learn::mlp::{Mlp, PositionalEncoding};
-    use crate::growth::learn::model::{Codec, Dense};
+    use crate::growth::learn::model::{Codec, Dense, RootInputs};
     use crate::growth::learn::placement::{arc_length, frame, Decoder};
     use fure_stage_api::NoProgress;
 
@@ -242,16 +242,14 @@ mod tests {
             frames.push(frame(t, nrm.cross(t), nrm));
         }
         let pe = PositionalEncoding::new(4, [-1.0; 3], [1.0; 3]);
-        let prep = Prepared::new(
-            l,
-            roots,
+        let inputs = RootInputs {
+            positions: roots,
             frames,
-            vec![0.5; n],
-            &vec![0; n],
-            1,
-            &vec![0.5; n],
-            &pe,
-        );
+            lengths: vec![0.5; n],
+            parts: vec![0; n],
+            rho: vec![0.5; n],
+        };
+        let prep = Prepared::new(l, inputs, 1, &pe);
         let mean: Vec<Vec3> = (0..l)
             .map(|k| Vec3::Z * k as f32 / (l - 1) as f32)
             .collect();
