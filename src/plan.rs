@@ -1,7 +1,7 @@
 //! Planning: from a parsed [`Pipeline`] to a checked, ordered DAG of stages.
 //!
 //! Planning resolves every stage kind, checks every parameter against the
-//! kind's [`ParamSpec`](fure_stage_api::ParamSpec)s (unknown names, types, bounds, choices, required
+//! kind's [`ParamSpec`]s (unknown names, types, bounds, choices, required
 //! ones), fills defaults, runs the kind's own `validate`, resolves every input
 //! (an upstream output or an existing file or directory), checks ports on both
 //! ends, builds the dependency graph with petgraph and orders it. It collects
