@@ -108,8 +108,11 @@ pub struct MlpTape {
     sig: Vec<Vec<f32>>,
 }
 
+/// The logistic function on [`exp_approx`], for the SiLU gates (one per
+/// activation, so it must vectorise); the other sigmoid of the crate
+/// (Frosting's opacities, one per Gaussian per step) keeps the library `exp`.
 #[inline]
-fn sigmoid(x: f32) -> f32 {
+fn sigmoid_fast(x: f32) -> f32 {
     1.0 / (1.0 + exp_approx(-x))
 }
 
@@ -489,7 +492,7 @@ impl Mlp {
                 },
             );
             if l + 1 < layers {
-                let s: Vec<f32> = z.iter().map(|&v| sigmoid(v)).collect();
+                let s: Vec<f32> = z.iter().map(|&v| sigmoid_fast(v)).collect();
                 let a: Vec<f32> = z.iter().zip(&s).map(|(&v, &si)| v * si).collect();
                 pre.push(z);
                 sig.push(s);
@@ -746,7 +749,7 @@ mod tests {
         }
         assert!(worst < 5e-7, "worst relative error {worst}");
         assert!(exp_approx(-1e4) > 0.0 && exp_approx(1e4).is_finite());
-        assert!(sigmoid(-1e4) >= 0.0 && sigmoid(1e4) <= 1.0);
+        assert!(sigmoid_fast(-1e4) >= 0.0 && sigmoid_fast(1e4) <= 1.0);
     }
 
     #[test]
