@@ -181,9 +181,8 @@ fure_stage_api::stage_params! {
         /// points), decayed exponentially over the iterations as 3DGS decays its position rate
         /// (1 = constant rates; colours are not decayed).
         lr_decay: f32 = float(0.01).range(1e-6, 1.0),
-        /// Initial Adam learning rate of the points, in strand lengths per step (the best
-        /// final F-score of 0.0003 / 0.001 / 0.003 with lr_decay 0.01 on the synthetic
-        /// tiger, docs/history.md).
+        /// Initial Adam learning rate of the points, in strand lengths per step (chosen on
+        /// the dev split against 0.0005 and 0.002, docs/history.md).
         lr_points: f32 = float(0.001).min(0.0),
     }
 }
