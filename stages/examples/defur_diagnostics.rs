@@ -318,8 +318,14 @@ impl Diagnosis {
     /// the ray, of tau and of the `root` mesh, and how much of the root is
     /// inside the skin.
     fn print_part_errors(&self, root: &Mesh) {
-        let (outer, areas, o2s, ray, tau, s_cm) =
-            (&self.outer, &self.areas, &self.o2s, &self.ray, &self.tau, self.s_cm);
+        let (outer, areas, o2s, ray, tau, s_cm) = (
+            &self.outer,
+            &self.areas,
+            &self.o2s,
+            &self.ray,
+            &self.tau,
+            self.s_cm,
+        );
         let r2s = distances_to(&self.gt.skin, root);
         // Signed root error: negative when the root vertex is inside the skin.
         let r_in: Vec<bool> = root
@@ -437,7 +443,10 @@ impl Diagnosis {
             );
         }
         let gap_plus: Vec<f32> = gap.iter().zip(gpart).map(|(a, b)| a + b).collect();
-        self.report("d = hull-to-fur gap + GT part thickness", &self.zero(&gap_plus));
+        self.report(
+            "d = hull-to-fur gap + GT part thickness",
+            &self.zero(&gap_plus),
+        );
         self.report("d = hull-to-fur gap only", &self.zero(&gap));
         let below_med = percentile(&below, 50.0).unwrap_or(0.0);
         let gap_plus_c: Vec<f32> = gap.iter().map(|a| a + below_med).collect();

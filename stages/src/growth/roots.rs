@@ -992,8 +992,8 @@ fn vertex_rho(
     shell_path: &std::path::Path,
     mesh: &Mesh,
 ) -> Result<(Vec<f32>, f32), StageError> {
-    let index = PointIndex::new(&shell.positions)
-        .map_err(|e| StageError::input("shell", shell_path, e))?;
+    let index =
+        PointIndex::new(&shell.positions).map_err(|e| StageError::input("shell", shell_path, e))?;
     let w = raw_widths(shell, &index, &mesh.positions);
     let norm = percentile(&shell.widths, 97.5).unwrap_or(0.0);
     let vertex_rho: Vec<f32> = w

@@ -663,7 +663,11 @@ fn part_vertex_counts(mesh: &Mesh) -> BTreeMap<String, usize> {
 
 /// The error for a mesh whose every vertex is in a protected part, on the
 /// port the labels came from.
-fn no_fur_error(ctx: &StageContext<'_>, mesh_path: &Path, counts: &BTreeMap<String, usize>) -> StageError {
+fn no_fur_error(
+    ctx: &StageContext<'_>,
+    mesh_path: &Path,
+    counts: &BTreeMap<String, usize>,
+) -> StageError {
     let labelled: Vec<&str> = counts
         .iter()
         .filter(|(_, c)| **c > 0)

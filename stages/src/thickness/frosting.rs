@@ -964,7 +964,12 @@ impl FitState {
     /// Adds one view's view-space positional gradient, in loss per pixel of
     /// displacement summed over the image (so independent of the
     /// resolution's pixel count): |dL/dmu| * (distance / focal) * pixels.
-    fn accumulate_view_space_grad(&mut self, gr: &render::GaussianGrads, g: &Gaussians, cam: &Camera) {
+    fn accumulate_view_space_grad(
+        &mut self,
+        gr: &render::GaussianGrads,
+        g: &Gaussians,
+        cam: &Camera,
+    ) {
         let centre = cam.center();
         let per_px = (cam.width as f32 * cam.height as f32) / cam.fx.max(1e-6);
         for i in 0..self.p.len() {
@@ -1680,11 +1685,7 @@ fn width_stats(out: &WidthsOutcome, d: f32, min_width: f32) -> WidthStats {
         crossed_fraction: out.crossed.iter().filter(|c| **c).count() as f32 / n,
         saturated_outer_fraction: out.offsets.saturated_outer_fraction,
         saturated_inner_fraction: out.offsets.saturated_inner_fraction,
-        at_min_fraction: widths
-            .iter()
-            .filter(|w| **w <= min_width * 1.0001)
-            .count() as f32
-            / n,
+        at_min_fraction: widths.iter().filter(|w| **w <= min_width * 1.0001).count() as f32 / n,
     }
 }
 
@@ -1715,11 +1716,10 @@ fn gt_skin_correlation(
         return Ok(None);
     };
     ctx.progress.message("correlating widths with the GT skin");
-    let skin = crate::formats::obj::read_obj(path)
-        .map_err(|e| StageError::input("gt_skin", path, e))?;
-    let fur = |i: usize| {
-        gt_scene.is_none_or(|sc| sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur))
-    };
+    let skin =
+        crate::formats::obj::read_obj(path).map_err(|e| StageError::input("gt_skin", path, e))?;
+    let fur =
+        |i: usize| gt_scene.is_none_or(|sc| sc.parts.get(mesh.part_name(i)).is_none_or(|p| p.fur));
     gt_vertex_correlation(mesh, widths, &skin, fur)
 }
 

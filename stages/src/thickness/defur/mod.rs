@@ -444,7 +444,8 @@ pub fn defur(
         index: &shell_index,
         part: &shell_part,
     };
-    let (width_threshold, support) = supported_local_thickness(outer, &normals, &labelled, s, scale);
+    let (width_threshold, support) =
+        supported_local_thickness(outer, &normals, &labelled, s, scale);
 
     // 3. Part calibration.
     let calibration = thickness::calibrate_parts(
