@@ -20,6 +20,24 @@ impl Mesh {
         self.positions.len()
     }
 
+    /// What is wrong with the part labels, if anything: not one per vertex,
+    /// or a label beyond the part names (a message for a writer's error).
+    pub fn part_label_problem(&self) -> Option<String> {
+        let nv = self.positions.len();
+        if self.part.len() != nv {
+            return Some(format!("{} part labels for {nv} vertices", self.part.len()));
+        }
+        let i = self
+            .part
+            .iter()
+            .position(|&p| p as usize >= self.part_names.len())?;
+        Some(format!(
+            "vertex {i} has part {} but there are {} part names",
+            self.part[i],
+            self.part_names.len()
+        ))
+    }
+
     /// Recomputes area-weighted vertex normals from the triangles.
     pub fn recompute_normals(&mut self) {
         let mut n = vec![Vec3::ZERO; self.positions.len()];
@@ -202,6 +220,24 @@ impl Mesh {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn part_label_problems_are_named() {
+        let mut m = tetra();
+        m.part_names = vec!["torso".into(), "tail".into()];
+        m.part = vec![0, 1, 1, 0];
+        assert_eq!(m.part_label_problem(), None);
+        m.part[2] = 2;
+        assert_eq!(
+            m.part_label_problem().as_deref(),
+            Some("vertex 2 has part 2 but there are 2 part names")
+        );
+        m.part.pop();
+        assert_eq!(
+            m.part_label_problem().as_deref(),
+            Some("3 part labels for 4 vertices")
+        );
+    }
 
     fn tetra() -> Mesh {
         Mesh {

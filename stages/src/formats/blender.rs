@@ -114,25 +114,8 @@ pub(crate) fn check_groom(path: &Path, strands: &Strands, mesh: &Mesh) -> Result
         ));
     }
     if !mesh.part_names.is_empty() {
-        if mesh.part.len() != nv {
-            return Err(FormatError::invalid(
-                path,
-                format!("{} mesh part labels for {nv} vertices", mesh.part.len()),
-            ));
-        }
-        if let Some(i) = mesh
-            .part
-            .iter()
-            .position(|&p| p as usize >= mesh.part_names.len())
-        {
-            return Err(FormatError::invalid(
-                path,
-                format!(
-                    "mesh vertex {i} has part {} but there are {} part names",
-                    mesh.part[i],
-                    mesh.part_names.len()
-                ),
-            ));
+        if let Some(problem) = mesh.part_label_problem() {
+            return Err(FormatError::invalid(path, format!("mesh {problem}")));
         }
     }
     check_finite(

@@ -583,26 +583,8 @@ fn check_writable(path: &Path, mesh: &Mesh) -> Result<(), FormatError> {
 /// Refuses part labels that are missing or beyond the names, and part names that cannot be OBJ
 /// group names.
 fn check_labels(path: &Path, mesh: &Mesh) -> Result<(), FormatError> {
-    let nv = mesh.positions.len();
-    if mesh.part.len() != nv {
-        return Err(FormatError::invalid(
-            path,
-            format!("{} part labels for {nv} vertices", mesh.part.len()),
-        ));
-    }
-    if let Some(i) = mesh
-        .part
-        .iter()
-        .position(|&p| p as usize >= mesh.part_names.len())
-    {
-        return Err(FormatError::invalid(
-            path,
-            format!(
-                "vertex {i} has part {} but there are {} part names",
-                mesh.part[i],
-                mesh.part_names.len()
-            ),
-        ));
+    if let Some(problem) = mesh.part_label_problem() {
+        return Err(FormatError::invalid(path, problem));
     }
     for (k, name) in mesh.part_names.iter().enumerate() {
         if name.is_empty()
