@@ -732,7 +732,15 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     }
 
     let params_count = model.parameter_count();
-    let report = train_with_snapshots(ctx, &mut model, &s, image.as_mut(), &cfg, dense)?;
+    let report = train_with_snapshots(
+        ctx,
+        &mut model,
+        &s,
+        image.as_mut(),
+        &cfg,
+        dense,
+        params_count,
+    )?;
 
     // Final strands.
     let pts = model.all_points(&s.prep);
@@ -869,11 +877,11 @@ fn train_with_snapshots(
     image: Option<&mut ImageLosses>,
     cfg: &TrainConfig,
     dense: bool,
+    params_count: usize,
 ) -> Result<TrainReport, StageError> {
     let l = s.prep.points;
     let snap_dir = ctx.output("snapshots")?.to_path_buf();
     let mut index: Vec<SnapshotEntry> = Vec::new();
-    let params_count = model.parameter_count();
     let report: TrainReport = {
         let mut snapshot = |m: &Model, it: usize, secs: f64| -> Result<(), StageError> {
             let pts = m.all_points(&s.prep);
