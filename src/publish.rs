@@ -5,7 +5,15 @@
 //! [publish]
 //! "report.results" = "../docs/results.md"   # AGGREGATE.PORT = destination
 //! "report.charts"  = "../docs/benchmark"    # a directory port: its files
+//! "report.headline" = "../README.md#benchmark-headline"   # a section of a file
 //! ```
+//!
+//! A destination `FILE#SECTION` replaces only the lines between
+//! `<!-- fure:begin SECTION -->` and `<!-- fure:end SECTION -->` in an existing
+//! hand-written FILE (the README quotes the suite's headline table this way,
+//! so the table is generated while the prose around it is not). The markers
+//! are checked before anything runs: a missing or repeated marker is an error
+//! that names the file and the marker, not a surprise after a two-hour suite.
 //!
 //! Destinations are relative to the file that declares them. Aggregate
 //! outputs are cached and must be deterministic, so they cannot say when, where
@@ -41,6 +49,18 @@ pub enum PublishError {
         aggregate: String,
         port: String,
         have: String,
+    },
+    #[error(
+        "{loc}: publish `{key}`: {path}: expected exactly one line `{begin}` followed by one line \
+         `{end}` ({found})"
+    )]
+    Markers {
+        loc: String,
+        key: String,
+        path: PathBuf,
+        begin: String,
+        end: String,
+        found: String,
     },
     #[error("publish `{key}`: {path}: {source}")]
     Io {
@@ -91,9 +111,19 @@ pub fn utc_timestamp(secs: u64) -> String {
     )
 }
 
-/// Checks every `[publish]` key names an aggregate (before anything runs).
+/// Checks every `[publish]` key names an aggregate and every `FILE#SECTION`
+/// destination has its markers (before anything runs).
 pub fn check(pipeline: &Pipeline) -> Result<(), PublishError> {
-    for (key, (_, loc)) in &pipeline.publish {
+    for (key, (dest, loc)) in &pipeline.publish {
+        if let Some((file, section)) = section_of(dest) {
+            let text = std::fs::read_to_string(&file).map_err(|source| PublishError::Io {
+                key: key.clone(),
+                path: file.clone(),
+                source,
+            })?;
+            splice(&text, &section, "")
+                .map_err(|found| markers_error(key, loc, &file, &section, found))?;
+        }
         let aggregate = key.split_once('.').map(|(a, _)| a).unwrap_or(key);
         if !pipeline.aggregates.iter().any(|a| a.name == aggregate) {
             return Err(PublishError::NoAggregate {
@@ -141,7 +171,23 @@ pub fn publish(
         };
         let src = PathBuf::from(&output.path);
         let meta = std::fs::symlink_metadata(&src).map_err(|e| io(&src, e))?;
-        if meta.is_dir() {
+        if let Some((file, section)) = section_of(dest) {
+            if !meta.is_file() {
+                let e = std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    "a section destination takes a file output",
+                );
+                return Err(io(&src, e));
+            }
+            let part = std::fs::read_to_string(&src).map_err(|e| io(&src, e))?;
+            let part = stamp(&part, provenance);
+            let text = std::fs::read_to_string(&file).map_err(|e| io(&file, e))?;
+            let loc = &pipeline.publish[key].1;
+            let spliced = splice(&text, &section, &part)
+                .map_err(|found| markers_error(key, loc, &file, &section, found))?;
+            write_atomically(&file, spliced.as_bytes()).map_err(|e| io(&file, e))?;
+            written.push(file);
+        } else if meta.is_dir() {
             std::fs::create_dir_all(dest).map_err(|e| io(dest, e))?;
             let mut names: Vec<_> = std::fs::read_dir(&src)
                 .map_err(|e| io(&src, e))?
@@ -174,24 +220,100 @@ pub fn publish(
     Ok(written)
 }
 
+/// `FILE#SECTION` -> (FILE, SECTION); `None` for a plain destination.
+fn section_of(dest: &Path) -> Option<(PathBuf, String)> {
+    let name = dest.file_name()?.to_str()?;
+    let (file, section) = name.split_once('#')?;
+    Some((dest.with_file_name(file), section.to_string()))
+}
+
+/// The marker lines of a section.
+fn markers(section: &str) -> (String, String) {
+    (
+        format!("<!-- fure:begin {section} -->"),
+        format!("<!-- fure:end {section} -->"),
+    )
+}
+
+fn markers_error(
+    key: &str,
+    loc: &impl std::fmt::Display,
+    file: &Path,
+    section: &str,
+    found: String,
+) -> PublishError {
+    let (begin, end) = markers(section);
+    PublishError::Markers {
+        loc: loc.to_string(),
+        key: key.to_string(),
+        path: file.to_path_buf(),
+        begin,
+        end,
+        found,
+    }
+}
+
+/// `text` with the lines between the section's markers replaced by `part`
+/// (which ends with a newline unless empty); `Err` says what was found instead.
+fn splice(text: &str, section: &str, part: &str) -> Result<String, String> {
+    let (begin, end) = markers(section);
+    let lines: Vec<&str> = text.split('\n').collect();
+    let at = |m: &str| -> Vec<usize> {
+        lines
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| l.trim_end() == m)
+            .map(|(i, _)| i)
+            .collect()
+    };
+    let (b, e) = (at(&begin), at(&end));
+    match (b.as_slice(), e.as_slice()) {
+        ([b], [e]) if b < e => {
+            let mut out = lines[..=*b].join("\n");
+            out.push('\n');
+            out.push_str(part);
+            if !part.is_empty() && !part.ends_with('\n') {
+                out.push('\n');
+            }
+            out.push_str(&lines[*e..].join("\n"));
+            Ok(out)
+        }
+        ([b], [e]) => Err(format!(
+            "the end marker is on line {}, before the begin marker on line {}",
+            e + 1,
+            b + 1
+        )),
+        _ => Err(format!("{} begin and {} end markers", b.len(), e.len())),
+    }
+}
+
+/// `text` with every line that is exactly [`PROVENANCE_MARK`] replaced by the provenance.
+fn stamp(text: &str, provenance: &str) -> String {
+    text.split('\n')
+        .map(|l| {
+            if l.trim_end() == PROVENANCE_MARK {
+                provenance
+            } else {
+                l
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
 /// Copies `from` to `to` through a temporary name, stamping Markdown files.
 fn copy_stamped(from: &Path, to: &Path, provenance: &str) -> std::io::Result<()> {
     let mut bytes = std::fs::read(from)?;
     if to.extension().is_some_and(|e| e == "md") {
         if let Ok(text) = std::str::from_utf8(&bytes) {
-            let stamped: Vec<&str> = text
-                .split('\n')
-                .map(|l| {
-                    if l.trim_end() == PROVENANCE_MARK {
-                        provenance
-                    } else {
-                        l
-                    }
-                })
-                .collect();
-            bytes = stamped.join("\n").into_bytes();
+            bytes = stamp(text, provenance).into_bytes();
         }
     }
+    write_atomically(to, &bytes)
+}
+
+/// Writes `to` through a temporary name beside it, so a reader never sees half a file.
+fn write_atomically(to: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let tmp = to.with_file_name(format!(
         ".{}.fure-publish-{}",
         to.file_name()
@@ -199,7 +321,7 @@ fn copy_stamped(from: &Path, to: &Path, provenance: &str) -> std::io::Result<()>
             .unwrap_or_default(),
         std::process::id()
     ));
-    let result = std::fs::write(&tmp, &bytes).and_then(|()| std::fs::rename(&tmp, to));
+    let result = std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, to));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -231,5 +353,33 @@ mod tests {
         copy_stamped(&d.join("a.md"), &d.join("b.txt"), "stamp").unwrap();
         assert_eq!(std::fs::read_to_string(d.join("b.txt")).unwrap(), text);
         std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn a_section_is_replaced_between_its_markers_only() {
+        let readme = "# Title\n\n<!-- fure:begin h -->\nold\ntable\n<!-- fure:end h -->\n\nprose\n";
+        assert_eq!(
+            splice(readme, "h", "| new |\n").unwrap(),
+            "# Title\n\n<!-- fure:begin h -->\n| new |\n<!-- fure:end h -->\n\nprose\n"
+        );
+        // Splicing twice gives the same file (no marker is lost or doubled).
+        let once = splice(readme, "h", "x").unwrap();
+        assert_eq!(splice(&once, "h", "x").unwrap(), once);
+        assert!(splice(readme, "other", "x")
+            .unwrap_err()
+            .contains("0 begin and 0 end"));
+        let swapped = "<!-- fure:end h -->\n<!-- fure:begin h -->\n";
+        assert!(splice(swapped, "h", "x")
+            .unwrap_err()
+            .contains("before the begin"));
+        let twice = format!("{readme}{readme}");
+        assert!(splice(&twice, "h", "x")
+            .unwrap_err()
+            .contains("2 begin and 2 end"));
+        assert_eq!(
+            section_of(Path::new("/a/README.md#bench")),
+            Some((PathBuf::from("/a/README.md"), "bench".to_string()))
+        );
+        assert_eq!(section_of(Path::new("/a/results.md")), None);
     }
 }

@@ -770,11 +770,14 @@ iterations = 30
 "report.results" = "docs/results.md"
 "report.charts" = "docs/benchmark"
 "report.runs" = "docs/benchmark/runs.csv"
+"report.headline" = "README.md#benchmark-headline"
 "#;
     p.write(
         "bench.toml",
         &(tiny_extension("pipelines/benchmark.toml", "bench") + extra),
     );
+    let readme = "# Demo\n<!-- fure:begin benchmark-headline -->\nstale\n<!-- fure:end benchmark-headline -->\nprose\n";
+    p.write("README.md", readme);
     let out = p.fure(&["sweep", "bench.toml"]);
     let text = format!(
         "stdout:\n{}\nstderr:\n{}",
@@ -786,6 +789,21 @@ iterations = 30
 
     let md = p.read("docs/results.md");
     assert!(md.contains("## Headline, test split"), "{md}");
+    // The README's section now holds the stamped headline table; its prose is untouched.
+    let readme = p.read("README.md");
+    assert!(
+        readme.starts_with("# Demo\n<!-- fure:begin benchmark-headline -->\nGenerated "),
+        "{readme}"
+    );
+    assert!(
+        readme.contains("### Headline, test split") && readme.contains("| cat (1 cm) | 2 |"),
+        "{readme}"
+    );
+    assert!(
+        readme.ends_with("<!-- fure:end benchmark-headline -->\nprose\n")
+            && !readme.contains("stale"),
+        "{readme}"
+    );
     assert!(md.contains("Generated "), "no provenance stamp: {md}");
     assert!(!md.contains("fure:provenance"), "{md}");
     for method in [

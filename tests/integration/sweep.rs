@@ -469,4 +469,22 @@ outs = ["results.md", "charts/"]
         "{}",
         s.all()
     );
+
+    // A section destination whose file lacks the markers fails before anything runs, naming
+    // the file and the marker expected.
+    p.write("docs/README.md", "# no markers\n");
+    p.write(
+        "pipes/bad.toml",
+        "extends = \"lk.toml\"\n[publish]\n\"report.results.md\" = \"../docs/README.md#head\"\n",
+    );
+    let s = p.sweep(&["sweep", "pipes/bad.toml"]);
+    assert_eq!(s.code(), 2, "{}", s.all());
+    assert!(
+        s.all()
+            .contains("README.md: expected exactly one line `<!-- fure:begin head -->`")
+            && s.all().contains("(0 begin and 0 end markers)"),
+        "{}",
+        s.all()
+    );
+    assert!(!p.path("out/bad").exists(), "{}", s.all());
 }

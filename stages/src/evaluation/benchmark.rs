@@ -259,13 +259,27 @@ fn stat_json(s: Option<Stat>) -> Json {
     }
 }
 
-/// Everything the stage writes except the charts: (results.md, runs.csv, metrics.json).
-pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
+/// Everything the stage writes except the charts.
+pub struct Report {
+    /// The whole results document (results.md).
+    pub results: String,
+    /// Only the headline tables, with a provenance mark: what the README quotes.
+    pub headline: String,
+    /// One row per run and method (runs.csv).
+    pub runs: String,
+    /// Per scene and method: mean, sd, n of every figure; verdicts (metrics.json).
+    pub metrics: Json,
+}
+
+/// The report of a sweep record.
+pub fn report(rec: &SweepRecord, cfg: &Config) -> Report {
     let scenes = scenes(rec, cfg);
     let mut md = String::new();
     let mut out = Map::new();
     write_preamble(&mut md, rec, cfg);
-    write_headlines(&mut md, &scenes, cfg);
+    let mut headline = String::new();
+    write_headlines(&mut headline, &scenes, cfg);
+    md.push_str(&headline);
     if let Some(verdicts) = write_comparisons(&mut md, &scenes, cfg) {
         out.insert("verdicts".into(), verdicts);
     }
@@ -276,7 +290,15 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> (String, String, Json) {
         .collect();
     out.insert("scenes".into(), per_scene.into());
     out.insert("runs".into(), rec.variants.len().into());
-    (md, runs_csv(&scenes, cfg), Json::Object(out))
+    Report {
+        results: md,
+        headline: format!(
+            "{PROVENANCE_MARK}\n\n{}",
+            headline.replace("## Headline", "### Headline")
+        ),
+        runs: runs_csv(&scenes, cfg),
+        metrics: Json::Object(out),
+    }
 }
 
 /// Title, provenance mark, splits, seeds and the rules the tables follow.
@@ -873,7 +895,7 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        4
+        5
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -903,6 +925,11 @@ impl Stage for BenchmarkReportStage {
                 "charts",
                 "per scene: f_vs_time_<scene> and f_vs_size_<scene>, PNG and SVG",
             ),
+            PortSpec::file(
+                "headline",
+                "md",
+                "the headline tables alone (publish it into the README's section)",
+            ),
             PortSpec::file("runs", "csv", "one row per run and method"),
             PortSpec::file(
                 "metrics",
@@ -918,13 +945,17 @@ impl Stage for BenchmarkReportStage {
         let cfg = config(ctx.params)?;
         let path = ctx.input("sweep")?;
         let rec = SweepRecord::read(path)?;
-        let (md, csv, metrics) = report(&rec, &cfg);
+        let report = report(&rec, &cfg);
         write_charts(&rec, &cfg, ctx.output("charts")?)?;
-        let out = ctx.output("results")?;
-        std::fs::write(out, md).map_err(|e| StageError::io(out, e))?;
-        let out = ctx.output("runs")?;
-        std::fs::write(out, csv).map_err(|e| StageError::io(out, e))?;
-        crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
+        for (port, text) in [
+            ("results", &report.results),
+            ("headline", &report.headline),
+            ("runs", &report.runs),
+        ] {
+            let out = ctx.output(port)?;
+            std::fs::write(out, text).map_err(|e| StageError::io(out, e))?;
+        }
+        crate::formats::json::write_json(ctx.output("metrics")?, &report.metrics)?;
         Ok(())
     }
 }
@@ -1009,7 +1040,12 @@ mod tests {
             ("panda", 1, 41.0, 47.0),
             ("wolf", 0, 30.0, 30.0),
         ]);
-        let (md, csv, m) = report(&rec, &cfg());
+        let Report {
+            results: md,
+            headline,
+            runs: csv,
+            metrics: m,
+        } = report(&rec, &cfg());
         // Tiger: codec 61 +- 1 vs dense 51 +- 1: won; panda: lost; wolf: one seed, undecided.
         assert_eq!(m["verdicts"]["tiger|dense"]["3cm_30deg"], "won", "{m}");
         assert_eq!(m["verdicts"]["panda|dense"]["3cm_30deg"], "lost", "{m}");
@@ -1039,6 +1075,10 @@ mod tests {
         );
         // One row per run and method (+ ceiling).
         assert_eq!(csv.lines().count(), 1 + 6 * 3);
+        // The headline is the results' headline tables alone, under a provenance mark.
+        assert!(headline.starts_with(PROVENANCE_MARK), "{headline}");
+        assert!(headline.contains("| tiger | 3 | 61.0 ± 1.0 | 51.0 ± 1.0 | - |"));
+        assert!(headline.contains("### Headline, test") && !headline.contains("Comparisons"));
     }
 
     #[test]
