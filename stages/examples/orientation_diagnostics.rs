@@ -13,7 +13,8 @@
 //! agree (coherence >= 0.5). The Gabor maps are recomputed from the views with
 //! the given filter settings (`frequency`, `sigma_x`, `sigma_y`,
 //! `dog_sigma_small`, `dog_sigma_large`, `orientations`, `downscale`; defaults as
-//! the `orientation_maps` stage). Over the pixels of the GT fur mask it prints,
+//! the `orientation_maps` stage; `min_confidence` skips pixels below that
+//! normalised confidence, as the learners' `ori_min_confidence`). Over the pixels of the GT fur mask it prints,
 //! per view and in total: the mean angle between map and GT weighted by the
 //! normalised confidence (the loss's weight), the unweighted mean, and the
 //! confidence-weighted share of pixels within 20 degrees and beyond 60 degrees
@@ -87,9 +88,11 @@ impl Agreement {
     }
 }
 
-fn params(args: &[String]) -> Res<(GaborParams, u32)> {
+/// Filter settings, downscale factor and the normalised confidence below which pixels are skipped.
+fn params(args: &[String]) -> Res<(GaborParams, u32, f32)> {
     let mut p = GaborParams::default();
     let mut factor = 1;
+    let mut min_confidence = 0.0;
     for a in args {
         let (k, v) = a
             .split_once('=')
@@ -102,10 +105,11 @@ fn params(args: &[String]) -> Res<(GaborParams, u32)> {
             "dog_sigma_large" => p.dog_sigma_large = v.parse()?,
             "orientations" => p.orientations = v.parse()?,
             "downscale" => factor = v.parse()?,
+            "min_confidence" => min_confidence = v.parse()?,
             _ => return Err(format!("unknown key `{k}`").into()),
         }
     }
-    Ok((p, factor))
+    Ok((p, factor, min_confidence))
 }
 
 /// Nearest-pixel lookup of a map of another size (downscaled maps).
@@ -166,7 +170,7 @@ fn run() -> Res<()> {
         args.first()
             .ok_or("usage: orientation_diagnostics RUN_DIR [KEY=VALUE ...]")?,
     );
-    let (gp, factor) = params(&args[1..])?;
+    let (gp, factor, min_confidence) = params(&args[1..])?;
     let views = dir.join("scene/views");
     let cams = read_views(&views)?;
     let gt = read_hair(dir.join("scene/strands.hair"))?;
@@ -213,7 +217,9 @@ fn run() -> Res<()> {
                 let o = at(&orient, x, y, w, h);
                 let d = (o - gt_angle).abs() % std::f32::consts::PI;
                 let d = d.min(std::f32::consts::PI - d).to_degrees();
-                a.add(f64::from(d), f64::from(c));
+                if c >= min_confidence {
+                    a.add(f64::from(d), f64::from(c));
+                }
             }
         }
         println!("{stem}: {}", a.line());
