@@ -51,15 +51,14 @@ pub enum PublishError {
         have: String,
     },
     #[error(
-        "{loc}: publish `{key}`: {path}: expected exactly one line `{begin}` followed by one line \
-         `{end}` ({found})"
+        "{loc}: publish `{key}`: {path}: expected exactly one line `<!-- fure:begin {section} -->` \
+         followed by one line `<!-- fure:end {section} -->` ({found})"
     )]
     Markers {
         loc: String,
         key: String,
         path: PathBuf,
-        begin: String,
-        end: String,
+        section: String,
         found: String,
     },
     #[error("publish `{key}`: {path}: {source}")]
@@ -242,13 +241,11 @@ fn markers_error(
     section: &str,
     found: String,
 ) -> PublishError {
-    let (begin, end) = markers(section);
     PublishError::Markers {
         loc: loc.to_string(),
         key: key.to_string(),
         path: file.to_path_buf(),
-        begin,
-        end,
+        section: section.to_string(),
         found,
     }
 }
