@@ -158,8 +158,13 @@ pub struct SweepArgs {
 #[derive(clap::Args, Debug)]
 pub struct GcArgs {
     /// Keep only the entries these pipelines currently resolve to (repeatable).
+    /// A sweep keeps every variant, and its aggregate stages as they read the
+    /// sweep's last record (`<out>/<pipeline>/sweep.json`).
     #[arg(long = "keep", value_name = "PIPELINE")]
     pub keep: Vec<PathBuf>,
+    /// Where sweeps wrote their records (as `fure sweep --out`).
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
     /// Evict entries (not kept ones) until the cache fits: 500M, 10G, ...
     #[arg(long)]
     pub max_size: Option<String>,
@@ -726,6 +731,27 @@ fn report_aggregates(
     Ok(ExitCode::SUCCESS)
 }
 
+/// The plans `gc --keep PIPELINE` keeps: the pipeline itself, and for a
+/// sweep every variant (as `fure sweep` runs it with no `--grid`/`--each`) and
+/// the aggregate stages over the record the last sweep left under `out`.
+fn kept_plans(engine: &Engine, path: &Path, out: &Path) -> Result<Vec<Plan>, Failure> {
+    let p = engine.load(path, &[])?;
+    let mut plans = vec![engine.plan(&p)?];
+    if p.sweep.is_empty() && p.sweep_each.is_empty() {
+        return Ok(plans);
+    }
+    for v in sweep::grid(&p, &[]) {
+        plans.push(engine.plan(&sweep::variant_pipeline(&p, &v)?)?);
+    }
+    let record = out.join(&p.name).join("sweep.json");
+    if record.is_file() {
+        let abs = std::path::absolute(&record)
+            .map_err(|e| Failure::Failed(format!("error: {}: {e}", record.display())))?;
+        plans.extend(sweep::plan_aggregates(engine, &p, &abs)?);
+    }
+    Ok(plans)
+}
+
 fn cmd_gc(engine: &Engine, cache_dir: &Path, a: &GcArgs) -> Result<ExitCode, Failure> {
     let max_size = match &a.max_size {
         Some(s) => Some(
@@ -740,14 +766,15 @@ fn cmd_gc(engine: &Engine, cache_dir: &Path, a: &GcArgs) -> Result<ExitCode, Fai
         let mut keys = BTreeSet::new();
         let cache = open_cache(cache_dir, Access::Shared)?;
         for k in &a.keep {
-            let plan = load_plan(engine, k, &[], None)?;
-            let rep = exec::run(&plan, &cache, &inspect_options());
-            keys.extend(
-                rep.stages
-                    .into_iter()
-                    .filter(|s| s.status == Status::Cached)
-                    .map(|s| s.key),
-            );
+            for plan in kept_plans(engine, k, &a.out)? {
+                let rep = exec::run(&plan, &cache, &inspect_options());
+                keys.extend(
+                    rep.stages
+                        .into_iter()
+                        .filter(|s| s.status == Status::Cached)
+                        .map(|s| s.key),
+                );
+            }
         }
         drop(cache);
         Some(keys)

@@ -185,6 +185,22 @@ fn each_axes_statuses_record_and_aggregate() {
         s2.line(3)
     );
 
+    // gc --keep of a sweep keeps every variant and the aggregate, and nothing
+    // else: an ablation of one stage's parameter outside the sweep goes.
+    let off = p.fure(&["run", "sw.toml", "--set", "other.power=5"]);
+    assert_eq!(off.status.code(), Some(0));
+    let g = p.fure(&["gc", "--keep", "sw.toml"]);
+    let gc_text = String::from_utf8_lossy(&g.stdout);
+    assert!(gc_text.contains("removed 1 entries"), "{gc_text}");
+    let s_gc = p.sweep(&["sweep", "sw.toml", "--jobs", "1"]);
+    assert!(s_gc.line(0).contains("0 ran, 4 cached"), "{}", s_gc.all());
+    assert!(s_gc.line(9).contains("0 ran, 4 cached"), "{}", s_gc.all());
+    assert!(
+        s_gc.stdout().contains("aggregate summary: cached"),
+        "{}",
+        s_gc.all()
+    );
+
     // --grid replaces an each axis's values; --each adds one.
     let s3 = p.sweep(&[
         "sweep",
