@@ -1,7 +1,16 @@
 //! Statistics the stages share: percentiles (NumPy's default `linear`
-//! method) and the PSNR of two images.
+//! method), the PSNR of two images and standard normal samples.
+
+use rand::Rng;
 
 use crate::data::image::ImageF32;
+
+/// A standard normal sample (Box-Muller) from a seeded generator.
+pub fn standard_normal(rng: &mut impl Rng) -> f32 {
+    let u1: f32 = rng.gen::<f32>().max(1e-12);
+    let u2: f32 = rng.gen();
+    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+}
 
 /// The `q`-th percentile (`q` in [0, 100]) by linear interpolation between
 /// order statistics; `None` for an empty slice. NaNs must have been rejected

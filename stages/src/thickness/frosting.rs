@@ -136,7 +136,7 @@ use crate::data::image::ImageF32;
 use crate::data::mesh::Mesh;
 use crate::data::shell::ShellWidths;
 use crate::maths::geom::{MeshQuery, PointIndex};
-use crate::maths::stats::{percentile, psnr};
+use crate::maths::stats::{percentile, psnr, standard_normal};
 use crate::render::{self, losses, Adam, Gaussians, OutputGrads, RenderSettings};
 
 fure_stage_api::param_enum! {
@@ -804,7 +804,11 @@ fn densify(
             let sc = Vec3::from_slice(ls).exp();
             let mu = Vec3::from_slice(&old.means[3 * i..3 * i + 3]);
             let mut sample = || {
-                let z = Vec3::new(normal(rng), normal(rng), normal(rng));
+                let z = Vec3::new(
+                    standard_normal(rng),
+                    standard_normal(rng),
+                    standard_normal(rng),
+                );
                 mu + q * (sc * z)
             };
             let (a, b) = (sample(), sample());
@@ -832,13 +836,6 @@ fn densify(
 
 fn mu_of(p: &FitParams, i: usize) -> Vec3 {
     Vec3::from_slice(&p.means[3 * i..3 * i + 3])
-}
-
-/// A standard normal sample (Box-Muller) from the seeded generator.
-fn normal(rng: &mut ChaCha8Rng) -> f32 {
-    let u1: f32 = rng.gen::<f32>().max(1e-12);
-    let u2: f32 = rng.gen();
-    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
 }
 
 /// Fits unconstrained Gaussians to the training views (see the module doc).

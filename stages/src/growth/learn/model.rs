@@ -18,10 +18,13 @@
 //! subsets, hence kept here.)
 
 use glam::{Mat3, Vec3};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 use super::mlp::{Mlp, MlpTape, PositionalEncoding};
 use super::placement::{self, Decoder};
+use crate::maths::stats::standard_normal;
 
 /// Strands per parallel work item.
 pub const CHUNK: usize = 128;
@@ -194,8 +197,35 @@ pub struct Codec {
     pub decoder: Decoder,
     pub finetune_decoder: bool,
     pub rotation: bool,
+    /// Fixed per-strand style codes added to the encoder's K coefficients
+    /// (`n * K`, strand-major; empty = none): see [`style_codes`].
+    pub style: Vec<f32>,
     adam_theta: Adam,
     adam_psi: Adam,
+}
+
+/// Per-strand style codes (the paper's optional style map, as codes): strand
+/// `i` gets `scale * e_i`, `e_i` a standard normal K-vector from ChaCha8
+/// seeded with `seed` on stream `i`, so the codes do not depend on threads
+/// or on which strands a run keeps.
+///
+/// Why: the encoder is a smooth field of the root position, so every strand
+/// near another decodes to nearly the same shape. In views whose pixels are
+/// wider than a strand, the images constrain that local mean shape but not
+/// how each strand departs from it; the style codes give each strand a
+/// departure drawn from the basis' own (unit-variance) distribution, fixed
+/// during training, so the guide field learns the mean around them.
+pub fn style_codes(n: usize, k: usize, scale: f32, seed: u64) -> Vec<f32> {
+    if scale == 0.0 || k == 0 {
+        return Vec::new();
+    }
+    let mut out = Vec::with_capacity(n * k);
+    for i in 0..n {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        rng.set_stream(i as u64);
+        out.extend((0..k).map(|_| scale * standard_normal(&mut rng)));
+    }
+    out
 }
 
 /// Radians per unit of the encoder's rotation output.
@@ -249,9 +279,16 @@ impl Codec {
             decoder,
             finetune_decoder,
             rotation,
+            style: Vec::new(),
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
         }
+    }
+
+    /// The same codec with per-strand style codes (`n * K`, see [`style_codes`]).
+    pub fn with_style(mut self, style: Vec<f32>) -> Self {
+        self.style = style;
+        self
     }
 
     /// Encoder outputs per strand: K coefficients, then the angle if any.
@@ -330,7 +367,17 @@ impl Model {
                             let i = i as usize;
                             x.extend_from_slice(&prep.features[i * dim..(i + 1) * dim]);
                         }
-                        let (z, tape) = c.mlp.forward(&x, ids.len());
+                        let (mut z, tape) = c.mlp.forward(&x, ids.len());
+                        if !c.style.is_empty() {
+                            // A constant offset: d z / d encoder output stays 1.
+                            for (j, &i) in ids.iter().enumerate() {
+                                let i = i as usize;
+                                let row = &c.style[i * k..(i + 1) * k];
+                                for (a, b) in z[j * st..j * st + k].iter_mut().zip(row) {
+                                    *a += b;
+                                }
+                            }
+                        }
                         let mut local = vec![Vec3::ZERO; ids.len() * l];
                         let mut world = vec![Vec3::ZERO; ids.len() * l];
                         for (j, &i) in ids.iter().enumerate() {
@@ -494,17 +541,37 @@ mod tests {
 
     #[test]
     fn codec_backward_matches_finite_differences() {
-        check_codec_gradients(false);
+        check_codec_gradients(false, 0.0);
     }
 
     #[test]
     fn codec_backward_with_learned_rotation_matches_finite_differences() {
-        check_codec_gradients(true);
+        check_codec_gradients(true, 0.0);
+    }
+
+    #[test]
+    fn codec_backward_with_style_codes_matches_finite_differences() {
+        // The decoder's gradient depends on the code it decoded: the styled one.
+        check_codec_gradients(true, 0.7);
+    }
+
+    #[test]
+    fn style_codes_are_per_strand_streams_with_the_asked_spread() {
+        assert!(style_codes(10, 4, 0.0, 1).is_empty());
+        let a = style_codes(5000, 3, 0.5, 7);
+        let b = style_codes(20, 3, 0.5, 7);
+        // Strand i's code does not depend on how many strands there are.
+        assert_eq!(&a[..60], &b[..]);
+        assert_ne!(style_codes(20, 3, 0.5, 8), b);
+        let n = a.len() as f64;
+        let mean = a.iter().map(|&x| x as f64).sum::<f64>() / n;
+        let sd = (a.iter().map(|&x| (x as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+        assert!(mean.abs() < 0.02 && (sd - 0.5).abs() < 0.02, "{mean} {sd}");
     }
 
     // Finite differences perturb parameter i and read gradient i.
     #[allow(clippy::needless_range_loop)]
-    fn check_codec_gradients(rotation: bool) {
+    fn check_codec_gradients(rotation: bool, style: f32) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
         let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 3.0).collect();
@@ -533,7 +600,10 @@ mod tests {
         for (i, w) in mlp.params.iter_mut().enumerate().rev().take(21) {
             *w = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
         }
-        let mut model = Model::Codec(Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation));
+        let mut model = Model::Codec(
+            Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
+                .with_style(style_codes(3, 2, style, 4)),
+        );
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)
             .map(|i| Vec3::new((i % 3) as f32 - 1.0, 0.5, (i % 2) as f32))

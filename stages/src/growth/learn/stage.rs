@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::geomloss::DistanceGrid;
 use super::image::{Coverage, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
-use super::model::{Codec, Dense, Model, Prepared, Rates, RootInputs};
+use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
 use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
 use crate::data::mesh::Mesh;
@@ -167,6 +167,11 @@ fure_stage_api::stage_params! {
         mlp_depth: usize = int(3).range(1.0, 16.0),
         /// Use the first K basis components (0 = all).
         components: usize = int(0).min(0.0),
+        /// Per-strand style codes: every strand's code gets a fixed seeded offset with this
+        /// standard deviation per basis component, in units of the corpus' spread (the paper's
+        /// optional style map: strand detail the views do not resolve; 0 = none;
+        /// learn::model::style_codes).
+        style: f32 = float(0.0).range(0.0, 4.0),
     }
 }
 
@@ -794,6 +799,10 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     Ok(())
 }
 
+/// Mixed into the codec seed for the style codes, so they are not the
+/// encoder's initial weights' random numbers.
+const STYLE_STREAM: u64 = 0x5354_594c_4553;
+
 /// The learner's model at its start and its initial learning rates: the
 /// codec's encoder and decoder, or the dense points on the basis mean.
 fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
@@ -807,12 +816,15 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                 seed,
             );
             (
-                Model::Codec(Codec::new(
-                    mlp,
-                    s.decoder.clone(),
-                    c.finetune_decoder,
-                    c.learn_rotation,
-                )),
+                Model::Codec(
+                    Codec::new(mlp, s.decoder.clone(), c.finetune_decoder, c.learn_rotation)
+                        .with_style(style_codes(
+                            s.prep.len(),
+                            s.decoder.k,
+                            c.style,
+                            seed ^ STYLE_STREAM,
+                        )),
+                ),
                 Rates {
                     encoder: c.lr_encoder,
                     decoder: c.lr_decoder,
