@@ -169,9 +169,9 @@ fure_stage_api::stage_params! {
         components: usize = int(0).min(0.0),
         /// Per-strand style codes: every strand's code gets a fixed seeded offset with this
         /// standard deviation per basis component, in units of the corpus' spread (the paper's
-        /// optional style map: strand detail the views do not resolve; 0 = none;
-        /// learn::model::style_codes).
-        style: f32 = float(0.0).range(0.0, 4.0),
+        /// optional style map: strand detail the views do not resolve; 0 = none; chosen on the
+        /// dev split among 0 / 0.25 / 0.5 / 0.75, learn module doc).
+        style: f32 = float(0.5).range(0.0, 4.0),
     }
 }
 
@@ -312,9 +312,10 @@ impl Stage for DenseStrandsStage {
         6
     }
     fn doc(&self) -> &'static str {
-        "Dense baseline: the same initial strands (basis mean placed on every root), renderer, \
-         losses and subset sampling as codec_strands, but every non-root point of every strand is \
-         a free parameter (lazy Adam on the sampled strands)."
+        "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
+         every non-root point of every strand is a free parameter (lazy Adam on the sampled \
+         strands), starting from the basis mean placed on every root (the codec's initial \
+         strands without their style codes)."
     }
     fn params(&self) -> Vec<ParamSpec> {
         learner_specs(DenseParams::specs())
