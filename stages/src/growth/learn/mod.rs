@@ -82,7 +82,8 @@
 //!   the same shape, while the views (pixels wider than a strand) constrain
 //!   the local mean shape, not each strand's departure from it. On the dev
 //!   split 0.5 wins at every F-score tolerance on both scenes (strict 1 cm
-//!   most, as the strands spread over the fur volume as the GT's do) and
+//!   most: recall rises as the strands spread over the fur volume as the
+//!   GT's do, precision falls a little) and
 //!   brings the tiger's local curvature variance from 0.19x to 0.37x the
 //!   GT's, at about 0.7 degrees of in-plane direction error; 0.75 ties it at
 //!   3 cm and loses at 2 cm. The dense baseline keeps its unstyled start: its
