@@ -26,6 +26,8 @@
 //!
 //! Without a mode both run. The figures measured with it are in docs/history.md.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::error::Error;
 use std::path::{Path, PathBuf};
@@ -84,13 +86,7 @@ fn load(dir: &Path) -> Result<Loaded, Box<dyn Error>> {
 }
 
 fn main() -> std::process::ExitCode {
-    match run() {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
-        }
-    }
+    common::exit_code(run())
 }
 
 fn run() -> Res {

@@ -21,6 +21,8 @@
 //! (near perpendicular: what coat patterns whose stripes run across the fur
 //! give). Random maps would give 45 degrees and 33 %. Figures: docs/history.md.
 
+mod common;
+
 use std::error::Error;
 use std::path::Path;
 
@@ -34,13 +36,7 @@ use fure_stages::growth::orientation::{downscale, orientation_maps, GaborParams}
 type Res<T> = Result<T, Box<dyn Error>>;
 
 fn main() -> std::process::ExitCode {
-    match run() {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
-        }
-    }
+    common::exit_code(run())
 }
 
 /// Accumulated agreement over pixels: (weight, weighted angle, count, angle, weight < 20, weight > 60).

@@ -206,8 +206,8 @@ pub struct Codec {
 
 /// Per-strand style codes (the paper's optional style map, as codes): strand
 /// `i` gets `scale * e_i`, `e_i` a standard normal K-vector from ChaCha8
-/// seeded with `seed` on stream `i`, so the codes do not depend on threads
-/// or on which strands a run keeps.
+/// seeded with `seed` on stream `i`, so strand `i`'s code depends neither on
+/// the thread count nor on how many strands there are.
 ///
 /// Why: the encoder is a smooth field of the root position, so every strand
 /// near another decodes to nearly the same shape. In views whose pixels are
