@@ -206,24 +206,35 @@ pub struct Codec {
 
 /// Per-strand style codes (the paper's optional style map, as codes): strand
 /// `i` gets `scale * e_i`, `e_i` a standard normal K-vector from ChaCha8
-/// seeded with `seed` on stream `i`, so strand `i`'s code depends neither on
-/// the thread count nor on how many strands there are.
+/// seeded with `seed` on stream `i`, with its first `from` entries set to
+/// zero; strand `i`'s code depends neither on the thread count, nor on how
+/// many strands there are, nor on `from`.
 ///
 /// Why: the encoder is a smooth field of the root position, so every strand
 /// near another decodes to nearly the same shape. In views whose pixels are
 /// wider than a strand, the images constrain that local mean shape but not
 /// how each strand departs from it; the style codes give each strand a
 /// departure drawn from the basis' own (unit-variance) distribution, fixed
-/// during training, so the guide field learns the mean around them.
-pub fn style_codes(n: usize, k: usize, scale: f32, seed: u64) -> Vec<f32> {
-    if scale == 0.0 || k == 0 {
+/// during training, so the guide field learns the mean around them. The
+/// leading components (the largest-variance ones: a strand's overall lean
+/// and bend) are what the views do resolve, so `from` leaves them to the
+/// guide field alone; the offsets then only add the fine waves and curls.
+pub fn style_codes(n: usize, k: usize, from: usize, scale: f32, seed: u64) -> Vec<f32> {
+    if scale == 0.0 || k <= from {
         return Vec::new();
     }
     let mut out = Vec::with_capacity(n * k);
     for i in 0..n {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         rng.set_stream(i as u64);
-        out.extend((0..k).map(|_| scale * standard_normal(&mut rng)));
+        out.extend((0..k).map(|j| {
+            let e = standard_normal(&mut rng);
+            if j < from {
+                0.0
+            } else {
+                scale * e
+            }
+        }));
     }
     out
 }
@@ -557,12 +568,18 @@ mod tests {
 
     #[test]
     fn style_codes_are_per_strand_streams_with_the_asked_spread() {
-        assert!(style_codes(10, 4, 0.0, 1).is_empty());
-        let a = style_codes(5000, 3, 0.5, 7);
-        let b = style_codes(20, 3, 0.5, 7);
+        assert!(style_codes(10, 4, 0, 0.0, 1).is_empty());
+        assert!(style_codes(10, 4, 4, 0.5, 1).is_empty());
+        let a = style_codes(5000, 3, 0, 0.5, 7);
+        let b = style_codes(20, 3, 0, 0.5, 7);
         // Strand i's code does not depend on how many strands there are.
         assert_eq!(&a[..60], &b[..]);
-        assert_ne!(style_codes(20, 3, 0.5, 8), b);
+        assert_ne!(style_codes(20, 3, 0, 0.5, 8), b);
+        // Skipping the leading components zeroes them and keeps the others.
+        let skipped = style_codes(20, 3, 2, 0.5, 7);
+        for (j, (&s, &full)) in skipped.iter().zip(&b).enumerate() {
+            assert_eq!(s, if j % 3 < 2 { 0.0 } else { full }, "entry {j}");
+        }
         let n = a.len() as f64;
         let mean = a.iter().map(|&x| x as f64).sum::<f64>() / n;
         let sd = (a.iter().map(|&x| (x as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
@@ -602,7 +619,7 @@ mod tests {
         }
         let mut model = Model::Codec(
             Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
-                .with_style(style_codes(3, 2, style, 4)),
+                .with_style(style_codes(3, 2, 0, style, 4)),
         );
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)
