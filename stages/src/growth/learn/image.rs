@@ -12,7 +12,15 @@
 //! trainable colour each. They never move; both methods get the same ones.
 //!
 //! Strand appearance: one trainable RGB colour per strand (degree-0 SH), lazy
-//! Adam on the sampled strands; identical for codec and dense. Colours start
+//! Adam on the sampled strands; identical for codec and dense. With
+//! `sh_degree = 1` every strand also gets band-1 coefficients (a colour that
+//! varies linearly with the view direction, 3DGS's first band), zero at the
+//! start, trained by the same lazy Adam on every segment of the strand. The
+//! default is degree 0, the scenes' need measured on the dev split: with
+//! lights fixed in the world, diffuse fur looks the same from every view and
+//! a narrow specular lobe is beyond band 1 (tiger +0.1 dB held-out PSNR, fox
+//! a tie, F-scores identical; docs/history.md). A capture with broad
+//! view-dependent sheen is what it is for. Colours start
 //! from the views ([`ImageLosses::fit_colors`], `fit_colors = "start"`): every
 //! strand and body occluder takes the mean of the training pixels it makes,
 //! weighted by its blending weight `alpha_i T_i` there, so the renderer itself
@@ -79,6 +87,9 @@ pub struct ImageConfig {
     pub held_out_coverage: Coverage,
     /// Where the renderer runs (the stage's `device` parameter).
     pub device: render::device::Renderer,
+    /// Strand colours' spherical-harmonics degree: 0 (one RGB colour) or 1
+    /// (plus a trainable linear view dependence per strand, zero at the start).
+    pub sh_degree: u32,
 }
 
 /// One training view's targets.
@@ -103,6 +114,10 @@ pub struct ImageLosses {
     widths: Vec<f32>,
     colors: Vec<[f32; 3]>,
     color_adam: RowAdam,
+    /// Band-1 SH coefficients per strand (3 per channel, channel-major as in
+    /// [`Gaussians::sh`]); empty at `sh_degree = 0`.
+    sh1: Vec<[f32; 9]>,
+    sh1_adam: RowAdam,
     settings: RenderSettings,
 }
 
@@ -290,7 +305,16 @@ impl ImageLosses {
             widths,
             colors: vec![[0.5, 0.4, 0.3]; n],
             color_adam: RowAdam::new(n, 3),
-            settings: RenderSettings::default(),
+            sh1: if cfg.sh_degree >= 1 {
+                vec![[0.0; 9]; n]
+            } else {
+                Vec::new()
+            },
+            sh1_adam: RowAdam::new(if cfg.sh_degree >= 1 { n } else { 0 }, 9),
+            settings: RenderSettings {
+                sh_degree: cfg.sh_degree.min(1),
+                ..RenderSettings::default()
+            },
         })
     }
 
@@ -307,7 +331,7 @@ impl ImageLosses {
             return Ok(0.0);
         }
         let grey = vec![[0.5f32; 3]; n];
-        let (mut g, segs) = self.scene(points, l, &self.widths, &grey)?;
+        let (mut g, segs) = self.scene(points, l, &self.widths, &grey, None)?;
         for sh in &mut g.sh[segs..] {
             *sh = [Vec3::ZERO; 4];
         }
@@ -407,20 +431,26 @@ impl ImageLosses {
     }
 
     pub fn appearance_parameters(&self) -> usize {
-        self.colors.len() * 3 + self.body.len() * 3
+        self.colors.len() * 3 + self.sh1.len() * 9 + self.body.len() * 3
     }
 
+    /// The strands (`l` points each) as segment Gaussians, then the body's;
+    /// `sh1` (one row per strand) sets every segment's band-1 coefficients.
     fn scene(
         &self,
         points: &[Vec3],
         l: usize,
         widths: &[f32],
         colors: &[[f32; 3]],
+        sh1: Option<&[[f32; 9]]>,
     ) -> Result<(Gaussians, usize), StageError> {
         let n = points.len() / l;
         let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
         let mut g = render::strands_to_gaussians(points, &starts, widths, colors, true)?;
         let segs = g.len();
+        if let Some(sh1) = sh1 {
+            set_band1(&mut g.sh, sh1, l);
+        }
         g.means.extend_from_slice(&self.body.means);
         g.scales.extend_from_slice(&self.body.scales);
         g.rotations.extend_from_slice(&self.body.rotations);
@@ -438,7 +468,8 @@ impl ImageLosses {
         } else {
             strands.strand(0).len()
         };
-        let (g, segs) = self.scene(&strands.points, l, &strands.width, &strands.color)?;
+        let sh1 = (self.sh1.len() == strands.len()).then_some(self.sh1.as_slice());
+        let (g, segs) = self.scene(&strands.points, l, &strands.width, &strands.color, sh1)?;
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
         for (i, cam) in self.test_cameras.iter().enumerate() {
@@ -471,6 +502,37 @@ impl ImageLosses {
             formats::images::write_exr(out_dir.join(format!("{i:03}.exr")), &pre)?;
         }
         Ok(())
+    }
+}
+
+/// Sets the band-1 SH coefficients of every strand segment Gaussian (`l - 1`
+/// per strand, in strand order) from its strand's row of `sh1`: row entry
+/// `3 k + b` is channel `k`'s coefficient `b`.
+fn set_band1(sh: &mut [[Vec3; 4]], sh1: &[[f32; 9]], l: usize) {
+    if l < 2 {
+        return;
+    }
+    for (seg, s) in sh.iter_mut().enumerate() {
+        let c = &sh1[seg / (l - 1)];
+        for b in 0..3 {
+            s[1 + b] = Vec3::new(c[b], c[3 + b], c[6 + b]);
+        }
+    }
+}
+
+/// The adjoint of [`set_band1`]: adds `scale` times the segments' band-1
+/// gradients to their strands' rows of `out` (9 per strand).
+fn add_band1_grads(seg_grads: &[[Vec3; 4]], l: usize, scale: f32, out: &mut [f32]) {
+    if l < 2 {
+        return;
+    }
+    for (seg, g) in seg_grads.iter().enumerate() {
+        let row = &mut out[9 * (seg / (l - 1))..][..9];
+        for b in 0..3 {
+            for k in 0..3 {
+                row[3 * k + b] += scale * g[1 + b][k];
+            }
+        }
     }
 }
 
@@ -647,7 +709,18 @@ impl ImageTerm for ImageLosses {
     ) -> Result<Vec<(&'static str, f32)>, StageError> {
         let widths: Vec<f32> = subset.iter().map(|&i| self.widths[i as usize]).collect();
         let colors: Vec<[f32; 3]> = subset.iter().map(|&i| self.colors[i as usize]).collect();
-        let (g, segs) = self.scene(points, l, &widths, &colors)?;
+        let sh1: Vec<[f32; 9]> = if self.sh1.is_empty() {
+            Vec::new()
+        } else {
+            subset.iter().map(|&i| self.sh1[i as usize]).collect()
+        };
+        let (g, segs) = self.scene(
+            points,
+            l,
+            &widths,
+            &colors,
+            (!sh1.is_empty()).then_some(sh1.as_slice()),
+        )?;
         let nv = self.cfg.views_per_iteration.min(self.views.len()).max(1);
         let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0x1A6E ^ (iteration as u64) << 20);
         let mut vids: Vec<usize> =
@@ -656,6 +729,7 @@ impl ImageTerm for ImageLosses {
         let inv = 1.0 / nv as f32;
         let mut terms: Vec<(&'static str, f32)> = Vec::new();
         let mut gcol = vec![0.0f32; subset.len() * 3];
+        let mut gsh1 = vec![0.0f32; sh1.len() * 9];
         let mut gbody = vec![0.0f32; self.body.len() * 3];
         let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
         for &vi in &vids {
@@ -686,6 +760,9 @@ impl ImageTerm for ImageLosses {
                     gbody[3 * b + k] += inv * sh[0][k];
                 }
             }
+            if !gsh1.is_empty() {
+                add_band1_grads(&gg.sh[..segs], l, inv, &mut gsh1);
+            }
         }
         // Appearance steps (colours stay in [0, 1]).
         let mut flat: Vec<f32> = self.colors.iter().flat_map(|c| *c).collect();
@@ -697,6 +774,14 @@ impl ImageTerm for ImageLosses {
                 f[1].clamp(0.0, 1.0),
                 f[2].clamp(0.0, 1.0),
             ];
+        }
+        if !gsh1.is_empty() {
+            let mut flat: Vec<f32> = self.sh1.iter().flat_map(|c| *c).collect();
+            self.sh1_adam
+                .step(&mut flat, &gsh1, subset, self.cfg.lr_color);
+            for (c, f) in self.sh1.iter_mut().zip(flat.chunks_exact(9)) {
+                c.copy_from_slice(f);
+            }
         }
         if !self.body.is_empty() {
             let mut sh: Vec<f32> = self.body.sh.iter().flat_map(|s| s[0].to_array()).collect();
@@ -748,6 +833,76 @@ mod tests {
         };
         let (out, _) = render::render(&g, &cam, &settings).unwrap();
         (0..64).map(|y| out.alpha.data[y * 64 + 32]).sum()
+    }
+
+    #[test]
+    fn band1_strand_colours_match_finite_differences() {
+        // Two 4-point strands across a 64 px view, seen off-axis so every band-1
+        // coefficient changes the colour; a fixed linear loss over the image.
+        let mut cam = camera();
+        cam.c2w = glam::Mat4::look_at_rh(Vec3::new(2.0, 1.5, 4.5), Vec3::ZERO, Vec3::Y).inverse();
+        let l = 4;
+        let points: Vec<Vec3> = (0..2)
+            .flat_map(|s| {
+                (0..l).map(move |k| Vec3::new(-0.8 + 0.5 * k as f32, 0.3 * s as f32 - 0.15, 0.1))
+            })
+            .collect();
+        let starts = [0u32, l as u32, 2 * l as u32];
+        let widths = [0.2f32, 0.15];
+        let colors = [[0.5f32, 0.4, 0.6], [0.45, 0.55, 0.5]];
+        let sh1: Vec<[f32; 9]> = (0..2)
+            .map(|s| std::array::from_fn(|j| 0.05 * ((3 * s + j) as f32 * 0.7).sin()))
+            .collect();
+        let settings = RenderSettings {
+            sh_degree: 1,
+            ..RenderSettings::default()
+        };
+        let n_px = (cam.width * cam.height * 3) as usize;
+        let w: Vec<f32> = (0..n_px)
+            .map(|i| ((i * 7919) % 13) as f32 / 13.0 - 0.4)
+            .collect();
+        let loss = |sh1: &[[f32; 9]]| -> (f64, GaussianGrads) {
+            let mut g =
+                render::strands_to_gaussians(&points, &starts, &widths, &colors, true).unwrap();
+            set_band1(&mut g.sh, sh1, l);
+            let (out, state) = render::render(&g, &cam, &settings).unwrap();
+            let v = out
+                .rgb
+                .data
+                .iter()
+                .zip(&w)
+                .map(|(a, b)| (a * b) as f64)
+                .sum();
+            let dl = OutputGrads {
+                rgb: Some(ImageF32 {
+                    width: cam.width,
+                    height: cam.height,
+                    channels: 3,
+                    data: w.clone(),
+                }),
+                ..Default::default()
+            };
+            (
+                v,
+                render::backward(&g, &cam, &settings, &state, &dl).unwrap(),
+            )
+        };
+        let (_, gg) = loss(&sh1);
+        let mut analytic = vec![0.0f32; 18];
+        add_band1_grads(&gg.sh, l, 1.0, &mut analytic);
+        assert!(analytic.iter().any(|g| g.abs() > 1e-2), "{analytic:?}");
+        let h = 1e-3;
+        for (i, &a) in analytic.iter().enumerate() {
+            let mut plus = sh1.clone();
+            plus[i / 9][i % 9] += h;
+            let mut minus = sh1.clone();
+            minus[i / 9][i % 9] -= h;
+            let fd = ((loss(&plus).0 - loss(&minus).0) / (2.0 * h as f64)) as f32;
+            assert!(
+                (fd - a).abs() <= 1e-3 + 1e-2 * fd.abs(),
+                "entry {i}: finite difference {fd}, analytic {a}"
+            );
+        }
     }
 
     #[test]

@@ -97,8 +97,15 @@
 //!   roots' tangent field and lets the codes bend the strand; a fur corpus
 //!   leans only about 25 degrees either way, so a wrong tangent field could not
 //!   be corrected. It ties at the roots' own frames on both dev scenes and
-//!   recovers most of a 45-degree wrong start on the fox (not on the tiger,
-//!   whose Gabor maps follow the stripes): docs/history.md.
+//!   recovers most of a 45-degree wrong start (docs/history.md).
+//!   `angle_scale` (3 radians per unit of the encoder's output) sets how fast
+//!   the angle moves relative to the codes: the geometry learning rates decay
+//!   a thousandfold over the codec's 100 iterations, which left a wrong start
+//!   half corrected at 1. Chosen on the dev split among 1 / 3 / 5 / 10: from
+//!   a 45-degree wrong start 3 brings the in-plane error from 24.5 to 21 degrees
+//!   on both scenes (5 and 10 a little further), and at the roots' own frames
+//!   it ties 1 everywhere but the fox at 2 cm, which it wins; 10 loses the
+//!   strict 1 cm score on the tiger, and 5 trends that way.
 //! - Dense optimiser: lazy Adam (per-strand step counts, only sampled strands
 //!   move), learning rate `lr_points` in strand lengths (the canonical points
 //!   of a strand have unit arc length at the start), 0.001 by default (at

@@ -186,7 +186,7 @@ pub struct Rates {
 /// The codec: encoder E_theta and fine-tuned decoder D_psi.
 ///
 /// With `rotation`, the encoder has one more output, an angle
-/// `theta_i = ANGLE_SCALE * out_K` that turns strand `i`'s root frame about
+/// `theta_i = angle_scale * out_K` that turns strand `i`'s root frame about
 /// its normal before placement: the in-plane growth direction becomes a
 /// learned field (zero at the start, as the output layer starts at zero)
 /// instead of being fixed by the roots' tangents, which the basis can bend
@@ -197,6 +197,8 @@ pub struct Codec {
     pub decoder: Decoder,
     pub finetune_decoder: bool,
     pub rotation: bool,
+    /// Radians per unit of the encoder's angle output ([`ANGLE_SCALE`] unless set).
+    pub angle_scale: f32,
     /// Fixed per-strand style codes added to the encoder's K coefficients
     /// (`n * K`, strand-major; empty = none): see [`style_codes`].
     pub style: Vec<f32>,
@@ -239,7 +241,7 @@ pub fn style_codes(n: usize, k: usize, from: usize, scale: f32, seed: u64) -> Ve
     out
 }
 
-/// Radians per unit of the encoder's rotation output.
+/// Radians per unit of the encoder's rotation output of a new [`Codec`] (the stage sets its own).
 pub const ANGLE_SCALE: f32 = 1.0;
 
 /// The dense baseline: the L - 1 non-root points of every strand, free, in
@@ -290,10 +292,17 @@ impl Codec {
             decoder,
             finetune_decoder,
             rotation,
+            angle_scale: ANGLE_SCALE,
             style: Vec::new(),
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
         }
+    }
+
+    /// The same codec with `angle_scale` radians per unit of its angle output.
+    pub fn with_angle_scale(mut self, angle_scale: f32) -> Self {
+        self.angle_scale = angle_scale;
+        self
     }
 
     /// The same codec with per-strand style codes (`n * K`, see [`style_codes`]).
@@ -311,7 +320,7 @@ impl Codec {
     fn frame(&self, base: Mat3, out: &[f32], j: usize) -> Mat3 {
         if self.rotation {
             let st = self.stride();
-            base * Mat3::from_rotation_z(ANGLE_SCALE * out[j * st + st - 1])
+            base * Mat3::from_rotation_z(self.angle_scale * out[j * st + st - 1])
         } else {
             base
         }
@@ -465,7 +474,7 @@ impl Model {
                                     .zip(gj)
                                     .map(|(q, gk)| gk.dot(f * (scale * Vec3::Z.cross(*q - loc[0]))))
                                     .sum();
-                                gz[j * st + st - 1] = ANGLE_SCALE * dangle;
+                                gz[j * st + st - 1] = c.angle_scale * dangle;
                             }
                             c.decoder.backward(
                                 &ch.z[j * st..j * st + k],

@@ -80,6 +80,9 @@ fure_stage_api::stage_params! {
         views_per_iteration: usize = int(1).min(1.0),
         /// Adam learning rate of strand and body colours.
         lr_color: f32 = float(0.02).min(0.0),
+        /// Spherical-harmonics degree of the strand colours: 0 (unset) = one RGB colour per
+        /// strand; 1 = plus a trainable linear view dependence, zero at the start (learn::image).
+        sh_degree: Option<usize> = optional(ParamType::Int).range(0.0, 1.0),
         /// Weight of L_rgb (L1 + D-SSIM on the photo).
         l_rgb: f32 = float(1.0).min(0.0),
         /// Weight of L_sil (rendered vs given silhouette).
@@ -175,6 +178,10 @@ fure_stage_api::stage_params! {
         /// The style offsets leave the first this-many basis components (the lean and bend
         /// the views resolve) to the encoder alone.
         style_from: usize = int(2).min(0.0),
+        /// Radians per unit of the encoder's angle output (learn_rotation): with Adam the
+        /// angle moves about this much faster than the codes (chosen on the dev split among
+        /// 1 / 3 / 5 / 10, learn module doc).
+        angle_scale: f32 = float(3.0).range(0.0, 100.0),
     }
 }
 
@@ -828,7 +835,8 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                             c.style_from,
                             c.style,
                             seed ^ STYLE_STREAM,
-                        )),
+                        ))
+                        .with_angle_scale(c.angle_scale),
                 ),
                 Rates {
                     encoder: c.lr_encoder,
@@ -874,6 +882,7 @@ fn image_losses(
             HeldOutCoverage::Width => Coverage::Width,
         },
         device: crate::render::device::Renderer::from_params(ctx.params)?,
+        sh_degree: p.sh_degree.unwrap_or(0) as u32,
     };
     let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
     Ok(Some(ImageLosses::new(
@@ -1306,6 +1315,33 @@ mod tests {
         assert!(m.colors_fitted.is_empty());
         assert!(constant.iter().all(|c| *c == constant[0]));
         assert!((constant[0][0] - 0.9).abs() > 0.3);
+    }
+
+    #[test]
+    fn band1_colours_add_nine_parameters_per_strand_and_render() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, _) = write_views(d.path());
+        let run = |degree: i64| -> (LearnMetrics, PathBuf) {
+            let out = run_with_views(
+                &d.path().join(format!("sh{degree}")),
+                views.clone(),
+                &[
+                    ("iterations", Value::Int(5)),
+                    ("sh_degree", Value::Int(degree)),
+                ],
+            );
+            (
+                formats::json::read_json(out.join("metrics.json")).unwrap(),
+                out,
+            )
+        };
+        let (m0, _) = run(0);
+        let (m1, out) = run(1);
+        assert_eq!(
+            m1.appearance_parameters - m0.appearance_parameters,
+            9 * m1.strands
+        );
+        assert!(out.join("renders/test/000.png").is_file());
     }
 
     #[test]
