@@ -114,9 +114,9 @@ pub struct ImageLosses {
     widths: Vec<f32>,
     colors: Vec<[f32; 3]>,
     color_adam: RowAdam,
-    /// Band-1 SH coefficients per strand (3 per channel, channel-major as in
-    /// [`Gaussians::sh`]); empty at `sh_degree = 0`.
-    sh1: Vec<[f32; 9]>,
+    /// Band-1 SH coefficients, [`BAND1`] per strand (see [`set_band1`]);
+    /// empty at `sh_degree = 0`.
+    sh1: Vec<f32>,
     sh1_adam: RowAdam,
     settings: RenderSettings,
 }
@@ -305,12 +305,8 @@ impl ImageLosses {
             widths,
             colors: vec![[0.5, 0.4, 0.3]; n],
             color_adam: RowAdam::new(n, 3),
-            sh1: if cfg.sh_degree >= 1 {
-                vec![[0.0; 9]; n]
-            } else {
-                Vec::new()
-            },
-            sh1_adam: RowAdam::new(if cfg.sh_degree >= 1 { n } else { 0 }, 9),
+            sh1: vec![0.0; if cfg.sh_degree >= 1 { n * BAND1 } else { 0 }],
+            sh1_adam: RowAdam::new(if cfg.sh_degree >= 1 { n } else { 0 }, BAND1),
             settings: RenderSettings {
                 sh_degree: cfg.sh_degree.min(1),
                 ..RenderSettings::default()
@@ -431,7 +427,7 @@ impl ImageLosses {
     }
 
     pub fn appearance_parameters(&self) -> usize {
-        self.colors.len() * 3 + self.sh1.len() * 9 + self.body.len() * 3
+        self.colors.len() * 3 + self.sh1.len() + self.body.len() * 3
     }
 
     /// The strands (`l` points each) as segment Gaussians, then the body's;
@@ -442,7 +438,7 @@ impl ImageLosses {
         l: usize,
         widths: &[f32],
         colors: &[[f32; 3]],
-        sh1: Option<&[[f32; 9]]>,
+        sh1: Option<&[f32]>,
     ) -> Result<(Gaussians, usize), StageError> {
         let n = points.len() / l;
         let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
@@ -468,7 +464,7 @@ impl ImageLosses {
         } else {
             strands.strand(0).len()
         };
-        let sh1 = (self.sh1.len() == strands.len()).then_some(self.sh1.as_slice());
+        let sh1 = (self.sh1.len() == strands.len() * BAND1).then_some(self.sh1.as_slice());
         let (g, segs) = self.scene(&strands.points, l, &strands.width, &strands.color, sh1)?;
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
@@ -505,15 +501,18 @@ impl ImageLosses {
     }
 }
 
+/// Band-1 SH coefficients per strand: 3 per colour channel.
+const BAND1: usize = 9;
+
 /// Sets the band-1 SH coefficients of every strand segment Gaussian (`l - 1`
-/// per strand, in strand order) from its strand's row of `sh1`: row entry
-/// `3 k + b` is channel `k`'s coefficient `b`.
-fn set_band1(sh: &mut [[Vec3; 4]], sh1: &[[f32; 9]], l: usize) {
+/// per strand, in strand order) from its strand's row of `sh1` ([`BAND1`]
+/// per strand): row entry `3 k + b` is channel `k`'s coefficient `b`.
+fn set_band1(sh: &mut [[Vec3; 4]], sh1: &[f32], l: usize) {
     if l < 2 {
         return;
     }
     for (seg, s) in sh.iter_mut().enumerate() {
-        let c = &sh1[seg / (l - 1)];
+        let c = &sh1[BAND1 * (seg / (l - 1))..][..BAND1];
         for b in 0..3 {
             s[1 + b] = Vec3::new(c[b], c[3 + b], c[6 + b]);
         }
@@ -521,13 +520,13 @@ fn set_band1(sh: &mut [[Vec3; 4]], sh1: &[[f32; 9]], l: usize) {
 }
 
 /// The adjoint of [`set_band1`]: adds `scale` times the segments' band-1
-/// gradients to their strands' rows of `out` (9 per strand).
+/// gradients to their strands' rows of `out` ([`BAND1`] per strand).
 fn add_band1_grads(seg_grads: &[[Vec3; 4]], l: usize, scale: f32, out: &mut [f32]) {
     if l < 2 {
         return;
     }
     for (seg, g) in seg_grads.iter().enumerate() {
-        let row = &mut out[9 * (seg / (l - 1))..][..9];
+        let row = &mut out[BAND1 * (seg / (l - 1))..][..BAND1];
         for b in 0..3 {
             for k in 0..3 {
                 row[3 * k + b] += scale * g[1 + b][k];
@@ -709,10 +708,14 @@ impl ImageTerm for ImageLosses {
     ) -> Result<Vec<(&'static str, f32)>, StageError> {
         let widths: Vec<f32> = subset.iter().map(|&i| self.widths[i as usize]).collect();
         let colors: Vec<[f32; 3]> = subset.iter().map(|&i| self.colors[i as usize]).collect();
-        let sh1: Vec<[f32; 9]> = if self.sh1.is_empty() {
+        let sh1: Vec<f32> = if self.sh1.is_empty() {
             Vec::new()
         } else {
-            subset.iter().map(|&i| self.sh1[i as usize]).collect()
+            subset
+                .iter()
+                .flat_map(|&i| &self.sh1[BAND1 * i as usize..][..BAND1])
+                .copied()
+                .collect()
         };
         let (g, segs) = self.scene(
             points,
@@ -729,7 +732,7 @@ impl ImageTerm for ImageLosses {
         let inv = 1.0 / nv as f32;
         let mut terms: Vec<(&'static str, f32)> = Vec::new();
         let mut gcol = vec![0.0f32; subset.len() * 3];
-        let mut gsh1 = vec![0.0f32; sh1.len() * 9];
+        let mut gsh1 = vec![0.0f32; sh1.len()];
         let mut gbody = vec![0.0f32; self.body.len() * 3];
         let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
         for &vi in &vids {
@@ -776,12 +779,8 @@ impl ImageTerm for ImageLosses {
             ];
         }
         if !gsh1.is_empty() {
-            let mut flat: Vec<f32> = self.sh1.iter().flat_map(|c| *c).collect();
             self.sh1_adam
-                .step(&mut flat, &gsh1, subset, self.cfg.lr_color);
-            for (c, f) in self.sh1.iter_mut().zip(flat.chunks_exact(9)) {
-                c.copy_from_slice(f);
-            }
+                .step(&mut self.sh1, &gsh1, subset, self.cfg.lr_color);
         }
         if !self.body.is_empty() {
             let mut sh: Vec<f32> = self.body.sh.iter().flat_map(|s| s[0].to_array()).collect();
@@ -850,8 +849,8 @@ mod tests {
         let starts = [0u32, l as u32, 2 * l as u32];
         let widths = [0.2f32, 0.15];
         let colors = [[0.5f32, 0.4, 0.6], [0.45, 0.55, 0.5]];
-        let sh1: Vec<[f32; 9]> = (0..2)
-            .map(|s| std::array::from_fn(|j| 0.05 * ((3 * s + j) as f32 * 0.7).sin()))
+        let sh1: Vec<f32> = (0..2 * BAND1)
+            .map(|j| 0.05 * (j as f32 * 0.7).sin())
             .collect();
         let settings = RenderSettings {
             sh_degree: 1,
@@ -861,7 +860,7 @@ mod tests {
         let w: Vec<f32> = (0..n_px)
             .map(|i| ((i * 7919) % 13) as f32 / 13.0 - 0.4)
             .collect();
-        let loss = |sh1: &[[f32; 9]]| -> (f64, GaussianGrads) {
+        let loss = |sh1: &[f32]| -> (f64, GaussianGrads) {
             let mut g =
                 render::strands_to_gaussians(&points, &starts, &widths, &colors, true).unwrap();
             set_band1(&mut g.sh, sh1, l);
@@ -888,15 +887,15 @@ mod tests {
             )
         };
         let (_, gg) = loss(&sh1);
-        let mut analytic = vec![0.0f32; 18];
+        let mut analytic = vec![0.0f32; 2 * BAND1];
         add_band1_grads(&gg.sh, l, 1.0, &mut analytic);
         assert!(analytic.iter().any(|g| g.abs() > 1e-2), "{analytic:?}");
         let h = 1e-3;
         for (i, &a) in analytic.iter().enumerate() {
             let mut plus = sh1.clone();
-            plus[i / 9][i % 9] += h;
+            plus[i] += h;
             let mut minus = sh1.clone();
-            minus[i / 9][i % 9] -= h;
+            minus[i] -= h;
             let fd = ((loss(&plus).0 - loss(&minus).0) / (2.0 * h as f64)) as f32;
             assert!(
                 (fd - a).abs() <= 1e-3 + 1e-2 * fd.abs(),

@@ -1090,8 +1090,10 @@ mod tests {
             ("pe_frequencies", Value::Int(4)),
             ("mlp_width", Value::Int(16)),
             ("mlp_depth", Value::Int(2)),
-            // At the default style the toy basis' one styled component (a large bend) sets a
-            // loss floor that hides the encoder's 40 iterations of learning.
+            // No style codes in the toys: the toy basis' one styled component (a large bend)
+            // sets a loss floor that hides 40 iterations of learning, and the toy views show
+            // one uniform lean that styled strands cannot match, so the mechanisms are
+            // checked without them.
             ("style", Value::Float(0.0)),
         ]
     }
@@ -1366,8 +1368,6 @@ mod tests {
                     // Only the lean along the tangent, as a fur corpus's
                     // components: the codes cannot turn a strand sideways.
                     ("components", Value::Int(1)),
-                    // The toy's views show one uniform lean: no per-strand detail.
-                    ("style", Value::Float(0.0)),
                 ],
             );
             let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
@@ -1407,9 +1407,6 @@ mod tests {
                 ("lr_encoder", Value::Float(2e-3)),
                 // Constant rates: 60 iterations are too few for the schedule's tail.
                 ("lr_decay", Value::Float(1.0)),
-                // The toy's views show one uniform lean, which styled strands cannot
-                // match exactly: the mechanism is checked without them.
-                ("style", Value::Float(0.0)),
             ],
         );
         let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
