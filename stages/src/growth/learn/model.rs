@@ -191,14 +191,23 @@ pub struct Rates {
 /// learned field (zero at the start, as the output layer starts at zero)
 /// instead of being fixed by the roots' tangents, which the basis can bend
 /// only as far as its corpus leans (about 25 degrees either way).
+///
+/// With `tilt`, one more output `beta_i = tilt_scale * out` turns the frame
+/// about its own bitangent first (positive lays the strand toward the
+/// skin): the elevation becomes a learned field too, instead of the
+/// corpus' mean lift, which the codes move only slowly. The frame is
+/// `F_i = base_i Rz(theta_i) Ry(beta_i)`.
 #[derive(Debug, Clone)]
 pub struct Codec {
     pub mlp: Mlp,
     pub decoder: Decoder,
     pub finetune_decoder: bool,
     pub rotation: bool,
+    pub tilt: bool,
     /// Radians per unit of the encoder's angle output ([`ANGLE_SCALE`] unless set).
     pub angle_scale: f32,
+    /// Radians per unit of the encoder's tilt output ([`ANGLE_SCALE`] unless set).
+    pub tilt_scale: f32,
     /// Fixed per-strand style codes added to the encoder's K coefficients
     /// (`n * K`, strand-major; empty = none): see [`style_codes`].
     pub style: Vec<f32>,
@@ -292,7 +301,9 @@ impl Codec {
             decoder,
             finetune_decoder,
             rotation,
+            tilt: false,
             angle_scale: ANGLE_SCALE,
+            tilt_scale: ANGLE_SCALE,
             style: Vec::new(),
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
@@ -305,25 +316,46 @@ impl Codec {
         self
     }
 
+    /// The same codec with a learned tilt about each frame's bitangent (one
+    /// more encoder output, after the angle; `mlp` must have it), `scale`
+    /// radians per unit of it.
+    pub fn with_tilt(mut self, tilt: bool, scale: f32) -> Self {
+        self.tilt = tilt;
+        self.tilt_scale = scale;
+        self
+    }
+
     /// The same codec with per-strand style codes (`n * K`, see [`style_codes`]).
     pub fn with_style(mut self, style: Vec<f32>) -> Self {
         self.style = style;
         self
     }
 
-    /// Encoder outputs per strand: K coefficients, then the angle if any.
+    /// Encoder outputs per strand: K coefficients, then the angle and the
+    /// tilt if any.
     fn stride(&self) -> usize {
-        self.decoder.k + self.rotation as usize
+        self.decoder.k + self.rotation as usize + self.tilt as usize
     }
 
-    /// Strand `j`'s frame: the root's, turned by its learned angle.
+    /// Strand `j`'s in-plane turn `Rz(theta_j)` and tilt `Ry(beta_j)`
+    /// (identities when not learned).
+    fn turns(&self, out: &[f32], j: usize) -> (Mat3, Mat3) {
+        let row = &out[j * self.stride() + self.decoder.k..(j + 1) * self.stride()];
+        let turn = match self.rotation {
+            true => Mat3::from_rotation_z(self.angle_scale * row[0]),
+            false => Mat3::IDENTITY,
+        };
+        let tilt = match self.tilt {
+            true => Mat3::from_rotation_y(self.tilt_scale * row[self.rotation as usize]),
+            false => Mat3::IDENTITY,
+        };
+        (turn, tilt)
+    }
+
+    /// Strand `j`'s frame: the root's, turned by its learned angles.
     fn frame(&self, base: Mat3, out: &[f32], j: usize) -> Mat3 {
-        if self.rotation {
-            let st = self.stride();
-            base * Mat3::from_rotation_z(self.angle_scale * out[j * st + st - 1])
-        } else {
-            base
-        }
+        let (turn, tilt) = self.turns(out, j);
+        base * turn * tilt
     }
 }
 
@@ -464,17 +496,27 @@ impl Model {
                             let f = c.frame(prep.frames[i], &ch.z, j);
                             let gj = &g[j * l..(j + 1) * l];
                             placement::place_backward(loc, f, prep.lengths[i], gj, &mut gl);
-                            if c.rotation {
-                                // d world_k / d angle = F' (e_z x local offset), scaled
-                                // as placement scales the offsets.
+                            if c.rotation || c.tilt {
+                                // With F = base Rz Ry: d world_k / d theta =
+                                // base Rz (e_z x Ry q), d world_k / d beta = F (e_y x q),
+                                // q the local offset, scaled as placement scales it.
                                 let scale = prep.lengths[i]
                                     / (placement::arc_length(loc) + placement::PLACEMENT_EPS);
-                                let dangle: f32 = loc
-                                    .iter()
-                                    .zip(gj)
-                                    .map(|(q, gk)| gk.dot(f * (scale * Vec3::Z.cross(*q - loc[0]))))
-                                    .sum();
-                                gz[j * st + st - 1] = c.angle_scale * dangle;
+                                let (turn, tilt) = c.turns(&ch.z, j);
+                                let turned = prep.frames[i] * turn;
+                                let (mut dtheta, mut dbeta) = (0.0f32, 0.0f32);
+                                for (q, gk) in loc.iter().zip(gj) {
+                                    let q = scale * (*q - loc[0]);
+                                    dtheta += gk.dot(turned * Vec3::Z.cross(tilt * q));
+                                    dbeta += gk.dot(f * Vec3::Y.cross(q));
+                                }
+                                let at = j * st + k;
+                                if c.rotation {
+                                    gz[at] = c.angle_scale * dtheta;
+                                }
+                                if c.tilt {
+                                    gz[at + c.rotation as usize] = c.tilt_scale * dbeta;
+                                }
                             }
                             c.decoder.backward(
                                 &ch.z[j * st..j * st + k],
@@ -561,18 +603,24 @@ mod tests {
 
     #[test]
     fn codec_backward_matches_finite_differences() {
-        check_codec_gradients(false, 0.0);
+        check_codec_gradients(false, false, 0.0);
     }
 
     #[test]
     fn codec_backward_with_learned_rotation_matches_finite_differences() {
-        check_codec_gradients(true, 0.0);
+        check_codec_gradients(true, false, 0.0);
+    }
+
+    #[test]
+    fn codec_backward_with_learned_rotation_and_tilt_matches_finite_differences() {
+        check_codec_gradients(true, true, 0.0);
+        check_codec_gradients(false, true, 0.0);
     }
 
     #[test]
     fn codec_backward_with_style_codes_matches_finite_differences() {
         // The decoder's gradient depends on the code it decoded: the styled one.
-        check_codec_gradients(true, 0.7);
+        check_codec_gradients(true, true, 0.7);
     }
 
     #[test]
@@ -597,7 +645,7 @@ mod tests {
 
     // Finite differences perturb parameter i and read gradient i.
     #[allow(clippy::needless_range_loop)]
-    fn check_codec_gradients(rotation: bool, style: f32) {
+    fn check_codec_gradients(rotation: bool, tilt: bool, style: f32) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
         let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 3.0).collect();
@@ -622,12 +670,19 @@ mod tests {
             rho: vec![0.1, 0.5, 0.9],
         };
         let prep = Prepared::new(l, inputs, 2, &pe);
-        let mut mlp = Mlp::new(prep.feature_dim, 6, 2, 2 + rotation as usize, 9);
+        let mut mlp = Mlp::new(
+            prep.feature_dim,
+            6,
+            2,
+            2 + rotation as usize + tilt as usize,
+            9,
+        );
         for (i, w) in mlp.params.iter_mut().enumerate().rev().take(21) {
             *w = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
         }
         let mut model = Model::Codec(
             Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
+                .with_tilt(tilt, 1.7)
                 .with_style(style_codes(3, 2, 0, style, 4)),
         );
         let subset = [0u32, 2];

@@ -56,6 +56,9 @@ fure_stage_api::param_enum! {
         Start = "start",
         /// Before and after training.
         StartEnd = "start_end",
+        /// Before training, and after it under the held-out renders' coverage
+        /// (`held_out_coverage`), the image formation the final colours are shown in.
+        StartHeldOut = "start_held_out",
     }
 }
 
@@ -124,8 +127,9 @@ fure_stage_api::stage_params! {
         /// Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).
         body_gaussians: usize = int(20000).min(0.0),
         /// Strand and body colours set to the blending-weighted mean of the training pixels
-        /// they make (learn::image): before training (start), also after it (start_end), or
-        /// never (none: every strand starts grey-brown and only Adam moves it).
+        /// they make (learn::image): before training (start), also after it (start_end; at
+        /// the held-out renders' coverage: start_held_out), or never (none: every strand
+        /// starts grey-brown and only Adam moves it).
         fit_colors: FitColors = string("start").choices(FitColors::NAMES),
         /// Turn every root frame about its normal by this angle before training: a wrong start
         /// for stability tests (0 = the roots' frames).
@@ -162,6 +166,10 @@ fure_stage_api::stage_params! {
         /// The encoder also outputs an angle per strand that turns its root frame about the
         /// normal (a learned growth-direction field, zero at the start; learn::model).
         learn_rotation: bool = bool(true),
+        /// The encoder also outputs a tilt per strand that turns its frame about its
+        /// bitangent (a learned elevation field, zero at the start; learn::model; chosen on
+        /// the dev split, learn module doc).
+        learn_tilt: bool = bool(true),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
         /// Hidden width of the encoder.
@@ -182,6 +190,9 @@ fure_stage_api::stage_params! {
         /// angle moves about this much faster than the codes (chosen on the dev split among
         /// 1 / 3 / 5 / 10, learn module doc).
         angle_scale: f32 = float(3.0).range(0.0, 100.0),
+        /// Radians per unit of the encoder's tilt output (learn_tilt; 1, 3 and 10 tie on the
+        /// dev split, 3 is angle_scale's).
+        tilt_scale: f32 = float(3.0).range(0.0, 100.0),
     }
 }
 
@@ -741,7 +752,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         if fit_colors != FitColors::Never {
             ctx.progress.message("colours from the views");
             let t0 = std::time::Instant::now();
-            colors_fitted.push(img.fit_colors(&model.all_points(&s.prep), l)?);
+            colors_fitted.push(img.fit_colors(&model.all_points(&s.prep), l, Coverage::Opaque)?);
             cfg.clock_start = t0.elapsed().as_secs_f64();
             color_fit_seconds = cfg.clock_start;
         }
@@ -762,11 +773,16 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let pts = model.all_points(&s.prep);
     ensure_finite("final strands", pts.iter().flat_map(|v| v.to_array()))?;
     if let Some(img) = image.as_mut() {
-        if fit_colors == FitColors::StartEnd {
+        let end_coverage = match fit_colors {
+            FitColors::StartEnd => Some(Coverage::Opaque),
+            FitColors::StartHeldOut => Some(img.held_out_coverage()),
+            _ => None,
+        };
+        if let Some(coverage) = end_coverage {
             ctx.progress
                 .message("colours from the views (final strands)");
             let t0 = std::time::Instant::now();
-            colors_fitted.push(img.fit_colors(&pts, l)?);
+            colors_fitted.push(img.fit_colors(&pts, l, coverage)?);
             color_fit_seconds += t0.elapsed().as_secs_f64();
         }
     }
@@ -823,12 +839,13 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                 s.prep.feature_dim,
                 c.mlp_width,
                 c.mlp_depth,
-                s.decoder.k + c.learn_rotation as usize,
+                s.decoder.k + c.learn_rotation as usize + c.learn_tilt as usize,
                 seed,
             );
             (
                 Model::Codec(
                     Codec::new(mlp, s.decoder.clone(), c.finetune_decoder, c.learn_rotation)
+                        .with_tilt(c.learn_tilt, c.tilt_scale)
                         .with_style(style_codes(
                             s.prep.len(),
                             s.decoder.k,
