@@ -612,6 +612,44 @@ mod tests {
     }
 
     #[test]
+    fn a_positive_tilt_lays_the_strand_toward_the_skin_in_its_own_plane() {
+        let l = 5;
+        let mean: Vec<Vec3> = (0..l)
+            .map(|i| Vec3::new(0.3, 0.0, 0.9) * i as f32 / 4.0)
+            .collect();
+        let comps = vec![(0..l).map(|i| Vec3::Y * i as f32 * 0.1).collect::<Vec<_>>()];
+        let pe = PositionalEncoding::new(1, [-1.0; 3], [1.0; 3]);
+        let inputs = RootInputs {
+            positions: vec![Vec3::ZERO],
+            frames: vec![Mat3::IDENTITY],
+            lengths: vec![1.0],
+            parts: vec![0],
+            rho: vec![0.5],
+        };
+        let prep = Prepared::new(l, inputs, 1, &pe);
+        let elevation = |tilt_out: f32| -> f32 {
+            // Outputs: one code, then the tilt; the output layer's last
+            // bias is the tilt's.
+            let mut mlp = Mlp::new(prep.feature_dim, 4, 1, 2, 3);
+            *mlp.params.last_mut().unwrap() = tilt_out;
+            let m = Model::Codec(
+                Codec::new(mlp, Decoder::new(&mean, &comps), false, false).with_tilt(true, 2.0),
+            );
+            let (p, _) = m.forward(&prep, &[0]);
+            let tip = p[l - 1] - p[0];
+            assert!(
+                tip.y.abs() < 1e-6,
+                "the tilt leaves the strand in its plane: {tip}"
+            );
+            tip.z.atan2(tip.x)
+        };
+        let (before, after) = (elevation(0.0), elevation(0.25));
+        // 0.25 units at 2 radians per unit: half a radian lower.
+        assert!((before - 0.9f32.atan2(0.3)).abs() < 1e-5, "{before}");
+        assert!((before - after - 0.5).abs() < 1e-5, "{before} -> {after}");
+    }
+
+    #[test]
     fn codec_backward_with_learned_rotation_and_tilt_matches_finite_differences() {
         check_codec_gradients(true, true, 0.0);
         check_codec_gradients(false, true, 0.0);
