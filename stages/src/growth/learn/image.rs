@@ -368,15 +368,7 @@ impl ImageLosses {
                     weight.data[3 * p + k] = 1.0;
                 }
             }
-            let g = match coverage {
-                Coverage::Opaque => std::borrow::Cow::Borrowed(&g),
-                Coverage::Width => std::borrow::Cow::Owned(width_coverage(
-                    &g,
-                    segs,
-                    &view.camera,
-                    self.settings.low_pass,
-                )),
-            };
+            let g = coverage.apply(&g, segs, &view.camera, self.settings.low_pass);
             let (_, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
             let mut sums = Vec::with_capacity(2);
             for img in [target, weight] {
@@ -496,12 +488,10 @@ impl ImageLosses {
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
         for (i, cam) in self.test_cameras.iter().enumerate() {
-            let g = match self.cfg.held_out_coverage {
-                Coverage::Opaque => std::borrow::Cow::Borrowed(&g),
-                Coverage::Width => {
-                    std::borrow::Cow::Owned(width_coverage(&g, segs, cam, self.settings.low_pass))
-                }
-            };
+            let g = self
+                .cfg
+                .held_out_coverage
+                .apply(&g, segs, cam, self.settings.low_pass);
             let (out, _) = self.cfg.device.render(&g, cam, &self.settings)?;
             let (w, h) = (cam.width, cam.height);
             let mut straight = ImageF32::new(w, h, 4);
@@ -569,6 +559,22 @@ pub enum Coverage {
     Opaque,
     /// Opacity scaled to the strand's true width in the view.
     Width,
+}
+
+impl Coverage {
+    /// `g` as this coverage renders it in `cam`: unchanged, or through [`width_coverage`].
+    pub fn apply<'a>(
+        self,
+        g: &'a Gaussians,
+        segs: usize,
+        cam: &Camera,
+        low_pass: f32,
+    ) -> std::borrow::Cow<'a, Gaussians> {
+        match self {
+            Coverage::Opaque => std::borrow::Cow::Borrowed(g),
+            Coverage::Width => std::borrow::Cow::Owned(width_coverage(g, segs, cam, low_pass)),
+        }
+    }
 }
 
 /// `g` with the opacity of each of its first `segs` Gaussians (strand
@@ -853,10 +859,7 @@ mod tests {
             true,
         );
         let settings = RenderSettings::default();
-        let g = match coverage {
-            Coverage::Opaque => g,
-            Coverage::Width => width_coverage(&g, 1, &cam, settings.low_pass),
-        };
+        let g = coverage.apply(&g, 1, &cam, settings.low_pass);
         let (out, _) = render::render(&g, &cam, &settings).unwrap();
         (0..64).map(|y| out.alpha.data[y * 64 + 32]).sum()
     }

@@ -493,7 +493,9 @@ impl Model {
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
                             let loc = &ch.local[j * l..(j + 1) * l];
-                            let f = c.frame(prep.frames[i], &ch.z, j);
+                            let (turn, tilt) = c.turns(&ch.z, j);
+                            let turned = prep.frames[i] * turn;
+                            let f = turned * tilt;
                             let gj = &g[j * l..(j + 1) * l];
                             placement::place_backward(loc, f, prep.lengths[i], gj, &mut gl);
                             if c.rotation || c.tilt {
@@ -502,8 +504,6 @@ impl Model {
                                 // q the local offset, scaled as placement scales it.
                                 let scale = prep.lengths[i]
                                     / (placement::arc_length(loc) + placement::PLACEMENT_EPS);
-                                let (turn, tilt) = c.turns(&ch.z, j);
-                                let turned = prep.frames[i] * turn;
                                 let (mut dtheta, mut dbeta) = (0.0f32, 0.0f32);
                                 for (q, gk) in loc.iter().zip(gj) {
                                     let q = scale * (*q - loc[0]);
@@ -699,7 +699,13 @@ mod tests {
             Vec3::new(-0.4, 0.5, 0.0),
             Vec3::ONE * 0.3,
         ];
-        let frames = vec![Mat3::IDENTITY; 3];
+        // Root frames that are not the identity, so the gradients' frame
+        // products are checked too.
+        let frames = vec![
+            Mat3::IDENTITY,
+            Mat3::from_rotation_x(0.4),
+            Mat3::from_rotation_z(-0.9) * Mat3::from_rotation_y(0.3),
+        ];
         let inputs = RootInputs {
             positions: roots,
             frames,
