@@ -89,7 +89,7 @@
 //! limb parts (names containing leg, paw, foot, feet, arm, hoof, limb;
 //! animals stand on their limbs, so this is "down" without assuming a world
 //! up axis), each root's `T` is flipped when `T . ref < 0`, with `ref` =
-//! `D` on limb parts, `p - H` on ears (away from the head, toward the ear
+//! `D` on limb parts (extremities: below), `p - H` on ears (away from the head, toward the ear
 //! tips; names containing ear, checked after the limb names so `rear_legs`
 //! is a limb), and the body axis `A = C - H` everywhere else (torso, neck,
 //! head, muzzle, belly, tail: fur flows back from the nose and toward the
@@ -104,6 +104,22 @@
 //! On the fox preset (not used to design the rule): signs agree at 88 % of
 //! the roots (15 % breadth-first), signed F 37.9 / 68.6 / 86.6 to
 //! 59.5 / 82.0 / 92.7.
+//!
+//! **Extremities** (`limb_direction = "distal"`, the default). On a paw,
+//! foot, hoof or hand (names containing paw, foot, feet, hoof, hand) the
+//! limbs' "down" is about normal to the surface, so it says nothing there and
+//! the field carried the leg's vertical axis across the top of the paw: on
+//! the synthetic tiger the paws' strands ended 80 degrees off the GT in the
+//! tangent plane, untrained and trained alike (the orientation loss, modulo
+//! pi, cannot turn a field that is about 90 degrees off). There the
+//! reference is instead the surface gradient of the distance along the
+//! mesh's edges from every fur vertex outside the extremities (Dijkstra;
+//! per face, the gradient of the piecewise-linear distance): away from the
+//! leg, toward the toes, as fur on a paw lies. Legs keep "down": the same
+//! distance field on whole legs follows the slanted hip and shoulder
+//! boundaries and was measured worse (tiger hind legs 15 -> 47 degrees). The
+//! dev split's figures are in docs/history.md ("Paws: fur toward the toes").
+//! `"down"` keeps one direction for every limb part.
 //!
 //! **Storage.** JSON (`fure_stages::data::rootset::Roots` through
 //! `formats::json`): about 0.3 kB per root pretty-printed, so ~30 MB and
@@ -579,6 +595,14 @@ pub fn part_role(name: &str) -> PartRole {
     }
 }
 
+/// Whether a limb part is its extremity (paw, foot, hoof, hand), by name.
+fn is_extremity(name: &str) -> bool {
+    let n = name.to_ascii_lowercase();
+    ["paw", "foot", "feet", "hoof", "hooves", "hand"]
+        .iter()
+        .any(|k| n.contains(k))
+}
+
 /// The anatomical growth-direction prior (module doc), from the part layout of M_root.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct GrowthPrior {
@@ -655,6 +679,8 @@ pub struct RootSettings {
     /// Align the field's axis softly to the prior's references over this length (fraction of
     /// the bounding-box diagonal); `None` keeps the smoothest field (module doc).
     pub direction_smoothing: Option<f64>,
+    /// The limb parts' reference direction (module doc).
+    pub limb_direction: LimbDirection,
 }
 
 /// Everything [`build_roots`] reports besides the roots.
@@ -763,8 +789,27 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
         None
     };
     let roles: Vec<PartRole> = mesh.part_names.iter().map(|n| part_role(n)).collect();
+    let distal = match (&prior, s.limb_direction) {
+        (Some(_), LimbDirection::Distal) => {
+            let fur: Vec<bool> = (0..mesh.part_names.len().max(1))
+                .map(|k| s.density.get(k).is_some_and(|&d| d > 0.0))
+                .collect();
+            Some(distal_directions(mesh, &roles, &fur, &tparts))
+        }
+        _ => None,
+    };
+    let reference = |gp: &GrowthPrior, f: usize, role: PartRole, p: Vec3| match (role, &distal) {
+        (PartRole::Limb, Some(d)) => d[f].unwrap_or_else(|| gp.reference(role, p)),
+        _ => gp.reference(role, p),
+    };
     let align = match (&prior, s.direction_smoothing) {
-        (Some(gp), Some(len)) if len > 0.0 => Some(prior_alignment(mesh, gp, &roles, &tparts, len)),
+        (Some(gp), Some(len)) if len > 0.0 => Some(prior_alignment(mesh, &tparts, len, |f, c| {
+            let role = roles
+                .get(tparts[f] as usize)
+                .copied()
+                .unwrap_or(PartRole::Body);
+            reference(gp, f, role, c)
+        })),
         _ => None,
     };
     let field = tangent_field(mesh, s.cg_iterations, align.as_ref());
@@ -807,7 +852,7 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
         let tangent = match &prior {
             Some(gp) => {
                 let role = roles.get(p as usize).copied().unwrap_or(PartRole::Body);
-                if tangent.dot(gp.reference(role, pos)) < 0.0 {
+                if tangent.dot(reference(gp, f, role, pos)) < 0.0 {
                     flipped += 1;
                     -tangent
                 } else {
@@ -849,19 +894,18 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
 /// the mesh's resolution and unit.
 fn prior_alignment(
     mesh: &Mesh,
-    gp: &GrowthPrior,
-    roles: &[PartRole],
     tparts: &[u16],
     smoothing: f64,
+    reference_at: impl Fn(usize, Vec3) -> Vec3,
 ) -> Alignment {
+    debug_assert_eq!(tparts.len(), mesh.triangles.len());
     let reference = mesh
         .triangles
         .iter()
-        .zip(tparts)
-        .map(|(t, &p)| {
+        .enumerate()
+        .map(|(f, t)| {
             let c = t.iter().map(|&i| mesh.positions[i as usize]).sum::<Vec3>() / 3.0;
-            let role = roles.get(p as usize).copied().unwrap_or(PartRole::Body);
-            gp.reference(role, c).normalize_or_zero()
+            reference_at(f, c).normalize_or_zero()
         })
         .collect();
     let (mut sum, mut n) = (0.0f64, 0usize);
@@ -883,6 +927,84 @@ fn prior_alignment(
     }
 }
 
+/// Per triangle of a limb part: the unit surface gradient of the distance along the mesh's edges
+/// from the fur's non-limb parts (the "distal" direction: down a leg, toward the toes on a paw);
+/// `None` elsewhere, where a vertex is unreachable, or where the gradient vanishes. Dijkstra from
+/// every vertex of a fur part whose role is not [`PartRole::Limb`]; `fur` is indexed by part.
+fn distal_directions(
+    mesh: &Mesh,
+    roles: &[PartRole],
+    fur: &[bool],
+    tparts: &[u16],
+) -> Vec<Option<Vec3>> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    let n = mesh.positions.len();
+    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            neighbours[a as usize].push(b);
+            neighbours[b as usize].push(a);
+        }
+    }
+    let role_of = |part: usize| roles.get(part).copied().unwrap_or(PartRole::Body);
+    let extremity: Vec<bool> = (0..mesh.part_names.len().max(fur.len()))
+        .map(|k| {
+            role_of(k) == PartRole::Limb && mesh.part_names.get(k).is_some_and(|n| is_extremity(n))
+        })
+        .collect();
+    let mut dist = vec![f64::INFINITY; n];
+    // Non-negative f64 order equals the order of their bit patterns: a total, deterministic key.
+    let mut heap = BinaryHeap::new();
+    for (i, &p) in mesh.part.iter().enumerate().take(n) {
+        let p = p as usize;
+        if !extremity[p] && fur.get(p).copied().unwrap_or(false) {
+            dist[i] = 0.0;
+            heap.push(Reverse((0.0f64.to_bits(), i as u32)));
+        }
+    }
+    while let Some(Reverse((bits, i))) = heap.pop() {
+        let d = f64::from_bits(bits);
+        if d > dist[i as usize] {
+            continue;
+        }
+        for &j in &neighbours[i as usize] {
+            let e = f64::from((mesh.positions[j as usize] - mesh.positions[i as usize]).length());
+            let nd = d + e;
+            if nd < dist[j as usize] {
+                dist[j as usize] = nd;
+                heap.push(Reverse((nd.to_bits(), j)));
+            }
+        }
+    }
+    mesh.triangles
+        .iter()
+        .zip(tparts)
+        .map(|(t, &part)| {
+            if !extremity.get(part as usize).copied().unwrap_or(false) {
+                return None;
+            }
+            let d = t.map(|i| dist[i as usize]);
+            if d.iter().any(|x| !x.is_finite()) {
+                return None;
+            }
+            let p = t.map(|i| mesh.positions[i as usize].as_dvec3());
+            let nrm = (p[1] - p[0]).cross(p[2] - p[0]);
+            let a2 = nrm.length_squared();
+            if a2 <= 0.0 {
+                return None;
+            }
+            // grad = sum_i d_i (n x e_i) / |n|^2, e_i the edge opposite vertex i, counter-clockwise.
+            let g = (nrm.cross(p[2] - p[1]) * d[0]
+                + nrm.cross(p[0] - p[2]) * d[1]
+                + nrm.cross(p[1] - p[0]) * d[2])
+                / a2;
+            g.try_normalize().map(|v| v.as_vec3())
+        })
+        .collect()
+}
+
 fn vdir_scale(vdir: &[Vec3], t: &[u32; 3]) -> f32 {
     t.iter()
         .map(|&i| vdir[i as usize].length())
@@ -896,6 +1018,17 @@ fure_stage_api::param_enum! {
         BodyAxis = "body_axis",
         /// The breadth-first signs from face 0.
         None = "none",
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// The reference direction of limb parts (legs, paws, ...).
+    pub enum LimbDirection {
+        /// One "down" for every limb part: the body's centroid toward the limbs' centroid.
+        Down = "down",
+        /// "Down" on legs; on the extremities (paw, foot, hoof, hand) away from the rest of the
+        /// body along the surface, toward the toes (module doc).
+        Distal = "distal",
     }
 }
 
@@ -918,6 +1051,8 @@ fure_stage_api::stage_params! {
         direction_prior: DirectionPrior = string("body_axis").choices(DirectionPrior::NAMES),
         /// 0: the field's axis is the smoothest degree-2 field (one arbitrary constraint); > 0: softly aligned to the body_axis prior's directions, which it follows over about this fraction of the bounding-box diagonal (module doc)
         direction_smoothing: f64 = float(0.02).range(0.0, 10.0),
+        /// reference of limb parts: down = one direction for every limb part, the body's centroid toward the limbs'; distal = the same on legs, and on the extremities (paw, foot, hoof, hand) away from the rest of the body along the surface, toward the toes (module doc)
+        limb_direction: LimbDirection = string("distal").choices(LimbDirection::NAMES),
     }
 }
 
@@ -1017,7 +1152,7 @@ impl Stage for RootsStage {
         "roots"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "Strand roots on M_root: per-part densities (deterministic stratified sampling), part length and \
@@ -1100,6 +1235,7 @@ impl Stage for RootsStage {
                 cg_iterations: p.cg_iterations,
                 direction_prior: p.direction_prior == DirectionPrior::BodyAxis,
                 direction_smoothing: Some(p.direction_smoothing).filter(|&x| x > 0.0),
+                limb_direction: p.limb_direction,
             },
         );
         if p.direction_prior == DirectionPrior::BodyAxis && report.growth_prior.is_none() {
@@ -1174,6 +1310,7 @@ mod tests {
             cg_iterations: 20_000,
             direction_prior: false,
             direction_smoothing: None,
+            limb_direction: LimbDirection::Distal,
         };
         let (roots, rep) = build_roots(&mesh, &rho, &s);
         let area = rep.parts["torso"].area_cm2;
@@ -1217,6 +1354,7 @@ mod tests {
             cg_iterations: 20_000,
             direction_prior: true,
             direction_smoothing: None,
+            limb_direction: LimbDirection::Down,
         }
     }
 
@@ -1253,6 +1391,62 @@ mod tests {
         assert_eq!(flipped, rep.prior_flipped);
         // The breadth-first signs disagree with the prior somewhere (else this tests nothing).
         assert!(flipped > 0 && flipped < with.len());
+    }
+
+    #[test]
+    fn distal_directions_point_from_the_leg_toward_the_toes() {
+        // A flat strip: a leg (x < 4) joined to a paw (x >= 4) and a non-fur pad under the toes
+        // (x >= 7, part 2). On the paw the distance from the leg grows along +x; the leg and the
+        // pad get no distal direction.
+        let (nx, ny) = (9usize, 3usize);
+        let mut positions = Vec::new();
+        let mut part = Vec::new();
+        for j in 0..=ny {
+            for i in 0..=nx {
+                positions.push(Vec3::new(i as f32, j as f32, 0.0));
+                part.push(if i < 4 {
+                    0
+                } else if i < 7 {
+                    1
+                } else {
+                    2
+                });
+            }
+        }
+        let mut triangles = Vec::new();
+        for j in 0..ny as u32 {
+            for i in 0..nx as u32 {
+                let a = j * (nx as u32 + 1) + i;
+                let (b, c, d) = (a + 1, a + nx as u32 + 1, a + nx as u32 + 2);
+                triangles.push([a, b, d]);
+                triangles.push([a, d, c]);
+            }
+        }
+        let mesh = Mesh {
+            positions,
+            part,
+            part_names: vec!["front_legs".into(), "paws".into(), "pads".into()],
+            triangles,
+            ..Mesh::default()
+        };
+        let tparts = triangle_parts(&mesh);
+        let roles: Vec<PartRole> = mesh.part_names.iter().map(|n| part_role(n)).collect();
+        let dirs = distal_directions(&mesh, &roles, &[true, true, false], &tparts);
+        let mut on_paw = 0;
+        for (f, d) in dirs.iter().enumerate() {
+            match tparts[f] {
+                1 => {
+                    let d = d.expect("every paw face has a distal direction");
+                    assert!(d.x > 0.7 && d.z.abs() < 1e-5, "face {f}: {d}");
+                    on_paw += 1;
+                }
+                _ => assert!(d.is_none(), "face {f} of part {}", tparts[f]),
+            }
+        }
+        assert!(on_paw > 0);
+        // Without a fur part outside the extremities nothing is reachable: no direction anywhere.
+        let none = distal_directions(&mesh, &roles, &[false, true, false], &tparts);
+        assert!(none.iter().all(Option::is_none));
     }
 
     #[test]
