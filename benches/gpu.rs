@@ -15,6 +15,11 @@
 //! ones); `FURE_BENCH_REPS` sets the timed runs (default 3);
 //! `FURE_BENCH_JSON=path` writes the records as JSON there;
 //! `FURE_GPU_ADAPTER=substring` picks the adapter by name.
+//!
+//! After the timed runs, the same calls run once more per repetition with
+//! [`GpuRenderer::set_profiling`] on, and the time per phase (upload, each
+//! kernel group, readbacks, host packing) is printed and recorded under
+//! `gpu_phases`.
 
 use std::time::Instant;
 
@@ -113,6 +118,24 @@ fn bench(
         ab.push(ms(t0));
         std::hint::black_box((&o, &gr));
     }
+    // Where the deterministic mode's time goes: each phase waited for on its own.
+    gpu.set_profiling(true);
+    for _ in 0..reps {
+        let (o, st2) = gpu.render(&g, &cam, &s).expect("gpu render");
+        let gr = gpu.backward(&g, &cam, &s, &st2, &dl).expect("gpu backward");
+        std::hint::black_box((&o, &gr));
+    }
+    let profile = gpu.profile();
+    gpu.set_profiling(false);
+    let phases: Vec<serde_json::Value> = profile
+        .phases
+        .iter()
+        .map(|(name, total, calls)| {
+            let per_call = total / *calls as f64;
+            println!("    {name:<36} {per_call:>9.2} ms");
+            serde_json::json!({"phase": name, "ms_per_call": per_call})
+        })
+        .collect();
     let (cf, cb, gf, gb, ab) = (median(cf), median(cb), median(gf), median(gb), median(ab));
     println!(
         "{size:>4}^2 {:>8} segs {:>9} inst | cpu fwd {cf:>8.1} ms fwd+bwd {cb:>8.1} ms | gpu fwd {gf:>8.1} ms \
@@ -138,6 +161,7 @@ fn bench(
         "max_abs_rgb_difference": max_img,
         "max_abs_mean_gradient_difference": dmax,
         "max_abs_mean_gradient": scale,
+        "gpu_phases": phases,
     })
 }
 

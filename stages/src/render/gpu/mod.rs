@@ -31,6 +31,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Quat, Vec2, Vec3};
@@ -44,8 +45,11 @@ use super::{RenderError, RenderSettings, TILE};
 use crate::data::camera::Camera;
 use crate::data::image::ImageF32;
 
+mod pool;
 #[cfg(test)]
 mod tests;
+
+use pool::{Pool, Pooled};
 
 /// How the backward pass accumulates per-tile gradients into Gaussians.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -129,6 +133,79 @@ pub struct GpuRenderer {
     mode: GpuMode,
     /// Serialises submissions that share the device (one render at a time).
     lock: Mutex<()>,
+    /// Wall time per phase while profiling is on ([`GpuRenderer::set_profiling`]).
+    profile: Mutex<Option<GpuProfile>>,
+    /// Device and staging buffers kept between calls (pool.rs).
+    pool: Arc<Pool>,
+    /// Host-side packing buffer reused between uploads (no page faults per call).
+    scratch: Mutex<Vec<f32>>,
+}
+
+/// Wall time per phase of [`GpuRenderer::render`] and [`GpuRenderer::backward`],
+/// summed over calls. While profiling, each device phase is submitted and
+/// waited for on its own, so the phases add up to more than an unprofiled
+/// call; the split says where the time goes, not what a call costs.
+#[derive(Debug, Clone, Default)]
+pub struct GpuProfile {
+    /// (phase, milliseconds summed, calls), in the order first seen.
+    pub phases: Vec<(&'static str, f64, u32)>,
+}
+
+impl GpuProfile {
+    fn add(&mut self, phase: &'static str, ms: f64) {
+        match self.phases.iter_mut().find(|p| p.0 == phase) {
+            Some(p) => {
+                p.1 += ms;
+                p.2 += 1;
+            }
+            None => self.phases.push((phase, ms, 1)),
+        }
+    }
+}
+
+/// Lap timer over one call's phases; free when profiling is off.
+struct Laps<'a> {
+    r: &'a GpuRenderer,
+    t: Instant,
+    on: bool,
+}
+
+impl<'a> Laps<'a> {
+    fn new(r: &'a GpuRenderer) -> Laps<'a> {
+        let on = r.profile.lock().map(|p| p.is_some()).unwrap_or(false);
+        Laps {
+            r,
+            t: Instant::now(),
+            on,
+        }
+    }
+
+    /// Ends a phase of host work.
+    fn host(&mut self, phase: &'static str) {
+        if self.on {
+            let ms = self.t.elapsed().as_secs_f64() * 1e3;
+            if let Ok(mut p) = self.r.profile.lock() {
+                if let Some(p) = p.as_mut() {
+                    p.add(phase, ms);
+                }
+            }
+            self.t = Instant::now();
+        }
+    }
+
+    /// Ends a phase of device work: submits what `enc` holds and waits.
+    fn device(
+        &mut self,
+        phase: &'static str,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Result<(), RenderError> {
+        if self.on {
+            let done = std::mem::replace(enc, self.r.encoder());
+            self.r.submit_wait(done)?;
+            self.host(phase);
+        }
+        Ok(())
+    }
 }
 
 impl std::fmt::Debug for GpuRenderer {
@@ -149,13 +226,13 @@ pub struct GpuState {
     n: usize,
     n_inst: u32,
     params: Params,
-    gauss: wgpu::Buffer,
-    splats: wgpu::Buffer,
-    offsets: wgpu::Buffer,
-    keys: wgpu::Buffer,
-    ranges: wgpu::Buffer,
-    tfinal: wgpu::Buffer,
-    ncontrib: wgpu::Buffer,
+    gauss: Pooled,
+    splats: Pooled,
+    offsets: Pooled,
+    keys: Pooled,
+    ranges: Pooled,
+    tfinal: Pooled,
+    ncontrib: Pooled,
     /// Gaussian-pixel evaluations in the forward pass.
     pub evaluations: u64,
 }
@@ -257,6 +334,9 @@ impl GpuRenderer {
             kernels,
             mode,
             lock: Mutex::new(()),
+            profile: Mutex::new(None),
+            pool: Arc::default(),
+            scratch: Mutex::new(Vec::new()),
         })
     }
 
@@ -281,31 +361,86 @@ impl GpuRenderer {
         self.mode
     }
 
-    fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
-        self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: bytes.max(256).next_multiple_of(4),
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::COPY_SRC
-                | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        })
+    /// Device buffers the renderer has created so far: a call of the same
+    /// size as an earlier one creates none (they come from the pool).
+    pub fn buffers_created(&self) -> u64 {
+        self.pool.created()
     }
 
-    fn storage_init(&self, label: &str, data: &[u8]) -> wgpu::Buffer {
-        if data.len() < 256 {
-            let mut v = data.to_vec();
-            v.resize(256, 0);
-            return self.storage_init(label, &v);
+    /// Starts (emptying the record) or stops timing each phase of the calls.
+    pub fn set_profiling(&self, on: bool) {
+        if let Ok(mut p) = self.profile.lock() {
+            *p = on.then(GpuProfile::default);
         }
+    }
+
+    /// The phases timed since profiling started (empty when it is off).
+    pub fn profile(&self) -> GpuProfile {
+        self.profile
+            .lock()
+            .ok()
+            .and_then(|p| p.clone())
+            .unwrap_or_default()
+    }
+
+    /// A storage buffer of at least `bytes` bytes from the pool; its
+    /// contents are unspecified (clear it or write all of it before a kernel
+    /// reads it).
+    fn storage(&self, label: &str, bytes: u64) -> Pooled {
+        self.pool.take(
+            &self.device,
+            &self.queue,
+            label,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            bytes,
+        )
+    }
+
+    /// Maps a pooled staging buffer (idle once the last submission that used
+    /// it has finished, so the wait is short).
+    fn map(&self, buf: &wgpu::Buffer, mode: wgpu::MapMode) -> Result<(), RenderError> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        buf.map_async(mode, .., move |r| {
+            let _ = tx.send(r);
+        });
         self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: data,
-                usage: wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-            })
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(gpu_err)?;
+        rx.recv()
+            .map_err(gpu_err)?
+            .map_err(|e| gpu_err(format!("mapping a staging buffer: {e}")))
+    }
+
+    /// A storage buffer holding `data`: the bytes go through a pooled
+    /// staging buffer, copied in `enc`. Keep the returned staging buffer until
+    /// `enc` has been submitted and waited for (else the pool could hand it
+    /// out again before the copy ran).
+    fn upload(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        label: &str,
+        data: &[u8],
+    ) -> Result<(Pooled, Pooled), RenderError> {
+        let len = (data.len() as u64).next_multiple_of(4);
+        let dst = self.storage(label, len);
+        let staging = self.pool.take(
+            &self.device,
+            &self.queue,
+            "upload",
+            wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
+            len,
+        );
+        if len > 0 {
+            self.map(&staging, wgpu::MapMode::Write)?;
+            {
+                let mut view = staging.get_mapped_range_mut(..len).map_err(gpu_err)?;
+                let mut w = view.slice(..);
+                w.slice(..data.len()).copy_from_slice(data);
+            }
+            staging.unmap();
+            enc.copy_buffer_to_buffer(&staging, 0, &dst, 0, len);
+        }
+        Ok((dst, staging))
     }
 
     fn uniform(&self, data: &[u8]) -> wgpu::Buffer {
@@ -375,34 +510,33 @@ impl GpuRenderer {
         Ok(())
     }
 
-    /// Copies `bytes` bytes of `src` to the host.
-    fn read(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>, RenderError> {
+    /// Copies `bytes` bytes of `src` from `offset` to the host and hands
+    /// them to `f` in place (no copy into a host vector).
+    fn read_with<T>(
+        &self,
+        src: &wgpu::Buffer,
+        offset: u64,
+        bytes: u64,
+        f: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T, RenderError> {
         if bytes == 0 {
-            return Ok(Vec::new());
+            return Ok(f(&[]));
         }
         let size = bytes.next_multiple_of(4);
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
+        let staging = self.pool.take(
+            &self.device,
+            &self.queue,
+            "readback",
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        );
         let mut enc = self.encoder();
-        enc.copy_buffer_to_buffer(src, 0, &staging, 0, size);
+        enc.copy_buffer_to_buffer(src, offset, &staging, 0, size);
         self.queue.submit(Some(enc.finish()));
-        let (tx, rx) = std::sync::mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(gpu_err)?;
-        rx.recv()
-            .map_err(gpu_err)?
-            .map_err(|e| gpu_err(format!("readback: {e}")))?;
+        self.map(&staging, wgpu::MapMode::Read)?;
         let out = {
-            let view = staging.get_mapped_range(..).map_err(gpu_err)?;
-            view[..bytes as usize].to_vec()
+            let view = staging.get_mapped_range(..size).map_err(gpu_err)?;
+            f(&view[..bytes as usize])
         };
         staging.unmap();
         Ok(out)
@@ -410,7 +544,14 @@ impl GpuRenderer {
 
     /// Exclusive prefix sum of `n` u32 in `data`, in place (recursive over
     /// the block totals).
-    fn scan(&self, enc: &mut wgpu::CommandEncoder, data: &wgpu::Buffer, n: u32) {
+    /// The block sums' buffers go to `keep` (they must outlive the submission).
+    fn scan(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        n: u32,
+        keep: &mut Vec<Pooled>,
+    ) {
         let blocks = n.div_ceil(1024);
         let sums = self.storage("scan sums", blocks as u64 * 4);
         let u = self.uniform(bytemuck::cast_slice(&[n, 0u32, 0, 0]));
@@ -423,7 +564,7 @@ impl GpuRenderer {
             groups2(blocks),
         );
         if blocks > 1 {
-            self.scan(enc, &sums, blocks);
+            self.scan(enc, &sums, blocks, keep);
             self.dispatch(
                 enc,
                 &self.kernels.scan_add,
@@ -433,6 +574,7 @@ impl GpuRenderer {
                 groups2(n.div_ceil(256)),
             );
         }
+        keep.push(sums);
     }
 
     /// Renders `g` from `cam` on the GPU; the images match [`super::render`]'s
@@ -453,16 +595,23 @@ impl GpuRenderer {
             )));
         }
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let mut laps = Laps::new(self);
         let (w, h) = (cd.width, cd.height);
         let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
         let n_tiles = (tx * ty) as u64;
         let mut params = make_params(&cd, s, n as u32, tx, ty, self.mode);
         // 1. Upload and project.
-        let gauss = self.storage_init("gaussians", bytemuck::cast_slice(&pack_gaussians(g)));
+        let mut enc = self.encoder();
+        let (gauss, staging) = {
+            let mut packed = self.scratch.lock().unwrap_or_else(|e| e.into_inner());
+            pack_gaussians(g, &mut packed);
+            self.upload(&mut enc, "gaussians", bytemuck::cast_slice(&packed))?
+        };
         let splats = self.storage("splats", n as u64 * SPLAT_BYTES);
         let offsets = self.storage("offsets", (n as u64 + 1) * 4);
         let u = self.uniform(bytemuck::bytes_of(&params));
-        let mut enc = self.encoder();
+        let mut keep = vec![staging];
+        laps.host("render: pack and upload");
         enc.clear_buffer(&offsets, 0, None);
         self.dispatch(
             &mut enc,
@@ -472,11 +621,16 @@ impl GpuRenderer {
             &[&gauss, &splats, &offsets],
             groups2((n as u32).div_ceil(256)),
         );
+        laps.device("render: project", &mut enc)?;
         // 2. Offsets (n + 1 entries: the last is the instance count).
-        self.scan(&mut enc, &offsets, n as u32 + 1);
+        self.scan(&mut enc, &offsets, n as u32 + 1, &mut keep);
+        laps.device("render: scan", &mut enc)?;
         self.submit_wait(enc)?;
-        let last = self.read_slice(&offsets, n as u64 * 4, 4)?;
-        let n_inst = u32::from_le_bytes([last[0], last[1], last[2], last[3]]);
+        drop(keep);
+        let n_inst = self.read_with(&offsets, n as u64 * 4, 4, |b| {
+            u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+        })?;
+        laps.host("render: instance count readback");
         params.n_inst = n_inst;
         let u = self.uniform(bytemuck::bytes_of(&params));
         // 3. Keys, sort, tile ranges.
@@ -493,6 +647,7 @@ impl GpuRenderer {
             &[&splats, &offsets, &keys],
             groups2((n as u32).div_ceil(256)),
         );
+        laps.device("render: emit keys", &mut enc)?;
         if n_inst > 1 {
             let mut steps: Vec<[u32; 4]> = Vec::new();
             let mut k = 2u32;
@@ -531,6 +686,7 @@ impl GpuRenderer {
                 );
             }
         }
+        laps.device("render: sort", &mut enc)?;
         self.dispatch(
             &mut enc,
             &self.kernels.ranges,
@@ -539,6 +695,7 @@ impl GpuRenderer {
             &[&keys, &ranges],
             groups2(n_inst.div_ceil(256)),
         );
+        laps.device("render: tile ranges", &mut enc)?;
         // 4. Composite.
         let npix = w as u64 * h as u64;
         let img = self.storage("image", npix * 8 * 4);
@@ -554,23 +711,14 @@ impl GpuRenderer {
             (tx, ty),
         );
         self.submit_wait(enc)?;
-        let data: Vec<f32> = bytemuck::pod_collect_to_vec(&self.read(&img, npix * 32)?);
-        let ev: Vec<u32> = bytemuck::pod_collect_to_vec(&self.read(&evals, n_tiles * 4)?);
-        let mut out = RenderOutput {
-            rgb: ImageF32::new(w, h, 3),
-            alpha: ImageF32::new(w, h, 1),
-            depth: ImageF32::new(w, h, 1),
-            orientation: ImageF32::new(w, h, 2),
-            fur: ImageF32::new(w, h, 1),
-        };
-        for (q, p) in data.chunks_exact(8).enumerate() {
-            out.rgb.data[3 * q..3 * q + 3].copy_from_slice(&p[0..3]);
-            out.alpha.data[q] = p[3];
-            out.depth.data[q] = p[4];
-            out.orientation.data[2 * q] = p[5];
-            out.orientation.data[2 * q + 1] = p[6];
-            out.fur.data[q] = p[7];
-        }
+        laps.host("render: forward");
+        let evaluations = self.read_with(&evals, 0, n_tiles * 4, |b| {
+            b.chunks_exact(4)
+                .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as u64)
+                .sum::<u64>()
+        })?;
+        let out = self.read_with(&img, 0, npix * 32, |b| unpack_image(b, w, h))?;
+        laps.host("render: image readback and unpack");
         let state = GpuState {
             width: w,
             height: h,
@@ -584,22 +732,9 @@ impl GpuRenderer {
             ranges,
             tfinal,
             ncontrib,
-            evaluations: ev.iter().map(|&e| e as u64).sum(),
+            evaluations,
         };
         Ok((out, state))
-    }
-
-    fn read_slice(
-        &self,
-        src: &wgpu::Buffer,
-        offset: u64,
-        bytes: u64,
-    ) -> Result<Vec<u8>, RenderError> {
-        let tmp = self.storage("slice", bytes);
-        let mut enc = self.encoder();
-        enc.copy_buffer_to_buffer(src, offset, &tmp, 0, bytes);
-        self.queue.submit(Some(enc.finish()));
-        self.read(&tmp, bytes)
     }
 
     /// Gradients of all Gaussian parameters given dL/d(outputs), as
@@ -629,41 +764,25 @@ impl GpuRenderer {
                 found: g.len(),
             });
         }
-        let npix = (w * h) as usize;
-        let mut gpix = vec![0.0f32; npix * 8];
-        let chans: [(&Option<ImageF32>, &'static str, u32, usize); 5] = [
-            (&dl.rgb, "rgb gradient", 3, 0),
-            (&dl.alpha, "alpha gradient", 1, 3),
-            (&dl.depth, "depth gradient", 1, 4),
-            (&dl.orientation, "orientation gradient", 2, 5),
-            (&dl.fur, "fur gradient", 1, 7),
-        ];
-        for (img, what, ch, f0) in chans {
-            if let Some(img) = img {
-                check_image(what, img, w, h, ch)?;
-                for q in 0..npix {
-                    for c in 0..ch as usize {
-                        let v = img.data[q * ch as usize + c];
-                        if !v.is_finite() {
-                            return Err(RenderError::NonFinite { what, index: q });
-                        }
-                        gpix[q * 8 + f0 + c] = v;
-                    }
-                }
-            }
-        }
+        // Lock order: the device, then the scratch vector (as in `render`).
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let mut laps = Laps::new(self);
+        let mut gpix = self.scratch.lock().unwrap_or_else(|e| e.into_inner());
+        pack_pixel_grads(dl, w, h, &mut gpix)?;
+        laps.host("backward: pack pixel gradients");
         let n = st.n;
         let (tx, ty) = (st.params.tiles_x, st.params.tiles_y);
         let u = self.uniform(bytemuck::bytes_of(&st.params));
-        let gp = self.storage_init("pixel gradients", bytemuck::cast_slice(&gpix));
+        let mut enc = self.encoder();
+        let (gp, staging) = self.upload(&mut enc, "pixel gradients", bytemuck::cast_slice(&gpix))?;
+        drop(gpix);
         let rec_len = match self.mode {
             GpuMode::Deterministic => st.n_inst as u64,
             GpuMode::Atomic => n as u64,
         };
         let rec = self.storage("instance gradients", rec_len * NV * 4);
         let outg = self.storage("gradients", n as u64 * OREC as u64 * 4);
-        let mut enc = self.encoder();
+        laps.host("backward: upload");
         enc.clear_buffer(&rec, 0, None);
         self.dispatch(
             &mut enc,
@@ -681,6 +800,7 @@ impl GpuRenderer {
             ],
             (tx, ty),
         );
+        laps.device("backward: tiles", &mut enc)?;
         self.dispatch(
             &mut enc,
             &self.kernels.project_backward,
@@ -690,20 +810,10 @@ impl GpuRenderer {
             groups2((n as u32).div_ceil(256)),
         );
         self.submit_wait(enc)?;
-        let v: Vec<f32> =
-            bytemuck::pod_collect_to_vec(&self.read(&outg, n as u64 * OREC as u64 * 4)?);
-        let mut out = GaussianGrads::zeros(n);
-        for (i, r) in v.chunks_exact(OREC).enumerate() {
-            out.means[i] = Vec3::new(r[0], r[1], r[2]);
-            out.scales[i] = Vec3::new(r[3], r[4], r[5]);
-            out.rotations[i] = Quat::from_xyzw(r[6], r[7], r[8], r[9]);
-            out.opacities[i] = r[10];
-            for k in 0..4 {
-                out.sh[i][k] = Vec3::new(r[11 + 3 * k], r[12 + 3 * k], r[13 + 3 * k]);
-            }
-            out.cov3d[i] = [r[23], r[24], r[25], r[26], r[27], r[28]];
-            out.means2d[i] = Vec2::new(r[29], r[30]);
-        }
+        drop(staging);
+        laps.host("backward: project_backward");
+        let out = self.read_with(&outg, 0, n as u64 * OREC as u64 * 4, |b| unpack_grads(b, n))?;
+        laps.host("backward: gradient readback and unpack");
         Ok(out)
     }
 }
@@ -764,9 +874,10 @@ fn make_params(
     }
 }
 
-/// The Gaussians as 24 f32 each (mean, scale, rotation xyzw, opacity, fur, sh).
-fn pack_gaussians(g: &Gaussians) -> Vec<f32> {
-    let mut v = vec![0.0f32; g.len() * GREC];
+/// The Gaussians as 24 f32 each (mean, scale, rotation xyzw, opacity, fur,
+/// sh), into `v` (resized; its allocation is reused between calls).
+fn pack_gaussians(g: &Gaussians, v: &mut Vec<f32>) {
+    v.resize(g.len() * GREC, 0.0);
     v.par_chunks_mut(GREC).enumerate().for_each(|(i, r)| {
         let (m, s, q) = (g.means[i], g.scales[i], g.rotations[i]);
         r[..3].copy_from_slice(&[m.x, m.y, m.z]);
@@ -779,7 +890,108 @@ fn pack_gaussians(g: &Gaussians) -> Vec<f32> {
             r[12 + 3 * k..15 + 3 * k].copy_from_slice(&[c.x, c.y, c.z]);
         }
     });
-    v
+}
+
+/// The output gradients as 8 f32 per pixel (r, g, b, alpha, depth, ox, oy,
+/// fur; zero where a gradient is absent), into `v`; every image is checked
+/// for its size and for finite values (the first bad pixel is named).
+fn pack_pixel_grads(
+    dl: &OutputGrads,
+    w: u32,
+    h: u32,
+    v: &mut Vec<f32>,
+) -> Result<(), RenderError> {
+    let npix = (w * h) as usize;
+    v.clear();
+    v.resize(npix * 8, 0.0);
+    let chans: [(&Option<ImageF32>, &'static str, u32, usize); 5] = [
+        (&dl.rgb, "rgb gradient", 3, 0),
+        (&dl.alpha, "alpha gradient", 1, 3),
+        (&dl.depth, "depth gradient", 1, 4),
+        (&dl.orientation, "orientation gradient", 2, 5),
+        (&dl.fur, "fur gradient", 1, 7),
+    ];
+    for (img, what, ch, f0) in chans {
+        let Some(img) = img else { continue };
+        check_image(what, img, w, h, ch)?;
+        let ch = ch as usize;
+        if let Some(q) = img.data.par_iter().position_first(|x| !x.is_finite()) {
+            return Err(RenderError::NonFinite {
+                what,
+                index: q / ch,
+            });
+        }
+        v.par_chunks_exact_mut(8)
+            .zip(img.data.par_chunks_exact(ch))
+            .for_each(|(p, x)| p[f0..f0 + ch].copy_from_slice(x));
+    }
+    Ok(())
+}
+
+/// `b` as f32 (in place when aligned, as mapped memory is).
+fn as_f32(b: &[u8]) -> std::borrow::Cow<'_, [f32]> {
+    match bytemuck::try_cast_slice(b) {
+        Ok(v) => std::borrow::Cow::Borrowed(v),
+        Err(_) => std::borrow::Cow::Owned(bytemuck::pod_collect_to_vec(b)),
+    }
+}
+
+/// The forward kernel's 8 f32 per pixel as the CPU's output images.
+fn unpack_image(b: &[u8], w: u32, h: u32) -> RenderOutput {
+    let data = as_f32(b);
+    let mut out = RenderOutput {
+        rgb: ImageF32::new(w, h, 3),
+        alpha: ImageF32::new(w, h, 1),
+        depth: ImageF32::new(w, h, 1),
+        orientation: ImageF32::new(w, h, 2),
+        fur: ImageF32::new(w, h, 1),
+    };
+    (
+        out.rgb.data.par_chunks_exact_mut(3),
+        out.alpha.data.par_iter_mut(),
+        out.depth.data.par_iter_mut(),
+        out.orientation.data.par_chunks_exact_mut(2),
+        out.fur.data.par_iter_mut(),
+        data.par_chunks_exact(8),
+    )
+        .into_par_iter()
+        .for_each(|(rgb, a, d, o, f, p)| {
+            rgb.copy_from_slice(&p[0..3]);
+            *a = p[3];
+            *d = p[4];
+            o.copy_from_slice(&p[5..7]);
+            *f = p[7];
+        });
+    out
+}
+
+/// `project_backward`'s 32 f32 per Gaussian as [`GaussianGrads`].
+fn unpack_grads(b: &[u8], n: usize) -> GaussianGrads {
+    let v = as_f32(b);
+    let mut out = GaussianGrads::zeros(n);
+    (
+        out.means.par_iter_mut(),
+        out.scales.par_iter_mut(),
+        out.rotations.par_iter_mut(),
+        out.opacities.par_iter_mut(),
+        out.sh.par_iter_mut(),
+        out.cov3d.par_iter_mut(),
+        out.means2d.par_iter_mut(),
+        v.par_chunks_exact(OREC),
+    )
+        .into_par_iter()
+        .for_each(|(m, sc, q, o, sh, c, m2, r)| {
+            *m = Vec3::new(r[0], r[1], r[2]);
+            *sc = Vec3::new(r[3], r[4], r[5]);
+            *q = Quat::from_xyzw(r[6], r[7], r[8], r[9]);
+            *o = r[10];
+            for (k, c) in sh.iter_mut().enumerate() {
+                *c = Vec3::new(r[11 + 3 * k], r[12 + 3 * k], r[13 + 3 * k]);
+            }
+            c.copy_from_slice(&r[23..29]);
+            *m2 = Vec2::new(r[29], r[30]);
+        });
+    out
 }
 
 impl Kernels {

@@ -491,6 +491,56 @@ fn gpu_deterministic_mode_reruns_bit_identical() {
     }
 }
 
+/// Pooled buffers hold the previous call's bytes: a scene rendered after
+/// another of the same size must give the bits it gives on a fresh renderer,
+/// and the second call of a size must create no buffer.
+#[test]
+fn gpu_reused_buffers_give_a_fresh_renderers_bits() {
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    // x: an opaque cluster (pixels stop early, so the backward pass leaves
+    // the instances behind the stop unvisited; empty tiles around it) on
+    // partial tiles (83 x 61). y: the same Gaussians nearly transparent (as
+    // many instances, all visited, every buffer in x's size class).
+    let mut x = random_gaussians(&mut rng, 300, 0.2);
+    for (s, o) in x.scales.iter_mut().zip(&mut x.opacities) {
+        *s *= 0.5;
+        *o = 0.99;
+    }
+    let mut y = x.clone();
+    for o in &mut y.opacities {
+        *o = 0.02;
+    }
+    let mut cam = test_camera(80, Vec3::new(0.4, 0.3, 4.0), Vec3::ZERO);
+    cam.width = 83;
+    cam.height = 61;
+    let s = RenderSettings {
+        sh_degree: 1,
+        ..Default::default()
+    };
+    let dl_x = random_output_grads(&mut rng, 83, 61);
+    let dl_y = random_output_grads(&mut rng, 83, 61);
+    let run = |g: &Gaussians, dl: &OutputGrads| {
+        let (o, st) = r.render(g, &cam, &s).unwrap();
+        let gr = r.backward(g, &cam, &s, &st, dl).unwrap();
+        bits(&o, &gr)
+    };
+    let fresh = run(&x, &dl_x);
+    let created = r.buffers_created();
+    assert!(created > 0);
+    let again = run(&x, &dl_x);
+    assert_eq!(r.buffers_created(), created, "a same-size call created buffers");
+    assert!(fresh == again, "a rerun changed the bits");
+    run(&y, &dl_y);
+    let after_other = run(&x, &dl_x);
+    assert!(
+        fresh == after_other,
+        "stale bytes from the previous scene changed the result"
+    );
+}
+
 #[test]
 fn gpu_empty_and_fully_culled_scenes() {
     let Some(r) = gpu(GpuMode::Deterministic) else {
