@@ -26,6 +26,8 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use rayon::prelude::*;
+
 use super::raster::check_image;
 use super::RenderError;
 use crate::data::image::ImageF32;
@@ -75,40 +77,92 @@ fn gauss_kernel() -> [f64; 2 * SSIM_RADIUS + 1] {
     k
 }
 
-/// Separable Gaussian blur with zero padding (self-adjoint).
+/// Separable Gaussian blur with zero padding (self-adjoint). Rows in
+/// parallel, and within a row the taps outermost so the pixels vectorise;
+/// every output value is still the sum over taps in tap order (out-of-image
+/// taps skipped), whatever the threads.
 fn blur(src: &[f64], w: usize, h: usize, k: &[f64]) -> Vec<f64> {
-    let r = SSIM_RADIUS as isize;
+    let r = SSIM_RADIUS;
     let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let mut s = 0.0;
-            for (j, kv) in k.iter().enumerate() {
-                let xx = x as isize + j as isize - r;
-                if xx >= 0 && (xx as usize) < w {
-                    s += kv * src[y * w + xx as usize];
-                }
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let line = &src[y * w..(y + 1) * w];
+        for (j, &kv) in k.iter().enumerate() {
+            // Output x reads input x + j - r, inside [0, w).
+            let lo = r.saturating_sub(j);
+            let hi = (w + r).saturating_sub(j).min(w);
+            if lo >= hi {
+                continue;
             }
-            tmp[y * w + x] = s;
+            let off = lo + j - r;
+            for (t, v) in row[lo..hi].iter_mut().zip(&line[off..off + (hi - lo)]) {
+                *t += kv * v;
+            }
         }
-    }
+    });
     let mut out = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let mut s = 0.0;
-            for (j, kv) in k.iter().enumerate() {
-                let yy = y as isize + j as isize - r;
-                if yy >= 0 && (yy as usize) < h {
-                    s += kv * tmp[yy as usize * w + x];
-                }
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (j, &kv) in k.iter().enumerate() {
+            let yy = y as isize + j as isize - r as isize;
+            if yy < 0 || yy as usize >= h {
+                continue;
             }
-            out[y * w + x] = s;
+            let line = &tmp[yy as usize * w..(yy as usize + 1) * w];
+            for (o, v) in row.iter_mut().zip(line) {
+                *o += kv * v;
+            }
         }
-    }
+    });
     out
 }
 
+/// One channel of [`ssim`]: the per-pixel SSIM (unweighted) and the
+/// gradient of `norm * sum_p m_p SSIM_p` w.r.t. the channel's pixels.
+fn ssim_channel(x: &[f64], y: &[f64], m: &[f64], norm: f64, w: usize, h: usize) -> (Vec<f64>, Vec<f64>) {
+    let k = gauss_kernel();
+    let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
+    let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
+    let xy: Vec<f64> = x.iter().zip(y).map(|(a, b)| a * b).collect();
+    let (mx, my) = (blur(x, w, h, &k), blur(y, w, h, &k));
+    let (bxx, byy, bxy) = (blur(&xx, w, h, &k), blur(&yy, w, h, &k), blur(&xy, w, h, &k));
+    let n = w * h;
+    let mut ssim_p = vec![0.0; n];
+    let mut d_mu = vec![0.0; n];
+    let mut d_xx = vec![0.0; n];
+    let mut d_xy = vec![0.0; n];
+    (&mut ssim_p, &mut d_mu, &mut d_xx, &mut d_xy)
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(p, (sp, dmu, dxx, dxy))| {
+            let (ux, uy) = (mx[p], my[p]);
+            let sx = bxx[p] - ux * ux;
+            let sy = byy[p] - uy * uy;
+            let sxy = bxy[p] - ux * uy;
+            let a1 = 2.0 * ux * uy + SSIM_C1;
+            let a2 = 2.0 * sxy + SSIM_C2;
+            let b1 = ux * ux + uy * uy + SSIM_C1;
+            let b2 = sx + sy + SSIM_C2;
+            let s = a1 * a2 / (b1 * b2);
+            *sp = s;
+            let ds = m[p] * norm;
+            let ds_dux = 2.0 * uy * a2 / (b1 * b2) - s * 2.0 * ux / b1;
+            let ds_dsx = -s / b2;
+            let ds_dsxy = 2.0 * a1 / (b1 * b2);
+            *dmu = ds * (ds_dux - 2.0 * ux * ds_dsx - uy * ds_dsxy);
+            *dxx = ds * ds_dsx;
+            *dxy = ds * ds_dsxy;
+        });
+    let (g_mu, g_xx, g_xy) = (blur(&d_mu, w, h, &k), blur(&d_xx, w, h, &k), blur(&d_xy, w, h, &k));
+    let grad = (0..n)
+        .into_par_iter()
+        .map(|p| g_mu[p] + 2.0 * x[p] * g_xx[p] + y[p] * g_xy[p])
+        .collect();
+    (ssim_p, grad)
+}
+
 /// Weighted mean SSIM of `img` vs `target` (same size, any channel count)
-/// and its gradient w.r.t. `img`.
+/// and its gradient w.r.t. `img`. Channels and pixels run in parallel; the
+/// mean is summed channel by channel, pixel by pixel, so its bits do not
+/// depend on the threads.
 pub fn ssim(
     img: &ImageF32,
     target: &ImageF32,
@@ -124,52 +178,22 @@ pub fn ssim(
         return Ok((0.0, grad));
     }
     let (wu, hu, c) = (w as usize, h as usize, ch as usize);
-    let k = gauss_kernel();
     let norm = 1.0 / (msum * c as f64);
+    let channels: Vec<(Vec<f64>, Vec<f64>)> = (0..c)
+        .into_par_iter()
+        .map(|cc| {
+            let x: Vec<f64> = (0..wu * hu).map(|p| img.data[p * c + cc] as f64).collect();
+            let y: Vec<f64> = (0..wu * hu)
+                .map(|p| target.data[p * c + cc] as f64)
+                .collect();
+            ssim_channel(&x, &y, &m, norm, wu, hu)
+        })
+        .collect();
     let mut total = 0.0f64;
-    for cc in 0..c {
-        let x: Vec<f64> = (0..wu * hu).map(|p| img.data[p * c + cc] as f64).collect();
-        let y: Vec<f64> = (0..wu * hu)
-            .map(|p| target.data[p * c + cc] as f64)
-            .collect();
-        let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
-        let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
-        let xy: Vec<f64> = x.iter().zip(&y).map(|(a, b)| a * b).collect();
-        let (mx, my) = (blur(&x, wu, hu, &k), blur(&y, wu, hu, &k));
-        let (bxx, byy, bxy) = (
-            blur(&xx, wu, hu, &k),
-            blur(&yy, wu, hu, &k),
-            blur(&xy, wu, hu, &k),
-        );
-        let mut d_mu = vec![0.0; wu * hu];
-        let mut d_xx = vec![0.0; wu * hu];
-        let mut d_xy = vec![0.0; wu * hu];
+    for (cc, (ssim_p, g)) in channels.iter().enumerate() {
         for p in 0..wu * hu {
-            let (ux, uy) = (mx[p], my[p]);
-            let sx = bxx[p] - ux * ux;
-            let sy = byy[p] - uy * uy;
-            let sxy = bxy[p] - ux * uy;
-            let a1 = 2.0 * ux * uy + SSIM_C1;
-            let a2 = 2.0 * sxy + SSIM_C2;
-            let b1 = ux * ux + uy * uy + SSIM_C1;
-            let b2 = sx + sy + SSIM_C2;
-            let s = a1 * a2 / (b1 * b2);
-            total += m[p] * s;
-            let ds = m[p] * norm;
-            let ds_dux = 2.0 * uy * a2 / (b1 * b2) - s * 2.0 * ux / b1;
-            let ds_dsx = -s / b2;
-            let ds_dsxy = 2.0 * a1 / (b1 * b2);
-            d_mu[p] = ds * (ds_dux - 2.0 * ux * ds_dsx - uy * ds_dsxy);
-            d_xx[p] = ds * ds_dsx;
-            d_xy[p] = ds * ds_dsxy;
-        }
-        let (g_mu, g_xx, g_xy) = (
-            blur(&d_mu, wu, hu, &k),
-            blur(&d_xx, wu, hu, &k),
-            blur(&d_xy, wu, hu, &k),
-        );
-        for p in 0..wu * hu {
-            grad.data[p * c + cc] = (g_mu[p] + 2.0 * x[p] * g_xx[p] + y[p] * g_xy[p]) as f32;
+            total += m[p] * ssim_p[p];
+            grad.data[p * c + cc] = g[p] as f32;
         }
     }
     Ok(((total * norm) as f32, grad))

@@ -553,6 +553,14 @@ pub struct FitReport {
     /// first densification event (to choose `densify_grad`).
     pub densify_grad_p50: f32,
     pub densify_grad_p90: f32,
+    /// Where the iterations' wall time went, in seconds: the renderer's
+    /// forward pass, the image losses, the renderer's backward pass, and the
+    /// optimiser step with densification (what the `device` changes is the
+    /// first and third).
+    pub seconds_render: f64,
+    pub seconds_loss: f64,
+    pub seconds_backward: f64,
+    pub seconds_update: f64,
 }
 
 fn sigmoid(x: f32) -> f32 {
@@ -1147,13 +1155,20 @@ pub fn fit_gaussians_on(
             shuffle_views(&mut order, &mut rng);
         }
         let v = &views[order[k]];
+        let lap = std::time::Instant::now();
         let (out, state) = device.render(&g, &v.camera, &settings)?;
+        report.seconds_render += lap.elapsed().as_secs_f64();
+        let lap = std::time::Instant::now();
         let (loss, dl) = view_loss(&out, v, s)?;
+        report.seconds_loss += lap.elapsed().as_secs_f64();
         if it == 0 {
             report.loss_first = loss;
         }
         recent.push(loss);
+        let lap = std::time::Instant::now();
         let gr = device.backward(&g, &v.camera, &settings, &state, &dl)?;
+        report.seconds_backward += lap.elapsed().as_secs_f64();
+        let lap = std::time::Instant::now();
         if s.densify_every > 0 {
             st.accumulate_view_space_grad(&gr, &g, &v.camera);
         }
@@ -1162,6 +1177,7 @@ pub fn fit_gaussians_on(
             st.densify_event(s, d, &mut split_rng, &mut report)?;
         }
         g = st.p.to_gaussians();
+        report.seconds_update += lap.elapsed().as_secs_f64();
         progress.advance(1);
     }
     let tail = recent.len().min(views.len()).max(1);

@@ -13,8 +13,10 @@
 //!    Gaussian `i`'s instances own the slots `offsets[i] .. offsets[i + 1]`.
 //! 3. `emit` (per Gaussian): one key `(tile, depth bits, index, slot)` per
 //!    instance; `pad` fills the keys up to a power of two.
-//! 4. `sort` (bitonic, one dispatch per step): the keys by `(tile, depth,
-//!    index)`, a total order, so every tile's list is exactly the CPU's.
+//! 4. `sort` + `sort_local` (bitonic): the keys by `(tile, depth, index)`,
+//!    a total order, so every tile's list is exactly the CPU's. Steps that
+//!    compare keys less than 512 apart run in workgroup memory, all of one
+//!    merge in one `sort_local` dispatch; the wider ones one dispatch each.
 //! 5. `ranges`: each tile's instance range.
 //! 6. `forward` (a workgroup per tile, a thread per pixel, splats loaded by
 //!    batches into workgroup memory): front-to-back compositing of all
@@ -110,6 +112,8 @@ const NV: u64 = 13;
 const SPLAT_BYTES: u64 = 80;
 /// Stride of the per-dispatch `Small` uniforms (the largest uniform offset alignment).
 const SMALL_STRIDE: u64 = 256;
+/// Keys per workgroup of `sort_local` (its `BLOCK`).
+const SORT_BLOCK: u32 = 512;
 
 struct Kernels {
     project: wgpu::ComputePipeline,
@@ -118,6 +122,7 @@ struct Kernels {
     emit: wgpu::ComputePipeline,
     pad: wgpu::ComputePipeline,
     sort: wgpu::ComputePipeline,
+    sort_local: wgpu::ComputePipeline,
     ranges: wgpu::ComputePipeline,
     forward: wgpu::ComputePipeline,
     backward: wgpu::ComputePipeline,
@@ -649,40 +654,54 @@ impl GpuRenderer {
         );
         laps.device("render: emit keys", &mut enc)?;
         if n_inst > 1 {
-            let mut steps: Vec<[u32; 4]> = Vec::new();
-            let mut k = 2u32;
+            // (kernel, Small uniform, workgroups): the padding, then the
+            // bitonic steps; those with j < 512 run in workgroup memory.
+            let global = groups2(padded.div_ceil(256));
+            let mut steps: Vec<(&wgpu::ComputePipeline, [u32; 4], (u32, u32))> = vec![(
+                &self.kernels.pad,
+                [padded, n_inst, 0, 0],
+                groups2((padded - n_inst).div_ceil(256)),
+            )];
+            let local_from = if padded >= SORT_BLOCK {
+                steps.push((
+                    &self.kernels.sort_local,
+                    [padded, 0, 0, 0],
+                    groups2(padded / SORT_BLOCK),
+                ));
+                2 * SORT_BLOCK
+            } else {
+                2
+            };
+            let mut k = local_from;
             while k <= padded {
                 let mut j = k / 2;
-                while j > 0 {
-                    steps.push([padded, k, j, 0]);
+                while j > 0 && (padded < SORT_BLOCK || j >= SORT_BLOCK) {
+                    steps.push((&self.kernels.sort, [padded, k, j, 0], global));
                     j /= 2;
+                }
+                if padded >= SORT_BLOCK {
+                    steps.push((
+                        &self.kernels.sort_local,
+                        [padded, k, 0, 0],
+                        groups2(padded / SORT_BLOCK),
+                    ));
                 }
                 k *= 2;
             }
-            // Entry 0: the padding (n = padded, a = n_inst); entry i + 1: step i.
             let stride = SMALL_STRIDE as usize / 4;
-            let mut bytes: Vec<u32> = vec![0; (steps.len() + 1) * stride];
-            bytes[..4].copy_from_slice(&[padded, n_inst, 0, 0]);
+            let mut bytes: Vec<u32> = vec![0; steps.len() * stride];
             for (i, st) in steps.iter().enumerate() {
-                bytes[(i + 1) * stride..(i + 1) * stride + 4].copy_from_slice(st);
+                bytes[i * stride..i * stride + 4].copy_from_slice(&st.1);
             }
             let su = self.uniform(bytemuck::cast_slice(&bytes));
-            self.dispatch(
-                &mut enc,
-                &self.kernels.pad,
-                &su,
-                Some(0),
-                &[&keys],
-                groups2((padded - n_inst).div_ceil(256)),
-            );
-            for i in 0..steps.len() {
+            for (i, (kernel, _, groups)) in steps.iter().enumerate() {
                 self.dispatch(
                     &mut enc,
-                    &self.kernels.sort,
+                    kernel,
                     &su,
-                    Some((i as u64 + 1) * SMALL_STRIDE),
+                    Some(i as u64 * SMALL_STRIDE),
                     &[&keys],
-                    groups2(padded.div_ceil(256)),
+                    *groups,
                 );
             }
         }
@@ -1020,6 +1039,7 @@ impl Kernels {
             emit: make("emit", &[COMMON, PROJ, include_str!("emit.wgsl")]),
             pad: make("pad", &[COMMON, include_str!("pad.wgsl")]),
             sort: make("sort", &[COMMON, include_str!("sort.wgsl")]),
+            sort_local: make("sort_local", &[COMMON, include_str!("sort_local.wgsl")]),
             ranges: make("ranges", &[COMMON, include_str!("ranges.wgsl")]),
             forward: make("forward", &[COMMON, include_str!("forward.wgsl")]),
             backward: make("backward", &[COMMON, include_str!("backward.wgsl")]),
