@@ -18,6 +18,7 @@ use super::gaussians::{GaussianGrads, Gaussians};
 use super::raster::{OutputGrads, RenderOutput, RenderState};
 use super::{RenderError, RenderSettings};
 use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
 
 /// The values of the `device` parameter.
 pub const DEVICE_CHOICES: &[&str] = &["auto", "cpu", "gpu"];
@@ -137,6 +138,24 @@ impl Renderer {
             Renderer::Gpu(r) => r
                 .render(g, cam, s)
                 .map(|(o, st)| (o, State::Gpu(Box::new(st)))),
+        }
+    }
+
+    /// [`super::losses::l1_dssim`] with its SSIM term on this device (the
+    /// L1 term is cheap and stays on the CPU).
+    pub fn l1_dssim(
+        &self,
+        img: &ImageF32,
+        target: &ImageF32,
+        mask: Option<&ImageF32>,
+        lambda: f32,
+    ) -> Result<(f32, ImageF32), RenderError> {
+        match self {
+            Renderer::Cpu => super::losses::l1_dssim(img, target, mask, lambda),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => {
+                super::losses::l1_dssim_with(img, target, mask, lambda, |a, b, m| r.ssim(a, b, m))
+            }
         }
     }
 

@@ -36,9 +36,9 @@ use crate::data::image::ImageF32;
 /// gradient.
 pub const ORIENTATION_EPS: f32 = 1e-8;
 
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
-const SSIM_RADIUS: usize = 5;
+pub(crate) const SSIM_C1: f64 = 0.01 * 0.01;
+pub(crate) const SSIM_C2: f64 = 0.03 * 0.03;
+pub(crate) const SSIM_RADIUS: usize = 5;
 const SSIM_SIGMA: f64 = 1.5;
 
 /// The renderer's shape check, plus finiteness: loss inputs come from files.
@@ -66,7 +66,8 @@ fn mask_weights(mask: Option<&ImageF32>, w: u32, h: u32) -> Result<Vec<f64>, Ren
     }
 }
 
-fn gauss_kernel() -> [f64; 2 * SSIM_RADIUS + 1] {
+/// SSIM's normalised 11-tap Gaussian window.
+pub(crate) fn gauss_kernel() -> [f64; 2 * SSIM_RADIUS + 1] {
     let mut k = [0.0; 2 * SSIM_RADIUS + 1];
     for (i, v) in k.iter_mut().enumerate() {
         let x = i as f64 - SSIM_RADIUS as f64;
@@ -169,9 +170,7 @@ pub fn ssim(
     mask: Option<&ImageF32>,
 ) -> Result<(f32, ImageF32), RenderError> {
     let (w, h, ch) = (img.width, img.height, img.channels);
-    check("image", img, w, h, ch)?;
-    check("target", target, w, h, ch)?;
-    let m = mask_weights(mask, w, h)?;
+    let m = ssim_weights(img, target, mask)?;
     let msum: f64 = m.iter().sum();
     let mut grad = ImageF32::new(w, h, ch);
     if msum <= 0.0 {
@@ -197,6 +196,19 @@ pub fn ssim(
         }
     }
     Ok(((total * norm) as f32, grad))
+}
+
+/// [`ssim`]'s input checks (sizes, finite values, the mask) and its pixel
+/// weights; shared with the GPU's SSIM so both refuse the same inputs.
+pub(crate) fn ssim_weights(
+    img: &ImageF32,
+    target: &ImageF32,
+    mask: Option<&ImageF32>,
+) -> Result<Vec<f64>, RenderError> {
+    let (w, h, ch) = (img.width, img.height, img.channels);
+    check("image", img, w, h, ch)?;
+    check("target", target, w, h, ch)?;
+    mask_weights(mask, w, h)
 }
 
 /// Weighted mean absolute difference over pixels and channels.
@@ -240,13 +252,25 @@ pub fn l1_dssim(
     mask: Option<&ImageF32>,
     lambda: f32,
 ) -> Result<(f32, ImageF32), RenderError> {
+    l1_dssim_with(img, target, mask, lambda, ssim)
+}
+
+/// [`l1_dssim`] with the SSIM term computed by `ssim_fn` (the CPU's
+/// [`ssim`] or the GPU's, which must return what [`ssim`] does).
+pub fn l1_dssim_with(
+    img: &ImageF32,
+    target: &ImageF32,
+    mask: Option<&ImageF32>,
+    lambda: f32,
+    ssim_fn: impl FnOnce(&ImageF32, &ImageF32, Option<&ImageF32>) -> Result<(f32, ImageF32), RenderError>,
+) -> Result<(f32, ImageF32), RenderError> {
     if !(0.0..=1.0).contains(&lambda) {
         return Err(RenderError::Settings(format!(
             "D-SSIM weight lambda = {lambda}, expected a value in [0, 1]"
         )));
     }
     let (l, mut g) = l1(img, target, mask)?;
-    let (s, gs) = ssim(img, target, mask)?;
+    let (s, gs) = ssim_fn(img, target, mask)?;
     let any = mask.is_none_or(|m| m.data.iter().any(|&v| v > 0.0));
     for (a, b) in g.data.iter_mut().zip(&gs.data) {
         *a = (1.0 - lambda) * *a - lambda * b;

@@ -884,11 +884,12 @@ fn shuffle_views(order: &mut [usize], rng: &mut ChaCha8Rng) {
 /// The fit's loss on one rendered view, `(1 - lambda) L1 + lambda D-SSIM`
 /// plus the weighted silhouette term, and its gradient on the outputs.
 fn view_loss(
+    device: &render::device::Renderer,
     out: &render::RenderOutput,
     v: &TrainView,
     s: &FitSettings,
 ) -> Result<(f32, OutputGrads), StageError> {
-    let (l_rgb, g_rgb) = losses::l1_dssim(&out.rgb, &v.rgb, None, s.lambda_dssim)?;
+    let (l_rgb, g_rgb) = device.l1_dssim(&out.rgb, &v.rgb, None, s.lambda_dssim)?;
     let (l_sil, mut g_sil) = losses::silhouette(&out.alpha, &v.mask, None)?;
     for x in &mut g_sil.data {
         *x *= s.silhouette_weight;
@@ -1159,7 +1160,7 @@ pub fn fit_gaussians_on(
         let (out, state) = device.render(&g, &v.camera, &settings)?;
         report.seconds_render += lap.elapsed().as_secs_f64();
         let lap = std::time::Instant::now();
-        let (loss, dl) = view_loss(&out, v, s)?;
+        let (loss, dl) = view_loss(device, &out, v, s)?;
         report.seconds_loss += lap.elapsed().as_secs_f64();
         if it == 0 {
             report.loss_first = loss;

@@ -124,6 +124,18 @@ pub struct ImageLosses {
     sh1: Vec<f32>,
     sh1_adam: RowAdam,
     settings: RenderSettings,
+    timing: ImageTiming,
+}
+
+/// Where the training iterations' image terms spent their wall time, in
+/// seconds (metrics.json `image_seconds`): the renderer's forward pass, the
+/// image losses, and the backward pass (the renderer's, then the chain rule
+/// to the strand points). The `device` changes the first and the third.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ImageTiming {
+    pub render: f64,
+    pub loss: f64,
+    pub backward: f64,
 }
 
 fn fur_mask_path(views: &Path, cam: &Camera) -> std::path::PathBuf {
@@ -316,6 +328,7 @@ impl ImageLosses {
                 sh_degree: cfg.sh_degree.min(1),
                 ..RenderSettings::default()
             },
+            timing: ImageTiming::default(),
         })
     }
 
@@ -438,6 +451,11 @@ impl ImageLosses {
     /// The device that renders, for the run report's note.
     pub fn device_description(&self) -> String {
         self.cfg.device.describe()
+    }
+
+    /// Where the training iterations' image terms spent their time so far.
+    pub fn timing(&self) -> ImageTiming {
+        self.timing
     }
 
     /// The device that rendered, for metrics.json.
@@ -701,7 +719,7 @@ fn view_losses(
         g
     };
     if cfg.l_rgb > 0.0 {
-        let (v, g) = losses::l1_dssim(&out.rgb, &view.rgb, None, 0.2)?;
+        let (v, g) = cfg.device.l1_dssim(&out.rgb, &view.rgb, None, 0.2)?;
         terms.push(("rgb", cfg.l_rgb * v));
         dl.rgb = Some(scale(g, cfg.l_rgb));
     }
@@ -770,8 +788,13 @@ impl ImageTerm for ImageLosses {
         let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
         for &vi in &vids {
             let view = &self.views[vi];
+            let lap = std::time::Instant::now();
             let (out, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
+            self.timing.render += lap.elapsed().as_secs_f64();
+            let lap = std::time::Instant::now();
             let (t, dl) = view_losses(&out, view, &self.cfg)?;
+            self.timing.loss += lap.elapsed().as_secs_f64();
+            let lap = std::time::Instant::now();
             for (name, v) in t {
                 match terms.iter_mut().find(|x| x.0 == name) {
                     Some(x) => x.1 += inv * v,
@@ -783,6 +806,7 @@ impl ImageTerm for ImageLosses {
                 .device
                 .backward(&g, &view.camera, &self.settings, &state, &dl)?;
             let sg = render::strands_backward(points, &starts, &widths, &head(&gg, segs))?;
+            self.timing.backward += lap.elapsed().as_secs_f64();
             for (a, b) in grad.iter_mut().zip(&sg.points) {
                 *a += inv * *b;
             }

@@ -388,6 +388,10 @@ pub struct LearnMetrics {
     /// `{"device", "adapter"}` that rendered, when the `device` parameter is set.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device: Option<serde_json::Value>,
+    /// Where the iterations' image terms spent their time (render, loss,
+    /// backward seconds; absent without image terms).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_seconds: Option<super::image::ImageTiming>,
 }
 
 /// Checks the roots' arrays agree and are finite.
@@ -820,6 +824,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             .get("device")
             .and(image.as_ref())
             .map(|i| i.device_metrics()),
+        image_seconds: image.as_ref().map(|i| i.timing()),
     };
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;

@@ -43,7 +43,7 @@ use wgpu::util::DeviceExt;
 use super::gaussians::{GaussianGrads, Gaussians};
 use super::project::CamData;
 use super::raster::{check_image, OutputGrads, RenderOutput};
-use super::{RenderError, RenderSettings, TILE};
+use super::{losses, RenderError, RenderSettings, TILE};
 use crate::data::camera::Camera;
 use crate::data::image::ImageF32;
 
@@ -102,6 +102,20 @@ struct Params {
     pad1: u32,
 }
 
+/// The SSIM kernels' uniforms (`SsimParams` in ssim_common.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct SsimParams {
+    width: u32,
+    height: u32,
+    channels: u32,
+    planes: u32,
+    dir: u32,
+    pad: [u32; 2],
+    norm: f32,
+    k: [[f32; 4]; 3],
+}
+
 /// f32 per Gaussian in the input record (proj_common.wgsl).
 const GREC: usize = 24;
 /// f32 per Gaussian in the gradient record (project_backward.wgsl).
@@ -127,6 +141,10 @@ struct Kernels {
     forward: wgpu::ComputePipeline,
     backward: wgpu::ComputePipeline,
     project_backward: wgpu::ComputePipeline,
+    ssim_maps: wgpu::ComputePipeline,
+    ssim_blur: wgpu::ComputePipeline,
+    ssim_terms: wgpu::ComputePipeline,
+    ssim_grad: wgpu::ComputePipeline,
 }
 
 /// A wgpu device with the renderer's kernels compiled.
@@ -837,6 +855,103 @@ impl GpuRenderer {
     }
 }
 
+impl GpuRenderer {
+    /// Weighted mean SSIM of `img` against `target` and its gradient w.r.t.
+    /// `img`, on the GPU: [`losses::ssim`] (same checks, window, borders
+    /// and weighting) computed in f32 instead of f64; the mean is summed on
+    /// the host in the CPU's order. Within `docs/gpu.md`'s SSIM tolerance of
+    /// the CPU's.
+    pub fn ssim(
+        &self,
+        img: &ImageF32,
+        target: &ImageF32,
+        mask: Option<&ImageF32>,
+    ) -> Result<(f32, ImageF32), RenderError> {
+        let m = losses::ssim_weights(img, target, mask)?;
+        let (w, h, ch) = (img.width, img.height, img.channels);
+        let msum: f64 = m.iter().sum();
+        let mut grad = ImageF32::new(w, h, ch);
+        if msum <= 0.0 {
+            return Ok((0.0, grad));
+        }
+        let (c, npix) = (ch as usize, (w * h) as usize);
+        let norm = 1.0 / (msum * c as f64);
+        // Planes x (c), y (c), weights (1).
+        let mut src = vec![0.0f32; (2 * c + 1) * npix];
+        src.par_chunks_mut(npix).enumerate().for_each(|(p, plane)| {
+            for (q, v) in plane.iter_mut().enumerate() {
+                *v = if p < c {
+                    img.data[q * c + p]
+                } else if p < 2 * c {
+                    target.data[q * c + p - c]
+                } else {
+                    m[q] as f32
+                };
+            }
+        });
+        let k64 = losses::gauss_kernel();
+        let mut k = [[0.0f32; 4]; 3];
+        for (j, v) in k64.iter().enumerate() {
+            k[j / 4][j % 4] = *v as f32;
+        }
+        let params = |planes: usize, dir: u32| SsimParams {
+            width: w,
+            height: h,
+            channels: ch,
+            planes: planes as u32,
+            dir,
+            pad: [0; 2],
+            norm: norm as f32,
+            k,
+        };
+        let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let mut enc = self.encoder();
+        let (srcb, staging) = self.upload(&mut enc, "ssim inputs", bytemuck::cast_slice(&src))?;
+        let plane_bytes = npix as u64 * 4;
+        let maps = self.storage("ssim maps", 5 * c as u64 * plane_bytes);
+        let tmp = self.storage("ssim blur pass", 5 * c as u64 * plane_bytes);
+        let blurred = self.storage("ssim blurred maps", 5 * c as u64 * plane_bytes);
+        let smap = self.storage("ssim map", c as u64 * plane_bytes);
+        let adj = self.storage("ssim adjoints", 3 * c as u64 * plane_bytes);
+        let gbuf = self.storage("ssim gradient", c as u64 * plane_bytes);
+        let u = |planes, dir| self.uniform(bytemuck::bytes_of(&params(planes, dir)));
+        let (u_fwd_x, u_fwd_y, u_adj_x, u_adj_y) = (u(5 * c, 0), u(5 * c, 1), u(3 * c, 0), u(3 * c, 1));
+        let per = |planes: usize| groups2(((planes * npix) as u32).div_ceil(256));
+        let k = &self.kernels;
+        self.dispatch(&mut enc, &k.ssim_maps, &u_fwd_x, None, &[&srcb, &maps], per(c));
+        self.dispatch(&mut enc, &k.ssim_blur, &u_fwd_x, None, &[&maps, &tmp], per(5 * c));
+        self.dispatch(&mut enc, &k.ssim_blur, &u_fwd_y, None, &[&tmp, &blurred], per(5 * c));
+        self.dispatch(
+            &mut enc,
+            &k.ssim_terms,
+            &u_fwd_x,
+            None,
+            &[&blurred, &srcb, &smap, &adj],
+            per(c),
+        );
+        // The adjoints through the (self-adjoint) window; `maps` is free again.
+        self.dispatch(&mut enc, &k.ssim_blur, &u_adj_x, None, &[&adj, &tmp], per(3 * c));
+        self.dispatch(&mut enc, &k.ssim_blur, &u_adj_y, None, &[&tmp, &maps], per(3 * c));
+        self.dispatch(&mut enc, &k.ssim_grad, &u_fwd_x, None, &[&maps, &srcb, &gbuf], per(c));
+        self.submit_wait(enc)?;
+        drop(staging);
+        let total = self.read_with(&smap, 0, c as u64 * plane_bytes, |b| {
+            let s = as_f32(b);
+            let mut total = 0.0f64;
+            for cc in 0..c {
+                for p in 0..npix {
+                    total += m[p] * s[cc * npix + p] as f64;
+                }
+            }
+            total
+        })?;
+        self.read_with(&gbuf, 0, c as u64 * plane_bytes, |b| {
+            grad.data.copy_from_slice(&as_f32(b));
+        })?;
+        Ok(((total * norm) as f32, grad))
+    }
+}
+
 /// Workgroups for `groups` linear workgroups: at most 65535 per dimension
 /// (the kernels' `lin_id` assumes x = 65535 whenever y > 1).
 fn groups2(groups: u32) -> (u32, u32) {
@@ -1017,6 +1132,7 @@ impl Kernels {
     fn new(device: &wgpu::Device) -> Kernels {
         const COMMON: &str = include_str!("common.wgsl");
         const PROJ: &str = include_str!("proj_common.wgsl");
+        const SSIM: &str = include_str!("ssim_common.wgsl");
         let make = |name: &str, parts: &[&str]| {
             let src: String = parts.concat();
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -1047,6 +1163,10 @@ impl Kernels {
                 "project_backward",
                 &[COMMON, PROJ, include_str!("project_backward.wgsl")],
             ),
+            ssim_maps: make("ssim_maps", &[COMMON, SSIM, include_str!("ssim_maps.wgsl")]),
+            ssim_blur: make("ssim_blur", &[COMMON, SSIM, include_str!("ssim_blur.wgsl")]),
+            ssim_terms: make("ssim_terms", &[COMMON, SSIM, include_str!("ssim_terms.wgsl")]),
+            ssim_grad: make("ssim_grad", &[COMMON, SSIM, include_str!("ssim_grad.wgsl")]),
         }
     }
 }

@@ -600,3 +600,75 @@ fn gpu_errors_are_the_cpus() {
     let e = r.render(&g, &cam, &RenderSettings::default()).unwrap_err();
     assert!(e.to_string().contains("gaussians.means[0]"), "{e}");
 }
+
+/// SSIM tolerance: the GPU's f32 SSIM within this of the CPU's f64 one
+/// (absolute, SSIM is in [-1, 1]); its gradient within [`GRAD_TOL`] of the
+/// CPU gradient's largest value.
+pub const SSIM_TOL: f32 = 1e-5;
+
+/// An image in [0, 1] and a target that resembles it (SSIM well inside
+/// (0, 1), so both terms of the gradient matter).
+fn ssim_pair(rng: &mut ChaCha8Rng, w: u32, h: u32, c: u32) -> (ImageF32, ImageF32) {
+    let mut img = ImageF32::new(w, h, c);
+    let mut tgt = ImageF32::new(w, h, c);
+    for y in 0..h {
+        for x in 0..w {
+            for k in 0..c {
+                let i = ((y * w + x) * c + k) as usize;
+                let smooth = 0.5 + 0.4 * ((x as f32 * 0.3 + k as f32).sin() * (y as f32 * 0.2).cos());
+                img.data[i] = (smooth + rng.gen_range(-0.1..0.1)).clamp(0.0, 1.0);
+                tgt.data[i] = (0.8 * smooth + 0.1 + rng.gen_range(-0.15..0.15)).clamp(0.0, 1.0);
+            }
+        }
+    }
+    (img, tgt)
+}
+
+#[test]
+fn gpu_ssim_matches_cpu() {
+    use crate::render::device::Renderer;
+    use crate::render::losses;
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let r = std::sync::Arc::new(r);
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    // Partial tiles, no mask, one channel, an image smaller than the window.
+    for (w, h, c, masked) in [(83, 61, 3, true), (64, 48, 3, false), (40, 33, 1, true), (7, 5, 3, true)] {
+        let (img, tgt) = ssim_pair(&mut rng, w, h, c);
+        let mask = masked.then(|| {
+            let mut m = ImageF32::new(w, h, 1);
+            m.data.iter_mut().for_each(|v| *v = rng.gen_range(0.0f32..1.0).max(0.3) - 0.3);
+            m
+        });
+        let (lc, gc) = losses::ssim(&img, &tgt, mask.as_ref()).unwrap();
+        let (lg, gg) = r.ssim(&img, &tgt, mask.as_ref()).unwrap();
+        assert!(
+            (lc - lg).abs() <= SSIM_TOL && lc > 0.05 && lc < 0.99,
+            "{w}x{h}x{c}: ssim cpu {lc} gpu {lg}"
+        );
+        let scale = gc.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let diff = gc.data.iter().zip(&gg.data).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            scale > 0.0 && (diff as f64) <= GRAD_TOL * scale as f64,
+            "{w}x{h}x{c}: ssim gradient differs by {diff:e} of {scale:e}"
+        );
+        // The photometric loss through the device: L1 on the CPU, SSIM here.
+        let (pc, _) = losses::l1_dssim(&img, &tgt, mask.as_ref(), 0.2).unwrap();
+        let (pg, _) = Renderer::Gpu(r.clone()).l1_dssim(&img, &tgt, mask.as_ref(), 0.2).unwrap();
+        assert!((pc - pg).abs() <= SSIM_TOL, "l1_dssim cpu {pc} gpu {pg}");
+    }
+    // An all-zero mask: loss 0, zero gradient; bad inputs: the CPU's errors.
+    let (img, tgt) = ssim_pair(&mut rng, 20, 10, 3);
+    let zero = ImageF32::new(20, 10, 1);
+    let (l, g) = r.ssim(&img, &tgt, Some(&zero)).unwrap();
+    assert!(l == 0.0 && g.data.iter().all(|&v| v == 0.0));
+    let small = ImageF32::new(19, 10, 3);
+    let mut nan = tgt.clone();
+    nan.data[7] = f32::NAN;
+    for (a, b, m) in [(&img, &small, None), (&img, &nan, None), (&img, &tgt, Some(&small))] {
+        let cpu = losses::ssim(a, b, m).unwrap_err().to_string();
+        let gpu = r.ssim(a, b, m).unwrap_err().to_string();
+        assert_eq!(cpu, gpu);
+    }
+}
