@@ -118,13 +118,24 @@ fn blur(src: &[f64], w: usize, h: usize, k: &[f64]) -> Vec<f64> {
 
 /// One channel of [`ssim`]: the per-pixel SSIM (unweighted) and the
 /// gradient of `norm * sum_p m_p SSIM_p` w.r.t. the channel's pixels.
-fn ssim_channel(x: &[f64], y: &[f64], m: &[f64], norm: f64, w: usize, h: usize) -> (Vec<f64>, Vec<f64>) {
+fn ssim_channel(
+    x: &[f64],
+    y: &[f64],
+    m: &[f64],
+    norm: f64,
+    w: usize,
+    h: usize,
+) -> (Vec<f64>, Vec<f64>) {
     let k = gauss_kernel();
     let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
     let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
     let xy: Vec<f64> = x.iter().zip(y).map(|(a, b)| a * b).collect();
     let (mx, my) = (blur(x, w, h, &k), blur(y, w, h, &k));
-    let (bxx, byy, bxy) = (blur(&xx, w, h, &k), blur(&yy, w, h, &k), blur(&xy, w, h, &k));
+    let (bxx, byy, bxy) = (
+        blur(&xx, w, h, &k),
+        blur(&yy, w, h, &k),
+        blur(&xy, w, h, &k),
+    );
     let n = w * h;
     let mut ssim_p = vec![0.0; n];
     let mut d_mu = vec![0.0; n];
@@ -152,7 +163,11 @@ fn ssim_channel(x: &[f64], y: &[f64], m: &[f64], norm: f64, w: usize, h: usize) 
             *dxx = ds * ds_dsx;
             *dxy = ds * ds_dsxy;
         });
-    let (g_mu, g_xx, g_xy) = (blur(&d_mu, w, h, &k), blur(&d_xx, w, h, &k), blur(&d_xy, w, h, &k));
+    let (g_mu, g_xx, g_xy) = (
+        blur(&d_mu, w, h, &k),
+        blur(&d_xx, w, h, &k),
+        blur(&d_xy, w, h, &k),
+    );
     let grad = (0..n)
         .into_par_iter()
         .map(|p| g_mu[p] + 2.0 * x[p] * g_xx[p] + y[p] * g_xy[p])
@@ -262,7 +277,11 @@ pub fn l1_dssim_with(
     target: &ImageF32,
     mask: Option<&ImageF32>,
     lambda: f32,
-    ssim_fn: impl FnOnce(&ImageF32, &ImageF32, Option<&ImageF32>) -> Result<(f32, ImageF32), RenderError>,
+    ssim_fn: impl FnOnce(
+        &ImageF32,
+        &ImageF32,
+        Option<&ImageF32>,
+    ) -> Result<(f32, ImageF32), RenderError>,
 ) -> Result<(f32, ImageF32), RenderError> {
     if !(0.0..=1.0).contains(&lambda) {
         return Err(RenderError::Settings(format!(

@@ -43,6 +43,19 @@ pub struct RenderOutput {
     pub fur: ImageF32,
 }
 
+impl RenderOutput {
+    /// All outputs of a `w` x `h` view, zero.
+    pub fn zeros(w: u32, h: u32) -> RenderOutput {
+        RenderOutput {
+            rgb: ImageF32::new(w, h, 3),
+            alpha: ImageF32::new(w, h, 1),
+            depth: ImageF32::new(w, h, 1),
+            orientation: ImageF32::new(w, h, 2),
+            fur: ImageF32::new(w, h, 1),
+        }
+    }
+}
+
 /// What [`backward`] needs from [`render`].
 #[derive(Debug, Clone)]
 pub struct RenderState {
@@ -467,13 +480,7 @@ fn scatter(
     h: u32,
     s: &RenderSettings,
 ) -> (RenderOutput, Vec<f32>, Vec<u32>, u64) {
-    let mut out = RenderOutput {
-        rgb: ImageF32::new(w, h, 3),
-        alpha: ImageF32::new(w, h, 1),
-        depth: ImageF32::new(w, h, 1),
-        orientation: ImageF32::new(w, h, 2),
-        fur: ImageF32::new(w, h, 1),
-    };
+    let mut out = RenderOutput::zeros(w, h);
     let mut t_final = vec![1.0f32; (w * h) as usize];
     let mut n_contrib = vec![0u32; (w * h) as usize];
     let mut evaluations = 0u64;

@@ -321,13 +321,7 @@ fn brute_force(g: &Gaussians, cam: &Camera, s: &RenderSettings) -> RenderOutput 
         .collect();
     sp.sort_by(|a, b| a.feat[F_DEPTH].total_cmp(&b.feat[F_DEPTH]));
     let (w, h) = (cam.width, cam.height);
-    let mut out = RenderOutput {
-        rgb: ImageF32::new(w, h, 3),
-        alpha: ImageF32::new(w, h, 1),
-        depth: ImageF32::new(w, h, 1),
-        orientation: ImageF32::new(w, h, 2),
-        fur: ImageF32::new(w, h, 1),
-    };
+    let mut out = RenderOutput::zeros(w, h);
     for y in 0..h {
         for x in 0..w {
             let mut t = 1.0f32;

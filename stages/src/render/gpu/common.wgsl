@@ -100,3 +100,15 @@ fn row_span(mean: vec2<f32>, ca: f32, cb: f32, cc: f32, k2: f32, y: i32) -> vec2
     let x1 = mean.x + (-cb * dy + sq) * inv;
     return vec2<i32>(ceil_i(x0 - 0.5), floor_i(x1 - 0.5));
 }
+
+// The instance keys' order (`sort`, `sort_local`): tile, then depth bits,
+// then Gaussian index (the slot, .w, never decides: the first three are unique).
+fn key_less(a: vec4<u32>, b: vec4<u32>) -> bool {
+    if a.x != b.x {
+        return a.x < b.x;
+    }
+    if a.y != b.y {
+        return a.y < b.y;
+    }
+    return a.z < b.z;
+}

@@ -28,6 +28,18 @@
 //!    accumulator with a compare-exchange atomic ([`GpuMode::Atomic`]).
 //! 8. `project_backward` (per Gaussian): sums its slots in tile order (as the
 //!    CPU does) and applies the adjoint of the projection.
+//!
+//! Also here: the photometric loss's SSIM term ([`GpuRenderer::ssim`]:
+//! `ssim_maps`, `ssim_blur` along rows then columns, `ssim_terms`, the
+//! adjoints through the window again, `ssim_grad`), because at view sizes of
+//! 1K pixels the CPU's SSIM costs more than the rendering.
+//!
+//! Host side: every buffer comes from a pool kept between calls (`pool.rs`,
+//! whose invariant is that no kernel reads bytes its call did not write),
+//! uploads go through pooled staging buffers, and readbacks are unpacked in
+//! parallel straight from mapped memory: the first port allocated and copied
+//! per call, and that, not the kernels, was most of its time.
+//! [`GpuRenderer::set_profiling`] times each phase (the `gpu` bench prints it).
 
 // `!(x > y)` is deliberate: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -414,7 +426,9 @@ impl GpuRenderer {
             &self.device,
             &self.queue,
             label,
-            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
             bytes,
         )
     }
@@ -811,7 +825,8 @@ impl GpuRenderer {
         let (tx, ty) = (st.params.tiles_x, st.params.tiles_y);
         let u = self.uniform(bytemuck::bytes_of(&st.params));
         let mut enc = self.encoder();
-        let (gp, staging) = self.upload(&mut enc, "pixel gradients", bytemuck::cast_slice(&gpix))?;
+        let (gp, staging) =
+            self.upload(&mut enc, "pixel gradients", bytemuck::cast_slice(&gpix))?;
         drop(gpix);
         let rec_len = match self.mode {
             GpuMode::Deterministic => st.n_inst as u64,
@@ -915,12 +930,34 @@ impl GpuRenderer {
         let adj = self.storage("ssim adjoints", 3 * c as u64 * plane_bytes);
         let gbuf = self.storage("ssim gradient", c as u64 * plane_bytes);
         let u = |planes, dir| self.uniform(bytemuck::bytes_of(&params(planes, dir)));
-        let (u_fwd_x, u_fwd_y, u_adj_x, u_adj_y) = (u(5 * c, 0), u(5 * c, 1), u(3 * c, 0), u(3 * c, 1));
+        let (u_fwd_x, u_fwd_y, u_adj_x, u_adj_y) =
+            (u(5 * c, 0), u(5 * c, 1), u(3 * c, 0), u(3 * c, 1));
         let per = |planes: usize| groups2(((planes * npix) as u32).div_ceil(256));
         let k = &self.kernels;
-        self.dispatch(&mut enc, &k.ssim_maps, &u_fwd_x, None, &[&srcb, &maps], per(c));
-        self.dispatch(&mut enc, &k.ssim_blur, &u_fwd_x, None, &[&maps, &tmp], per(5 * c));
-        self.dispatch(&mut enc, &k.ssim_blur, &u_fwd_y, None, &[&tmp, &blurred], per(5 * c));
+        self.dispatch(
+            &mut enc,
+            &k.ssim_maps,
+            &u_fwd_x,
+            None,
+            &[&srcb, &maps],
+            per(c),
+        );
+        self.dispatch(
+            &mut enc,
+            &k.ssim_blur,
+            &u_fwd_x,
+            None,
+            &[&maps, &tmp],
+            per(5 * c),
+        );
+        self.dispatch(
+            &mut enc,
+            &k.ssim_blur,
+            &u_fwd_y,
+            None,
+            &[&tmp, &blurred],
+            per(5 * c),
+        );
         self.dispatch(
             &mut enc,
             &k.ssim_terms,
@@ -930,9 +967,30 @@ impl GpuRenderer {
             per(c),
         );
         // The adjoints through the (self-adjoint) window; `maps` is free again.
-        self.dispatch(&mut enc, &k.ssim_blur, &u_adj_x, None, &[&adj, &tmp], per(3 * c));
-        self.dispatch(&mut enc, &k.ssim_blur, &u_adj_y, None, &[&tmp, &maps], per(3 * c));
-        self.dispatch(&mut enc, &k.ssim_grad, &u_fwd_x, None, &[&maps, &srcb, &gbuf], per(c));
+        self.dispatch(
+            &mut enc,
+            &k.ssim_blur,
+            &u_adj_x,
+            None,
+            &[&adj, &tmp],
+            per(3 * c),
+        );
+        self.dispatch(
+            &mut enc,
+            &k.ssim_blur,
+            &u_adj_y,
+            None,
+            &[&tmp, &maps],
+            per(3 * c),
+        );
+        self.dispatch(
+            &mut enc,
+            &k.ssim_grad,
+            &u_fwd_x,
+            None,
+            &[&maps, &srcb, &gbuf],
+            per(c),
+        );
         self.submit_wait(enc)?;
         drop(staging);
         let total = self.read_with(&smap, 0, c as u64 * plane_bytes, |b| {
@@ -1029,12 +1087,7 @@ fn pack_gaussians(g: &Gaussians, v: &mut Vec<f32>) {
 /// The output gradients as 8 f32 per pixel (r, g, b, alpha, depth, ox, oy,
 /// fur; zero where a gradient is absent), into `v`; every image is checked
 /// for its size and for finite values (the first bad pixel is named).
-fn pack_pixel_grads(
-    dl: &OutputGrads,
-    w: u32,
-    h: u32,
-    v: &mut Vec<f32>,
-) -> Result<(), RenderError> {
+fn pack_pixel_grads(dl: &OutputGrads, w: u32, h: u32, v: &mut Vec<f32>) -> Result<(), RenderError> {
     let npix = (w * h) as usize;
     v.clear();
     v.resize(npix * 8, 0.0);
@@ -1073,13 +1126,7 @@ fn as_f32(b: &[u8]) -> std::borrow::Cow<'_, [f32]> {
 /// The forward kernel's 8 f32 per pixel as the CPU's output images.
 fn unpack_image(b: &[u8], w: u32, h: u32) -> RenderOutput {
     let data = as_f32(b);
-    let mut out = RenderOutput {
-        rgb: ImageF32::new(w, h, 3),
-        alpha: ImageF32::new(w, h, 1),
-        depth: ImageF32::new(w, h, 1),
-        orientation: ImageF32::new(w, h, 2),
-        fur: ImageF32::new(w, h, 1),
-    };
+    let mut out = RenderOutput::zeros(w, h);
     (
         out.rgb.data.par_chunks_exact_mut(3),
         out.alpha.data.par_iter_mut(),
@@ -1165,7 +1212,10 @@ impl Kernels {
             ),
             ssim_maps: make("ssim_maps", &[COMMON, SSIM, include_str!("ssim_maps.wgsl")]),
             ssim_blur: make("ssim_blur", &[COMMON, SSIM, include_str!("ssim_blur.wgsl")]),
-            ssim_terms: make("ssim_terms", &[COMMON, SSIM, include_str!("ssim_terms.wgsl")]),
+            ssim_terms: make(
+                "ssim_terms",
+                &[COMMON, SSIM, include_str!("ssim_terms.wgsl")],
+            ),
             ssim_grad: make("ssim_grad", &[COMMON, SSIM, include_str!("ssim_grad.wgsl")]),
         }
     }

@@ -110,7 +110,9 @@ pub(super) struct Pooled {
 impl std::ops::Deref for Pooled {
     type Target = wgpu::Buffer;
     fn deref(&self) -> &wgpu::Buffer {
-        self.buf.as_ref().expect("a pooled buffer is present until drop")
+        self.buf
+            .as_ref()
+            .expect("a pooled buffer is present until drop")
     }
 }
 
@@ -128,11 +130,26 @@ mod tests {
 
     #[test]
     fn size_classes_round_up_by_at_most_a_sixteenth() {
-        for bytes in [0u64, 1, 255, 256, 257, 1000, 4096, 4097, 1 << 20, (1 << 20) + 1, 123_456_789] {
+        for bytes in [
+            0u64,
+            1,
+            255,
+            256,
+            257,
+            1000,
+            4096,
+            4097,
+            1 << 20,
+            (1 << 20) + 1,
+            123_456_789,
+        ] {
             let c = size_class(bytes);
             assert!(c >= bytes.max(256), "{bytes} -> {c}");
             assert_eq!(c % 4, 0, "{bytes} -> {c}");
-            assert!(c as f64 <= (bytes.max(256) as f64) * 1.125 + 256.0, "{bytes} -> {c}");
+            assert!(
+                c as f64 <= (bytes.max(256) as f64) * 1.125 + 256.0,
+                "{bytes} -> {c}"
+            );
         }
         // Nearby sizes share a class: that is what makes reuse work.
         assert_eq!(size_class(1_000_000), size_class(1_010_000));

@@ -8,16 +8,6 @@
 @group(0) @binding(0) var<uniform> P: Small; // n, k, j
 @group(0) @binding(1) var<storage, read_write> keys: array<vec4<u32>>;
 
-fn less(a: vec4<u32>, b: vec4<u32>) -> bool {
-    if a.x != b.x {
-        return a.x < b.x;
-    }
-    if a.y != b.y {
-        return a.y < b.y;
-    }
-    return a.z < b.z;
-}
-
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = lin_id(gid, nwg);
@@ -29,7 +19,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         let a = keys[i];
         let b = keys[l];
         let up = (i & P.a) == 0u;
-        if less(b, a) == up {
+        if key_less(b, a) == up {
             keys[i] = b;
             keys[l] = a;
         }

@@ -13,23 +13,13 @@
 const BLOCK: u32 = 512u;
 var<workgroup> sk: array<vec4<u32>, BLOCK>;
 
-fn less(a: vec4<u32>, b: vec4<u32>) -> bool {
-    if a.x != b.x {
-        return a.x < b.x;
-    }
-    if a.y != b.y {
-        return a.y < b.y;
-    }
-    return a.z < b.z;
-}
-
 fn step(base: u32, t: u32, k: u32, j: u32) {
     let i = 2u * j * (t / j) + t % j;
     let l = i + j;
     let a = sk[i];
     let b = sk[l];
     let up = ((base + i) & k) == 0u;
-    if less(b, a) == up {
+    if key_less(b, a) == up {
         sk[i] = b;
         sk[l] = a;
     }

@@ -531,7 +531,11 @@ fn gpu_reused_buffers_give_a_fresh_renderers_bits() {
     let created = r.buffers_created();
     assert!(created > 0);
     let again = run(&x, &dl_x);
-    assert_eq!(r.buffers_created(), created, "a same-size call created buffers");
+    assert_eq!(
+        r.buffers_created(),
+        created,
+        "a same-size call created buffers"
+    );
     assert!(fresh == again, "a rerun changed the bits");
     run(&y, &dl_y);
     let after_other = run(&x, &dl_x);
@@ -615,7 +619,8 @@ fn ssim_pair(rng: &mut ChaCha8Rng, w: u32, h: u32, c: u32) -> (ImageF32, ImageF3
         for x in 0..w {
             for k in 0..c {
                 let i = ((y * w + x) * c + k) as usize;
-                let smooth = 0.5 + 0.4 * ((x as f32 * 0.3 + k as f32).sin() * (y as f32 * 0.2).cos());
+                let smooth =
+                    0.5 + 0.4 * ((x as f32 * 0.3 + k as f32).sin() * (y as f32 * 0.2).cos());
                 img.data[i] = (smooth + rng.gen_range(-0.1..0.1)).clamp(0.0, 1.0);
                 tgt.data[i] = (0.8 * smooth + 0.1 + rng.gen_range(-0.15..0.15)).clamp(0.0, 1.0);
             }
@@ -634,11 +639,18 @@ fn gpu_ssim_matches_cpu() {
     let r = std::sync::Arc::new(r);
     let mut rng = ChaCha8Rng::seed_from_u64(31);
     // Partial tiles, no mask, one channel, an image smaller than the window.
-    for (w, h, c, masked) in [(83, 61, 3, true), (64, 48, 3, false), (40, 33, 1, true), (7, 5, 3, true)] {
+    for (w, h, c, masked) in [
+        (83, 61, 3, true),
+        (64, 48, 3, false),
+        (40, 33, 1, true),
+        (7, 5, 3, true),
+    ] {
         let (img, tgt) = ssim_pair(&mut rng, w, h, c);
         let mask = masked.then(|| {
             let mut m = ImageF32::new(w, h, 1);
-            m.data.iter_mut().for_each(|v| *v = rng.gen_range(0.0f32..1.0).max(0.3) - 0.3);
+            m.data
+                .iter_mut()
+                .for_each(|v| *v = rng.gen_range(0.0f32..1.0).max(0.3) - 0.3);
             m
         });
         let (lc, gc) = losses::ssim(&img, &tgt, mask.as_ref()).unwrap();
@@ -648,14 +660,20 @@ fn gpu_ssim_matches_cpu() {
             "{w}x{h}x{c}: ssim cpu {lc} gpu {lg}"
         );
         let scale = gc.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let diff = gc.data.iter().zip(&gg.data).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        let diff = gc
+            .data
+            .iter()
+            .zip(&gg.data)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
         assert!(
             scale > 0.0 && (diff as f64) <= GRAD_TOL * scale as f64,
             "{w}x{h}x{c}: ssim gradient differs by {diff:e} of {scale:e}"
         );
         // The photometric loss through the device: L1 on the CPU, SSIM here.
         let (pc, _) = losses::l1_dssim(&img, &tgt, mask.as_ref(), 0.2).unwrap();
-        let (pg, _) = Renderer::Gpu(r.clone()).l1_dssim(&img, &tgt, mask.as_ref(), 0.2).unwrap();
+        let (pg, _) = Renderer::Gpu(r.clone())
+            .l1_dssim(&img, &tgt, mask.as_ref(), 0.2)
+            .unwrap();
         assert!((pc - pg).abs() <= SSIM_TOL, "l1_dssim cpu {pc} gpu {pg}");
     }
     // An all-zero mask: loss 0, zero gradient; bad inputs: the CPU's errors.
@@ -666,7 +684,11 @@ fn gpu_ssim_matches_cpu() {
     let small = ImageF32::new(19, 10, 3);
     let mut nan = tgt.clone();
     nan.data[7] = f32::NAN;
-    for (a, b, m) in [(&img, &small, None), (&img, &nan, None), (&img, &tgt, Some(&small))] {
+    for (a, b, m) in [
+        (&img, &small, None),
+        (&img, &nan, None),
+        (&img, &tgt, Some(&small)),
+    ] {
         let cpu = losses::ssim(a, b, m).unwrap_err().to_string();
         let gpu = r.ssim(a, b, m).unwrap_err().to_string();
         assert_eq!(cpu, gpu);
