@@ -556,10 +556,26 @@ impl GpuRenderer {
         bytes: u64,
         f: impl FnOnce(&[u8]) -> T,
     ) -> Result<T, RenderError> {
-        if bytes == 0 {
-            return Ok(f(&[]));
+        self.read_all(&[(src, offset, bytes)], |parts| f(parts[0]))
+    }
+
+    /// [`Self::read_with`] for several `(buffer, offset, bytes)` ranges at
+    /// once: one staging buffer, one submission and one wait for all.
+    fn read_all<T>(
+        &self,
+        parts: &[(&wgpu::Buffer, u64, u64)],
+        f: impl FnOnce(&[&[u8]]) -> T,
+    ) -> Result<T, RenderError> {
+        // Each range's place in the staging buffer (copies need 4-byte multiples).
+        let mut starts = Vec::with_capacity(parts.len());
+        let mut size = 0u64;
+        for &(_, _, bytes) in parts {
+            starts.push(size);
+            size += bytes.next_multiple_of(4);
         }
-        let size = bytes.next_multiple_of(4);
+        if size == 0 {
+            return Ok(f(&vec![&[][..]; parts.len()]));
+        }
         let staging = self.pool.take(
             &self.device,
             &self.queue,
@@ -568,20 +584,29 @@ impl GpuRenderer {
             size,
         );
         let mut enc = self.encoder();
-        enc.copy_buffer_to_buffer(src, offset, &staging, 0, size);
+        for (&(src, offset, bytes), &at) in parts.iter().zip(&starts) {
+            if bytes > 0 {
+                enc.copy_buffer_to_buffer(src, offset, &staging, at, bytes.next_multiple_of(4));
+            }
+        }
         self.queue.submit(Some(enc.finish()));
         self.map(&staging, wgpu::MapMode::Read)?;
         let out = {
             let view = staging.get_mapped_range(..size).map_err(gpu_err)?;
-            f(&view[..bytes as usize])
+            let slices: Vec<&[u8]> = parts
+                .iter()
+                .zip(&starts)
+                .map(|(&(_, _, bytes), &at)| &view[at as usize..(at + bytes) as usize])
+                .collect();
+            f(&slices)
         };
         staging.unmap();
         Ok(out)
     }
 
     /// Exclusive prefix sum of `n` u32 in `data`, in place (recursive over
-    /// the block totals).
-    /// The block sums' buffers go to `keep` (they must outlive the submission).
+    /// the block totals). The block sums' buffers go to `keep` (they must
+    /// outlive the submission).
     fn scan(
         &self,
         enc: &mut wgpu::CommandEncoder,
@@ -763,12 +788,14 @@ impl GpuRenderer {
         );
         self.submit_wait(enc)?;
         laps.host("render: forward");
-        let evaluations = self.read_with(&evals, 0, n_tiles * 4, |b| {
-            b.chunks_exact(4)
-                .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as u64)
-                .sum::<u64>()
-        })?;
-        let out = self.read_with(&img, 0, npix * 32, |b| unpack_image(b, w, h))?;
+        let (evaluations, out) =
+            self.read_all(&[(&evals, 0, n_tiles * 4), (&img, 0, npix * 32)], |b| {
+                let evaluations = b[0]
+                    .chunks_exact(4)
+                    .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as u64)
+                    .sum::<u64>();
+                (evaluations, unpack_image(b[1], w, h))
+            })?;
         laps.host("render: image readback and unpack");
         let state = GpuState {
             width: w,
@@ -993,18 +1020,17 @@ impl GpuRenderer {
         );
         self.submit_wait(enc)?;
         drop(staging);
-        let total = self.read_with(&smap, 0, c as u64 * plane_bytes, |b| {
-            let s = as_f32(b);
+        let bytes = c as u64 * plane_bytes;
+        let total = self.read_all(&[(&smap, 0, bytes), (&gbuf, 0, bytes)], |b| {
+            let s = as_f32(b[0]);
             let mut total = 0.0f64;
             for cc in 0..c {
                 for p in 0..npix {
                     total += m[p] * s[cc * npix + p] as f64;
                 }
             }
+            grad.data.copy_from_slice(&as_f32(b[1]));
             total
-        })?;
-        self.read_with(&gbuf, 0, c as u64 * plane_bytes, |b| {
-            grad.data.copy_from_slice(&as_f32(b));
         })?;
         Ok(((total * norm) as f32, grad))
     }
