@@ -73,7 +73,8 @@ fure_stage_api::param_enum! {
 }
 
 fure_stage_api::stage_params! {
-    /// Parameters both learners share (besides `device`, `iterations` and `lr_decay`).
+    /// Parameters both learners share (besides `device`, `iterations`, `lr_decay` and
+    /// `fit_colors`).
     pub struct LearnParams {
         /// Strands sampled (seeded) and rendered per iteration (the paper: 15,000 of ~500,000).
         strands_per_iteration: usize = int(4000).min(1.0),
@@ -126,11 +127,6 @@ fure_stage_api::stage_params! {
         sdf_resolution: usize = int(48).range(8.0, 256.0),
         /// Opaque surface Gaussians on the body (occluders with trainable colour; 0 = none).
         body_gaussians: usize = int(20000).min(0.0),
-        /// Strand and body colours set to the blending-weighted mean of the training pixels
-        /// they make (learn::image): before training (start), also after it (start_end; at
-        /// the held-out renders' coverage: start_held_out), or never (none: every strand
-        /// starts grey-brown and only Adam moves it).
-        fit_colors: FitColors = string("start").choices(FitColors::NAMES),
         /// Turn every root frame about its normal by this angle before training: a wrong start
         /// for stability tests (0 = the roots' frames).
         frame_rotation_deg: f32 = float(0.0).range(-180.0, 180.0),
@@ -193,6 +189,11 @@ fure_stage_api::stage_params! {
         /// Radians per unit of the encoder's tilt output (learn_tilt; 1, 3 and 10 tie on the
         /// dev split, 3 is angle_scale's).
         tilt_scale: f32 = float(3.0).range(0.0, 100.0),
+        /// Strand and body colours set to the blending-weighted mean of the training pixels
+        /// they make (learn::image): before training (start), also after it (start_end; at
+        /// the held-out renders' coverage: start_held_out, chosen on the dev split, learn::image),
+        /// or never (none: every strand starts grey-brown and only Adam moves it).
+        fit_colors: FitColors = string("start_held_out").choices(FitColors::NAMES),
     }
 }
 
@@ -210,6 +211,10 @@ fure_stage_api::stage_params! {
         /// Initial Adam learning rate of the points, in strand lengths per step (chosen on
         /// the dev split against 0.0005 and 0.002, docs/history.md).
         lr_points: f32 = float(0.001).min(0.0),
+        /// When colours are set from the views, as the codec's `fit_colors`; dense keeps
+        /// `start`: the second fit under the held-out coverage loses on its strands (dev
+        /// split, learn::image).
+        fit_colors: FitColors = string("start").choices(FitColors::NAMES),
     }
 }
 
@@ -237,6 +242,12 @@ impl Learner {
         match self {
             Learner::Codec(c) => c.lr_decay,
             Learner::Dense(d) => d.lr_decay,
+        }
+    }
+    fn fit_colors(&self) -> FitColors {
+        match self {
+            Learner::Codec(c) => c.fit_colors,
+            Learner::Dense(d) => d.fit_colors,
         }
     }
 }
@@ -749,7 +760,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         ctx.progress
             .note(&format!("renders on {}", img.device_description()));
     }
-    let fit_colors = p.fit_colors;
+    let fit_colors = learner.fit_colors();
     let mut colors_fitted = Vec::new();
     let mut color_fit_seconds = 0.0f64;
     if let Some(img) = image.as_mut() {
