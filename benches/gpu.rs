@@ -16,6 +16,12 @@
 //! `FURE_BENCH_JSON=path` writes the records as JSON there;
 //! `FURE_GPU_ADAPTER=substring` picks the adapter by name.
 //!
+//! Then one photometric step (render, `(1 - 0.2) L1 + 0.2 D-SSIM` on the
+//! colour plus a silhouette L1, backward: a `frosting` iteration) three
+//! ways: the CPU's, the GPU's with the losses on the host (images read back,
+//! SSIM on the device, gradients uploaded) and the GPU's fused step (images
+//! stay on the device).
+//!
 //! After the timed runs, the same calls run once more per repetition with
 //! [`GpuRenderer::set_profiling`] on, and the time per phase (upload, each
 //! kernel group, readbacks, host packing) is printed and recorded under
@@ -24,6 +30,9 @@
 use std::time::Instant;
 
 use fure_stages::data::image::ImageF32;
+use std::sync::Arc;
+
+use fure_stages::render::device::{PhotometricLoss, Renderer};
 use fure_stages::render::gpu::{GpuMode, GpuRenderer};
 use fure_stages::render::{backward, render, OutputGrads, RenderSettings, Vec3};
 
@@ -57,8 +66,56 @@ fn loss_grads(out: &fure_stages::render::RenderOutput, size: u32) -> OutputGrads
     }
 }
 
+/// Median milliseconds of `reps` photometric steps per device way (see the
+/// module doc): (cpu, gpu with host losses, gpu fused).
+fn photometric_steps(
+    gpu: &Arc<GpuRenderer>,
+    g: &fure_stages::render::Gaussians,
+    cam: &fure_stages::data::camera::Camera,
+    s: &RenderSettings,
+    out: &fure_stages::render::RenderOutput,
+    reps: usize,
+) -> (f64, f64, f64) {
+    let target = ImageF32 {
+        data: out.rgb.data.iter().map(|v| 1.0 - v).collect(),
+        ..out.rgb.clone()
+    };
+    let mask = ImageF32 {
+        data: out
+            .alpha
+            .data
+            .iter()
+            .map(|v| (*v > 0.5) as u8 as f32)
+            .collect(),
+        ..out.alpha.clone()
+    };
+    let terms = PhotometricLoss {
+        lambda_dssim: 0.2,
+        silhouette_weight: 0.5,
+    };
+    let dev = Renderer::Gpu(gpu.clone());
+    let host_t = Renderer::Cpu
+        .photometric_target(&target, &mask)
+        .expect("target");
+    let dev_t = dev.photometric_target(&target, &mask).expect("gpu target");
+    let ways: [(&Renderer, &_); 3] = [(&Renderer::Cpu, &host_t), (&dev, &host_t), (&dev, &dev_t)];
+    let mut med = [0.0; 3];
+    for (m, (r, t)) in med.iter_mut().zip(ways) {
+        r.photometric_step(g, cam, s, t, &terms)
+            .expect("warm-up step");
+        let mut v = Vec::new();
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            std::hint::black_box(r.photometric_step(g, cam, s, t, &terms).expect("step"));
+            v.push(ms(t0));
+        }
+        *m = median(v);
+    }
+    (med[0], med[1], med[2])
+}
+
 fn bench(
-    gpu: &GpuRenderer,
+    gpu: &Arc<GpuRenderer>,
     atomic: &GpuRenderer,
     size: u32,
     segments: usize,
@@ -137,6 +194,12 @@ fn bench(
         })
         .collect();
     let (cf, cb, gf, gb, ab) = (median(cf), median(cb), median(gf), median(gb), median(ab));
+    let (sc, sh, sf) = photometric_steps(gpu, &g, &cam, &s, &out, reps);
+    println!(
+        "{size:>4}^2 photometric step | cpu {sc:>8.1} ms | gpu, losses on the host {sh:>8.1} ms | \
+         gpu fused {sf:>8.1} ms | cpu/gpu fused {:>6.2}x",
+        sc / sf
+    );
     println!(
         "{size:>4}^2 {:>8} segs {:>9} inst | cpu fwd {cf:>8.1} ms fwd+bwd {cb:>8.1} ms | gpu fwd {gf:>8.1} ms \
          fwd+bwd {gb:>8.1} ms (atomic {ab:>8.1} ms) | cpu/gpu fwd+bwd {:>6.2}x | max |rgb diff| {max_img:.1e}, \
@@ -162,12 +225,16 @@ fn bench(
         "max_abs_mean_gradient_difference": dmax,
         "max_abs_mean_gradient": scale,
         "gpu_phases": phases,
+        "step_cpu_ms": sc,
+        "step_gpu_host_losses_ms": sh,
+        "step_gpu_fused_ms": sf,
+        "cpu_over_gpu_fused_step": sc / sf,
     })
 }
 
 fn main() {
     let gpu = match GpuRenderer::new(GpuMode::Deterministic) {
-        Ok(r) => r,
+        Ok(r) => Arc::new(r),
         Err(e) => {
             println!("gpu benchmark SKIPPED: {e}");
             return;

@@ -180,6 +180,102 @@ impl Renderer {
     }
 }
 
+/// A training view's targets for [`Renderer::photometric_step`]: the
+/// images themselves on the CPU; on the GPU uploaded once, so that a step
+/// moves no image between host and device.
+#[derive(Debug)]
+pub enum PhotometricTarget<'a> {
+    Cpu {
+        rgb: &'a ImageF32,
+        mask: &'a ImageF32,
+    },
+    #[cfg(feature = "gpu")]
+    Gpu(super::gpu::GpuTarget),
+}
+
+/// The fitting loss of [`Renderer::photometric_step`]: `(1 - lambda_dssim)
+/// L1 + lambda_dssim (1 - SSIM)` on the colour (unmasked) plus
+/// `silhouette_weight` x the mean |alpha - mask|.
+#[derive(Debug, Clone, Copy)]
+pub struct PhotometricLoss {
+    pub lambda_dssim: f32,
+    pub silhouette_weight: f32,
+}
+
+/// Wall seconds of one photometric step's phases.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StepSeconds {
+    pub render: f64,
+    pub loss: f64,
+    pub backward: f64,
+}
+
+impl Renderer {
+    /// A view's colour (3 channels) and silhouette mask as this device's
+    /// [`PhotometricTarget`] (uploaded now on the GPU).
+    pub fn photometric_target<'a>(
+        &self,
+        rgb: &'a ImageF32,
+        mask: &'a ImageF32,
+    ) -> Result<PhotometricTarget<'a>, RenderError> {
+        match self {
+            Renderer::Cpu => Ok(PhotometricTarget::Cpu { rgb, mask }),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => r.target(rgb, mask).map(PhotometricTarget::Gpu),
+        }
+    }
+
+    /// One fitting step on a view: render `g` from `cam`, the loss `l`
+    /// against `target` and its gradient, and the Gaussians' gradients.
+    /// On the CPU: [`super::render`], [`super::losses::l1_dssim`],
+    /// [`super::losses::silhouette`] and [`super::backward`] in turn; on the
+    /// GPU the same formulas with the images kept on the device
+    /// ([`super::gpu::GpuRenderer::photometric_step`]).
+    pub fn photometric_step(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        target: &PhotometricTarget<'_>,
+        l: &PhotometricLoss,
+    ) -> Result<(f32, GaussianGrads, StepSeconds), RenderError> {
+        match target {
+            PhotometricTarget::Cpu { rgb, mask } => {
+                let mut secs = StepSeconds::default();
+                let t = std::time::Instant::now();
+                let (out, st) = self.render(g, cam, s)?;
+                secs.render = t.elapsed().as_secs_f64();
+                let t = std::time::Instant::now();
+                let (l_rgb, g_rgb) = self.l1_dssim(&out.rgb, rgb, None, l.lambda_dssim)?;
+                let (l_sil, mut g_sil) = super::losses::silhouette(&out.alpha, mask, None)?;
+                for x in &mut g_sil.data {
+                    *x *= l.silhouette_weight;
+                }
+                let loss = l_rgb + l.silhouette_weight * l_sil;
+                let dl = OutputGrads {
+                    rgb: Some(g_rgb),
+                    alpha: Some(g_sil),
+                    ..Default::default()
+                };
+                secs.loss = t.elapsed().as_secs_f64();
+                let t = std::time::Instant::now();
+                let grads = self.backward(g, cam, s, &st, &dl)?;
+                secs.backward = t.elapsed().as_secs_f64();
+                Ok((loss, grads, secs))
+            }
+            #[cfg(feature = "gpu")]
+            PhotometricTarget::Gpu(t) => match self {
+                Renderer::Gpu(r) => {
+                    r.photometric_step(g, cam, s, t, l.lambda_dssim, l.silhouette_weight)
+                }
+                Renderer::Cpu => Err(RenderError::Gpu(
+                    "a GPU target given to the CPU renderer".into(),
+                )),
+            },
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

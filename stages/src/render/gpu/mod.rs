@@ -128,6 +128,20 @@ struct SsimParams {
     k: [[f32; 4]; 3],
 }
 
+/// The photometric step's uniforms (`PhotoParams` in photo_common.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct PhotoParams {
+    width: u32,
+    height: u32,
+    channels: u32,
+    pad0: u32,
+    norm: f32,
+    lambda: f32,
+    sil_weight: f32,
+    sil_norm: f32,
+}
+
 /// f32 per Gaussian in the input record (proj_common.wgsl).
 const GREC: usize = 24;
 /// f32 per Gaussian in the gradient record (project_backward.wgsl).
@@ -157,6 +171,8 @@ struct Kernels {
     ssim_blur: wgpu::ComputePipeline,
     ssim_terms: wgpu::ComputePipeline,
     ssim_grad: wgpu::ComputePipeline,
+    photo_planes: wgpu::ComputePipeline,
+    photo_grad: wgpu::ComputePipeline,
 }
 
 /// A wgpu device with the renderer's kernels compiled.
@@ -268,6 +284,8 @@ pub struct GpuState {
     ranges: Pooled,
     tfinal: Pooled,
     ncontrib: Pooled,
+    /// The forward image, 8 f32 per pixel (read in place by [`GpuRenderer::photometric`]).
+    img: Pooled,
     /// Gaussian-pixel evaluations in the forward pass.
     pub evaluations: u64,
 }
@@ -647,6 +665,20 @@ impl GpuRenderer {
         cam: &Camera,
         s: &RenderSettings,
     ) -> Result<(RenderOutput, GpuState), RenderError> {
+        let (out, st) = self.render_state(g, cam, s, true)?;
+        let out = out.ok_or_else(|| gpu_err("the forward image was not read back"))?;
+        Ok((out, st))
+    }
+
+    /// [`GpuRenderer::render`], reading the images back only when
+    /// `read_image` (the photometric step scores them on the device).
+    fn render_state(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        read_image: bool,
+    ) -> Result<(Option<RenderOutput>, GpuState), RenderError> {
         s.validate()?;
         g.validate()?;
         let cd = CamData::new(cam)?;
@@ -788,14 +820,14 @@ impl GpuRenderer {
         );
         self.submit_wait(enc)?;
         laps.host("render: forward");
-        let (evaluations, out) =
-            self.read_all(&[(&evals, 0, n_tiles * 4), (&img, 0, npix * 32)], |b| {
-                let evaluations = b[0]
-                    .chunks_exact(4)
-                    .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as u64)
-                    .sum::<u64>();
-                (evaluations, unpack_image(b[1], w, h))
-            })?;
+        let image_part = (&*img, 0, if read_image { npix * 32 } else { 0 });
+        let (evaluations, out) = self.read_all(&[(&evals, 0, n_tiles * 4), image_part], |b| {
+            let evaluations = b[0]
+                .chunks_exact(4)
+                .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as u64)
+                .sum::<u64>();
+            (evaluations, read_image.then(|| unpack_image(b[1], w, h)))
+        })?;
         laps.host("render: image readback and unpack");
         let state = GpuState {
             width: w,
@@ -810,6 +842,7 @@ impl GpuRenderer {
             ranges,
             tfinal,
             ncontrib,
+            img,
             evaluations,
         };
         Ok((out, state))
@@ -826,42 +859,41 @@ impl GpuRenderer {
         st: &GpuState,
         dl: &OutputGrads,
     ) -> Result<GaussianGrads, RenderError> {
-        s.validate()?;
-        let cd = CamData::new(cam)?;
-        let (w, h) = (st.width, st.height);
-        if cd.width != w || cd.height != h {
-            return Err(RenderError::Camera(format!(
-                "camera is {}x{} but the render state is {w}x{h}",
-                cd.width, cd.height
-            )));
-        }
-        if g.len() != st.n {
-            return Err(RenderError::Length {
-                what: "gaussians (vs the render state)",
-                expected: st.n,
-                found: g.len(),
-            });
-        }
+        check_state(g, cam, s, st)?;
         // Lock order: the device, then the scratch vector (as in `render`).
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
         let mut laps = Laps::new(self);
         let mut gpix = self.scratch.lock().unwrap_or_else(|e| e.into_inner());
-        pack_pixel_grads(dl, w, h, &mut gpix)?;
+        pack_pixel_grads(dl, st.width, st.height, &mut gpix)?;
         laps.host("backward: pack pixel gradients");
-        let n = st.n;
-        let (tx, ty) = (st.params.tiles_x, st.params.tiles_y);
-        let u = self.uniform(bytemuck::bytes_of(&st.params));
         let mut enc = self.encoder();
         let (gp, staging) =
             self.upload(&mut enc, "pixel gradients", bytemuck::cast_slice(&gpix))?;
         drop(gpix);
+        laps.host("backward: upload");
+        self.backward_from(enc, laps, st, &gp, staging)
+    }
+
+    /// The backward pass from pixel gradients already on the device (`gp`,
+    /// 8 f32 per pixel), recorded after what `enc` holds; `keep` lives until
+    /// the submission has finished. The caller holds the device lock.
+    fn backward_from(
+        &self,
+        mut enc: wgpu::CommandEncoder,
+        mut laps: Laps<'_>,
+        st: &GpuState,
+        gp: &wgpu::Buffer,
+        keep: Pooled,
+    ) -> Result<GaussianGrads, RenderError> {
+        let n = st.n;
+        let (tx, ty) = (st.params.tiles_x, st.params.tiles_y);
+        let u = self.uniform(bytemuck::bytes_of(&st.params));
         let rec_len = match self.mode {
             GpuMode::Deterministic => st.n_inst as u64,
             GpuMode::Atomic => n as u64,
         };
         let rec = self.storage("instance gradients", rec_len * NV * 4);
         let outg = self.storage("gradients", n as u64 * OREC as u64 * 4);
-        laps.host("backward: upload");
         enc.clear_buffer(&rec, 0, None);
         self.dispatch(
             &mut enc,
@@ -872,7 +904,7 @@ impl GpuRenderer {
                 &st.splats,
                 &st.keys,
                 &st.ranges,
-                &gp,
+                gp,
                 &st.tfinal,
                 &st.ncontrib,
                 &rec,
@@ -889,12 +921,38 @@ impl GpuRenderer {
             groups2((n as u32).div_ceil(256)),
         );
         self.submit_wait(enc)?;
-        drop(staging);
+        drop(keep);
         laps.host("backward: project_backward");
         let out = self.read_with(&outg, 0, n as u64 * OREC as u64 * 4, |b| unpack_grads(b, n))?;
         laps.host("backward: gradient readback and unpack");
         Ok(out)
     }
+}
+
+/// `g`, `cam` and `s` against the render state they must have made.
+fn check_state(
+    g: &Gaussians,
+    cam: &Camera,
+    s: &RenderSettings,
+    st: &GpuState,
+) -> Result<(), RenderError> {
+    s.validate()?;
+    let cd = CamData::new(cam)?;
+    let (w, h) = (st.width, st.height);
+    if cd.width != w || cd.height != h {
+        return Err(RenderError::Camera(format!(
+            "camera is {}x{} but the render state is {w}x{h}",
+            cd.width, cd.height
+        )));
+    }
+    if g.len() != st.n {
+        return Err(RenderError::Length {
+            what: "gaussians (vs the render state)",
+            expected: st.n,
+            found: g.len(),
+        });
+    }
+    Ok(())
 }
 
 impl GpuRenderer {
@@ -931,93 +989,11 @@ impl GpuRenderer {
                 };
             }
         });
-        let k64 = losses::gauss_kernel();
-        let mut k = [[0.0f32; 4]; 3];
-        for (j, v) in k64.iter().enumerate() {
-            k[j / 4][j % 4] = *v as f32;
-        }
-        let params = |planes: usize, dir: u32| SsimParams {
-            width: w,
-            height: h,
-            channels: ch,
-            planes: planes as u32,
-            dir,
-            pad: [0; 2],
-            norm: norm as f32,
-            k,
-        };
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
         let mut enc = self.encoder();
         let (srcb, staging) = self.upload(&mut enc, "ssim inputs", bytemuck::cast_slice(&src))?;
+        let (smap, gbuf, _keep) = self.ssim_chain(&mut enc, &srcb, w, h, ch, norm as f32);
         let plane_bytes = npix as u64 * 4;
-        let maps = self.storage("ssim maps", 5 * c as u64 * plane_bytes);
-        let tmp = self.storage("ssim blur pass", 5 * c as u64 * plane_bytes);
-        let blurred = self.storage("ssim blurred maps", 5 * c as u64 * plane_bytes);
-        let smap = self.storage("ssim map", c as u64 * plane_bytes);
-        let adj = self.storage("ssim adjoints", 3 * c as u64 * plane_bytes);
-        let gbuf = self.storage("ssim gradient", c as u64 * plane_bytes);
-        let u = |planes, dir| self.uniform(bytemuck::bytes_of(&params(planes, dir)));
-        let (u_fwd_x, u_fwd_y, u_adj_x, u_adj_y) =
-            (u(5 * c, 0), u(5 * c, 1), u(3 * c, 0), u(3 * c, 1));
-        let per = |planes: usize| groups2(((planes * npix) as u32).div_ceil(256));
-        let k = &self.kernels;
-        self.dispatch(
-            &mut enc,
-            &k.ssim_maps,
-            &u_fwd_x,
-            None,
-            &[&srcb, &maps],
-            per(c),
-        );
-        self.dispatch(
-            &mut enc,
-            &k.ssim_blur,
-            &u_fwd_x,
-            None,
-            &[&maps, &tmp],
-            per(5 * c),
-        );
-        self.dispatch(
-            &mut enc,
-            &k.ssim_blur,
-            &u_fwd_y,
-            None,
-            &[&tmp, &blurred],
-            per(5 * c),
-        );
-        self.dispatch(
-            &mut enc,
-            &k.ssim_terms,
-            &u_fwd_x,
-            None,
-            &[&blurred, &srcb, &smap, &adj],
-            per(c),
-        );
-        // The adjoints through the (self-adjoint) window; `maps` is free again.
-        self.dispatch(
-            &mut enc,
-            &k.ssim_blur,
-            &u_adj_x,
-            None,
-            &[&adj, &tmp],
-            per(3 * c),
-        );
-        self.dispatch(
-            &mut enc,
-            &k.ssim_blur,
-            &u_adj_y,
-            None,
-            &[&tmp, &maps],
-            per(3 * c),
-        );
-        self.dispatch(
-            &mut enc,
-            &k.ssim_grad,
-            &u_fwd_x,
-            None,
-            &[&maps, &srcb, &gbuf],
-            per(c),
-        );
         self.submit_wait(enc)?;
         drop(staging);
         let bytes = c as u64 * plane_bytes;
@@ -1033,6 +1009,267 @@ impl GpuRenderer {
             total
         })?;
         Ok(((total * norm) as f32, grad))
+    }
+
+    /// Records the SSIM kernels on the planes `srcb` (x, y per channel, then
+    /// the weights; losses.rs `ssim` with `norm` = 1 / (weight sum x
+    /// channels)): returns the per-pixel SSIM (planar) and the gradient of
+    /// the weighted mean w.r.t. x (interleaved), and the intermediate
+    /// buffers, to keep until the submission has run.
+    fn ssim_chain(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        srcb: &wgpu::Buffer,
+        w: u32,
+        h: u32,
+        ch: u32,
+        norm: f32,
+    ) -> (Pooled, Pooled, [Pooled; 4]) {
+        let k64 = losses::gauss_kernel();
+        let mut k = [[0.0f32; 4]; 3];
+        for (j, v) in k64.iter().enumerate() {
+            k[j / 4][j % 4] = *v as f32;
+        }
+        let params = |planes: usize, dir: u32| SsimParams {
+            width: w,
+            height: h,
+            channels: ch,
+            planes: planes as u32,
+            dir,
+            pad: [0; 2],
+            norm,
+            k,
+        };
+        let (c, npix) = (ch as usize, (w * h) as usize);
+        let plane_bytes = npix as u64 * 4;
+        let maps = self.storage("ssim maps", 5 * c as u64 * plane_bytes);
+        let tmp = self.storage("ssim blur pass", 5 * c as u64 * plane_bytes);
+        let blurred = self.storage("ssim blurred maps", 5 * c as u64 * plane_bytes);
+        let smap = self.storage("ssim map", c as u64 * plane_bytes);
+        let adj = self.storage("ssim adjoints", 3 * c as u64 * plane_bytes);
+        let gbuf = self.storage("ssim gradient", c as u64 * plane_bytes);
+        let u = |planes, dir| self.uniform(bytemuck::bytes_of(&params(planes, dir)));
+        let (u_fwd_x, u_fwd_y, u_adj_x, u_adj_y) =
+            (u(5 * c, 0), u(5 * c, 1), u(3 * c, 0), u(3 * c, 1));
+        let per = |planes: usize| groups2(((planes * npix) as u32).div_ceil(256));
+        let k = &self.kernels;
+        self.dispatch(enc, &k.ssim_maps, &u_fwd_x, None, &[srcb, &maps], per(c));
+        self.dispatch(
+            enc,
+            &k.ssim_blur,
+            &u_fwd_x,
+            None,
+            &[&maps, &tmp],
+            per(5 * c),
+        );
+        self.dispatch(
+            enc,
+            &k.ssim_blur,
+            &u_fwd_y,
+            None,
+            &[&tmp, &blurred],
+            per(5 * c),
+        );
+        self.dispatch(
+            enc,
+            &k.ssim_terms,
+            &u_fwd_x,
+            None,
+            &[&blurred, srcb, &smap, &adj],
+            per(c),
+        );
+        // The adjoints through the (self-adjoint) window; `maps` is free again.
+        self.dispatch(enc, &k.ssim_blur, &u_adj_x, None, &[&adj, &tmp], per(3 * c));
+        self.dispatch(
+            enc,
+            &k.ssim_blur,
+            &u_adj_y,
+            None,
+            &[&tmp, &maps],
+            per(3 * c),
+        );
+        self.dispatch(
+            enc,
+            &k.ssim_grad,
+            &u_fwd_x,
+            None,
+            &[&maps, srcb, &gbuf],
+            per(c),
+        );
+        (smap, gbuf, [maps, tmp, blurred, adj])
+    }
+}
+
+/// A training view's target images on the device for
+/// [`GpuRenderer::photometric_step`]: the colour planes, the SSIM weights
+/// (all 1) and the silhouette mask, uploaded once and read by every step
+/// on that view.
+pub struct GpuTarget {
+    width: u32,
+    height: u32,
+    /// Planes y (3), weights (1), mask (1), plane-major.
+    planes: Pooled,
+}
+
+impl std::fmt::Debug for GpuTarget {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GpuTarget({}x{})", self.width, self.height)
+    }
+}
+
+impl GpuRenderer {
+    /// Uploads a view's colour (3 channels) and silhouette mask (1 channel,
+    /// same size) as a [`GpuTarget`]; both are checked as the CPU's losses
+    /// check them (sizes, finite values).
+    pub fn target(&self, rgb: &ImageF32, mask: &ImageF32) -> Result<GpuTarget, RenderError> {
+        let (w, h) = (rgb.width, rgb.height);
+        losses::ssim_weights(rgb, rgb, Some(mask))?;
+        if rgb.channels != 3 {
+            return Err(RenderError::Image {
+                what: "target colour",
+                width: w,
+                height: h,
+                channels: 3,
+                found: format!("{} channel(s)", rgb.channels),
+            });
+        }
+        let npix = (w * h) as usize;
+        let mut planes = vec![0.0f32; 5 * npix];
+        planes
+            .par_chunks_mut(npix)
+            .enumerate()
+            .for_each(|(p, plane)| {
+                for (q, v) in plane.iter_mut().enumerate() {
+                    *v = match p {
+                        0..=2 => rgb.data[q * 3 + p],
+                        3 => 1.0,
+                        _ => mask.data[q],
+                    };
+                }
+            });
+        let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let mut enc = self.encoder();
+        let (planes, staging) = self.upload(&mut enc, "target", bytemuck::cast_slice(&planes))?;
+        self.submit_wait(enc)?;
+        drop(staging);
+        Ok(GpuTarget {
+            width: w,
+            height: h,
+            planes,
+        })
+    }
+
+    /// Renders `g`, scores it against `target` with `(1 - lambda) L1 +
+    /// lambda (1 - SSIM)` on the colour plus `silhouette_weight` x the mean
+    /// |alpha - mask|, and differentiates, without the images leaving the
+    /// device: [`super::losses::l1_dssim`] (unmasked) and
+    /// [`super::losses::silhouette`] fused between [`GpuRenderer::render`]
+    /// and [`GpuRenderer::backward`]. Only the loss's partial sums (3 f32 per
+    /// 256 pixels) and the Gaussians' gradients come back.
+    pub fn photometric_step(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        target: &GpuTarget,
+        lambda: f32,
+        silhouette_weight: f32,
+    ) -> Result<(f32, GaussianGrads, super::device::StepSeconds), RenderError> {
+        if !(0.0..=1.0).contains(&lambda) {
+            return Err(RenderError::Settings(format!(
+                "D-SSIM weight lambda = {lambda}, expected a value in [0, 1]"
+            )));
+        }
+        if !silhouette_weight.is_finite() {
+            return Err(RenderError::Settings(format!(
+                "silhouette weight {silhouette_weight} is not finite"
+            )));
+        }
+        if (cam.width, cam.height) != (target.width, target.height) {
+            return Err(RenderError::Camera(format!(
+                "camera is {}x{} but the target is {}x{}",
+                cam.width, cam.height, target.width, target.height
+            )));
+        }
+        let mut secs = super::device::StepSeconds::default();
+        let t = Instant::now();
+        let (_, st) = self.render_state(g, cam, s, false)?;
+        secs.render = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let (w, h) = (st.width, st.height);
+        let npix = (w * h) as usize;
+        let (c, plane_bytes) = (3usize, npix as u64 * 4);
+        let params = PhotoParams {
+            width: w,
+            height: h,
+            channels: c as u32,
+            pad0: 0,
+            norm: (1.0 / (npix * c) as f64) as f32,
+            lambda,
+            sil_weight: silhouette_weight,
+            sil_norm: (1.0 / npix as f64) as f32,
+        };
+        let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        let mut enc = self.encoder();
+        // Planes x (rendered), then the target's y, weights, mask.
+        let srcb = self.storage("photometric planes", (c as u64 + 5) * plane_bytes);
+        enc.copy_buffer_to_buffer(
+            &target.planes,
+            0,
+            &srcb,
+            c as u64 * plane_bytes,
+            5 * plane_bytes,
+        );
+        let u = self.uniform(bytemuck::bytes_of(&params));
+        self.dispatch(
+            &mut enc,
+            &self.kernels.photo_planes,
+            &u,
+            None,
+            &[&st.img, &srcb],
+            groups2(((c * npix) as u32).div_ceil(256)),
+        );
+        let (smap, gbuf, keep) = self.ssim_chain(&mut enc, &srcb, w, h, c as u32, params.norm);
+        let groups = groups2((npix as u32).div_ceil(256));
+        let gp = self.storage("pixel gradients", npix as u64 * 32);
+        let partials = self.storage("loss partials", groups.0 as u64 * groups.1 as u64 * 12);
+        self.dispatch(
+            &mut enc,
+            &self.kernels.photo_grad,
+            &u,
+            None,
+            &[&st.img, &srcb, &smap, &gbuf, &gp, &partials],
+            groups,
+        );
+        self.submit_wait(enc)?;
+        drop(keep);
+        let used = npix.div_ceil(256) as u64;
+        let sums = self.read_with(&partials, 0, used * 12, |b| {
+            let v = as_f32(b);
+            let mut sums = [0.0f64; 3];
+            for p in v.chunks_exact(3) {
+                for (a, x) in sums.iter_mut().zip(p) {
+                    *a += *x as f64;
+                }
+            }
+            sums
+        })?;
+        let norm = 1.0 / (npix * c) as f64;
+        let l1 = (sums[0] * norm) as f32;
+        let ssim = (sums[1] * norm) as f32;
+        let sil = (sums[2] / npix as f64) as f32;
+        let loss = ((1.0 - lambda) * l1 + lambda * (1.0 - ssim)) + silhouette_weight * sil;
+        if !loss.is_finite() {
+            return Err(gpu_err(
+                "the photometric loss is not finite (a rendered pixel is NaN or infinite)",
+            ));
+        }
+        secs.loss = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let laps = Laps::new(self);
+        let grads = self.backward_from(self.encoder(), laps, &st, &gp, srcb)?;
+        secs.backward = t.elapsed().as_secs_f64();
+        Ok((loss, grads, secs))
     }
 }
 
@@ -1206,6 +1443,7 @@ impl Kernels {
         const COMMON: &str = include_str!("common.wgsl");
         const PROJ: &str = include_str!("proj_common.wgsl");
         const SSIM: &str = include_str!("ssim_common.wgsl");
+        const PHOTO: &str = include_str!("photo_common.wgsl");
         let make = |name: &str, parts: &[&str]| {
             let src: String = parts.concat();
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -1243,6 +1481,14 @@ impl Kernels {
                 &[COMMON, SSIM, include_str!("ssim_terms.wgsl")],
             ),
             ssim_grad: make("ssim_grad", &[COMMON, SSIM, include_str!("ssim_grad.wgsl")]),
+            photo_planes: make(
+                "photo_planes",
+                &[COMMON, PHOTO, include_str!("photo_planes.wgsl")],
+            ),
+            photo_grad: make(
+                "photo_grad",
+                &[COMMON, PHOTO, include_str!("photo_grad.wgsl")],
+            ),
         }
     }
 }

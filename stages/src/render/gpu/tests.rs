@@ -694,3 +694,102 @@ fn gpu_ssim_matches_cpu() {
         assert_eq!(cpu, gpu);
     }
 }
+
+/// The fused photometric step (render, `l1_dssim` + weighted silhouette,
+/// backward with the images kept on the device) against the CPU's step on
+/// every parity scene: the loss within [`SSIM_TOL`], each parameter kind's
+/// gradients within [`GRAD_TOL`]; three reruns give the same bits.
+#[test]
+fn gpu_photometric_step_matches_cpu() {
+    use crate::render::device::{PhotometricLoss, Renderer};
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let gpu_dev = Renderer::Gpu(std::sync::Arc::new(r));
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    let terms = PhotometricLoss {
+        lambda_dssim: 0.2,
+        silhouette_weight: 0.7,
+    };
+    for sc in scenes() {
+        let (w, h) = (sc.cam.width, sc.cam.height);
+        let (_, rgb) = ssim_pair(&mut rng, w, h, 3);
+        let mut mask = ImageF32::new(w, h, 1);
+        mask.data.iter_mut().for_each(|v| {
+            *v = if rng.gen_bool(0.4) {
+                1.0
+            } else {
+                rng.gen_range(0.0..1.0)
+            }
+        });
+        let cpu_t = Renderer::Cpu.photometric_target(&rgb, &mask).unwrap();
+        let (lc, gc, _) = Renderer::Cpu
+            .photometric_step(&sc.g, &sc.cam, &sc.s, &cpu_t, &terms)
+            .unwrap();
+        let gpu_t = gpu_dev.photometric_target(&rgb, &mask).unwrap();
+        let mut first: Option<Vec<u32>> = None;
+        for _ in 0..3 {
+            let (lg, gg, _) = gpu_dev
+                .photometric_step(&sc.g, &sc.cam, &sc.s, &gpu_t, &terms)
+                .unwrap();
+            assert!(
+                (lc - lg).abs() <= SSIM_TOL && lc > 0.01,
+                "{}: loss cpu {lc} gpu {lg}",
+                sc.name
+            );
+            let worst = check_grads(sc.name, &gc, &gg, GRAD_TOL);
+            eprintln!(
+                "{}: loss cpu {lc} gpu {lg}, worst gradient {worst:e}",
+                sc.name
+            );
+            let mut b = vec![lg.to_bits()];
+            for (_, k) in kinds(&gg) {
+                b.extend(k.iter().map(|x| x.to_bits()));
+            }
+            match &first {
+                None => first = Some(b),
+                Some(f) => assert!(f == &b, "{}: a rerun changed the bits", sc.name),
+            }
+        }
+        // The generic path (a CPU target on the GPU renderer) agrees too.
+        let (lx, gx, _) = gpu_dev
+            .photometric_step(&sc.g, &sc.cam, &sc.s, &cpu_t, &terms)
+            .unwrap();
+        assert!(
+            (lc - lx).abs() <= SSIM_TOL,
+            "{}: loss {lc} vs {lx}",
+            sc.name
+        );
+        check_grads(sc.name, &gc, &gx, GRAD_TOL);
+    }
+    // Bad inputs: a target of another size, a two-channel colour, a NaN, lambda.
+    let sc = &scenes()[0];
+    let (w, h) = (sc.cam.width, sc.cam.height);
+    let (_, rgb) = ssim_pair(&mut rng, w + 1, h, 3);
+    let mask = ImageF32::new(w + 1, h, 1);
+    let t = gpu_dev.photometric_target(&rgb, &mask).unwrap();
+    let e = gpu_dev
+        .photometric_step(&sc.g, &sc.cam, &sc.s, &t, &terms)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("target"), "{e}");
+    let two = ImageF32::new(w, h, 2);
+    let mask = ImageF32::new(w, h, 1);
+    assert!(gpu_dev.photometric_target(&two, &mask).is_err());
+    let (_, mut nan) = ssim_pair(&mut rng, w, h, 3);
+    nan.data[5] = f32::NAN;
+    let e = gpu_dev
+        .photometric_target(&nan, &mask)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("not finite"), "{e}");
+    let (_, rgb) = ssim_pair(&mut rng, w, h, 3);
+    let t = gpu_dev.photometric_target(&rgb, &mask).unwrap();
+    let bad = PhotometricLoss {
+        lambda_dssim: 1.5,
+        ..terms
+    };
+    assert!(gpu_dev
+        .photometric_step(&sc.g, &sc.cam, &sc.s, &t, &bad)
+        .is_err());
+}
