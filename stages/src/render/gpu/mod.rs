@@ -32,7 +32,12 @@
 //! Also here: the photometric loss's SSIM term ([`GpuRenderer::ssim`]:
 //! `ssim_maps`, `ssim_blur` along rows then columns, `ssim_terms`, the
 //! adjoints through the window again, `ssim_grad`), because at view sizes of
-//! 1K pixels the CPU's SSIM costs more than the rendering.
+//! 1K pixels the CPU's SSIM costs more than the rendering; and the fused
+//! photometric step ([`GpuRenderer::photometric_step`]: `photo_planes`, the
+//! SSIM kernels, `photo_grad`), which scores the forward image where it
+//! lies against targets uploaded once per view and hands its pixel
+//! gradients to `backward` on the device, because moving the images to the
+//! host and back cost more than computing the loss.
 //!
 //! Host side: every buffer comes from a pool kept between calls (`pool.rs`,
 //! whose invariant is that no kernel reads bytes its call did not write),
