@@ -32,7 +32,7 @@ use std::time::Instant;
 use fure_stages::data::image::ImageF32;
 use std::sync::Arc;
 
-use fure_stages::render::device::{PhotometricLoss, Renderer};
+use fure_stages::render::device::{ImageLoss, Renderer, ViewTargets};
 use fure_stages::render::gpu::{GpuMode, GpuRenderer};
 use fure_stages::render::{backward, render, OutputGrads, RenderSettings, Vec3};
 
@@ -89,24 +89,35 @@ fn photometric_steps(
             .collect(),
         ..out.alpha.clone()
     };
-    let terms = PhotometricLoss {
+    let terms = ImageLoss {
         lambda_dssim: 0.2,
-        silhouette_weight: 0.5,
+        rgb: 1.0,
+        silhouette: 0.5,
+        fur: 0.0,
+        orientation: 0.0,
     };
     let dev = Renderer::Gpu(gpu.clone());
-    let host_t = Renderer::Cpu
-        .photometric_target(&target, &mask)
-        .expect("target");
-    let dev_t = dev.photometric_target(&target, &mask).expect("gpu target");
-    let ways: [(&Renderer, &_); 3] = [(&Renderer::Cpu, &host_t), (&dev, &host_t), (&dev, &dev_t)];
+    let t = ViewTargets {
+        rgb: &target,
+        mask: Some(&mask),
+        fur: None,
+        orientation: None,
+        region: None,
+    };
+    let resident = dev.resident_target(&t).expect("gpu target");
+    let ways = [
+        (&Renderer::Cpu, None),
+        (&dev, None),
+        (&dev, resident.as_ref()),
+    ];
     let mut med = [0.0; 3];
-    for (m, (r, t)) in med.iter_mut().zip(ways) {
-        r.photometric_step(g, cam, s, t, &terms)
+    for (m, (r, res)) in med.iter_mut().zip(ways) {
+        r.image_step(g, cam, s, &t, res, &terms)
             .expect("warm-up step");
         let mut v = Vec::new();
         for _ in 0..reps {
             let t0 = Instant::now();
-            std::hint::black_box(r.photometric_step(g, cam, s, t, &terms).expect("step"));
+            std::hint::black_box(r.image_step(g, cam, s, &t, res, &terms).expect("step"));
             v.push(ms(t0));
         }
         *m = median(v);

@@ -902,4 +902,26 @@ fn the_device_flag_reaches_the_renderers_and_is_recorded() {
     again.ok();
     assert_eq!(again.status("codec"), "cached", "{:?}", again.stages);
     assert!(notes(&again, "codec").iter().any(|l| l == "renders on cpu"));
+
+    // The learner on the GPU (image losses fused on the device), from the
+    // same upstream stages: its first iteration scores what the CPU's does,
+    // and training ends near it.
+    let g = p.run("tiny.toml", &["--until", "codec", "--set", "codec.device=gpu"]);
+    if g.code() != 0 {
+        let msg = format!("{}{}", g.stdout(), g.stderr());
+        assert!(msg.contains("adapter") || msg.contains("feature"), "{msg}");
+        eprintln!("SKIPPED: the GPU learner needs the gpu feature and an adapter: {msg}");
+        return;
+    }
+    let gcodec = read_json(&p.path("out/tiny/codec/metrics.json"));
+    assert_eq!(gcodec["device"]["device"], "gpu", "{gcodec}");
+    let first = |m: &serde_json::Value| m["loss_history"][0].as_f64().unwrap();
+    let (c0, g0) = (first(&codec), first(&gcodec));
+    assert!(
+        (c0 - g0).abs() <= 1e-4 * c0.abs().max(1e-3),
+        "first loss cpu {c0} gpu {g0}"
+    );
+    let total = |m: &serde_json::Value| m["final_losses"]["total"].as_f64().unwrap();
+    let (ct, gt) = (total(&codec), total(&gcodec));
+    assert!((ct - gt).abs() <= 0.05 * ct, "final loss cpu {ct} gpu {gt}");
 }

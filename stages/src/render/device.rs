@@ -180,29 +180,38 @@ impl Renderer {
     }
 }
 
-/// A training view's targets for [`Renderer::photometric_step`]: the
-/// images themselves on the CPU; on the GPU uploaded once, so that a step
-/// moves no image between host and device.
-#[derive(Debug)]
-pub enum PhotometricTarget<'a> {
-    Cpu {
-        rgb: &'a ImageF32,
-        mask: &'a ImageF32,
-    },
-    #[cfg(feature = "gpu")]
-    Gpu(super::gpu::GpuTarget),
-}
-
-/// The fitting loss of [`Renderer::photometric_step`]: `(1 - lambda_dssim)
-/// L1 + lambda_dssim (1 - SSIM)` on the colour (unmasked) plus
-/// `silhouette_weight` x the mean |alpha - mask|.
+/// One view's targets for [`Renderer::image_step`]: the colour, and what
+/// the view has of the rest.
 #[derive(Debug, Clone, Copy)]
-pub struct PhotometricLoss {
-    pub lambda_dssim: f32,
-    pub silhouette_weight: f32,
+pub struct ViewTargets<'a> {
+    /// 3 channels.
+    pub rgb: &'a ImageF32,
+    /// Silhouette mask (1 channel).
+    pub mask: Option<&'a ImageF32>,
+    /// Fur mask (1 channel).
+    pub fur: Option<&'a ImageF32>,
+    /// Gabor angle and its confidence (1 channel each).
+    pub orientation: Option<(&'a ImageF32, &'a ImageF32)>,
+    /// Where the orientation term counts (None: everywhere).
+    pub region: Option<&'a ImageF32>,
 }
 
-/// Wall seconds of one photometric step's phases.
+/// The weighted image losses of [`Renderer::image_step`]: `rgb` x
+/// `(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM)` on the colour
+/// (unmasked), `silhouette` x mean |alpha - mask|, `fur` x mean |fur - fur
+/// mask|, `orientation` x the confidence-weighted angle error in the region
+/// ([`super::losses`]). A term runs when its weight is positive and the view
+/// has its target.
+#[derive(Debug, Clone, Copy)]
+pub struct ImageLoss {
+    pub lambda_dssim: f32,
+    pub rgb: f32,
+    pub silhouette: f32,
+    pub fur: f32,
+    pub orientation: f32,
+}
+
+/// Wall seconds of one image step's phases.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct StepSeconds {
     pub render: f64,
@@ -210,69 +219,109 @@ pub struct StepSeconds {
     pub backward: f64,
 }
 
+/// A view's targets kept on the device between steps (uploaded once), so
+/// that a step moves no image between host and device.
+#[derive(Debug)]
+pub enum ResidentTarget {
+    #[cfg(feature = "gpu")]
+    Gpu(super::gpu::GpuTarget),
+}
+
+/// Weighted loss terms by name (`rgb`, `sil`, `mask`, `ori`, in that order)
+/// and the Gaussians' gradients.
+pub type StepResult = (Vec<(&'static str, f32)>, GaussianGrads, StepSeconds);
+
 impl Renderer {
-    /// A view's colour (3 channels) and silhouette mask as this device's
-    /// [`PhotometricTarget`] (uploaded now on the GPU).
-    pub fn photometric_target<'a>(
+    /// `t` kept on this device for [`Renderer::image_step`]: uploaded now on
+    /// the GPU (checked as the losses check their inputs); None on the CPU,
+    /// whose steps read the host images.
+    pub fn resident_target(
         &self,
-        rgb: &'a ImageF32,
-        mask: &'a ImageF32,
-    ) -> Result<PhotometricTarget<'a>, RenderError> {
+        t: &ViewTargets<'_>,
+    ) -> Result<Option<ResidentTarget>, RenderError> {
         match self {
-            Renderer::Cpu => Ok(PhotometricTarget::Cpu { rgb, mask }),
+            Renderer::Cpu => {
+                let _ = t;
+                Ok(None)
+            }
             #[cfg(feature = "gpu")]
-            Renderer::Gpu(r) => r.target(rgb, mask).map(PhotometricTarget::Gpu),
+            Renderer::Gpu(r) => r.target(t).map(|g| Some(ResidentTarget::Gpu(g))),
         }
     }
 
-    /// One fitting step on a view: render `g` from `cam`, the loss `l`
-    /// against `target` and its gradient, and the Gaussians' gradients.
-    /// On the CPU: [`super::render`], [`super::losses::l1_dssim`],
-    /// [`super::losses::silhouette`] and [`super::backward`] in turn; on the
+    /// One learning step on a view: render `g` from `cam`, the weighted
+    /// image losses `w` against `t` and their gradient, and the Gaussians'
+    /// gradients. On the host path: [`Renderer::render`], the losses of
+    /// [`super::losses`] in the order of [`ImageLoss`] (SSIM on this
+    /// device) and [`Renderer::backward`]; with a `resident` target on the
     /// GPU the same formulas with the images kept on the device
-    /// ([`super::gpu::GpuRenderer::photometric_step`]).
-    pub fn photometric_step(
+    /// ([`super::gpu::GpuRenderer::image_step`]).
+    pub fn image_step(
         &self,
         g: &Gaussians,
         cam: &Camera,
         s: &RenderSettings,
-        target: &PhotometricTarget<'_>,
-        l: &PhotometricLoss,
-    ) -> Result<(f32, GaussianGrads, StepSeconds), RenderError> {
-        match target {
-            PhotometricTarget::Cpu { rgb, mask } => {
-                let mut secs = StepSeconds::default();
-                let t = std::time::Instant::now();
-                let (out, st) = self.render(g, cam, s)?;
-                secs.render = t.elapsed().as_secs_f64();
-                let t = std::time::Instant::now();
-                let (l_rgb, g_rgb) = self.l1_dssim(&out.rgb, rgb, None, l.lambda_dssim)?;
-                let (l_sil, mut g_sil) = super::losses::silhouette(&out.alpha, mask, None)?;
-                for x in &mut g_sil.data {
-                    *x *= l.silhouette_weight;
-                }
-                let loss = l_rgb + l.silhouette_weight * l_sil;
-                let dl = OutputGrads {
-                    rgb: Some(g_rgb),
-                    alpha: Some(g_sil),
-                    ..Default::default()
-                };
-                secs.loss = t.elapsed().as_secs_f64();
-                let t = std::time::Instant::now();
-                let grads = self.backward(g, cam, s, &st, &dl)?;
-                secs.backward = t.elapsed().as_secs_f64();
-                Ok((loss, grads, secs))
-            }
+        t: &ViewTargets<'_>,
+        resident: Option<&ResidentTarget>,
+        w: &ImageLoss,
+    ) -> Result<StepResult, RenderError> {
+        match (self, resident) {
             #[cfg(feature = "gpu")]
-            PhotometricTarget::Gpu(t) => match self {
-                Renderer::Gpu(r) => {
-                    r.photometric_step(g, cam, s, t, l.lambda_dssim, l.silhouette_weight)
-                }
-                Renderer::Cpu => Err(RenderError::Gpu(
-                    "a GPU target given to the CPU renderer".into(),
-                )),
-            },
+            (Renderer::Gpu(r), Some(ResidentTarget::Gpu(rt))) => r.image_step(g, cam, s, rt, w),
+            #[cfg(feature = "gpu")]
+            (Renderer::Cpu, Some(_)) => Err(RenderError::Gpu(
+                "a GPU-resident target given to the CPU renderer".into(),
+            )),
+            _ => self.host_image_step(g, cam, s, t, w),
         }
+    }
+
+    /// [`Renderer::image_step`] through host images.
+    fn host_image_step(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        t: &ViewTargets<'_>,
+        w: &ImageLoss,
+    ) -> Result<StepResult, RenderError> {
+        use super::losses;
+        let mut secs = StepSeconds::default();
+        let clock = std::time::Instant::now();
+        let (out, st) = self.render(g, cam, s)?;
+        secs.render = clock.elapsed().as_secs_f64();
+        let clock = std::time::Instant::now();
+        let scale = |mut g: ImageF32, w: f32| {
+            g.data.iter_mut().for_each(|v| *v *= w);
+            g
+        };
+        let mut terms = Vec::new();
+        let mut dl = OutputGrads::default();
+        if w.rgb > 0.0 {
+            let (v, g) = self.l1_dssim(&out.rgb, t.rgb, None, w.lambda_dssim)?;
+            terms.push(("rgb", w.rgb * v));
+            dl.rgb = Some(scale(g, w.rgb));
+        }
+        if let (true, Some(m)) = (w.silhouette > 0.0, t.mask) {
+            let (v, g) = losses::silhouette(&out.alpha, m, None)?;
+            terms.push(("sil", w.silhouette * v));
+            dl.alpha = Some(scale(g, w.silhouette));
+        }
+        if let (true, Some(f)) = (w.fur > 0.0, t.fur) {
+            let (v, g) = losses::fur_mask(&out.fur, f, None)?;
+            terms.push(("mask", w.fur * v));
+            dl.fur = Some(scale(g, w.fur));
+        }
+        if let (true, Some((angle, conf))) = (w.orientation > 0.0, t.orientation) {
+            let (v, g) = losses::orientation(&out.orientation, angle, conf, t.region)?;
+            terms.push(("ori", w.orientation * v));
+            dl.orientation = Some(scale(g, w.orientation));
+        }
+        secs.loss = clock.elapsed().as_secs_f64();
+        let clock = std::time::Instant::now();
+        let grads = self.backward(g, cam, s, &st, &dl)?;
+        secs.backward = clock.elapsed().as_secs_f64();
+        Ok((terms, grads, secs))
     }
 }
 

@@ -42,7 +42,7 @@ pub(crate) const SSIM_RADIUS: usize = 5;
 const SSIM_SIGMA: f64 = 1.5;
 
 /// The renderer's shape check, plus finiteness: loss inputs come from files.
-fn check(
+pub(crate) fn check(
     what: &'static str,
     img: &ImageF32,
     width: u32,

@@ -137,7 +137,7 @@ use crate::data::mesh::Mesh;
 use crate::data::shell::ShellWidths;
 use crate::maths::geom::{MeshQuery, PointIndex};
 use crate::maths::stats::{percentile, psnr, standard_normal};
-use crate::render::device::PhotometricLoss;
+use crate::render::device::{ImageLoss, ViewTargets};
 use crate::render::{self, Adam, Gaussians, OutputGrads, RenderSettings};
 
 fure_stage_api::param_enum! {
@@ -1128,14 +1128,27 @@ pub fn fit_gaussians_on(
         ..Default::default()
     };
     let mut recent = Vec::new();
-    // Each view's images where the device reads them (uploaded once on the GPU).
-    let targets = views
+    // Each view's targets, kept on the device between steps on the GPU.
+    let targets: Vec<ViewTargets> = views
         .iter()
-        .map(|v| device.photometric_target(&v.rgb, &v.mask))
+        .map(|v| ViewTargets {
+            rgb: &v.rgb,
+            mask: Some(&v.mask),
+            fur: None,
+            orientation: None,
+            region: None,
+        })
+        .collect();
+    let resident = targets
+        .iter()
+        .map(|t| device.resident_target(t))
         .collect::<Result<Vec<_>, _>>()?;
-    let loss_terms = PhotometricLoss {
+    let loss_terms = ImageLoss {
         lambda_dssim: s.lambda_dssim,
-        silhouette_weight: s.silhouette_weight,
+        rgb: 1.0,
+        silhouette: s.silhouette_weight,
+        fur: 0.0,
+        orientation: 0.0,
     };
     progress.set_total(s.iterations as u64);
     for it in 0..s.iterations {
@@ -1144,8 +1157,15 @@ pub fn fit_gaussians_on(
             shuffle_views(&mut order, &mut rng);
         }
         let v = &views[order[k]];
-        let (loss, gr, secs) =
-            device.photometric_step(&g, &v.camera, &settings, &targets[order[k]], &loss_terms)?;
+        let (terms, gr, secs) = device.image_step(
+            &g,
+            &v.camera,
+            &settings,
+            &targets[order[k]],
+            resident[order[k]].as_ref(),
+            &loss_terms,
+        )?;
+        let loss: f32 = terms.iter().map(|t| t.1).sum();
         report.seconds_render += secs.render;
         report.seconds_loss += secs.loss;
         report.seconds_backward += secs.backward;
@@ -2362,7 +2382,7 @@ mod tests {
         (mesh, views, s)
     }
 
-    /// The fit on the GPU (the fused photometric step) tracks the CPU's:
+    /// The fit on the GPU (the fused image step) tracks the CPU's:
     /// the same first loss, and after 60 iterations (which amplify the
     /// last-bit differences) a training PSNR within 0.5 dB.
     #[cfg(feature = "gpu")]

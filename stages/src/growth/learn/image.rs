@@ -72,7 +72,8 @@ use crate::data::image::ImageF32;
 use crate::data::mesh::Mesh;
 use crate::data::strands::Strands;
 use crate::formats;
-use crate::render::{self, GaussianGrads, Gaussians, OutputGrads, RenderOutput, RenderSettings};
+use crate::render::device::{ImageLoss, ResidentTarget, ViewTargets};
+use crate::render::{self, GaussianGrads, Gaussians, OutputGrads, RenderSettings};
 
 /// Settings of the image losses.
 #[derive(Debug, Clone)]
@@ -113,6 +114,8 @@ pub struct ViewData {
 pub struct ImageLosses {
     cfg: ImageConfig,
     views: Vec<ViewData>,
+    /// Each view's targets kept on the device (GPU), else None.
+    resident: Vec<Option<ResidentTarget>>,
     test_cameras: Vec<Camera>,
     body: Gaussians,
     body_adam: render::Adam,
@@ -313,9 +316,14 @@ impl ImageLosses {
         let mut body_adam = render::Adam::default();
         let body_group = body_adam.add_group("body_colour", cfg.lr_color, body.len() * 3);
         let n = widths.len();
+        let resident = views
+            .iter()
+            .map(|v| cfg.device.resident_target(&v.targets()))
+            .collect::<Result<Vec<_>, _>>()?;
         Ok(ImageLosses {
             cfg: cfg.clone(),
             views,
+            resident,
             test_cameras: cams.test,
             body,
             body_adam,
@@ -697,56 +705,37 @@ pub fn normalise_confidence(c: &mut ImageF32) {
     }
 }
 
-/// Weighted loss terms of one rendered view and d loss / d outputs.
-///
-/// L_rgb = 0.8 L1 + 0.2 (1 - SSIM) over the whole image (3DGS's photometric
-/// loss; the targets are composited over the same black background);
-/// L_sil = mean |alpha - mask|; L_mask = mean |fur - fur mask|; L_ori = the
-/// pi-periodic angle difference weighted by the normalised Gabor confidence
-/// inside the GT fur mask (the silhouette mask when there is no fur mask).
-/// Weighted loss terms by name, and d loss / d render outputs.
-type ViewLosses = (Vec<(&'static str, f32)>, OutputGrads);
+impl ViewData {
+    /// The view's images as the image losses' targets; the orientation
+    /// counts inside the GT fur mask (the silhouette mask when there is no
+    /// fur mask).
+    fn targets(&self) -> ViewTargets<'_> {
+        ViewTargets {
+            rgb: &self.rgb,
+            mask: self.mask.as_ref(),
+            fur: self.fur.as_ref(),
+            orientation: self.orientation.as_ref().map(|(a, c)| (a, c)),
+            region: self.fur.as_ref().or(self.mask.as_ref()),
+        }
+    }
+}
 
-fn view_losses(
-    out: &RenderOutput,
-    view: &ViewData,
-    cfg: &ImageConfig,
-) -> Result<ViewLosses, StageError> {
-    use render::losses;
-    let mut terms = Vec::new();
-    let mut dl = OutputGrads::default();
-    let scale = |mut g: ImageF32, w: f32| {
-        g.data.iter_mut().for_each(|v| *v *= w);
-        g
-    };
-    if cfg.l_rgb > 0.0 {
-        let (v, g) = cfg.device.l1_dssim(&out.rgb, &view.rgb, None, 0.2)?;
-        terms.push(("rgb", cfg.l_rgb * v));
-        dl.rgb = Some(scale(g, cfg.l_rgb));
-    }
-    if cfg.l_sil > 0.0 {
-        if let Some(m) = &view.mask {
-            let (v, g) = losses::silhouette(&out.alpha, m, None)?;
-            terms.push(("sil", cfg.l_sil * v));
-            dl.alpha = Some(scale(g, cfg.l_sil));
+impl ImageConfig {
+    /// The weighted loss terms of one rendered view (`render::device`):
+    /// L_rgb = 0.8 L1 + 0.2 (1 - SSIM) over the whole image (3DGS's
+    /// photometric loss; the targets are composited over the same black
+    /// background); L_sil = mean |alpha - mask|; L_mask = mean |fur - fur
+    /// mask|; L_ori = the pi-periodic angle difference weighted by the
+    /// normalised Gabor confidence (see [`ViewData::targets`] for where).
+    fn image_loss(&self) -> ImageLoss {
+        ImageLoss {
+            lambda_dssim: 0.2,
+            rgb: self.l_rgb,
+            silhouette: self.l_sil,
+            fur: self.l_mask,
+            orientation: self.l_ori,
         }
     }
-    if cfg.l_mask > 0.0 {
-        if let Some(f) = &view.fur {
-            let (v, g) = losses::fur_mask(&out.fur, f, None)?;
-            terms.push(("mask", cfg.l_mask * v));
-            dl.fur = Some(scale(g, cfg.l_mask));
-        }
-    }
-    if cfg.l_ori > 0.0 {
-        if let Some((angle, conf)) = &view.orientation {
-            let region = view.fur.as_ref().or(view.mask.as_ref());
-            let (v, g) = losses::orientation(&out.orientation, angle, conf, region)?;
-            terms.push(("ori", cfg.l_ori * v));
-            dl.orientation = Some(scale(g, cfg.l_ori));
-        }
-    }
-    Ok((terms, dl))
 }
 
 impl ImageTerm for ImageLosses {
@@ -789,12 +778,16 @@ impl ImageTerm for ImageLosses {
         let starts: Vec<u32> = (0..=subset.len()).map(|s| (s * l) as u32).collect();
         for &vi in &vids {
             let view = &self.views[vi];
-            let lap = std::time::Instant::now();
-            let (out, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
-            self.timing.render += lap.elapsed().as_secs_f64();
-            let lap = std::time::Instant::now();
-            let (t, dl) = view_losses(&out, view, &self.cfg)?;
-            self.timing.loss += lap.elapsed().as_secs_f64();
+            let (t, gg, secs) = self.cfg.device.image_step(
+                &g,
+                &view.camera,
+                &self.settings,
+                &view.targets(),
+                self.resident[vi].as_ref(),
+                &self.cfg.image_loss(),
+            )?;
+            self.timing.render += secs.render;
+            self.timing.loss += secs.loss;
             let lap = std::time::Instant::now();
             for (name, v) in t {
                 match terms.iter_mut().find(|x| x.0 == name) {
@@ -802,12 +795,8 @@ impl ImageTerm for ImageLosses {
                     None => terms.push((name, inv * v)),
                 }
             }
-            let gg = self
-                .cfg
-                .device
-                .backward(&g, &view.camera, &self.settings, &state, &dl)?;
             let sg = render::strands_backward(points, &starts, &widths, &head(&gg, segs))?;
-            self.timing.backward += lap.elapsed().as_secs_f64();
+            self.timing.backward += secs.backward + lap.elapsed().as_secs_f64();
             for (a, b) in grad.iter_mut().zip(&sg.points) {
                 *a += inv * *b;
             }

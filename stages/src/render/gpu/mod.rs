@@ -33,11 +33,12 @@
 //! `ssim_maps`, `ssim_blur` along rows then columns, `ssim_terms`, the
 //! adjoints through the window again, `ssim_grad`), because at view sizes of
 //! 1K pixels the CPU's SSIM costs more than the rendering; and the fused
-//! photometric step ([`GpuRenderer::photometric_step`]: `photo_planes`, the
-//! SSIM kernels, `photo_grad`), which scores the forward image where it
-//! lies against targets uploaded once per view and hands its pixel
-//! gradients to `backward` on the device, because moving the images to the
-//! host and back cost more than computing the loss.
+//! image-loss step ([`GpuRenderer::image_step`]: `photo_planes`, the
+//! SSIM kernels, `photo_grad`: every image loss of `render/losses.rs` the
+//! learning stages use), which scores the forward image where it lies
+//! against targets uploaded once per view and hands its pixel gradients to
+//! `backward` on the device, because moving the images to the host and back
+//! cost more than computing the losses.
 //!
 //! Host side: every buffer comes from a pool kept between calls (`pool.rs`,
 //! whose invariant is that no kernel reads bytes its call did not write),
@@ -57,6 +58,7 @@ use glam::{Quat, Vec2, Vec3};
 use rayon::prelude::*;
 use wgpu::util::DeviceExt;
 
+use super::device::{ImageLoss, StepResult, StepSeconds, ViewTargets};
 use super::gaussians::{GaussianGrads, Gaussians};
 use super::project::CamData;
 use super::raster::{check_image, OutputGrads, RenderOutput};
@@ -133,18 +135,22 @@ struct SsimParams {
     k: [[f32; 4]; 3],
 }
 
-/// The photometric step's uniforms (`PhotoParams` in photo_common.wgsl).
+/// The image-loss step's uniforms (`PhotoParams` in photo_common.wgsl).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct PhotoParams {
     width: u32,
     height: u32,
-    channels: u32,
+    terms: u32,
     pad0: u32,
     norm: f32,
     lambda: f32,
-    sil_weight: f32,
-    sil_norm: f32,
+    pix_norm: f32,
+    ori_norm: f32,
+    w_rgb: f32,
+    w_sil: f32,
+    w_fur: f32,
+    w_ori: f32,
 }
 
 /// f32 per Gaussian in the input record (proj_common.wgsl).
@@ -676,7 +682,7 @@ impl GpuRenderer {
     }
 
     /// [`GpuRenderer::render`], reading the images back only when
-    /// `read_image` (the photometric step scores them on the device).
+    /// `read_image` (the image-loss step scores them on the device).
     fn render_state(
         &self,
         g: &Gaussians,
@@ -1105,53 +1111,85 @@ impl GpuRenderer {
     }
 }
 
-/// A training view's target images on the device for
-/// [`GpuRenderer::photometric_step`]: the colour planes, the SSIM weights
-/// (all 1) and the silhouette mask, uploaded once and read by every step
+/// A view's loss targets on the device for [`GpuRenderer::image_step`]
+/// ([`super::device::ResidentTarget`]), uploaded once and read by every step
 /// on that view.
 pub struct GpuTarget {
     width: u32,
     height: u32,
-    /// Planes y (3), weights (1), mask (1), plane-major.
+    /// Planes y (3), SSIM weights (1, all 1), mask, fur mask, angle,
+    /// confidence, region (zero where absent); photo_common.wgsl.
     planes: Pooled,
+    /// The terms the view has (photo_common.wgsl `terms`, colour always).
+    has: u32,
+    /// Sum of the orientation region (losses.rs `orientation`'s `msum`).
+    region_sum: f64,
 }
+
+/// Planes of a [`GpuTarget`].
+const TARGET_PLANES: usize = 9;
 
 impl std::fmt::Debug for GpuTarget {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "GpuTarget({}x{})", self.width, self.height)
+        write!(
+            f,
+            "GpuTarget({}x{}, terms {:#b})",
+            self.width, self.height, self.has
+        )
     }
 }
 
 impl GpuRenderer {
-    /// Uploads a view's colour (3 channels) and silhouette mask (1 channel,
-    /// same size) as a [`GpuTarget`]; both are checked as the CPU's losses
-    /// check them (sizes, finite values).
-    pub fn target(&self, rgb: &ImageF32, mask: &ImageF32) -> Result<GpuTarget, RenderError> {
-        let (w, h) = (rgb.width, rgb.height);
-        losses::ssim_weights(rgb, rgb, Some(mask))?;
-        if rgb.channels != 3 {
-            return Err(RenderError::Image {
-                what: "target colour",
-                width: w,
-                height: h,
-                channels: 3,
-                found: format!("{} channel(s)", rgb.channels),
-            });
-        }
+    /// Uploads a view's loss targets as a [`GpuTarget`]; each image is
+    /// checked as the CPU's losses check it (size, channels, finite values).
+    pub fn target(&self, t: &ViewTargets<'_>) -> Result<GpuTarget, RenderError> {
+        let (w, h) = (t.rgb.width, t.rgb.height);
+        losses::check("target", t.rgb, w, h, 3)?;
+        let one = |what, img: Option<&ImageF32>| -> Result<(), RenderError> {
+            match img {
+                Some(i) => losses::check(what, i, w, h, 1),
+                None => Ok(()),
+            }
+        };
+        one("mask", t.mask)?;
+        one("fur mask", t.fur)?;
+        one("gabor angle", t.orientation.map(|o| o.0))?;
+        one("confidence", t.orientation.map(|o| o.1))?;
+        one("mask", t.region)?;
         let npix = (w * h) as usize;
-        let mut planes = vec![0.0f32; 5 * npix];
+        let region_sum = match t.region {
+            Some(m) => m.data.iter().map(|&v| v as f64).sum(),
+            None => npix as f64,
+        };
+        let mut planes = vec![0.0f32; TARGET_PLANES * npix];
+        let single: [Option<&ImageF32>; 5] = [
+            t.mask,
+            t.fur,
+            t.orientation.map(|o| o.0),
+            t.orientation.map(|o| o.1),
+            t.region,
+        ];
         planes
             .par_chunks_mut(npix)
             .enumerate()
-            .for_each(|(p, plane)| {
-                for (q, v) in plane.iter_mut().enumerate() {
-                    *v = match p {
-                        0..=2 => rgb.data[q * 3 + p],
-                        3 => 1.0,
-                        _ => mask.data[q],
-                    };
+            .for_each(|(p, plane)| match p {
+                0..=2 => plane
+                    .iter_mut()
+                    .enumerate()
+                    .for_each(|(q, v)| *v = t.rgb.data[q * 3 + p]),
+                3 => plane.fill(1.0),
+                // The region defaults to everywhere; the other absent images stay 0.
+                8 if t.region.is_none() => plane.fill(1.0),
+                _ => {
+                    if let Some(img) = single[p - 4] {
+                        plane.copy_from_slice(&img.data);
+                    }
                 }
             });
+        let has = 1
+            | if t.mask.is_some() { 2 } else { 0 }
+            | if t.fur.is_some() { 4 } else { 0 }
+            | if t.orientation.is_some() { 8 } else { 0 };
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
         let mut enc = self.encoder();
         let (planes, staging) = self.upload(&mut enc, "target", bytemuck::cast_slice(&planes))?;
@@ -1161,34 +1199,42 @@ impl GpuRenderer {
             width: w,
             height: h,
             planes,
+            has,
+            region_sum,
         })
     }
 
-    /// Renders `g`, scores it against `target` with `(1 - lambda) L1 +
-    /// lambda (1 - SSIM)` on the colour plus `silhouette_weight` x the mean
-    /// |alpha - mask|, and differentiates, without the images leaving the
-    /// device: [`super::losses::l1_dssim`] (unmasked) and
-    /// [`super::losses::silhouette`] fused between [`GpuRenderer::render`]
-    /// and [`GpuRenderer::backward`]. Only the loss's partial sums (3 f32 per
+    /// Renders `g`, scores it against `target` with the weighted losses `wl`
+    /// and differentiates, without the images leaving the device: the
+    /// formulas of [`super::losses`] (`l1_dssim` unmasked, `silhouette`,
+    /// `fur_mask`, `orientation`) fused between [`GpuRenderer::render`] and
+    /// [`GpuRenderer::backward`]. Only the losses' partial sums (5 f32 per
     /// 256 pixels) and the Gaussians' gradients come back.
-    pub fn photometric_step(
+    pub fn image_step(
         &self,
         g: &Gaussians,
         cam: &Camera,
         s: &RenderSettings,
         target: &GpuTarget,
-        lambda: f32,
-        silhouette_weight: f32,
-    ) -> Result<(f32, GaussianGrads, super::device::StepSeconds), RenderError> {
-        if !(0.0..=1.0).contains(&lambda) {
+        wl: &ImageLoss,
+    ) -> Result<StepResult, RenderError> {
+        if !(0.0..=1.0).contains(&wl.lambda_dssim) {
             return Err(RenderError::Settings(format!(
-                "D-SSIM weight lambda = {lambda}, expected a value in [0, 1]"
+                "D-SSIM weight lambda = {}, expected a value in [0, 1]",
+                wl.lambda_dssim
             )));
         }
-        if !silhouette_weight.is_finite() {
-            return Err(RenderError::Settings(format!(
-                "silhouette weight {silhouette_weight} is not finite"
-            )));
+        for (what, v) in [
+            ("colour", wl.rgb),
+            ("silhouette", wl.silhouette),
+            ("fur mask", wl.fur),
+            ("orientation", wl.orientation),
+        ] {
+            if !v.is_finite() {
+                return Err(RenderError::Settings(format!(
+                    "{what} loss weight {v} is not finite"
+                )));
+            }
         }
         if (cam.width, cam.height) != (target.width, target.height) {
             return Err(RenderError::Camera(format!(
@@ -1196,48 +1242,82 @@ impl GpuRenderer {
                 cam.width, cam.height, target.width, target.height
             )));
         }
-        let mut secs = super::device::StepSeconds::default();
-        let t = Instant::now();
+        let terms = target.has
+            & [wl.rgb, wl.silhouette, wl.fur, wl.orientation]
+                .iter()
+                .enumerate()
+                .fold(0u32, |acc, (k, v)| acc | if *v > 0.0 { 1 << k } else { 0 });
+        let mut secs = StepSeconds::default();
+        let clock = Instant::now();
         let (_, st) = self.render_state(g, cam, s, false)?;
-        secs.render = t.elapsed().as_secs_f64();
-        let t = Instant::now();
+        secs.render = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let (w, h) = (st.width, st.height);
         let npix = (w * h) as usize;
-        let (c, plane_bytes) = (3usize, npix as u64 * 4);
+        let plane_bytes = npix as u64 * 4;
+        let ori_norm = if target.region_sum > 0.0 {
+            (1.0 / target.region_sum) as f32
+        } else {
+            0.0
+        };
         let params = PhotoParams {
             width: w,
             height: h,
-            channels: c as u32,
+            terms,
             pad0: 0,
-            norm: (1.0 / (npix * c) as f64) as f32,
-            lambda,
-            sil_weight: silhouette_weight,
-            sil_norm: (1.0 / npix as f64) as f32,
+            norm: (1.0 / (npix * 3) as f64) as f32,
+            lambda: wl.lambda_dssim,
+            pix_norm: (1.0 / npix as f64) as f32,
+            ori_norm,
+            w_rgb: wl.rgb,
+            w_sil: wl.silhouette,
+            w_fur: wl.fur,
+            w_ori: wl.orientation,
         };
         let _guard = self.lock.lock().unwrap_or_else(|e| e.into_inner());
         let mut enc = self.encoder();
-        // Planes x (rendered), then the target's y, weights, mask.
-        let srcb = self.storage("photometric planes", (c as u64 + 5) * plane_bytes);
-        enc.copy_buffer_to_buffer(
-            &target.planes,
-            0,
-            &srcb,
-            c as u64 * plane_bytes,
-            5 * plane_bytes,
+        // Planes x (rendered), then the target's.
+        let srcb = self.storage(
+            "image-loss planes",
+            (3 + TARGET_PLANES) as u64 * plane_bytes,
         );
         let u = self.uniform(bytemuck::bytes_of(&params));
-        self.dispatch(
-            &mut enc,
-            &self.kernels.photo_planes,
-            &u,
-            None,
-            &[&st.img, &srcb],
-            groups2(((c * npix) as u32).div_ceil(256)),
-        );
-        let (smap, gbuf, keep) = self.ssim_chain(&mut enc, &srcb, w, h, c as u32, params.norm);
+        let (smap, gbuf, keep) = if terms & 1 != 0 {
+            enc.copy_buffer_to_buffer(
+                &target.planes,
+                0,
+                &srcb,
+                3 * plane_bytes,
+                TARGET_PLANES as u64 * plane_bytes,
+            );
+            self.dispatch(
+                &mut enc,
+                &self.kernels.photo_planes,
+                &u,
+                None,
+                &[&st.img, &srcb],
+                groups2(((3 * npix) as u32).div_ceil(256)),
+            );
+            let (a, b, k) = self.ssim_chain(&mut enc, &srcb, w, h, 3, params.norm);
+            (a, b, Some(k))
+        } else {
+            enc.copy_buffer_to_buffer(
+                &target.planes,
+                0,
+                &srcb,
+                3 * plane_bytes,
+                TARGET_PLANES as u64 * plane_bytes,
+            );
+            // No colour term: the kernel reads neither; any bound buffer does.
+            (
+                self.storage("ssim map", 4),
+                self.storage("ssim gradient", 4),
+                None,
+            )
+        };
         let groups = groups2((npix as u32).div_ceil(256));
         let gp = self.storage("pixel gradients", npix as u64 * 32);
-        let partials = self.storage("loss partials", groups.0 as u64 * groups.1 as u64 * 12);
+        let partials = self.storage("loss partials", groups.0 as u64 * groups.1 as u64 * 20);
         self.dispatch(
             &mut enc,
             &self.kernels.photo_grad,
@@ -1249,32 +1329,51 @@ impl GpuRenderer {
         self.submit_wait(enc)?;
         drop(keep);
         let used = npix.div_ceil(256) as u64;
-        let sums = self.read_with(&partials, 0, used * 12, |b| {
+        let sums = self.read_with(&partials, 0, used * 20, |b| {
             let v = as_f32(b);
-            let mut sums = [0.0f64; 3];
-            for p in v.chunks_exact(3) {
+            let mut sums = [0.0f64; 5];
+            for p in v.chunks_exact(5) {
                 for (a, x) in sums.iter_mut().zip(p) {
                     *a += *x as f64;
                 }
             }
             sums
         })?;
-        let norm = 1.0 / (npix * c) as f64;
-        let l1 = (sums[0] * norm) as f32;
-        let ssim = (sums[1] * norm) as f32;
-        let sil = (sums[2] / npix as f64) as f32;
-        let loss = ((1.0 - lambda) * l1 + lambda * (1.0 - ssim)) + silhouette_weight * sil;
-        if !loss.is_finite() {
-            return Err(gpu_err(
-                "the photometric loss is not finite (a rendered pixel is NaN or infinite)",
-            ));
+        // The CPU's scalars: each mean in f64, then cast, then weighted.
+        let norm = 1.0 / (npix * 3) as f64;
+        let pix_norm = 1.0 / npix as f64;
+        let mut out = Vec::new();
+        if terms & 1 != 0 {
+            let l1 = (sums[0] * norm) as f32;
+            let ssim = (sums[1] * norm) as f32;
+            let lam = wl.lambda_dssim;
+            out.push(("rgb", wl.rgb * ((1.0 - lam) * l1 + lam * (1.0 - ssim))));
         }
-        secs.loss = t.elapsed().as_secs_f64();
-        let t = Instant::now();
+        if terms & 2 != 0 {
+            out.push(("sil", wl.silhouette * (sums[2] * pix_norm) as f32));
+        }
+        if terms & 4 != 0 {
+            out.push(("mask", wl.fur * (sums[3] * pix_norm) as f32));
+        }
+        if terms & 8 != 0 {
+            let v = if target.region_sum > 0.0 {
+                (sums[4] / target.region_sum) as f32
+            } else {
+                0.0
+            };
+            out.push(("ori", wl.orientation * v));
+        }
+        if let Some((name, _)) = out.iter().find(|t| !t.1.is_finite()) {
+            return Err(gpu_err(format!(
+                "the {name} loss is not finite (a rendered pixel is NaN or infinite)"
+            )));
+        }
+        secs.loss = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let laps = Laps::new(self);
         let grads = self.backward_from(self.encoder(), laps, &st, &gp, srcb)?;
-        secs.backward = t.elapsed().as_secs_f64();
-        Ok((loss, grads, secs))
+        secs.backward = clock.elapsed().as_secs_f64();
+        Ok((out, grads, secs))
     }
 }
 

@@ -1,5 +1,6 @@
-// Kernel `photo_planes` (one thread per pixel and channel): the rendered
-// colour, read in place from the forward image, as the SSIM's planes x.
+// Kernel `photo_planes` (one thread per pixel and colour channel): the
+// rendered colour, read in place from the forward image, as the SSIM's
+// planes x.
 
 @group(0) @binding(0) var<uniform> P: PhotoParams;
 @group(0) @binding(1) var<storage, read> img: array<f32>;
@@ -9,7 +10,7 @@
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = lin_id(gid, nwg);
     let npix = P.width * P.height;
-    if i >= npix * P.channels {
+    if i >= npix * 3u {
         return;
     }
     let c = i / npix;

@@ -695,101 +695,177 @@ fn gpu_ssim_matches_cpu() {
     }
 }
 
-/// The fused photometric step (render, `l1_dssim` + weighted silhouette,
-/// backward with the images kept on the device) against the CPU's step on
-/// every parity scene: the loss within [`SSIM_TOL`], each parameter kind's
+/// Targets for the image-loss step on `w` x `h`: a colour that resembles a
+/// render, a mask, a fur mask, a Gabor angle and confidence, a region.
+fn loss_targets(rng: &mut ChaCha8Rng, w: u32, h: u32) -> [ImageF32; 6] {
+    let (_, rgb) = ssim_pair(rng, w, h, 3);
+    let mut one = |f: &mut dyn FnMut(&mut ChaCha8Rng) -> f32| {
+        let mut m = ImageF32::new(w, h, 1);
+        m.data.iter_mut().for_each(|v| *v = f(rng));
+        m
+    };
+    let mask = one(&mut |r| {
+        if r.gen_bool(0.4) {
+            1.0
+        } else {
+            r.gen_range(0.0..1.0)
+        }
+    });
+    let fur = one(&mut |r| if r.gen_bool(0.5) { 1.0 } else { 0.0 });
+    let angle = one(&mut |r| r.gen_range(0.0..std::f32::consts::PI));
+    let conf = one(&mut |r| {
+        if r.gen_bool(0.3) {
+            0.0
+        } else {
+            r.gen_range(0.0..1.0)
+        }
+    });
+    let region = one(&mut |r| if r.gen_bool(0.7) { 1.0 } else { 0.0 });
+    [rgb, mask, fur, angle, conf, region]
+}
+
+/// The fused image-loss step (render, the four weighted image losses,
+/// backward, with the images kept on the device) against the CPU's step on
+/// every parity scene, with every term and with only some: each term's value
+/// within [`SSIM_TOL`] (relative to its size), each parameter kind's
 /// gradients within [`GRAD_TOL`]; three reruns give the same bits.
 #[test]
-fn gpu_photometric_step_matches_cpu() {
-    use crate::render::device::{PhotometricLoss, Renderer};
+fn gpu_image_step_matches_cpu() {
+    use crate::render::device::{ImageLoss, Renderer, ViewTargets};
     let Some(r) = gpu(GpuMode::Deterministic) else {
         return;
     };
-    let gpu_dev = Renderer::Gpu(std::sync::Arc::new(r));
+    let dev = Renderer::Gpu(std::sync::Arc::new(r));
     let mut rng = ChaCha8Rng::seed_from_u64(23);
-    let terms = PhotometricLoss {
+    let all = ImageLoss {
         lambda_dssim: 0.2,
-        silhouette_weight: 0.7,
+        rgb: 1.3,
+        silhouette: 0.7,
+        fur: 0.4,
+        orientation: 0.25,
     };
-    for sc in scenes() {
+    for (k, sc) in scenes().into_iter().enumerate() {
         let (w, h) = (sc.cam.width, sc.cam.height);
-        let (_, rgb) = ssim_pair(&mut rng, w, h, 3);
-        let mut mask = ImageF32::new(w, h, 1);
-        mask.data.iter_mut().for_each(|v| {
-            *v = if rng.gen_bool(0.4) {
-                1.0
-            } else {
-                rng.gen_range(0.0..1.0)
-            }
-        });
-        let cpu_t = Renderer::Cpu.photometric_target(&rgb, &mask).unwrap();
-        let (lc, gc, _) = Renderer::Cpu
-            .photometric_step(&sc.g, &sc.cam, &sc.s, &cpu_t, &terms)
-            .unwrap();
-        let gpu_t = gpu_dev.photometric_target(&rgb, &mask).unwrap();
-        let mut first: Option<Vec<u32>> = None;
-        for _ in 0..3 {
-            let (lg, gg, _) = gpu_dev
-                .photometric_step(&sc.g, &sc.cam, &sc.s, &gpu_t, &terms)
+        let [rgb, mask, fur, angle, conf, region] = loss_targets(&mut rng, w, h);
+        // Every term; frosting's two; no colour term and a region-less orientation.
+        let cases: [(ViewTargets, ImageLoss); 3] = [
+            (
+                ViewTargets {
+                    rgb: &rgb,
+                    mask: Some(&mask),
+                    fur: Some(&fur),
+                    orientation: Some((&angle, &conf)),
+                    region: Some(&region),
+                },
+                all,
+            ),
+            (
+                ViewTargets {
+                    rgb: &rgb,
+                    mask: Some(&mask),
+                    fur: None,
+                    orientation: None,
+                    region: None,
+                },
+                ImageLoss {
+                    rgb: 1.0,
+                    fur: 0.0,
+                    orientation: 0.0,
+                    ..all
+                },
+            ),
+            (
+                ViewTargets {
+                    rgb: &rgb,
+                    mask: None,
+                    fur: Some(&fur),
+                    orientation: Some((&angle, &conf)),
+                    region: None,
+                },
+                ImageLoss { rgb: 0.0, ..all },
+            ),
+        ];
+        for (ci, (t, wl)) in cases.iter().enumerate() {
+            let name = format!("{} (case {ci})", sc.name);
+            let (tc, gc, _) = Renderer::Cpu
+                .image_step(&sc.g, &sc.cam, &sc.s, t, None, wl)
                 .unwrap();
-            assert!(
-                (lc - lg).abs() <= SSIM_TOL && lc > 0.01,
-                "{}: loss cpu {lc} gpu {lg}",
-                sc.name
-            );
-            let worst = check_grads(sc.name, &gc, &gg, GRAD_TOL);
-            eprintln!(
-                "{}: loss cpu {lc} gpu {lg}, worst gradient {worst:e}",
-                sc.name
-            );
-            let mut b = vec![lg.to_bits()];
-            for (_, k) in kinds(&gg) {
-                b.extend(k.iter().map(|x| x.to_bits()));
+            let rt = dev.resident_target(t).unwrap();
+            assert!(rt.is_some());
+            let mut first: Option<Vec<u32>> = None;
+            for _ in 0..3 {
+                let (tg, gg, _) = dev
+                    .image_step(&sc.g, &sc.cam, &sc.s, t, rt.as_ref(), wl)
+                    .unwrap();
+                let names =
+                    |v: &[(&str, f32)]| v.iter().map(|x| x.0.to_string()).collect::<Vec<_>>();
+                assert_eq!(names(&tc), names(&tg), "{name}");
+                for ((n, a), (_, b)) in tc.iter().zip(&tg) {
+                    assert!(
+                        (a - b).abs() <= SSIM_TOL * a.abs().max(1.0) && *a > 0.0,
+                        "{name}: {n} cpu {a} gpu {b}"
+                    );
+                }
+                let worst = check_grads(&name, &gc, &gg, GRAD_TOL);
+                eprintln!("{name}: terms cpu {tc:?} gpu {tg:?}, worst gradient {worst:e}");
+                let mut b: Vec<u32> = tg.iter().map(|x| x.1.to_bits()).collect();
+                for (_, kind) in kinds(&gg) {
+                    b.extend(kind.iter().map(|x| x.to_bits()));
+                }
+                match &first {
+                    None => first = Some(b),
+                    Some(f) => assert!(f == &b, "{name}: a rerun changed the bits"),
+                }
             }
-            match &first {
-                None => first = Some(b),
-                Some(f) => assert!(f == &b, "{}: a rerun changed the bits", sc.name),
+            // The host path on the GPU renderer agrees too.
+            if k == 0 {
+                let (tx, gx, _) = dev.image_step(&sc.g, &sc.cam, &sc.s, t, None, wl).unwrap();
+                for ((n, a), (_, b)) in tc.iter().zip(&tx) {
+                    assert!(
+                        (a - b).abs() <= SSIM_TOL * a.abs().max(1.0),
+                        "{name}: {n} {a} vs {b}"
+                    );
+                }
+                check_grads(&name, &gc, &gx, GRAD_TOL);
             }
         }
-        // The generic path (a CPU target on the GPU renderer) agrees too.
-        let (lx, gx, _) = gpu_dev
-            .photometric_step(&sc.g, &sc.cam, &sc.s, &cpu_t, &terms)
-            .unwrap();
-        assert!(
-            (lc - lx).abs() <= SSIM_TOL,
-            "{}: loss {lc} vs {lx}",
-            sc.name
-        );
-        check_grads(sc.name, &gc, &gx, GRAD_TOL);
     }
     // Bad inputs: a target of another size, a two-channel colour, a NaN, lambda.
     let sc = &scenes()[0];
     let (w, h) = (sc.cam.width, sc.cam.height);
-    let (_, rgb) = ssim_pair(&mut rng, w + 1, h, 3);
-    let mask = ImageF32::new(w + 1, h, 1);
-    let t = gpu_dev.photometric_target(&rgb, &mask).unwrap();
-    let e = gpu_dev
-        .photometric_step(&sc.g, &sc.cam, &sc.s, &t, &terms)
+    let only = |rgb| ViewTargets {
+        rgb,
+        mask: None,
+        fur: None,
+        orientation: None,
+        region: None,
+    };
+    let (_, big) = ssim_pair(&mut rng, w + 1, h, 3);
+    let rt = dev.resident_target(&only(&big)).unwrap();
+    let e = dev
+        .image_step(&sc.g, &sc.cam, &sc.s, &only(&big), rt.as_ref(), &all)
         .unwrap_err()
         .to_string();
     assert!(e.contains("target"), "{e}");
     let two = ImageF32::new(w, h, 2);
-    let mask = ImageF32::new(w, h, 1);
-    assert!(gpu_dev.photometric_target(&two, &mask).is_err());
+    assert!(dev.resident_target(&only(&two)).is_err());
     let (_, mut nan) = ssim_pair(&mut rng, w, h, 3);
     nan.data[5] = f32::NAN;
-    let e = gpu_dev
-        .photometric_target(&nan, &mask)
-        .unwrap_err()
-        .to_string();
+    let e = dev.resident_target(&only(&nan)).unwrap_err().to_string();
     assert!(e.contains("not finite"), "{e}");
+    let small = ImageF32::new(w - 1, h, 1);
     let (_, rgb) = ssim_pair(&mut rng, w, h, 3);
-    let t = gpu_dev.photometric_target(&rgb, &mask).unwrap();
-    let bad = PhotometricLoss {
-        lambda_dssim: 1.5,
-        ..terms
+    let bad_mask = ViewTargets {
+        mask: Some(&small),
+        ..only(&rgb)
     };
-    assert!(gpu_dev
-        .photometric_step(&sc.g, &sc.cam, &sc.s, &t, &bad)
+    assert!(dev.resident_target(&bad_mask).is_err());
+    let rt = dev.resident_target(&only(&rgb)).unwrap();
+    let bad = ImageLoss {
+        lambda_dssim: 1.5,
+        ..all
+    };
+    assert!(dev
+        .image_step(&sc.g, &sc.cam, &sc.s, &only(&rgb), rt.as_ref(), &bad)
         .is_err());
 }
