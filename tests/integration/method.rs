@@ -906,7 +906,10 @@ fn the_device_flag_reaches_the_renderers_and_is_recorded() {
     // The learner on the GPU (image losses fused on the device), from the
     // same upstream stages: its first iteration scores what the CPU's does,
     // and training ends near it.
-    let g = p.run("tiny.toml", &["--until", "codec", "--set", "codec.device=gpu"]);
+    let g = p.run(
+        "tiny.toml",
+        &["--until", "codec", "--set", "codec.device=gpu"],
+    );
     if g.code() != 0 {
         let msg = format!("{}{}", g.stdout(), g.stderr());
         assert!(msg.contains("adapter") || msg.contains("feature"), "{msg}");

@@ -512,21 +512,33 @@ fn scatter(
 /// Checks that the camera and the Gaussians are the ones the render state
 /// was made with, and that the Gaussians are valid.
 fn check_backward_inputs(g: &Gaussians, cd: &CamData, st: &RenderState) -> Result<(), RenderError> {
-    let (w, h) = (st.width, st.height);
+    check_matches_state(g.len(), cd, (st.width, st.height), st.n_gaussians)?;
+    g.validate()?;
+    Ok(())
+}
+
+/// Checks a backward pass's camera size and Gaussian count against those
+/// of its render state (`size`, `n`); shared with the GPU path.
+pub(crate) fn check_matches_state(
+    n_gaussians: usize,
+    cd: &CamData,
+    size: (u32, u32),
+    n: usize,
+) -> Result<(), RenderError> {
+    let (w, h) = size;
     if cd.width != w || cd.height != h {
         return Err(RenderError::Camera(format!(
             "camera is {}x{} but the render state is {w}x{h}",
             cd.width, cd.height
         )));
     }
-    if g.len() != st.n_gaussians {
+    if n_gaussians != n {
         return Err(RenderError::Length {
             what: "gaussians (vs the render state)",
-            expected: st.n_gaussians,
-            found: g.len(),
+            expected: n,
+            found: n_gaussians,
         });
     }
-    g.validate()?;
     Ok(())
 }
 

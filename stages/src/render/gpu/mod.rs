@@ -61,7 +61,7 @@ use wgpu::util::DeviceExt;
 use super::device::{ImageLoss, StepResult, StepSeconds, ViewTargets};
 use super::gaussians::{GaussianGrads, Gaussians};
 use super::project::CamData;
-use super::raster::{check_image, OutputGrads, RenderOutput};
+use super::raster::{check_image, check_matches_state, OutputGrads, RenderOutput};
 use super::{losses, RenderError, RenderSettings, TILE};
 use crate::data::camera::Camera;
 use crate::data::image::ImageF32;
@@ -949,21 +949,7 @@ fn check_state(
 ) -> Result<(), RenderError> {
     s.validate()?;
     let cd = CamData::new(cam)?;
-    let (w, h) = (st.width, st.height);
-    if cd.width != w || cd.height != h {
-        return Err(RenderError::Camera(format!(
-            "camera is {}x{} but the render state is {w}x{h}",
-            cd.width, cd.height
-        )));
-    }
-    if g.len() != st.n {
-        return Err(RenderError::Length {
-            what: "gaussians (vs the render state)",
-            expected: st.n,
-            found: g.len(),
-        });
-    }
-    Ok(())
+    check_matches_state(g.len(), &cd, (st.width, st.height), st.n)
 }
 
 impl GpuRenderer {
