@@ -897,6 +897,8 @@ fn the_device_flag_reaches_the_renderers_and_is_recorded() {
             "codec.device=cpu",
             "--set",
             "frosting.device=cpu",
+            "--set",
+            "orientation.device=cpu",
         ],
     );
     again.ok();

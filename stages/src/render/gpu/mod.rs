@@ -66,9 +66,12 @@ use super::{losses, RenderError, RenderSettings, TILE};
 use crate::data::camera::Camera;
 use crate::data::image::ImageF32;
 
+mod gabor;
 mod pool;
 #[cfg(test)]
 mod tests;
+
+pub use gabor::GaborInput;
 
 use pool::{Pool, Pooled};
 
@@ -184,6 +187,7 @@ struct Kernels {
     ssim_grad: wgpu::ComputePipeline,
     photo_planes: wgpu::ComputePipeline,
     photo_grad: wgpu::ComputePipeline,
+    gabor: wgpu::ComputePipeline,
 }
 
 /// A wgpu device with the renderer's kernels compiled.
@@ -1579,6 +1583,7 @@ impl Kernels {
                 "photo_grad",
                 &[COMMON, PHOTO, include_str!("photo_grad.wgsl")],
             ),
+            gabor: make("gabor", &[COMMON, include_str!("gabor.wgsl")]),
         }
     }
 }
