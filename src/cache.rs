@@ -236,6 +236,11 @@ pub struct Manifest {
     pub outputs: BTreeMap<String, OutputRecord>,
     pub seconds: f64,
     pub peak_rss_bytes: u64,
+    /// Threads of the stage's pool when it ran (0: unknown, an entry from
+    /// before this was recorded); `seconds` depend on it. Informative only,
+    /// outside the seal.
+    #[serde(default)]
+    pub threads: u32,
     pub fure_version: String,
     pub created_unix: u64,
     /// The stage's notes (what it chose, which device rendered), in order;

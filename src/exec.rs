@@ -1033,6 +1033,7 @@ fn execute(
         outputs,
         seconds,
         peak_rss_bytes: peak,
+        threads: work.threads as u32,
         fure_version: FURE_VERSION.to_string(),
         created_unix: cache::created_now(),
         notes: progress.notes(),

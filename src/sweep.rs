@@ -74,7 +74,7 @@
 //!  "variants": [{"index": 0, "name": "p@v0", "settings": {"KEY": value},
 //!                "varied": null, "status": "ok", "reason": "", "failed_stage": null,
 //!                "warnings": ["stage: text"], "metrics": {"stage.key": 1.5},
-//!                "costs": {"stage": {"seconds": 2.5, "peak_rss_bytes": 1048576}}}]}
+//!                "costs": {"stage": {"seconds": 2.5, "peak_rss_bytes": 1048576, "threads": 2}}}]}
 //! ```
 //!
 //! Object keys are sorted (so `each_order` keeps the declaration order of
@@ -82,9 +82,10 @@
 //! contains `seconds` or `time` (case-insensitive) and holds no paths, so the
 //! record of an unchanged, cached sweep is byte-identical from run to run
 //! and the aggregate stages keyed on it stay cached. What the stages cost is
-//! kept apart, in `costs` (`{"STAGE": {"seconds", "peak_rss_bytes"}}` of
-//! each stage's cache entry, the figures of the run that computed it), which
-//! a cached sweep reads back unchanged too. The file is replaced
+//! kept apart, in `costs` (`{"STAGE": {"seconds", "peak_rss_bytes",
+//! "threads"}}` of each stage's cache entry, the figures of the run that
+//! computed it and the size of its thread pool), which a cached sweep reads
+//! back unchanged too. The file is replaced
 //! atomically, and only when its bytes change.
 //!
 //! # Aggregate stages
@@ -261,8 +262,8 @@ pub struct Row {
     pub report: RunReport,
     /// stage -> compute seconds (of the entry), cached?
     pub stage_seconds: BTreeMap<String, (f64, bool)>,
-    /// stage -> (compute seconds, peak RSS bytes) of its cache entry.
-    pub costs: BTreeMap<String, (f64, u64)>,
+    /// stage -> (compute seconds, peak RSS bytes, threads; 0 unknown) of its cache entry.
+    pub costs: BTreeMap<String, (f64, u64, u32)>,
     /// Every number of every stage's `metrics.json`, flattened.
     pub metrics: BTreeMap<String, f64>,
     pub status: VariantStatus,
@@ -413,7 +414,7 @@ fn make_row(v: &Variant, plan: &Plan, report: RunReport, cache: &Cache) -> Row {
             let secs = entry.as_ref().map(|m| m.seconds).unwrap_or(s.seconds);
             stage_seconds.insert(s.name.clone(), (secs, s.status == Status::Cached));
             if let Some(m) = entry {
-                costs.insert(s.name.clone(), (m.seconds, m.peak_rss_bytes));
+                costs.insert(s.name.clone(), (m.seconds, m.peak_rss_bytes, m.threads));
             }
         }
     }
@@ -616,8 +617,12 @@ pub fn record(pipeline: &str, axes: &Axes, rows: &[Row]) -> serde_json::Value {
             let costs: serde_json::Map<String, serde_json::Value> = r
                 .costs
                 .iter()
-                .map(|(k, (secs, rss))| {
-                    (k.clone(), json!({"seconds": secs, "peak_rss_bytes": rss}))
+                .map(|(k, (secs, rss, threads))| {
+                    let mut c = json!({"seconds": secs, "peak_rss_bytes": rss});
+                    if *threads > 0 {
+                        c["threads"] = json!(threads);
+                    }
+                    (k.clone(), c)
                 })
                 .collect();
             json!({

@@ -164,9 +164,10 @@ fn paths_and_hashes_read_from_a_manifest_are_validated() {
     first.ok();
     let mf = manifest_of(&p, &first, "f");
     let md = manifest_of(&p, &first, "d");
-    let g_hash = read_manifest(&manifest_of(&p, &first, "g")).outputs["g.txt"]
-        .blake3
-        .clone();
+    let g_manifest = read_manifest(&manifest_of(&p, &first, "g"));
+    // The pool size the stage ran with is recorded (its seconds depend on it).
+    assert!(g_manifest.threads >= 1, "{g_manifest:?}");
+    let g_hash = g_manifest.outputs["g.txt"].blake3.clone();
     std::fs::create_dir_all(p.path("victim")).unwrap();
     p.write("victim/other.txt", "survives\n");
     let victim = p.path("victim").display().to_string();

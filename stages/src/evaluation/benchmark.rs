@@ -290,6 +290,7 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> Report {
         .collect();
     out.insert("scenes".into(), per_scene.into());
     out.insert("runs".into(), rec.variants.len().into());
+    out.insert("stage_threads".into(), thread_counts(rec).into());
     Report {
         results: md,
         headline: format!(
@@ -299,6 +300,21 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> Report {
         runs: runs_csv(&scenes, cfg),
         metrics: Json::Object(out),
     }
+}
+
+/// The distinct thread counts the variants' stages ran on (`costs.S.threads`,
+/// sorted; entries that did not record one are left out).
+fn thread_counts(rec: &SweepRecord) -> Vec<u64> {
+    let mut t: Vec<u64> = rec
+        .variants
+        .iter()
+        .flat_map(|v| v.costs.iter())
+        .filter(|(k, x)| k.ends_with(".threads") && **x > 0.0)
+        .map(|(_, x)| *x as u64)
+        .collect();
+    t.sort_unstable();
+    t.dedup();
+    t
 }
 
 /// Title, provenance mark, splits, seeds and the rules the tables follow.
@@ -338,6 +354,28 @@ fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
          F-scores are signed (growth direction counted), in %; the **ceiling** is the same animal \
          regrown with another seed, scored against the GT.\n"
     );
+    // Seconds come from the cache entries, whose pools may differ in size
+    // (a study at `--jobs 2` leaves entries a later `--jobs 1` suite reuses).
+    match thread_counts(rec).as_slice() {
+        [] => {}
+        [one] => {
+            let _ = writeln!(
+                md,
+                "Stage seconds come from runs on {one} thread(s) each.\n"
+            );
+        }
+        many => {
+            let list: Vec<String> = many.iter().map(|t| t.to_string()).collect();
+            let _ = writeln!(
+                md,
+                "**Stage seconds mix thread counts** ({} threads): a cached stage keeps the \
+                 seconds of the run that made it. Compare seconds and speed-ups only between \
+                 runs on one count (`costs.STAGE.threads` in the sweep record), or rerun with \
+                 a cache of the suite's own.\n",
+                list.join(", ")
+            );
+        }
+    }
 }
 
 /// Headline: signed F at 3 cm / 30 deg and the strict 1 cm / 10 deg, per split, scene and method.
@@ -965,6 +1003,11 @@ mod tests {
     use super::*;
 
     fn record(runs: &[(&str, u64, f64, f64)]) -> SweepRecord {
+        record_on(runs, &|_| 2)
+    }
+
+    /// [`record`] with variant `i`'s codec run on `threads(i)` threads.
+    fn record_on(runs: &[(&str, u64, f64, f64)], threads: &dyn Fn(usize) -> u64) -> SweepRecord {
         // (scene, seed, codec F3, dense F3)
         let variants: Vec<Json> = runs
             .iter()
@@ -978,7 +1021,7 @@ mod tests {
                         "evaluate_dense": {"prf_signed": {"3cm_30deg": {"fscore": fd}}},
                         "codec": {"optimised_parameters": 1000},
                     },
-                    "costs": {"codec": {"seconds": 10.0, "peak_rss_bytes": 1048576}, "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
+                    "costs": {"codec": {"seconds": 10.0, "peak_rss_bytes": 1048576, "threads": threads(i)}, "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
                 })
             })
             .collect();
@@ -1003,6 +1046,24 @@ mod tests {
             v2_lengths: "lengths_v2".into(),
             charts_link: "benchmark".into(),
         }
+    }
+
+    #[test]
+    fn the_report_says_when_stage_seconds_mix_thread_counts() {
+        let runs = [("tiger", 0, 60.0, 50.0), ("tiger", 1, 62.0, 51.0)];
+        let one = report(&record(&runs), &cfg());
+        assert!(
+            one.results.contains("runs on 2 thread(s) each"),
+            "{}",
+            one.results
+        );
+        assert!(!one.results.contains("mix thread counts"));
+        assert_eq!(one.metrics["stage_threads"], json!([2]));
+        let mixed = report(&record_on(&runs, &|i| 1 + i as u64), &cfg());
+        assert!(mixed
+            .results
+            .contains("**Stage seconds mix thread counts** (1, 2 threads)"));
+        assert_eq!(mixed.metrics["stage_threads"], json!([1, 2]));
     }
 
     #[test]
