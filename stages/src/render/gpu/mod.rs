@@ -1272,14 +1272,14 @@ impl GpuRenderer {
             (3 + TARGET_PLANES) as u64 * plane_bytes,
         );
         let u = self.uniform(bytemuck::bytes_of(&params));
+        enc.copy_buffer_to_buffer(
+            &target.planes,
+            0,
+            &srcb,
+            3 * plane_bytes,
+            TARGET_PLANES as u64 * plane_bytes,
+        );
         let (smap, gbuf, keep) = if terms & 1 != 0 {
-            enc.copy_buffer_to_buffer(
-                &target.planes,
-                0,
-                &srcb,
-                3 * plane_bytes,
-                TARGET_PLANES as u64 * plane_bytes,
-            );
             self.dispatch(
                 &mut enc,
                 &self.kernels.photo_planes,
@@ -1291,13 +1291,6 @@ impl GpuRenderer {
             let (a, b, k) = self.ssim_chain(&mut enc, &srcb, w, h, 3, params.norm);
             (a, b, Some(k))
         } else {
-            enc.copy_buffer_to_buffer(
-                &target.planes,
-                0,
-                &srcb,
-                3 * plane_bytes,
-                TARGET_PLANES as u64 * plane_bytes,
-            );
             // No colour term: the kernel reads neither; any bound buffer does.
             (
                 self.storage("ssim map", 4),
