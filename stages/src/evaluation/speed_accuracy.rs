@@ -29,7 +29,12 @@
 //! (its last snapshot), `t_dense` the training time of the FIRST dense snapshot whose F-score reaches `F*`
 //! (so a dense run that plateaus early is credited with its early time, which can only lower the ratio),
 //! and `t_codec` the training time of the first codec snapshot whose F-score reaches `F*`. Times are those
-//! of snapshots, not interpolated. The learners take snapshots at geometrically spaced training times
+//! of snapshots, not interpolated. A learner's clock starts before its untrained snapshot (iteration 0):
+//! the colour fit runs first, so reaching `F*` there still takes that time. When dense's own untrained
+//! snapshot already reaches `F*` (its training never improved on its start at 3 cm), there is no
+//! training time of dense's to compare with, and the speed-up is `null` (`dense_start_reaches_final`);
+//! when the codec's untrained snapshot reaches it (`codec_reached_dense_final_at_start`), the ratio is
+//! dense's time over the codec's colour fit. The learners take snapshots at geometrically spaced training times
 //! (ratio `g`, 1.1 by default, from 0.5 s), so each time is an upper bound within a factor `g` and the
 //! ratio is known within a factor `g` either way, at any time scale. When no codec snapshot reaches `F*`
 //! the speed-up is `null` and `speedup_note` says so.
@@ -101,6 +106,10 @@ pub struct Speedup {
     /// snapshot).
     pub speedup_bracket: Option<(f64, Option<f64>)>,
     pub speedup_note: String,
+    /// The codec's untrained snapshot (iteration 0) already reaches the target.
+    pub codec_at_start: bool,
+    /// Dense's untrained snapshot already reaches its own final F-score: the ratio is undefined.
+    pub dense_start_reaches_final: bool,
 }
 
 /// Computes [`Speedup`] from time-ordered scored snapshots of both methods (each non-empty).
@@ -126,12 +135,31 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         )),
         _ => None,
     };
+    let untrained_reaches = |s: &[ScoredSnapshot]| {
+        s.first()
+            .is_some_and(|f| f.iteration == 0 && f.f3() >= target)
+    };
+    let codec_at_start = untrained_reaches(codec);
+    let dense_start_reaches_final = untrained_reaches(dense);
     let (ratio, note) = match t_codec {
+        _ if dense_start_reaches_final => (
+            None,
+            format!(
+                "dense's untrained start already reaches its final F-score {target:.2} at \
+                 3cm/30deg (its training did not improve on it): no training time to compare, \
+                 ratio undefined"
+            ),
+        ),
         Some(tc) if tc > 0.0 => (
             Some(t_dense / tc),
             format!(
                 "dense reaches its final F-score {target:.2} at 3cm/30deg after {t_dense:.1} s; \
-                 codec reaches it after {tc:.1} s"
+                 codec reaches it after {tc:.1} s{}",
+                if codec_at_start {
+                    " (at its untrained start: the time of its colour fit)"
+                } else {
+                    ""
+                }
             ),
         ),
         Some(_) => (
@@ -154,8 +182,10 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         codec_final_fscore: cl.f3(),
         codec_seconds_total: cl.seconds,
         speedup_to_dense_final_fscore: ratio,
-        speedup_bracket: bracket,
+        speedup_bracket: bracket.filter(|_| !dense_start_reaches_final),
         speedup_note: note,
+        codec_at_start,
+        dense_start_reaches_final,
     })
 }
 
@@ -402,7 +432,7 @@ impl Stage for SpeedAccuracyStage {
         "speed_accuracy"
     }
     fn version(&self) -> u32 {
-        5
+        6
     }
     fn doc(&self) -> &'static str {
         "Scores the codec and dense learners' strand snapshots against GT strands and charts F-score at \
@@ -479,7 +509,8 @@ impl Stage for SpeedAccuracyStage {
             "codec_start_fscore_3cm_30deg": codec.first().map(|s| s.f3()),
             "dense_start_fscore_3cm_30deg": dense.first().map(|s| s.f3()),
             "codec_reached_dense_final": u8::from(sp.codec_seconds_to_dense_final.is_some()),
-            "codec_reached_dense_final_at_start": u8::from(sp.codec_seconds_to_dense_final == Some(0.0)),
+            "codec_reached_dense_final_at_start": u8::from(sp.codec_at_start),
+            "dense_start_reaches_final": u8::from(sp.dense_start_reaches_final),
             "spacing_cm": spacing,
             "max_queries": max_q,
             "gt_oriented_points": scoring.gt_set.len(),
@@ -675,6 +706,30 @@ mod tests {
         let s = speedup(&slow, &dense).unwrap();
         assert_eq!(s.speedup_to_dense_final_fscore, None);
         assert!(s.speedup_note.contains("never"));
+        assert!(!s.codec_at_start && !s.dense_start_reaches_final);
+    }
+
+    #[test]
+    fn untrained_starts_are_told_apart_from_training() {
+        // Snapshots at iteration 0 taken after a colour fit (seconds > 0).
+        let at = |method: &str, seconds: f64, iteration: usize, f: f32| ScoredSnapshot {
+            iteration,
+            ..snap(method, seconds, f, 100)
+        };
+        // Dense improves from 20 to 30 in training; the codec starts at 31.
+        let dense = vec![at("dense", 2.0, 0, 20.0), at("dense", 100.0, 50, 30.0)];
+        let codec = vec![at("codec", 4.0, 0, 31.0), at("codec", 9.0, 10, 33.0)];
+        let s = speedup(&codec, &dense).unwrap();
+        assert!(s.codec_at_start && !s.dense_start_reaches_final);
+        assert_eq!(s.speedup_to_dense_final_fscore, Some(25.0));
+        assert!(s.speedup_note.contains("untrained start"), "{}", s.speedup_note);
+        // Dense drifts down from an untrained start above its final: undefined.
+        let drifting = vec![at("dense", 2.0, 0, 32.0), at("dense", 100.0, 50, 30.0)];
+        let s = speedup(&codec, &drifting).unwrap();
+        assert!(s.dense_start_reaches_final);
+        assert_eq!(s.speedup_to_dense_final_fscore, None);
+        assert_eq!(s.speedup_bracket, None);
+        assert!(s.speedup_note.contains("did not improve"), "{}", s.speedup_note);
     }
 
     #[test]

@@ -7,3 +7,4 @@ pub mod learn;
 pub mod orientation;
 pub mod roots;
 pub mod strand_basis;
+pub mod view_axes;

@@ -630,7 +630,7 @@ pub fn width_coverage(g: &Gaussians, segs: usize, cam: &Camera, low_pass: f32) -
 /// `<image path without extension>_orient.exr` and `_conf.exr` (the
 /// `orientation_maps` stage's naming). Maps computed on a downscaled image
 /// (an integer factor) are upsampled by pixel replication to the view's size.
-fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
+pub fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
     let rel = &cam.file_path;
     let stem = match Path::new(rel).extension() {
         Some(ext) => &rel[..rel.len() - ext.len() - 1],

@@ -13,7 +13,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::geomloss::DistanceGrid;
-use super::image::{Coverage, ImageConfig, ImageLosses};
+use super::image::{read_orientation, Coverage, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
 use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
@@ -23,6 +23,7 @@ use crate::data::rootset::Roots;
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
+use crate::growth::view_axes::{pixel_footprint, view_axes, ViewOrientation};
 use crate::maths::geom::MeshQuery;
 
 fure_stage_api::param_enum! {
@@ -130,6 +131,14 @@ fure_stage_api::stage_params! {
         /// Turn every root frame about its normal by this angle before training: a wrong start
         /// for stability tests (0 = the roots' frames).
         frame_rotation_deg: f32 = float(0.0).range(-180.0, 180.0),
+        /// Turn every root frame onto the fur's axis read from the orientation maps
+        /// (growth::view_axes), pooled over roots within this many pixel footprints, before
+        /// training; the frame keeps its side (0 = the roots' frames as given; needs the
+        /// `views` and `orientation` inputs; 16 chosen on the dev split, learn module doc).
+        view_axes_radius_px: f32 = float(16.0).range(0.0, 1000.0),
+        /// Frames whose pooled lines agree less than this (coherence in [0, 1]) keep their
+        /// start (view_axes_radius_px).
+        view_axes_min_coherence: f32 = float(0.2).range(0.0, 1.0),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -314,7 +323,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        8
+        9
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -341,7 +350,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        6
+        7
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
@@ -403,6 +412,9 @@ pub struct LearnMetrics {
     /// backward seconds; absent without image terms).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image_seconds: Option<super::image::ImageTiming>,
+    /// The frames turned onto the views' axes (view_axes_radius_px > 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view_axes: Option<ViewAxesReport>,
 }
 
 /// Checks the roots' arrays agree and are finite.
@@ -544,6 +556,23 @@ struct Setup {
     lengths: Vec<f32>,
     body_mesh: Mesh,
     outer: Mesh,
+    /// What turning the frames onto the views' axes did (view_axes_radius_px > 0).
+    view_axes: Option<ViewAxesReport>,
+}
+
+/// `metrics.json`'s record of the frames turned onto the views' axes.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ViewAxesReport {
+    /// Pooling radius in scene units (view_axes_radius_px pixel footprints).
+    pub radius: f32,
+    /// Fraction of the strands whose frame was turned (coherence at least the minimum).
+    pub turned_fraction: f32,
+    /// Mean absolute turn of the turned frames, degrees.
+    pub mean_turn_deg: f32,
+    /// Mean coherence over all strands.
+    pub mean_coherence: f32,
+    /// Fraction of the strands no view saw.
+    pub unseen_fraction: f32,
 }
 
 fn setup(
@@ -592,12 +621,15 @@ fn setup(
     // A deliberately wrong start for stability tests: every frame turned
     // about its normal.
     let turn = Mat3::from_rotation_z(p.frame_rotation_deg.to_radians());
+    let positions: Vec<Vec3> = keep.iter().map(|&i| roots.positions[i]).collect();
+    let mut frames: Vec<Mat3> = keep
+        .iter()
+        .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
+        .collect();
+    let view_axes = turn_onto_view_axes(ctx, p, &positions, &mut frames, &outer)?;
     let inputs = RootInputs {
-        positions: keep.iter().map(|&i| roots.positions[i]).collect(),
-        frames: keep
-            .iter()
-            .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
-            .collect(),
+        positions,
+        frames,
         lengths: lengths.clone(),
         parts: keep.iter().map(|&i| roots.part[i]).collect(),
         rho: keep.iter().map(|&i| roots.rho[i]).collect(),
@@ -621,7 +653,69 @@ fn setup(
         lengths,
         body_mesh,
         outer,
+        view_axes,
     })
+}
+
+/// Turns `frames` about their normals onto the fur's axis read from the
+/// orientation maps (growth::view_axes), where the views agree; `None` when
+/// `view_axes_radius_px` is 0 or the views or maps are not connected.
+fn turn_onto_view_axes(
+    ctx: &StageContext<'_>,
+    p: &LearnParams,
+    positions: &[Vec3],
+    frames: &mut [Mat3],
+    outer: &Mesh,
+) -> Result<Option<ViewAxesReport>, StageError> {
+    let (Some(views_dir), Some(maps_dir)) = (ctx.input_opt("views"), ctx.input_opt("orientation"))
+    else {
+        return Ok(None);
+    };
+    if p.view_axes_radius_px <= 0.0 || frames.is_empty() {
+        return Ok(None);
+    }
+    ctx.progress.message("fur axes from the views");
+    let cams = formats::cameras::read_views(views_dir)?.train;
+    let maps = cams
+        .iter()
+        .map(|c| read_orientation(maps_dir, c))
+        .collect::<Result<Vec<_>, _>>()?;
+    let views: Vec<ViewOrientation<'_>> = cams
+        .iter()
+        .zip(&maps)
+        .map(|(camera, (angle, confidence))| ViewOrientation {
+            camera,
+            angle,
+            confidence,
+        })
+        .collect();
+    let radius = p.view_axes_radius_px * pixel_footprint(&cams, outer);
+    let outer_path = ctx.input("outer")?;
+    let axes = view_axes(positions, frames, outer, &views, radius)
+        .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
+    let (mut turned, mut turn_sum, mut unseen) = (0usize, 0.0f64, 0usize);
+    for (f, a) in frames.iter_mut().zip(&axes) {
+        if a.views == 0 {
+            unseen += 1;
+        }
+        if a.coherence >= p.view_axes_min_coherence && a.coherence > 0.0 {
+            *f *= Mat3::from_rotation_z(a.turn);
+            turned += 1;
+            turn_sum += a.turn.abs().to_degrees() as f64;
+        }
+    }
+    let n = axes.len() as f32;
+    Ok(Some(ViewAxesReport {
+        radius,
+        turned_fraction: turned as f32 / n,
+        mean_turn_deg: if turned > 0 {
+            (turn_sum / turned as f64) as f32
+        } else {
+            0.0
+        },
+        mean_coherence: (axes.iter().map(|a| a.coherence as f64).sum::<f64>() / n as f64) as f32,
+        unseen_fraction: unseen as f32 / n,
+    }))
 }
 
 /// The shape-prior ablation's roots: each moved to its closest point on
@@ -836,6 +930,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             .and(image.as_ref())
             .map(|i| i.device_metrics()),
         image_seconds: image.as_ref().map(|i| i.timing()),
+        view_axes: s.view_axes.clone(),
     };
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;

@@ -1,0 +1,351 @@
+//! The fur's axis at each root, read from the views: the Gabor orientation
+//! maps lifted onto the root's tangent plane and pooled over views and
+//! neighbouring roots.
+//!
+//! Why. The roots' frames come from a smooth field aligned to an anatomical
+//! prior (`roots`), and the orientation loss is pi-periodic and confidence
+//! weighted: from a frame far off the fur (a coat that does not follow the
+//! prior, or a deliberately turned start) gradient steps turn it slowly and
+//! stop in between. The orientation term of one straight segment has a
+//! closed-form minimiser, though: each view's map gives a line in the image,
+//! and the line in the tangent plane that projects onto it is one 2x2 solve.
+//! Pooling those lines over views (and over roots within a few pixel
+//! footprints, which averages the maps' per-pixel noise) gives the axis the
+//! orientation loss is pulling toward, without the descent.
+//!
+//! How, per root `p` with frame `(T, B, N)`:
+//! - Where the fur is seen: `q`, the closest point on the outer surface (the
+//!   fur's envelope; the root itself lies under the fur). A view counts when
+//!   `q` lies in front of the camera and inside the image, the envelope's
+//!   normal faces the camera, and a ray from `q` (lifted off the surface by
+//!   `1e-3` of the envelope's bounding-box diagonal) to the camera hits
+//!   nothing.
+//! - The view's pixel at `q` gives the map angle `alpha` (image x right, y
+//!   down, modulo pi) and the normalised confidence `c`. `J`, the 2x2
+//!   Jacobian of the projection along `T` and `B` at `q`, maps tangent
+//!   directions to image directions, so the tangent line seen along `alpha`
+//!   is `d = J^-1 (cos alpha, sin alpha)`.
+//! - The view adds `w d d^T` (3D, unit `d`) to the root's structure tensor,
+//!   `w = c cos^2(view angle)`: at grazing views `J` is near singular and a
+//!   small image-angle error is a large tangent-plane one.
+//! - Pooling: every root sums the tensors of the roots within `radius` of it
+//!   (itself included), projects the sum onto its own tangent plane and takes
+//!   the principal direction; the coherence `(l1 - l2) / (l1 + l2)` of the
+//!   2x2 tensor says how much the views agree (1: one line; 0: none).
+//!
+//! The result is an axis (no sign): a map cannot tell root from tip. Callers
+//! keep the sign of the frame they had (the axis is turned by at most 90
+//! degrees). Sums over views and neighbours run in a fixed order, so the
+//! result does not depend on the thread count.
+
+use glam::{Mat3, Vec2, Vec3};
+use rayon::prelude::*;
+
+use crate::data::camera::Camera;
+use crate::data::image::ImageF32;
+use crate::data::mesh::Mesh;
+use crate::maths::geom::{GeomError, MeshQuery, PointIndex};
+
+/// One training view's orientation map: the camera, the Gabor angle (radians
+/// in `[0, pi)`, image x right, y down) and the normalised confidence, at the
+/// camera's size.
+#[derive(Debug, Clone, Copy)]
+pub struct ViewOrientation<'a> {
+    pub camera: &'a Camera,
+    pub angle: &'a ImageF32,
+    pub confidence: &'a ImageF32,
+}
+
+/// A root's axis from the views.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewAxis {
+    /// Angle from the frame's tangent `T` toward `B` of the pooled axis, in
+    /// `(-pi/2, pi/2]` (so turning by it keeps `T`'s sign as far as it can).
+    pub turn: f32,
+    /// Agreement of the pooled lines: `(l1 - l2) / (l1 + l2)` in `[0, 1]`
+    /// (0 when no view saw the root or its neighbours).
+    pub coherence: f32,
+    /// Views that saw the root itself.
+    pub views: u32,
+}
+
+/// Lifts the maps onto every root's tangent plane (module doc). `frames`
+/// are the roots' `(T, B, N)` as columns; `outer` is the fur's envelope;
+/// `radius` is the pooling radius in scene units (0 = each root alone).
+pub fn view_axes(
+    positions: &[Vec3],
+    frames: &[Mat3],
+    outer: &Mesh,
+    views: &[ViewOrientation<'_>],
+    radius: f32,
+) -> Result<Vec<ViewAxis>, GeomError> {
+    let query = MeshQuery::new(outer)?;
+    let (lo, hi) = outer.bounds();
+    let lift = 1e-3 * (hi - lo).length();
+    let own: Vec<([f32; 6], u32)> = positions
+        .par_iter()
+        .zip(frames.par_iter())
+        .map(|(&p, f)| root_tensor(p, f, &query, outer, views, lift))
+        .collect();
+    let index = if radius > 0.0 {
+        Some(PointIndex::new(positions)?)
+    } else {
+        None
+    };
+    let axes = positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, &p)| {
+            let mut s = [0.0f64; 6];
+            let mut add = |t: &[f32; 6]| {
+                for (a, b) in s.iter_mut().zip(t) {
+                    *a += *b as f64;
+                }
+            };
+            match &index {
+                Some(ix) => {
+                    let mut near: Vec<usize> =
+                        ix.within(p, radius).into_iter().map(|(j, _)| j).collect();
+                    // Fixed summation order whatever the tree returns.
+                    near.sort_unstable();
+                    for j in near {
+                        add(&own[j].0);
+                    }
+                }
+                None => add(&own[i].0),
+            }
+            let (t, b) = (frames[i].x_axis.as_dvec3(), frames[i].y_axis.as_dvec3());
+            let quad = |u: glam::DVec3, v: glam::DVec3| {
+                u.x * (s[0] * v.x + s[1] * v.y + s[2] * v.z)
+                    + u.y * (s[1] * v.x + s[3] * v.y + s[4] * v.z)
+                    + u.z * (s[2] * v.x + s[4] * v.y + s[5] * v.z)
+            };
+            let (a, c, bb) = (quad(t, t), quad(b, b), quad(t, b));
+            let trace = a + c;
+            if !(trace > 0.0) {
+                return ViewAxis {
+                    turn: 0.0,
+                    coherence: 0.0,
+                    views: own[i].1,
+                };
+            }
+            let turn = 0.5 * (2.0 * bb).atan2(a - c);
+            let coherence = ((a - c).powi(2) + 4.0 * bb * bb).sqrt() / trace;
+            ViewAxis {
+                turn: turn as f32,
+                coherence: coherence.clamp(0.0, 1.0) as f32,
+                views: own[i].1,
+            }
+        })
+        .collect();
+    Ok(axes)
+}
+
+/// The views' pixel footprint at the subject, in scene units: the median over
+/// the cameras of their distance to the centre of `outer`'s bounding box over
+/// their focal length in pixels. Radii given in pixels scale with it, so they
+/// mean the same in any unit and at any resolution.
+pub fn pixel_footprint(cameras: &[Camera], outer: &Mesh) -> f32 {
+    let (lo, hi) = outer.bounds();
+    let centre = 0.5 * (lo + hi);
+    let mut f: Vec<f32> = cameras
+        .iter()
+        .map(|c| (c.center() - centre).length() / c.fx.abs().max(1e-12))
+        .filter(|x| x.is_finite())
+        .collect();
+    if f.is_empty() {
+        return 0.0;
+    }
+    f.sort_by(f32::total_cmp);
+    f[f.len() / 2]
+}
+
+/// One root's structure tensor over the views (`[xx, xy, xz, yy, yz, zz]`)
+/// and the number of views that saw it.
+fn root_tensor(
+    p: Vec3,
+    frame: &Mat3,
+    query: &MeshQuery,
+    outer: &Mesh,
+    views: &[ViewOrientation<'_>],
+    lift: f32,
+) -> ([f32; 6], u32) {
+    let mut s = [0.0f32; 6];
+    let mut seen = 0u32;
+    let (t, b) = (frame.x_axis, frame.y_axis);
+    let (q, _, tri) = query.closest_point(p);
+    let normal = outer
+        .triangles
+        .get(tri as usize)
+        .and_then(|tr| {
+            let [a, bb, c] = tr.map(|v| outer.positions[v as usize]);
+            (bb - a).cross(c - a).try_normalize()
+        })
+        .unwrap_or(frame.z_axis);
+    for v in views {
+        let cam = v.camera;
+        let to_cam = cam.center() - q;
+        let dist = to_cam.length();
+        let Some(dir) = to_cam.try_normalize() else {
+            continue;
+        };
+        let facing = normal.dot(dir);
+        if facing <= 0.0 {
+            continue;
+        }
+        let (px, depth) = cam.project(q);
+        if !(depth > 0.0) {
+            continue;
+        }
+        let (x, y) = (px.x.floor(), px.y.floor());
+        if x < 0.0 || y < 0.0 || x >= cam.width as f32 || y >= cam.height as f32 {
+            continue;
+        }
+        let k = (y as u32 * cam.width + x as u32) as usize;
+        let (Some(&alpha), Some(&conf)) = (v.angle.data.get(k), v.confidence.data.get(k)) else {
+            continue;
+        };
+        if !(conf > 0.0) || !alpha.is_finite() {
+            continue;
+        }
+        let origin = q + normal * lift;
+        if query.ray_hit(origin, dir, dist - lift).is_some() {
+            continue;
+        }
+        // Projection Jacobian along T and B (central differences, a step far
+        // below a pixel footprint).
+        let h = 1e-4 * depth;
+        let jt = (cam.project(q + t * h).0 - cam.project(q - t * h).0) / (2.0 * h);
+        let jb = (cam.project(q + b * h).0 - cam.project(q - b * h).0) / (2.0 * h);
+        let det = jt.x * jb.y - jb.x * jt.y;
+        if !(det.abs() > 0.0) {
+            continue;
+        }
+        let u = Vec2::new(alpha.cos(), alpha.sin());
+        // d = J^-1 u in (T, B) coordinates.
+        let d = Vec2::new(jb.y * u.x - jb.x * u.y, -jt.y * u.x + jt.x * u.y) / det;
+        let Some(d3) = (t * d.x + b * d.y).try_normalize() else {
+            continue;
+        };
+        let w = conf * facing * facing;
+        s[0] += w * d3.x * d3.x;
+        s[1] += w * d3.x * d3.y;
+        s[2] += w * d3.x * d3.z;
+        s[3] += w * d3.y * d3.y;
+        s[4] += w * d3.y * d3.z;
+        s[5] += w * d3.z * d3.z;
+        seen += 1;
+    }
+    (s, seen)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Mat4;
+
+    /// A flat square in the z = 0 plane (normal +z), two triangles.
+    fn plane(half: f32) -> Mesh {
+        Mesh {
+            positions: vec![
+                Vec3::new(-half, -half, 0.0),
+                Vec3::new(half, -half, 0.0),
+                Vec3::new(half, half, 0.0),
+                Vec3::new(-half, half, 0.0),
+            ],
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+            ..Default::default()
+        }
+    }
+
+    fn camera_at(eye: Vec3) -> Camera {
+        let c2w = Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Y).inverse();
+        Camera {
+            file_path: "v.png".into(),
+            c2w,
+            fx: 100.0,
+            fy: 100.0,
+            cx: 32.0,
+            cy: 32.0,
+            width: 64,
+            height: 64,
+        }
+    }
+
+    /// The maps a line field along `axis` on the plane gives in `cam`.
+    fn maps_of(cam: &Camera, axis: Vec3) -> (ImageF32, ImageF32) {
+        let mut angle = ImageF32::new(cam.width, cam.height, 1);
+        let mut conf = ImageF32::new(cam.width, cam.height, 1);
+        for y in 0..cam.height {
+            for x in 0..cam.width {
+                let (o, d) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
+                if d.z.abs() < 1e-6 {
+                    continue;
+                }
+                let p = o + d * (-o.z / d.z);
+                let a = cam.project(p).0;
+                let b = cam.project(p + axis * 1e-3).0;
+                let k = (y * cam.width + x) as usize;
+                angle.data[k] = crate::render::orientation_angle(b.x - a.x, b.y - a.y);
+                conf.data[k] = 1.0;
+            }
+        }
+        (angle, conf)
+    }
+
+    #[test]
+    fn oblique_views_recover_the_line_on_the_surface() {
+        let mesh = plane(2.0);
+        let truth = Vec3::new(1.0, 0.5, 0.0).normalize();
+        let cams = [
+            camera_at(Vec3::new(3.0, 1.0, 4.0)),
+            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
+            camera_at(Vec3::new(0.5, -3.0, 2.0)),
+        ];
+        let maps: Vec<_> = cams.iter().map(|c| maps_of(c, truth)).collect();
+        let views: Vec<ViewOrientation> = cams
+            .iter()
+            .zip(&maps)
+            .map(|(c, (a, k))| ViewOrientation {
+                camera: c,
+                angle: a,
+                confidence: k,
+            })
+            .collect();
+        // Roots just under the surface (the fur's envelope), frames turned
+        // 60 degrees off the truth, one of them with T against it.
+        let positions = vec![Vec3::new(0.1, 0.2, -0.05), Vec3::new(-0.3, 0.1, -0.05)];
+        let turn = Mat3::from_rotation_z(60f32.to_radians());
+        let base = Mat3::from_cols(truth, Vec3::Z.cross(truth), Vec3::Z);
+        let flipped = Mat3::from_cols(-truth, Vec3::Z.cross(-truth), Vec3::Z);
+        let frames = vec![base * turn, flipped * turn];
+        let axes = view_axes(&positions, &frames, &mesh, &views, 0.0).unwrap();
+        for (a, f) in axes.iter().zip(&frames) {
+            assert_eq!(a.views, 3);
+            assert!(a.coherence > 0.999, "{a:?}");
+            // Turning T by `turn` lands on the true line, keeping T's side.
+            let t = *f * Vec3::new(a.turn.cos(), a.turn.sin(), 0.0);
+            assert!(t.dot(truth).abs() > 0.9999, "{a:?} {t}");
+            assert!((a.turn + 60f32.to_radians()).abs() < 1e-3, "{a:?}");
+        }
+    }
+
+    #[test]
+    fn occluded_and_back_facing_views_are_skipped() {
+        let mesh = plane(2.0);
+        let truth = Vec3::X;
+        // Below the plane: sees its back face.
+        let below = camera_at(Vec3::new(0.5, 0.5, -4.0));
+        let (a, c) = maps_of(&below, truth);
+        let views = [ViewOrientation {
+            camera: &below,
+            angle: &a,
+            confidence: &c,
+        }];
+        let frames = vec![Mat3::IDENTITY];
+        let axes = view_axes(&[Vec3::new(0.0, 0.0, -0.05)], &frames, &mesh, &views, 0.0).unwrap();
+        assert_eq!(axes[0].views, 0);
+        assert_eq!(axes[0].coherence, 0.0);
+        assert_eq!(axes[0].turn, 0.0);
+    }
+}
