@@ -70,7 +70,10 @@
 //! tip of the ears), so on them the prior is close to the truth by
 //! construction and the gain above is an upper bound. A real coat that
 //! departs from it (whorls, a belly or cheek growing the other way) keeps
-//! the prior's direction there unless the orientation loss corrects it.
+//! the prior's direction there unless the views correct it: the learners
+//! turn each frame onto the axis the orientation maps show before training
+//! (`view_axes_radius_px`, [`crate::growth::view_axes`]), keeping only the
+//! prior's sign.
 //!
 //! **Growth direction (sign of `T`).** A degree-2 field has no sign, and the
 //! breadth-first alignment only makes signs agree with one constrained face:

@@ -109,6 +109,24 @@
 //!   human-hair basis, whose strands hang and curl, a faster angle turns the
 //!   strands away from the fur to fit the images, so the benchmark runs that
 //!   method at 1 (its better setting on the dev split, pipelines/benchmark.toml).
+//! - Frames from the views (`view_axes_radius_px` 16, both learners): before
+//!   training every root frame is turned about its normal onto the fur's axis
+//!   read from the orientation maps ([`crate::growth::view_axes`]: each
+//!   view's Gabor line lifted onto the root's tangent plane, pooled over the
+//!   views and over the roots within 16 pixel footprints), keeping its side
+//!   of the axis, wherever the pooled lines agree (coherence at least
+//!   `view_axes_min_coherence`, 0.2; 93-96 % of the dev scenes' roots). It is
+//!   the orientation loss's own minimiser for a straight first segment, found
+//!   in closed form: the pi-periodic loss with decaying rates turned a
+//!   45-degree wrong start only half-way back, and the roots' anatomical
+//!   prior is right only where a coat follows it. Chosen on the dev split
+//!   (codec, seeds 0-2) against no turn: at the roots' own frames the signed
+//!   F-score rises at 1, 2 and 3 cm on both scenes (tiger 1 cm 64.1 -> 72.1,
+//!   fox 43.8 -> 53.4) and the in-plane direction error falls by 2.4-2.7
+//!   degrees; from a 45-degree wrong start the error falls from 19.7 to 14.5
+//!   degrees (tiger) and from 21.3 to 18.3 (fox). Radii of 8 and 16 pixels
+//!   tie; 32 loses (docs/history.md). One view's line says nothing about the
+//!   growth sign, so the sign stays the prior's.
 //! - Learned elevation (`learn_tilt`, codec, on by default; `tilt_scale` 3
 //!   radians per unit): one more encoder output tilts each frame about its
 //!   bitangent before the in-plane turn (`F = base Rz(theta) Ry(beta)`), so

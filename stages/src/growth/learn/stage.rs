@@ -1523,6 +1523,121 @@ mod tests {
         );
     }
 
+    /// Orientation maps of the [`write_views`] scene drawn from its GT
+    /// strands (not filtered from the photos): per pixel, the image angle of
+    /// the in-plane lean of the strand whose root lies under the envelope
+    /// point the pixel sees. Returns the maps' folder.
+    fn write_true_maps(dir: &Path, views: &Path, gt_tips: &[Vec3]) -> PathBuf {
+        let maps = dir.join("maps");
+        let r = roots(300);
+        let fur: Vec<usize> = (0..r.len()).filter(|&i| r.length[i] > 0.0).collect();
+        let lean: Vec<(Vec3, Vec3)> = fur
+            .iter()
+            .zip(gt_tips)
+            .map(|(&i, &tip)| {
+                let n = r.normals[i];
+                let d = tip - r.positions[i];
+                (n, (d - n * n.dot(d)).normalize())
+            })
+            .collect();
+        let cams = formats::cameras::read_views(views).unwrap().train;
+        for c in &cams {
+            let mut angle = crate::data::image::ImageF32::new(c.width, c.height, 1);
+            let mut conf = crate::data::image::ImageF32::new(c.width, c.height, 1);
+            for y in 0..c.height {
+                for x in 0..c.width {
+                    let (o, d) = c.ray(x as f32 + 0.5, y as f32 + 0.5);
+                    // The envelope: the outer sphere of radius 1.3 ([`write_inputs`]).
+                    let b = o.dot(d);
+                    let disc = b * b - (o.length_squared() - 1.69);
+                    if disc <= 0.0 {
+                        continue;
+                    }
+                    let hit = o + d * (-b - disc.sqrt());
+                    let k = lean
+                        .iter()
+                        .enumerate()
+                        .max_by(|a, b| a.1 .0.dot(hit).total_cmp(&b.1 .0.dot(hit)))
+                        .map(|(k, _)| k)
+                        .unwrap();
+                    let (a, b) = (c.project(hit).0, c.project(hit + lean[k].1 * 1e-3).0);
+                    let px = (y * c.width + x) as usize;
+                    angle.data[px] = crate::render::orientation_angle(b.x - a.x, b.y - a.y);
+                    conf.data[px] = 1.0;
+                }
+            }
+            let stem = c.file_path.trim_end_matches(".png");
+            formats::images::write_exr(maps.join(format!("{stem}_orient.exr")), &angle).unwrap();
+            formats::images::write_exr(maps.join(format!("{stem}_conf.exr")), &conf).unwrap();
+        }
+        maps
+    }
+
+    #[test]
+    fn start_frames_turn_onto_the_axes_the_views_show() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let maps = write_true_maps(d.path(), &views, &gt_tips);
+        let r = roots(300);
+        let fur: Vec<usize> = (0..r.len()).filter(|&i| r.length[i] > 0.0).collect();
+        // Mean in-plane angle (degrees) between the untrained strands' chords
+        // and the GT's, with the start frames turned 45 degrees.
+        let error = |radius_px: f64| -> (f32, LearnMetrics) {
+            let dir = d.path().join(format!("axes_{radius_px}"));
+            std::fs::create_dir_all(&dir).unwrap();
+            let stage = CodecStrandsStage;
+            let mut over = small();
+            over.extend([
+                ("iterations", Value::Int(0)),
+                ("frame_rotation_deg", Value::Float(45.0)),
+                ("view_axes_radius_px", Value::Float(radius_px)),
+                ("body_gaussians", Value::Int(200)),
+            ]);
+            let params = params(&stage, &over);
+            let mut inputs = write_inputs(&dir);
+            inputs.insert("views".into(), views.clone());
+            inputs.insert("orientation".into(), maps.clone());
+            let out = dir.join("out");
+            let mut outputs = BTreeMap::new();
+            for port in stage.outputs(&params) {
+                let path = out.join(port.file_name());
+                if port.kind == fure_stage_api::PortKind::Dir {
+                    std::fs::create_dir_all(&path).unwrap();
+                }
+                outputs.insert(port.name.clone(), path);
+            }
+            let ctx = StageContext {
+                name: "test",
+                params: &params,
+                inputs,
+                outputs,
+                progress: &NoProgress,
+            };
+            stage.run(&ctx).unwrap();
+            let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+            let mut sum = 0.0;
+            for (s, &i) in fur.iter().enumerate() {
+                let n = r.normals[i];
+                let flat = |v: Vec3| (v - n * n.dot(v)).normalize();
+                let p = st.strand(s);
+                let got = flat(*p.last().unwrap() - p[0]);
+                let want = flat(gt_tips[s] - r.positions[i]);
+                sum += got.dot(want).clamp(-1.0, 1.0).acos().to_degrees();
+            }
+            let m = formats::json::read_json(out.join("metrics.json")).unwrap();
+            (sum / fur.len() as f32, m)
+        };
+        let (off, m_off) = error(0.0);
+        let (on, m_on) = error(0.5);
+        assert!(m_off.view_axes.is_none());
+        let report = m_on.view_axes.expect("view axes recorded");
+        // Only the front of the sphere is seen by the four views.
+        assert!(report.turned_fraction > 0.5, "{report:?}");
+        assert!(report.mean_turn_deg > 10.0, "{report:?}");
+        assert!(off > 15.0, "turned start {off} degrees off");
+        assert!(on < 0.5 * off, "view axes: {off} -> {on} degrees");
+    }
+
     #[test]
     fn image_losses_drive_the_codec_and_test_views_are_rendered() {
         let d = tempfile::tempdir().unwrap();
