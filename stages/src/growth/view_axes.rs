@@ -35,7 +35,8 @@
 //!
 //! The result is an axis (no sign): a map cannot tell root from tip. Callers
 //! keep the sign of the frame they had (the axis is turned by at most 90
-//! degrees). Sums over views and neighbours run in a fixed order, so the
+//! degrees); [`vote_signs`] then lets neighbours outvote a root that kept
+//! the wrong side. Sums over views and neighbours run in a fixed order, so the
 //! result does not depend on the thread count.
 
 use glam::{Mat3, Vec2, Vec3};
@@ -139,6 +140,44 @@ pub fn view_axes(
         })
         .collect();
     Ok(axes)
+}
+
+/// Flips every frame whose tangent points against the sum of its
+/// neighbours' tangents within `radius` (itself excluded), all decided from
+/// the frames as given (one Jacobi pass, so the order of the roots does not
+/// matter); returns how many were flipped. A flip turns the frame half a turn
+/// about its normal. Why: the views give an axis, not a sign, and a root
+/// whose pooled axis lies more than 90 degrees from its start keeps the
+/// wrong side; its neighbours outvote it.
+pub fn vote_signs(positions: &[Vec3], frames: &mut [Mat3], radius: f32) -> Result<usize, GeomError> {
+    if radius <= 0.0 || positions.is_empty() {
+        return Ok(0);
+    }
+    let index = PointIndex::new(positions)?;
+    let flip: Vec<bool> = positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, &p)| {
+            let mut near: Vec<usize> = index
+                .within(p, radius)
+                .into_iter()
+                .map(|(j, _)| j)
+                .filter(|&j| j != i)
+                .collect();
+            near.sort_unstable();
+            let sum: Vec3 = near.iter().map(|&j| frames[j].x_axis).sum();
+            sum.dot(frames[i].x_axis) < 0.0
+        })
+        .collect();
+    let half = Mat3::from_rotation_z(std::f32::consts::PI);
+    let mut flipped = 0;
+    for (f, &fl) in frames.iter_mut().zip(&flip) {
+        if fl {
+            *f *= half;
+            flipped += 1;
+        }
+    }
+    Ok(flipped)
 }
 
 /// The views' pixel footprint at the subject, in scene units: the median over
@@ -328,6 +367,20 @@ mod tests {
             assert!(t.dot(truth).abs() > 0.9999, "{a:?} {t}");
             assert!((a.turn + 60f32.to_radians()).abs() < 1e-3, "{a:?}");
         }
+    }
+
+    #[test]
+    fn a_frame_against_its_neighbours_is_flipped() {
+        let positions: Vec<Vec3> = (0..5).map(|i| Vec3::new(i as f32 * 0.1, 0.0, 0.0)).collect();
+        let mut frames = vec![Mat3::IDENTITY; 5];
+        let half = Mat3::from_rotation_z(std::f32::consts::PI);
+        frames[2] = half;
+        assert_eq!(vote_signs(&positions, &mut frames, 0.25).unwrap(), 1);
+        assert!(frames.iter().all(|f| f.x_axis.dot(Vec3::X) > 0.999));
+        // Two halves that agree within themselves stay as they are.
+        let mut split = vec![Mat3::IDENTITY, Mat3::IDENTITY, half, half];
+        let pos = [0.0, 0.1, 1.0, 1.1].map(|x| Vec3::new(x, 0.0, 0.0));
+        assert_eq!(vote_signs(&pos, &mut split, 0.25).unwrap(), 0);
     }
 
     #[test]

@@ -23,7 +23,7 @@ use crate::data::rootset::Roots;
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
-use crate::growth::view_axes::{pixel_footprint, view_axes, ViewOrientation};
+use crate::growth::view_axes::{pixel_footprint, view_axes, vote_signs, ViewOrientation};
 use crate::maths::geom::MeshQuery;
 
 fure_stage_api::param_enum! {
@@ -139,6 +139,9 @@ fure_stage_api::stage_params! {
         /// Frames whose pooled lines agree less than this (coherence in [0, 1]) keep their
         /// start (view_axes_radius_px).
         view_axes_min_coherence: f32 = float(0.2).range(0.0, 1.0),
+        /// After the turn onto the views' axes, flip every frame whose tangent points against
+        /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs).
+        view_axes_sign_vote: bool = bool(false),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -573,6 +576,9 @@ pub struct ViewAxesReport {
     pub mean_coherence: f32,
     /// Fraction of the strands no view saw.
     pub unseen_fraction: f32,
+    /// Fraction of the strands flipped by the neighbours' sign vote (view_axes_sign_vote).
+    #[serde(default)]
+    pub flipped_fraction: f32,
 }
 
 fn setup(
@@ -704,8 +710,16 @@ fn turn_onto_view_axes(
             turn_sum += a.turn.abs().to_degrees() as f64;
         }
     }
+    let flipped = if p.view_axes_sign_vote {
+        let roots_path = ctx.input("roots")?;
+        vote_signs(positions, frames, radius)
+            .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
+    } else {
+        0
+    };
     let n = axes.len() as f32;
     Ok(Some(ViewAxesReport {
+        flipped_fraction: flipped as f32 / n,
         radius,
         turned_fraction: turned as f32 / n,
         mean_turn_deg: if turned > 0 {
