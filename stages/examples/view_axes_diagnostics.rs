@@ -51,15 +51,7 @@ fn run() -> Res<()> {
         .iter()
         .map(|c| read_orientation(&dir.join("orientation/maps"), c))
         .collect::<Result<Vec<_>, _>>()?;
-    let views: Vec<ViewOrientation> = cams
-        .iter()
-        .zip(&maps)
-        .map(|(c, (a, k))| ViewOrientation {
-            camera: c,
-            angle: a,
-            confidence: k,
-        })
-        .collect();
+    let views = ViewOrientation::pair(&cams, &maps);
     let gt = read_hair(dir.join("scene/strands.hair"))?;
     let skin: Mesh = read_obj(dir.join("scene/skin.obj"))?;
     let footprint = pixel_footprint(&cams, &outer);

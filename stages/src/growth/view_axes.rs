@@ -57,6 +57,21 @@ pub struct ViewOrientation<'a> {
     pub confidence: &'a ImageF32,
 }
 
+impl<'a> ViewOrientation<'a> {
+    /// Pairs each camera with its `(angle, confidence)` maps.
+    pub fn pair(cameras: &'a [Camera], maps: &'a [(ImageF32, ImageF32)]) -> Vec<Self> {
+        cameras
+            .iter()
+            .zip(maps)
+            .map(|(camera, (angle, confidence))| ViewOrientation {
+                camera,
+                angle,
+                confidence,
+            })
+            .collect()
+    }
+}
+
 /// A root's axis from the views.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ViewAxis {
@@ -342,15 +357,7 @@ mod tests {
             camera_at(Vec3::new(0.5, -3.0, 2.0)),
         ];
         let maps: Vec<_> = cams.iter().map(|c| maps_of(c, truth)).collect();
-        let views: Vec<ViewOrientation> = cams
-            .iter()
-            .zip(&maps)
-            .map(|(c, (a, k))| ViewOrientation {
-                camera: c,
-                angle: a,
-                confidence: k,
-            })
-            .collect();
+        let views = ViewOrientation::pair(&cams, &maps);
         // Roots just under the surface (the fur's envelope), frames turned
         // 60 degrees off the truth, one of them with T against it.
         let positions = vec![Vec3::new(0.1, 0.2, -0.05), Vec3::new(-0.3, 0.1, -0.05)];
