@@ -38,9 +38,15 @@ fn main() -> std::process::ExitCode {
 
 fn run() -> Res<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let dir = Path::new(args.first().ok_or("usage: view_axes_diagnostics OUT_DIR [radius_px ...]")?);
+    let dir = Path::new(
+        args.first()
+            .ok_or("usage: view_axes_diagnostics OUT_DIR [radius_px ...]")?,
+    );
     let radii: Vec<f32> = if args.len() > 1 {
-        args[1..].iter().map(|a| a.parse()).collect::<Result<_, _>>()?
+        args[1..]
+            .iter()
+            .map(|a| a.parse())
+            .collect::<Result<_, _>>()?
     } else {
         vec![0.0, 1.0, 2.0, 4.0]
     };
@@ -55,18 +61,30 @@ fn run() -> Res<()> {
     let gt = read_hair(dir.join("scene/strands.hair"))?;
     let skin: Mesh = read_obj(dir.join("scene/skin.obj"))?;
     let footprint = pixel_footprint(&cams, &outer);
-    println!("roots {}, views {}, pixel footprint {footprint:.4} scene units", roots.len(), cams.len());
+    println!(
+        "roots {}, views {}, pixel footprint {footprint:.4} scene units",
+        roots.len(),
+        cams.len()
+    );
 
     let frames: Vec<Mat3> = (0..roots.len())
         .map(|i| Mat3::from_cols(roots.tangents[i], roots.bitangents[i], roots.normals[i]))
         .collect();
-    let turned: Vec<Mat3> = frames.iter().map(|f| *f * Mat3::from_rotation_z(45f32.to_radians())).collect();
+    let turned: Vec<Mat3> = frames
+        .iter()
+        .map(|f| *f * Mat3::from_rotation_z(45f32.to_radians()))
+        .collect();
     let strands = |frames: &[Mat3], keep: &dyn Fn(usize) -> bool| -> Strands {
         let mut s = Strands::new();
         for (i, f) in frames.iter().enumerate() {
             if keep(i) {
                 let p = roots.positions[i];
-                s.push(&[p, p + f.x_axis * roots.length[i].max(1e-6)], 0, 0.0, [0.5; 3]);
+                s.push(
+                    &[p, p + f.x_axis * roots.length[i].max(1e-6)],
+                    0,
+                    0.0,
+                    [0.5; 3],
+                );
             }
         }
         s
@@ -75,21 +93,33 @@ fn run() -> Res<()> {
         Ok(direction_error_deg(s, &gt, Some(&skin))?.map_or("-".into(), |d| format!("{d:.1}")))
     };
     let all = |_: usize| true;
-    println!("roots' frames: {} deg; turned 45: {} deg", err(&strands(&frames, &all))?, err(&strands(&turned, &all))?);
+    println!(
+        "roots' frames: {} deg; turned 45: {} deg",
+        err(&strands(&frames, &all))?,
+        err(&strands(&turned, &all))?
+    );
     println!("| radius (px) | min coherence | turned share | from the frames | from 45 deg |");
     println!("|---|---|---|---|---|");
     for r in radii {
         let from_frames = view_axes(&roots.positions, &frames, &outer, &views, r * footprint)?;
         let from_turned = view_axes(&roots.positions, &turned, &outer, &views, r * footprint)?;
         for c_min in [0.0f32, 0.2, 0.4, 0.6] {
-            let snap = |start: &[Mat3], axes: &[fure_stages::growth::view_axes::ViewAxis]| -> Vec<Mat3> {
-                start
-                    .iter()
-                    .zip(axes)
-                    .map(|(f, a)| if a.coherence >= c_min { *f * Mat3::from_rotation_z(a.turn) } else { *f })
-                    .collect()
-            };
-            let share = from_frames.iter().filter(|a| a.coherence >= c_min).count() as f32 / roots.len() as f32;
+            let snap =
+                |start: &[Mat3], axes: &[fure_stages::growth::view_axes::ViewAxis]| -> Vec<Mat3> {
+                    start
+                        .iter()
+                        .zip(axes)
+                        .map(|(f, a)| {
+                            if a.coherence >= c_min {
+                                *f * Mat3::from_rotation_z(a.turn)
+                            } else {
+                                *f
+                            }
+                        })
+                        .collect()
+                };
+            let share = from_frames.iter().filter(|a| a.coherence >= c_min).count() as f32
+                / roots.len() as f32;
             println!(
                 "| {r} | {c_min} | {share:.2} | {} | {} |",
                 err(&strands(&snap(&frames, &from_frames), &all))?,

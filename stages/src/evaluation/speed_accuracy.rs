@@ -722,14 +722,22 @@ mod tests {
         let s = speedup(&codec, &dense).unwrap();
         assert!(s.codec_at_start && !s.dense_start_reaches_final);
         assert_eq!(s.speedup_to_dense_final_fscore, Some(25.0));
-        assert!(s.speedup_note.contains("untrained start"), "{}", s.speedup_note);
+        assert!(
+            s.speedup_note.contains("untrained start"),
+            "{}",
+            s.speedup_note
+        );
         // Dense drifts down from an untrained start above its final: undefined.
         let drifting = vec![at("dense", 2.0, 0, 32.0), at("dense", 100.0, 50, 30.0)];
         let s = speedup(&codec, &drifting).unwrap();
         assert!(s.dense_start_reaches_final);
         assert_eq!(s.speedup_to_dense_final_fscore, None);
         assert_eq!(s.speedup_bracket, None);
-        assert!(s.speedup_note.contains("did not improve"), "{}", s.speedup_note);
+        assert!(
+            s.speedup_note.contains("did not improve"),
+            "{}",
+            s.speedup_note
+        );
     }
 
     #[test]

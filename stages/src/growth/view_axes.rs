@@ -164,7 +164,11 @@ pub fn view_axes(
 /// about its normal. Why: the views give an axis, not a sign, and a root
 /// whose pooled axis lies more than 90 degrees from its start keeps the
 /// wrong side; its neighbours outvote it.
-pub fn vote_signs(positions: &[Vec3], frames: &mut [Mat3], radius: f32) -> Result<usize, GeomError> {
+pub fn vote_signs(
+    positions: &[Vec3],
+    frames: &mut [Mat3],
+    radius: f32,
+) -> Result<usize, GeomError> {
     if radius <= 0.0 || positions.is_empty() {
         return Ok(0);
     }
@@ -378,7 +382,9 @@ mod tests {
 
     #[test]
     fn a_frame_against_its_neighbours_is_flipped() {
-        let positions: Vec<Vec3> = (0..5).map(|i| Vec3::new(i as f32 * 0.1, 0.0, 0.0)).collect();
+        let positions: Vec<Vec3> = (0..5)
+            .map(|i| Vec3::new(i as f32 * 0.1, 0.0, 0.0))
+            .collect();
         let mut frames = vec![Mat3::IDENTITY; 5];
         let half = Mat3::from_rotation_z(std::f32::consts::PI);
         frames[2] = half;
