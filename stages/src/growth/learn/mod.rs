@@ -126,7 +126,13 @@
 //!   degrees; from a 45-degree wrong start the error falls from 19.7 to 14.5
 //!   degrees (tiger) and from 21.3 to 18.3 (fox). Radii of 8 and 16 pixels
 //!   tie; 32 loses (docs/history.md). One view's line says nothing about the
-//!   growth sign, so the sign stays the prior's.
+//!   growth sign, so the sign stays the prior's, and then the neighbours
+//!   within the same radius vote (`view_axes_sign_vote`, on): a frame whose
+//!   tangent points against the sum of its neighbours' flips. The prior's
+//!   sign is right over most of a part, so the vote mends the isolated roots
+//!   the turn left on the wrong side (dev split, codec, seeds 0-2: in-plane
+//!   error 12.6 -> 12.0 degrees on the tiger, 15.5 -> 14.0 on the fox; from
+//!   the 45-degree wrong start 14.5 -> 13.6 and 18.3 -> 15.0).
 //! - Learned elevation (`learn_tilt`, codec, on by default; `tilt_scale` 3
 //!   radians per unit): one more encoder output tilts each frame about its
 //!   bitangent before the in-plane turn (`F = base Rz(theta) Ry(beta)`), so

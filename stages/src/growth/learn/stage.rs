@@ -141,9 +141,8 @@ fure_stage_api::stage_params! {
         view_axes_min_coherence: f32 = float(0.2).range(0.0, 1.0),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
-        /// ahead on the dev split but measured after the last full suite, so not yet the
-        /// default: docs/history.md, "A sign vote after the turn").
-        view_axes_sign_vote: bool = bool(false),
+        /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
+        view_axes_sign_vote: bool = bool(true),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -328,7 +327,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        9
+        10
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -355,7 +354,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        7
+        8
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
