@@ -352,7 +352,10 @@ fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
          when the mean is ahead by more than the seed spread (the larger standard deviation of the \
          two), **lost** when behind by more, a **tie** otherwise, and **undecided** with one seed. \
          F-scores are signed (growth direction counted), in %; the **ceiling** is the same animal \
-         regrown with another seed, scored against the GT.\n"
+         regrown with another seed, scored against the GT. The curvature variance over the GT's \
+         is `-` where fewer than half of the method's or the GT's strands are long enough to carry \
+         it (three resampled segments, about 1.5 cm): a short groom is not judged by its few \
+         longest strands.\n"
     );
     // Seconds come from the cache entries, whose pools may differ in size
     // (a study at `--jobs 2` leaves entries a later `--jobs 1` suite reuses).

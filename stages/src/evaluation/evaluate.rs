@@ -39,6 +39,8 @@
 //!   curliness differs between strands.
 //! - `local_curvature_variance` (Var_loc(kappa)): mean over strands of the variance of `kappa_j` along the
 //!   strand (strands with at least two interior vertices). Measures how irregular each strand's bending is.
+//!   `local_curvature_strands_frac` is the fraction of strands that enter it: at the default 0.5 cm
+//!   resampling a strand needs about 1.5 cm.
 //! - `local_direction_variance` (Var_loc(dir)): mean over strands of the variance of the strand's unit
 //!   segment directions, `1 - |mean_j t_j|^2` (0 for a straight strand, up to 1).
 //! - `first_segment_direction_variance` (Var_loc^first(dir)): for every root, the unit directions of the
@@ -52,7 +54,9 @@
 //!   nearest, growth sign counted (0-180 deg), both projected onto the GT skin's tangent plane at the
 //!   predicted root when `gt_skin` is connected (`direction_error_mode` says which); the mean.
 //! - `local_curvature_variance_vs_gt`: the predicted `local_curvature_variance` over the GT's
-//!   (1 = as kinky as the truth).
+//!   (1 = as kinky as the truth); `null` where fewer than half of either side's strands enter it
+//!   ([`curvature_variance_ratio`]): short fur, or a groom shorter than the truth, is not measured
+//!   by its few longest strands.
 //! - The default thresholds add the strict 1 cm / 10 deg ([`STRICT_THRESHOLD`]) to the paper's three.
 //!
 //! # Image metrics
@@ -634,8 +638,28 @@ pub struct GeometryMetrics {
     pub std_length_cm: f32,
     pub global_curvature_variance: f32,
     pub local_curvature_variance: f32,
+    /// Fraction of the strands long enough to enter `local_curvature_variance` (at least two
+    /// interior vertices after the resampling).
+    pub local_curvature_strands_frac: f32,
     pub local_direction_variance: f32,
     pub first_segment_direction_variance: f32,
+}
+
+/// Both sides must carry `local_curvature_variance` on at least this fraction of their strands
+/// for [`curvature_variance_ratio`] to compare them.
+pub const MIN_CURVATURE_STRANDS_FRAC: f32 = 0.5;
+
+/// `local_curvature_variance_vs_gt`: the predicted local curvature variance over the GT's, or
+/// `None` where it cannot be compared: the GT's is 0, or fewer than
+/// [`MIN_CURVATURE_STRANDS_FRAC`] of either side's strands are long enough to enter it (three
+/// resampled segments). Short strands drop out of the mean, so otherwise a groom of short strands
+/// would be judged by its few longest ones against nearly all of the GT, and one with none would
+/// read 0 ("perfectly smooth") rather than "not measured".
+pub fn curvature_variance_ratio(pred: &GeometryMetrics, gt: &GeometryMetrics) -> Option<f64> {
+    let enough = |g: &GeometryMetrics| g.local_curvature_strands_frac >= MIN_CURVATURE_STRANDS_FRAC;
+    (enough(pred) && enough(gt) && gt.local_curvature_variance > 0.0)
+        .then(|| pred.local_curvature_variance as f64 / gt.local_curvature_variance as f64)
+        .filter(|r| r.is_finite())
 }
 
 fn mean_var(xs: &[f64]) -> (f64, f64) {
@@ -710,6 +734,11 @@ pub fn geometry_metrics(
     let curv: Vec<f64> = per.iter().filter_map(|p| p.mean_curv).collect();
     let (_, gcv) = mean_var(&curv);
     let lcv: Vec<f64> = per.iter().filter_map(|p| p.local_curv_var).collect();
+    let lcv_frac = if per.is_empty() {
+        0.0
+    } else {
+        lcv.len() as f64 / per.len() as f64
+    };
     let (lcv, _) = mean_var(&lcv);
     let dv: Vec<f64> = per.iter().filter_map(|p| p.dir_var).collect();
     let (ldv, _) = mean_var(&dv);
@@ -750,6 +779,7 @@ pub fn geometry_metrics(
         std_length_cm: vl.sqrt() as f32,
         global_curvature_variance: gcv as f32,
         local_curvature_variance: lcv as f32,
+        local_curvature_strands_frac: lcv_frac as f32,
         local_direction_variance: ldv as f32,
         first_segment_direction_variance: fsv as f32,
     }
@@ -1003,7 +1033,7 @@ impl Stage for EvaluateStage {
         "evaluate"
     }
     fn version(&self) -> u32 {
-        4
+        5
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \
@@ -1096,11 +1126,7 @@ impl Stage for EvaluateStage {
         let geo_gt = geometry_metrics(&gt, s_cm, spacing, neighbour);
         let skin = read_skin(ctx)?;
         let direction_error = direction_error_deg(&pred, &gt, skin.as_ref())?;
-        let ratio = |a: f64, b: f64| (b > 0.0 && a.is_finite()).then(|| a / b);
-        let curvature_ratio = ratio(
-            geo.local_curvature_variance as f64,
-            geo_gt.local_curvature_variance as f64,
-        );
+        let curvature_ratio = curvature_variance_ratio(&geo, &geo_gt);
         ctx.progress.advance(1);
 
         let (psnr_v, ssim_v, n_views) = held_out_image_metrics(ctx, bg)?;
@@ -1117,6 +1143,7 @@ impl Stage for EvaluateStage {
             "std_length_cm": geo.std_length_cm,
             "global_curvature_variance": geo.global_curvature_variance,
             "local_curvature_variance": geo.local_curvature_variance,
+            "local_curvature_strands_frac": geo.local_curvature_strands_frac,
             "local_direction_variance": geo.local_direction_variance,
             "first_segment_direction_variance": geo.first_segment_direction_variance,
             "local_curvature_variance_vs_gt": curvature_ratio,
@@ -1454,6 +1481,41 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn curvature_ratio_needs_most_strands_long_enough() {
+        // Zigzags of 0.5 cm steps: kinky, and long enough (6 segments) at 0.5 cm resampling. The
+        // strands are side by side along y, so every one has the same bits in x and z.
+        let zigzag = |y: f32, steps: usize| -> Vec<Vec3> {
+            (0..=steps)
+                .map(|i| Vec3::new(0.2 * (i % 2) as f32, y, 0.5 * i as f32))
+                .collect()
+        };
+        let groom = |long: usize, short: usize| {
+            let mut s = Strands::new();
+            for i in 0..long {
+                s.push(&zigzag(i as f32, 6), 0, 0.01, [0.5; 3]);
+            }
+            for i in 0..short {
+                s.push(&zigzag(100.0 + i as f32, 1), 0, 0.01, [0.5; 3]);
+            }
+            geometry_metrics(&s, 1.0, 0.5, 1.0)
+        };
+        let gt = groom(10, 0);
+        assert_eq!(gt.local_curvature_strands_frac, 1.0);
+        // Mostly short strands: the few long ones alone carry a variance, but no ratio is given.
+        let short = groom(2, 8);
+        assert!((short.local_curvature_strands_frac - 0.2).abs() < 1e-6);
+        assert!(short.local_curvature_variance > 0.0);
+        assert_eq!(curvature_variance_ratio(&short, &gt), None);
+        // None long enough: the variance reads 0, which is "not measured", not "smooth".
+        assert_eq!(curvature_variance_ratio(&groom(0, 10), &gt), None);
+        // Most long enough: the same population, ratio 1.
+        let r = curvature_variance_ratio(&groom(8, 2), &gt).unwrap();
+        assert!((r - 1.0).abs() < 1e-4, "{r}");
+        // A GT of short strands cannot be compared with either.
+        assert_eq!(curvature_variance_ratio(&gt, &groom(2, 8)), None);
+    }
+
+    #[test]
     fn geometry_metrics_of_known_strands() {
         // Straight strands of lengths 2 and 4: mean 3, std 1, no curvature, no direction variance.
         let mut s = Strands::new();
@@ -1490,6 +1552,7 @@ pub(crate) mod tests {
             "{g:?}"
         );
         assert!(g.local_curvature_variance < 1e-3, "{g:?}");
+        assert_eq!(g.local_curvature_strands_frac, 1.0);
         assert!(g.local_direction_variance > 0.05);
         // The two first segments differ in direction (curvature differs): positive first-seg variance.
         assert!(g.first_segment_direction_variance > 0.0);
