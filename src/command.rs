@@ -385,6 +385,17 @@ pub fn run_command(ctx: &StageContext<'_>) -> Result<u64, StageError> {
     if let Some(msg) = status {
         return Err(with_tail(format!("`{}` {msg}", argv.join(" "))));
     }
+    // Its group got the signal (or it ended as the signal came): a command
+    // that traps it and exits 0, or a shell whose killed step it outlives
+    // (`sleep 60; echo done`), leaves outputs that must not be stored.
+    if let Some(sig) = crate::signals::received() {
+        return Err(with_tail(format!(
+            "`{}` exited with status 0 after fure was interrupted by {}; its outputs may be \
+             partial and are not stored",
+            argv.join(" "),
+            crate::signals::name(sig)
+        )));
+    }
     for (port, path) in &ctx.outputs {
         if std::fs::symlink_metadata(path).is_err() {
             return Err(with_tail(format!(

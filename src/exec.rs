@@ -484,7 +484,7 @@ impl<'a> Scheduler<'a> {
                 .name(format!("fure-stage-{}", st.name))
                 .spawn_scoped(scope, move || {
                     let result = match job {
-                        None => execute(cache, work, &progress, ui, inproc),
+                        None => execute(cache, work, &progress, ui, inproc, &|| Ok(())),
                         Some((slurm, spec)) => execute_remote(&slurm, cache, st, &spec),
                     };
                     let _ = tx.send(WorkDone {
@@ -973,25 +973,31 @@ pub(crate) struct Computation<'a> {
 
 /// Computes one stage in this process, as a `fure worker` does for a job:
 /// under the key's lock, rechecking for an entry first, through the same
-/// code as a local run (so the entry is the same, byte for byte).
+/// code as a local run (so the entry is the same, byte for byte). `commit`
+/// is asked right before the manifest is written: Err(why) fails the stage
+/// and stores no entry (a job that is being cancelled).
 /// Ok((manifest, computed_here)).
 pub(crate) fn compute_stage(
     cache: &Cache,
     work: Computation<'_>,
     ui: &Ui,
+    commit: &dyn Fn() -> Result<(), String>,
 ) -> Result<(Manifest, bool), String> {
     let progress = ui.started(&work.stage.name, "slurm job");
     let inproc = AtomicUsize::new(0);
-    execute(cache, work, &progress, ui, &inproc)
+    execute(cache, work, &progress, ui, &inproc, commit)
 }
 
-/// Computes one stage (worker thread). Ok((manifest, computed_here)).
+/// Computes one stage (worker thread); `commit` may still refuse the entry
+/// after the outputs are stored (then they are orphan objects until `gc`).
+/// Ok((manifest, computed_here)).
 fn execute(
     cache: &Cache,
     work: Computation<'_>,
     progress: &StageProgress,
     ui: &Ui,
     inproc: &AtomicUsize,
+    commit: &dyn Fn() -> Result<(), String>,
 ) -> Result<(Manifest, bool), String> {
     let st = work.stage;
     let key = work.key.as_str();
@@ -1040,6 +1046,7 @@ fn execute(
         seal: String::new(),
     }
     .seal();
+    commit()?;
     cache.write_manifest(&m).map_err(|e| e.to_string())?;
     Ok((m, true))
 }

@@ -3,7 +3,8 @@
 //! Every command stage runs in its own process group (so a terminal's
 //! Ctrl-C reaches fure alone). The handler records the first signal and
 //! sends it to every registered group; the scheduler then starts nothing
-//! new, the killed commands fail, their staging directories are removed,
+//! new, the killed commands fail (as does one that exits 0 after the
+//! signal: its outputs may be partial), their staging directories are removed,
 //! and `fure` exits with 128 + the signal number. A second signal of the
 //! same kind gets the default action (fure dies at once; each command's
 //! watchdog then kills its group, see `command`).

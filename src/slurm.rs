@@ -1248,8 +1248,47 @@ pub fn worker(
         inputs,
         threads: worker_threads(),
     };
-    let (_, computed) = crate::exec::compute_stage(cache, work, ui).map_err(WorkerError::Stage)?;
+    let (_, computed) = crate::exec::compute_stage(cache, work, ui, &worker_may_commit)
+        .map_err(WorkerError::Stage)?;
     Ok(computed)
+}
+
+/// Whether a worker may write its entry, asked after its outputs are
+/// stored: not once it got a signal, nor while Slurm ends its job. Slurm
+/// ends a job (cancelled, timed out, preempted) by first marking it in the
+/// controller and then signalling its processes one at a time, children
+/// before parents, so a command's shell can outlive its killed step and exit
+/// 0 (`sleep 60; echo done`) before the worker itself is signalled; only the
+/// controller then knows that the job is being ended. Its state is asked
+/// with `squeue` once per computed stage; where it cannot answer (no job id,
+/// no Slurm), the signal alone decides.
+fn worker_may_commit() -> Result<(), String> {
+    let interrupted = |why: String| {
+        Err(format!(
+            "the job ended before its entry was written ({why}); nothing is stored"
+        ))
+    };
+    if let Some(sig) = crate::signals::received() {
+        return interrupted(format!("the worker got {}", crate::signals::name(sig)));
+    }
+    if let Some(state) = ending_job_state() {
+        return interrupted(format!("Slurm reports the job as {state}"));
+    }
+    Ok(())
+}
+
+/// The state of this process's Slurm job when Slurm is ending it (anything
+/// but RUNNING or SUSPENDED; a cancelled job whose processes are being
+/// killed is COMPLETING); None when it runs, or when there is no job or no
+/// answer.
+fn ending_job_state() -> Option<String> {
+    let id = std::env::var("SLURM_JOB_ID")
+        .ok()
+        .filter(|id| !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit()))?;
+    let args = ["-h", "-t", "all", "-j", id.as_str(), "-o", "%T"].map(String::from);
+    let listed = slurm_command("squeue", &args).ok()?;
+    let state = listed.lines().next()?.trim().to_string();
+    (!state.is_empty() && state != "RUNNING" && state != "SUSPENDED").then_some(state)
 }
 
 /// A job's stage as this binary has it.

@@ -561,6 +561,45 @@ fn signals_to_fure_stop_its_commands_and_clean_up() {
     }
 }
 
+/// A command that traps the forwarded signal and exits 0 with what it has
+/// (as a shell does that outlives its killed step) is interrupted all the
+/// same: its outputs are not stored.
+#[test]
+fn a_command_exiting_0_after_a_signal_caches_nothing() {
+    let p = Project::new();
+    let started = p.path("started");
+    p.write(
+        "trap.toml",
+        &format!(
+            "[stages.partial]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"trap 'echo partial > o.txt; exit 0' INT; touch {}; sleep 60 & wait; echo done > o.txt\"]\nouts = [\"o.txt\"]\n",
+            started.display()
+        ),
+    );
+    let child = p
+        .cmd(&["run", "trap.toml", "--plain"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_until("the command", Duration::from_secs(30), || started.exists());
+    let k = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(k.success());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("exited with status 0 after fure was interrupted by SIGINT")
+            && err.contains("not stored"),
+        "{err}"
+    );
+    assert_eq!(walk(&p.path("cache/entries")), Vec::<PathBuf>::new());
+    assert_eq!(walk(&p.path("cache/tmp")).len(), 0);
+    assert!(!p.path("out/trap/partial/o.txt").exists());
+}
+
 #[test]
 fn commands_die_with_fure_on_sigkill() {
     let p = Project::new();

@@ -244,6 +244,17 @@ impl Cluster {
             .expect("run fure")
     }
 
+    /// State of a job as `squeue` shows it (COMPLETING while its
+    /// processes are being ended, where `scontrol` already says CANCELLED).
+    fn queue_state(&self, id: &str) -> String {
+        let o = self
+            .command("squeue")
+            .args(["-h", "-t", "all", "-j", id, "-o", "%T"])
+            .output()
+            .expect("squeue");
+        String::from_utf8_lossy(&o.stdout).trim().to_string()
+    }
+
     /// State of a job (`scontrol show job`).
     fn job_state(&self, id: &str) -> String {
         let o = self
@@ -377,12 +388,44 @@ deps = { x = "ok.ok.txt" }
 outs = ["never.txt"]
 "#;
 
+/// A slow stage that exits 0 with its output when it is signalled, as a
+/// shell does whose step Slurm killed first (`sleep 120; echo late`: Slurm
+/// signals a job's processes one at a time, children first) or a program
+/// that traps SIGTERM and saves what it has. `STARTED` is replaced by a file
+/// it touches once the trap is set.
 const SLOW: &str = r#"
 [stages.slow]
 kind = "command"
-cmd = ["sh", "-c", "sleep 120; echo late > late.txt"]
+cmd = ["sh", "-c", "trap 'echo partial > late.txt; exit 0' TERM INT; touch STARTED; sleep 120 & wait; echo late > late.txt"]
 outs = ["late.txt"]
 "#;
+
+/// What `cache/entries` holds, for a failure message: each name, and
+/// whether it is a complete entry (a manifest: its stage and outputs).
+fn describe_entries(dir: &Path) -> Vec<String> {
+    let Ok(rd) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    rd.flatten()
+        .map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let manifest = std::fs::read(e.path())
+                .ok()
+                .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+                .filter(|j| j["seal"].is_string() && j["outputs"].is_object());
+            match manifest {
+                Some(j) => format!(
+                    "{name}: complete entry of stage {} (pipeline {}), outputs {}",
+                    j["stage"], j["pipeline"], j["outputs"]
+                ),
+                None => format!(
+                    "{name}: no complete entry ({} bytes)",
+                    e.metadata().map(|m| m.len()).unwrap_or(0)
+                ),
+            }
+        })
+        .collect()
+}
 
 /// The user configuration every Slurm call of the test uses: poll often.
 fn project(cluster_conf: &str) -> Project {
@@ -545,9 +588,14 @@ fn runs_and_sweeps_on_slurm_match_local_ones() {
     assert!(err.contains("boom: the stage failed"), "{err}");
     assert!(err.contains(".log:"), "{err}");
 
-    // --- SIGINT: the job in flight is cancelled, nothing is cached. ---
+    // --- SIGINT: the job in flight is cancelled, nothing is cached, even
+    // though its command exits 0 with an output once signalled. ---
     let p = project(user_conf);
-    p.write("slow.toml", SLOW);
+    let started = p.path("started");
+    p.write(
+        "slow.toml",
+        &SLOW.replace("STARTED", &started.display().to_string()),
+    );
     let mut args = vec!["run", "slow.toml", "--plain"];
     args.extend(slurm);
     let mut child = p
@@ -572,6 +620,13 @@ fn runs_and_sweeps_on_slurm_match_local_ones() {
         assert!(t0.elapsed() < Duration::from_secs(60), "no job started");
     }
     let job = job.expect("the slow stage's job runs");
+    while !started.exists() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the command did not start"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
     // SAFETY: signalling our own child.
     unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
     let rest: Vec<String> = lines.map_while(Result::ok).collect();
@@ -582,18 +637,29 @@ fn runs_and_sweeps_on_slurm_match_local_ones() {
             .any(|l| l.contains(&format!("cancelling jobs {job}"))),
         "{rest:?}"
     );
+    // Until its processes are gone (squeue: no longer COMPLETING).
     let t0 = Instant::now();
-    while cluster.job_state(&job) != "CANCELLED" {
+    while cluster.job_state(&job) != "CANCELLED" || cluster.queue_state(&job) != "CANCELLED" {
         assert!(
             t0.elapsed() < Duration::from_secs(20),
-            "job {job}: {}",
-            cluster.job_state(&job)
+            "job {job}: {} ({})",
+            cluster.job_state(&job),
+            cluster.queue_state(&job)
         );
         std::thread::sleep(Duration::from_millis(200));
     }
-    assert_eq!(
-        std::fs::read_dir(p.path("cache/entries")).unwrap().count(),
-        0
+    let left = describe_entries(&p.path("cache/entries"));
+    let logs: Vec<String> = std::fs::read_dir(p.path("cache/slurm"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .flat_map(|d| std::fs::read_dir(d.path()).into_iter().flatten().flatten())
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".log"))
+        .map(|e| std::fs::read_to_string(e.path()).unwrap_or_default())
+        .collect();
+    assert!(
+        left.is_empty(),
+        "cache/entries after the cancelled job: {left:#?}\njob logs: {logs:#?}\n{rest:#?}"
     );
     eprintln!("slurm: whole test {:.1}s", t_all.elapsed().as_secs_f64());
 }
