@@ -973,7 +973,7 @@ fn sorted_pngs(dir: &Path) -> Result<Vec<PathBuf>, StageError> {
 }
 
 /// Mean PSNR and SSIM of rendered held-out views against the GT held-out images.
-fn image_metrics(
+pub fn image_metrics(
     renders: &Path,
     views: &Path,
     bg: [f32; 3],
