@@ -13,7 +13,8 @@
 //! ```
 //!
 //! Prints, per points-per-strand count (default 8, the learners'), the mean PSNR and SSIM over the
-//! held-out views, beside the learner's own from `evaluate/metrics.json`.
+//! held-out views with one colour per strand and with a colour ramp from root to tip
+//! (`color_ramp`), beside the learner's own from `evaluate/metrics.json`.
 
 mod common;
 
@@ -76,7 +77,7 @@ fn run() -> Res<()> {
         );
     }
     // The learners' defaults (growth::learn::stage, LearnParams).
-    let cfg = ImageConfig {
+    let base = ImageConfig {
         views_per_iteration: 1,
         lr_color: 0.02,
         l_rgb: 1.0,
@@ -90,8 +91,13 @@ fn run() -> Res<()> {
         held_out_coverage: Coverage::Width,
         device: Renderer::Cpu,
         sh_degree: 0,
+        color_ramp: false,
     };
-    for l in counts {
+    for (l, color_ramp) in counts.into_iter().flat_map(|l| [(l, false), (l, true)]) {
+        let cfg = ImageConfig {
+            color_ramp,
+            ..base.clone()
+        };
         let mut points = Vec::with_capacity(gt.len() * l);
         for s in 0..gt.len() {
             points.extend(resample_count(gt.strand(s), l));
@@ -107,8 +113,9 @@ fn run() -> Res<()> {
         img.render_test_views(&strands, tmp.path())?;
         let (psnr, ssim, n) = image_metrics(tmp.path(), &views, [0.0; 3])?;
         println!(
-            "GT strands, {l} points each ({} strands, {:.1} % coloured): PSNR {psnr:.2} dB, SSIM {ssim:.3} over {n} held-out views",
+            "GT strands, {l} points each ({} strands, {:.1} % coloured), {}: PSNR {psnr:.2} dB, SSIM {ssim:.3} over {n} held-out views",
             gt.len(),
+            if color_ramp { "colour ramps" } else { "one colour each" },
             100.0 * coloured
         );
     }

@@ -20,9 +20,17 @@
 //! lights fixed in the world, diffuse fur looks the same from every view and
 //! a narrow specular lobe is beyond band 1 (tiger +0.1 dB held-out PSNR, fox
 //! a tie, F-scores identical; docs/history.md). A capture with broad
-//! view-dependent sheen is what it is for. Colours start
+//! view-dependent sheen is what it is for. With `color_ramp` every strand's
+//! colour also changes linearly from root to tip (`set_ramp`): fur darkens
+//! towards the root, where the coat shadows itself, and one colour per strand
+//! can only average that (rendering a synthetic scene's GT strands this way,
+//! the `appearance_ceiling` example, bounds what one colour reaches). The ramp
+//! is fitted with the colour, in closed form, by every colour fit and stays
+//! fixed while training; the exported strands carry the middle colour. Colours start
 //! from the views ([`ImageLosses::fit_colors`], `fit_colors`): every
-//! strand and body occluder takes the mean of the training pixels it makes,
+//! strand and body occluder takes the mean of the training pixels it makes
+//! (with a ramp: the weighted least-squares line through its segments' means,
+//! a small ridge keeping strands seen at one segment flat),
 //! weighted by its blending weight `alpha_i T_i` there, so the renderer itself
 //! decides what is visible (occlusion by the body and by other strands). The
 //! two sums are colour gradients of two linear losses (the masked straight
@@ -97,6 +105,9 @@ pub struct ImageConfig {
     /// Strand colours' spherical-harmonics degree: 0 (one RGB colour) or 1
     /// (plus a trainable linear view dependence per strand, zero at the start).
     pub sh_degree: u32,
+    /// Give every strand a colour ramp from root to tip, fitted with its
+    /// colour by [`ImageLosses::fit_colors`] (see `set_ramp`).
+    pub color_ramp: bool,
 }
 
 /// One training view's targets.
@@ -127,6 +138,9 @@ pub struct ImageLosses {
     /// empty at `sh_degree = 0`.
     sh1: Vec<f32>,
     sh1_adam: RowAdam,
+    /// Colour change from root to tip per strand (see `set_ramp`); empty
+    /// without `color_ramp`. Set by the colour fits, fixed while training.
+    ramp: Vec<[f32; 3]>,
     settings: RenderSettings,
     timing: ImageTiming,
 }
@@ -333,6 +347,11 @@ impl ImageLosses {
             color_adam: RowAdam::new(n, 3),
             sh1: vec![0.0; if cfg.sh_degree >= 1 { n * BAND1 } else { 0 }],
             sh1_adam: RowAdam::new(if cfg.sh_degree >= 1 { n } else { 0 }, BAND1),
+            ramp: if cfg.color_ramp {
+                vec![[0.0; 3]; n]
+            } else {
+                Vec::new()
+            },
             settings: RenderSettings {
                 sh_degree: cfg.sh_degree.min(1),
                 ..RenderSettings::default()
@@ -362,7 +381,7 @@ impl ImageLosses {
             return Ok(0.0);
         }
         let grey = vec![[0.5f32; 3]; n];
-        let (mut g, segs) = self.scene(points, l, &self.widths, &grey, None)?;
+        let (mut g, segs) = self.scene(points, l, &self.widths, &grey, None, None)?;
         for sh in &mut g.sh[segs..] {
             *sh = [Vec3::ZERO; 4];
         }
@@ -370,6 +389,9 @@ impl ImageLosses {
         let nb = self.body.len();
         // Per strand / occluder: weighted colour sum (3) and weight.
         let mut strand_acc = vec![[0.0f64; 4]; n];
+        // With a ramp, per strand the weighted least-squares sums of `c + u r`
+        // against the segments' pixels (see `RampSums`).
+        let mut ramp_acc = vec![RampSums::default(); if self.ramp.is_empty() { 0 } else { n }];
         let mut body_acc = vec![[0.0f64; 4]; nb];
         let nv = self.views.len();
         let used = match self.cfg.fit_color_views {
@@ -393,6 +415,7 @@ impl ImageLosses {
             let g = coverage.apply(&g, segs, &view.camera, self.settings.low_pass);
             let (_, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
             let mut sums = Vec::with_capacity(2);
+            let mut seg_sums: Vec<Vec<Vec3>> = Vec::with_capacity(2);
             for img in [target, weight] {
                 let dl = OutputGrads {
                     rgb: Some(img),
@@ -405,6 +428,15 @@ impl ImageLosses {
                 let sg = render::strands_backward(points, &starts, &self.widths, &head(&gg, segs))?;
                 let body: Vec<Vec3> = gg.sh[segs..].iter().map(|s| s[0] / render::SH_C0).collect();
                 sums.push((sg.colors, body));
+                if !ramp_acc.is_empty() {
+                    seg_sums.push(gg.sh[..segs].iter().map(|s| s[0] / render::SH_C0).collect());
+                }
+            }
+            if let [wt, w] = seg_sums.as_slice() {
+                for (seg, (wt, w)) in wt.iter().zip(w).enumerate() {
+                    let (s, k) = (seg / (l - 1), seg % (l - 1));
+                    ramp_acc[s].add(ramp_position(k, l), *wt, (w.x + w.y + w.z) / 3.0);
+                }
             }
             let (wsum, bw) = (&sums[1].0, &sums[1].1);
             for (i, acc) in strand_acc.iter_mut().enumerate() {
@@ -435,6 +467,11 @@ impl ImageLosses {
                 coloured += 1;
             }
         }
+        for ((c, r), a) in self.colors.iter_mut().zip(&mut self.ramp).zip(&ramp_acc) {
+            if a.weight > MIN_WEIGHT {
+                (*c, *r) = a.solve();
+            }
+        }
         for (sh, a) in self.body.sh.iter_mut().zip(&body_acc) {
             if let Some(m) = mean(a) {
                 sh[0] = render::gaussians::rgb_to_sh0(Vec3::from_array(m));
@@ -442,7 +479,7 @@ impl ImageLosses {
         }
         fure_stage_api::ensure_finite(
             "fitted strand colours",
-            self.colors.iter().flat_map(|c| *c),
+            self.colors.iter().chain(&self.ramp).flat_map(|c| *c),
         )?;
         Ok(coloured as f32 / n as f32)
     }
@@ -473,11 +510,12 @@ impl ImageLosses {
     }
 
     pub fn appearance_parameters(&self) -> usize {
-        self.colors.len() * 3 + self.sh1.len() + self.body.len() * 3
+        self.colors.len() * 3 + self.sh1.len() + self.ramp.len() * 3 + self.body.len() * 3
     }
 
     /// The strands (`l` points each) as segment Gaussians, then the body's;
-    /// `sh1` (one row per strand) sets every segment's band-1 coefficients.
+    /// `sh1` (one row per strand) sets every segment's band-1 coefficients,
+    /// `ramp` (one per strand) its colour's change from root to tip.
     fn scene(
         &self,
         points: &[Vec3],
@@ -485,6 +523,7 @@ impl ImageLosses {
         widths: &[f32],
         colors: &[[f32; 3]],
         sh1: Option<&[f32]>,
+        ramp: Option<&[[f32; 3]]>,
     ) -> Result<(Gaussians, usize), StageError> {
         let n = points.len() / l;
         let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
@@ -492,6 +531,9 @@ impl ImageLosses {
         let segs = g.len();
         if let Some(sh1) = sh1 {
             set_band1(&mut g.sh, sh1, l);
+        }
+        if let Some(ramp) = ramp {
+            set_ramp(&mut g.sh, ramp, l);
         }
         g.means.extend_from_slice(&self.body.means);
         g.scales.extend_from_slice(&self.body.scales);
@@ -511,7 +553,15 @@ impl ImageLosses {
             strands.strand(0).len()
         };
         let sh1 = (self.sh1.len() == strands.len() * BAND1).then_some(self.sh1.as_slice());
-        let (g, segs) = self.scene(&strands.points, l, &strands.width, &strands.color, sh1)?;
+        let ramp = (self.ramp.len() == strands.len()).then_some(self.ramp.as_slice());
+        let (g, segs) = self.scene(
+            &strands.points,
+            l,
+            &strands.width,
+            &strands.color,
+            sh1,
+            ramp,
+        )?;
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
         for (i, cam) in self.test_cameras.iter().enumerate() {
@@ -576,6 +626,76 @@ fn add_band1_grads(seg_grads: &[[Vec3; 4]], l: usize, scale: f32, out: &mut [f32
                 row[3 * k + b] += scale * g[1 + b][k];
             }
         }
+    }
+}
+
+/// Where segment `k` of a strand of `l` points sits along it, from -1/2
+/// (root) to 1/2 (tip): its midpoint's arc fraction minus 1/2 (the learners'
+/// points are evenly spaced along the strand).
+fn ramp_position(k: usize, l: usize) -> f32 {
+    (k as f32 + 0.5) / (l - 1) as f32 - 0.5
+}
+
+/// Adds every strand segment's colour offset `u r` ([`ramp_position`] `u`,
+/// its strand's `ramp` row `r`) to its degree-0 SH: the strand's colour is
+/// `c` at its middle and changes linearly by `r` from root to tip. Real and
+/// rendered fur darken towards the root (the coat shadows itself) and change
+/// hue along the hair; one colour per strand can only average that.
+fn set_ramp(sh: &mut [[Vec3; 4]], ramp: &[[f32; 3]], l: usize) {
+    if l < 2 {
+        return;
+    }
+    for (seg, s) in sh.iter_mut().enumerate() {
+        let u = ramp_position(seg % (l - 1), l);
+        s[0] += Vec3::from(ramp[seg / (l - 1)]) * (u / render::SH_C0);
+    }
+}
+
+/// Prior on a ramp, relative to the strand's total weight: a strand seen at
+/// one segment keeps no ramp, one seen along its whole length (where the
+/// positions' variance is about 1/12) has its fitted ramp shrunk by about 6 %.
+const RAMP_RIDGE: f64 = 0.005;
+
+/// One strand's sums for the colour fit with a ramp: the weighted least
+/// squares of `c + u r` against the segments' mean pixels, over every
+/// segment and view (weight `w`, weighted colour `wt`, position `u`).
+#[derive(Debug, Clone, Copy, Default)]
+struct RampSums {
+    weight: f64,
+    wu: f64,
+    wuu: f64,
+    wt: [f64; 3],
+    uwt: [f64; 3],
+}
+
+impl RampSums {
+    fn add(&mut self, u: f32, wt: Vec3, w: f32) {
+        let (u, w) = (u as f64, w as f64);
+        self.weight += w;
+        self.wu += w * u;
+        self.wuu += w * u * u;
+        for k in 0..3 {
+            self.wt[k] += wt[k] as f64;
+            self.uwt[k] += u * wt[k] as f64;
+        }
+    }
+
+    /// The colour at the strand's middle and its ramp, in [0, 1] from root
+    /// to tip (the ramp is cut where an end would leave it). Needs `weight > 0`.
+    fn solve(&self) -> ([f32; 3], [f32; 3]) {
+        let (a, b) = (self.weight, self.wu);
+        let c = self.wuu + RAMP_RIDGE * a;
+        let det = a * c - b * b;
+        let mut colour = [0.0f32; 3];
+        let mut ramp = [0.0f32; 3];
+        for k in 0..3 {
+            let (d, e) = (self.wt[k], self.uwt[k]);
+            let mid = ((c * d - b * e) / det).clamp(0.0, 1.0);
+            let lim = 2.0 * mid.min(1.0 - mid);
+            colour[k] = mid as f32;
+            ramp[k] = ((a * e - b * d) / det).clamp(-lim, lim) as f32;
+        }
+        (colour, ramp)
     }
 }
 
@@ -758,12 +878,17 @@ impl ImageTerm for ImageLosses {
                 .copied()
                 .collect()
         };
+        let ramp: Vec<[f32; 3]> = subset
+            .iter()
+            .filter_map(|&i| self.ramp.get(i as usize).copied())
+            .collect();
         let (g, segs) = self.scene(
             points,
             l,
             &widths,
             &colors,
             (!sh1.is_empty()).then_some(sh1.as_slice()),
+            (!ramp.is_empty()).then_some(ramp.as_slice()),
         )?;
         let nv = self.cfg.views_per_iteration.min(self.views.len()).max(1);
         let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed ^ 0x1A6E ^ (iteration as u64) << 20);
@@ -945,6 +1070,65 @@ mod tests {
                 (fd - a).abs() <= 1e-3 + 1e-2 * fd.abs(),
                 "entry {i}: finite difference {fd}, analytic {a}"
             );
+        }
+    }
+
+    #[test]
+    fn ramp_fit_recovers_a_linear_colour_along_the_strand() {
+        let l = 8;
+        let (mid, ramp) = ([0.5f32, 0.3, 0.6], [0.3f32, -0.2, 0.0]);
+        // Every segment seen, with uneven weights: the least squares recovers the line (the
+        // ridge shrinks the ramp by under 10 %).
+        let mut sums = RampSums::default();
+        for k in 0..l - 1 {
+            let u = ramp_position(k, l);
+            let w = 0.5 + (k % 3) as f32;
+            let t = Vec3::from(mid) + Vec3::from(ramp) * u;
+            sums.add(u, t * w, w);
+        }
+        let (c, r) = sums.solve();
+        for k in 0..3 {
+            assert!((c[k] - mid[k]).abs() < 0.02, "colour {c:?}");
+            assert!(
+                (r[k] - ramp[k]).abs() <= 0.1 * ramp[k].abs() + 1e-6,
+                "ramp {r:?}"
+            );
+        }
+        // One segment seen: its colour, no ramp.
+        let mut one = RampSums::default();
+        one.add(ramp_position(2, l), Vec3::new(0.2, 0.4, 0.8) * 3.0, 3.0);
+        let (c, r) = one.solve();
+        assert!(
+            (Vec3::from(c) - Vec3::new(0.2, 0.4, 0.8)).length() < 1e-5,
+            "{c:?}"
+        );
+        assert_eq!(r, [0.0; 3]);
+        // A ramp that would take an end out of [0, 1] is cut at it.
+        let mut steep = RampSums::default();
+        for k in 0..l - 1 {
+            let u = ramp_position(k, l);
+            steep.add(u, Vec3::splat(0.9 + 0.8 * u), 1.0);
+        }
+        let (c, r) = steep.solve();
+        assert!(
+            c[0] + 0.5 * r[0] <= 1.0 + 1e-6 && c[0] - 0.5 * r[0] >= -1e-6,
+            "{c:?} {r:?}"
+        );
+        // Rendered, segment k of a strand has the colour mid + u_k ramp.
+        let mut sh = vec![
+            [
+                render::gaussians::rgb_to_sh0(Vec3::from(mid)),
+                Vec3::ZERO,
+                Vec3::ZERO,
+                Vec3::ZERO
+            ];
+            l - 1
+        ];
+        set_ramp(&mut sh, &[ramp], l);
+        for (k, s) in sh.iter().enumerate() {
+            let want = Vec3::from(mid) + Vec3::from(ramp) * ramp_position(k, l);
+            let got = s[0] * render::SH_C0 + Vec3::splat(0.5);
+            assert!((got - want).length() < 1e-5, "segment {k}: {got} vs {want}");
         }
     }
 

@@ -88,6 +88,10 @@ fure_stage_api::stage_params! {
         /// Spherical-harmonics degree of the strand colours: 0 (unset) = one RGB colour per
         /// strand; 1 = plus a trainable linear view dependence, zero at the start (learn::image).
         sh_degree: Option<usize> = optional(ParamType::Int).range(0.0, 1.0),
+        /// Give every strand a colour ramp from root to tip, fitted from the views with its colour
+        /// and fixed while training (learn::image, `set_ramp`); unset = off, one colour per
+        /// strand.
+        color_ramp: Option<bool> = optional(ParamType::Bool),
         /// Weight of L_rgb (L1 + D-SSIM on the photo).
         l_rgb: f32 = float(1.0).min(0.0),
         /// Weight of L_sil (rendered vs given silhouette).
@@ -1018,6 +1022,7 @@ fn image_losses(
         },
         device: crate::render::device::Renderer::from_params(ctx.params)?,
         sh_degree: p.sh_degree.unwrap_or(0) as u32,
+        color_ramp: p.color_ramp.unwrap_or(false),
     };
     let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
     Ok(Some(ImageLosses::new(
@@ -1465,6 +1470,58 @@ mod tests {
         assert!(m.colors_fitted.is_empty());
         assert!(constant.iter().all(|c| *c == constant[0]));
         assert!((constant[0][0] - 0.9).abs() > 0.3);
+    }
+
+    #[test]
+    fn colour_ramps_add_three_parameters_per_strand_and_keep_a_uniform_coat() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, _) = write_views(d.path());
+        let run = |ramp: Option<bool>| -> (LearnMetrics, Vec<[f32; 3]>, PathBuf) {
+            let mut params = vec![
+                ("iterations", Value::Int(0)),
+                ("fit_colors", Value::Str("start".into())),
+                ("fit_color_views", Value::Int(0)),
+            ];
+            if let Some(on) = ramp {
+                params.push(("color_ramp", Value::Bool(on)));
+            }
+            let out = run_with_views(
+                &d.path().join(format!("ramp{ramp:?}")),
+                views.clone(),
+                &params,
+            );
+            let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
+            (
+                formats::json::read_json(out.join("metrics.json")).unwrap(),
+                st.color,
+                out,
+            )
+        };
+        let (m0, c0, out0) = run(None);
+        let (m1, c1, out1) = run(Some(true));
+        assert_eq!(
+            m1.appearance_parameters - m0.appearance_parameters,
+            3 * m1.strands
+        );
+        // Unset and off write the same strands.
+        let (_, _, off) = run(Some(false));
+        assert_eq!(
+            std::fs::read(out0.join("strands.hair")).unwrap(),
+            std::fs::read(off.join("strands.hair")).unwrap()
+        );
+        // The views show one orange (0.9, 0.6, 0.2) along the strands: with a ramp the strands'
+        // middle colours stay that orange.
+        let n = c1.len() as f32;
+        let mean = |c: &[[f32; 3]]| [0, 1, 2].map(|k| c.iter().map(|x| x[k]).sum::<f32>() / n);
+        for (k, want) in [0.9f32, 0.6, 0.2].iter().enumerate() {
+            assert!(
+                (mean(&c1)[k] - want).abs() < 0.12,
+                "{:?} vs {:?}",
+                mean(&c1),
+                mean(&c0)
+            );
+        }
+        assert!(out1.join("renders/test/000.png").is_file());
     }
 
     #[test]
