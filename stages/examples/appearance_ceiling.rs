@@ -115,8 +115,8 @@ fn run() -> Res<()> {
         println!(
             "GT strands, {l} points each ({} strands, {:.1} % coloured), {}: PSNR {psnr:.2} dB, SSIM {ssim:.3} over {n} held-out views",
             gt.len(),
+            100.0 * coloured,
             if color_ramp { "colour ramps" } else { "one colour each" },
-            100.0 * coloured
         );
     }
     Ok(())
