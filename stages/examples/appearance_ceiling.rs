@@ -27,6 +27,7 @@ use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
 use fure_stages::growth::learn::image::{Coverage, ImageConfig, ImageLosses};
+use fure_stages::growth::learn::stage::LearnParams;
 use fure_stages::growth::strand_basis::resample_count;
 use fure_stages::render::device::Renderer;
 
@@ -76,23 +77,8 @@ fn run() -> Res<()> {
             m["ssim"].as_f64().unwrap_or(f64::NAN)
         );
     }
-    // The learners' defaults (growth::learn::stage, LearnParams).
-    let base = ImageConfig {
-        views_per_iteration: 1,
-        lr_color: 0.02,
-        l_rgb: 1.0,
-        l_sil: 0.1,
-        l_ori: 0.1,
-        l_mask: 0.1,
-        body_gaussians: 20_000,
-        seed: 0,
-        ori_min_confidence: 0.0,
-        fit_color_views: 12,
-        held_out_coverage: Coverage::Width,
-        device: Renderer::Cpu,
-        sh_degree: 0,
-        color_ramp: false,
-    };
+    // The learners' defaults, rendering on the CPU.
+    let base = LearnParams::defaults()?.image_config(Renderer::Cpu);
     for (l, color_ramp) in counts.into_iter().flat_map(|l| [(l, false), (l, true)]) {
         let cfg = ImageConfig {
             color_ramp,
@@ -104,7 +90,7 @@ fn run() -> Res<()> {
         }
         let mut img = ImageLosses::new(&views, None, &skin, vec![width; gt.len()], &cfg)?;
         img.fit_colors(&points, l, Coverage::Opaque)?;
-        let coloured = img.fit_colors(&points, l, Coverage::Width)?;
+        let coloured = img.fit_colors(&points, l, img.held_out_coverage())?;
         let mut strands = Strands::new();
         for (s, c) in img.colors().iter().enumerate() {
             strands.push(&points[s * l..(s + 1) * l], gt.part[s], width, *c);

@@ -995,6 +995,31 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
     }
 }
 
+impl LearnParams {
+    /// The image losses' settings these parameters give, rendering on `device`.
+    pub fn image_config(&self, device: crate::render::device::Renderer) -> ImageConfig {
+        ImageConfig {
+            views_per_iteration: self.views_per_iteration,
+            lr_color: self.lr_color,
+            l_rgb: self.l_rgb,
+            l_sil: self.l_sil,
+            l_ori: self.l_ori,
+            l_mask: self.l_mask,
+            body_gaussians: self.body_gaussians,
+            seed: self.seed,
+            ori_min_confidence: self.ori_min_confidence,
+            fit_color_views: self.fit_color_views,
+            held_out_coverage: match self.held_out_coverage {
+                HeldOutCoverage::Opaque => Coverage::Opaque,
+                HeldOutCoverage::Width => Coverage::Width,
+            },
+            device,
+            sh_degree: self.sh_degree.unwrap_or(0) as u32,
+            color_ramp: self.color_ramp.unwrap_or(false),
+        }
+    }
+}
+
 /// The image losses against the training views, when views are connected.
 fn image_losses(
     ctx: &StageContext<'_>,
@@ -1005,25 +1030,7 @@ fn image_losses(
         return Ok(None);
     };
     ctx.progress.message("reading views");
-    let icfg = ImageConfig {
-        views_per_iteration: p.views_per_iteration,
-        lr_color: p.lr_color,
-        l_rgb: p.l_rgb,
-        l_sil: p.l_sil,
-        l_ori: p.l_ori,
-        l_mask: p.l_mask,
-        body_gaussians: p.body_gaussians,
-        seed: p.seed,
-        ori_min_confidence: p.ori_min_confidence,
-        fit_color_views: p.fit_color_views,
-        held_out_coverage: match p.held_out_coverage {
-            HeldOutCoverage::Opaque => Coverage::Opaque,
-            HeldOutCoverage::Width => Coverage::Width,
-        },
-        device: crate::render::device::Renderer::from_params(ctx.params)?,
-        sh_degree: p.sh_degree.unwrap_or(0) as u32,
-        color_ramp: p.color_ramp.unwrap_or(false),
-    };
+    let icfg = p.image_config(crate::render::device::Renderer::from_params(ctx.params)?);
     let widths: Vec<f32> = s.keep.iter().map(|&i| s.roots.width[i]).collect();
     Ok(Some(ImageLosses::new(
         views,
