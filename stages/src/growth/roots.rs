@@ -14,6 +14,21 @@
 //! seeded R2 low-discrepancy sequence folded onto the triangle. No
 //! rejection, no randomness beyond the `seed`.
 //!
+//! **How many roots** (`roots_per_pixel`). A density in roots per cm^2 means
+//! a different model for every capture: the same 1.5 per cm^2 is about one
+//! root per pixel footprint for a tiger filling a 256 px view (1.1 cm per
+//! pixel) and one per seven footprints for a cat in the same frame (0.33 cm).
+//! The views cannot tell strands apart below their pixel footprint, and they
+//! show every pixel of fur above it, so `roots_per_pixel = r` sets the fur
+//! parts' density (those the `density` table does not list) to `r / f^2`,
+//! `f` the pixel footprint at the subject in cm: the training cameras'
+//! median distance to the centre of the root mesh's bounding box over their
+//! focal length in pixels (`view_axes::pixel_footprint`, the footprint the
+//! view-axes radius is measured in), times `s_cm`. The model then grows with
+//! the resolution and the framing, not with the animal's size or the
+//! capture's unit. Needs the `views` input; metrics.json records the rule,
+//! `f` and the density (`density_rule`, `default_density_per_cm2`).
+//!
 //! **Attributes.** Position and normal are barycentric interpolations of
 //! `M_root`'s vertices and vertex normals. Length and width are the part's
 //! `l_p` and `W_p` in scene units from the `lengths` table. `rho` is the
@@ -132,7 +147,9 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Instant;
 
-use fure_stage_api::{ensure_finite, ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use fure_stage_api::{
+    ensure_finite, ParamSpec, ParamType, Params, PortSpec, Stage, StageContext, StageError,
+};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -1042,6 +1059,9 @@ fure_stage_api::stage_params! {
         density: BTreeMap<String, f32> = table(),
         /// roots per cm^2 of fur parts not in `density`
         default_density: f32 = float(4.0).min(0.0),
+        /// roots per pixel footprint squared for fur parts not in `density`, instead of
+        /// default_density: the density follows what the `views` input resolves (module doc)
+        roots_per_pixel: Option<f64> = optional(ParamType::Float).positive(),
         /// cap on the number of roots (all densities scaled down together)
         max_roots: usize = int(100_000).range(1.0, 1e8),
         /// sampling seed
@@ -1082,16 +1102,17 @@ struct PartValues {
 
 /// The [`PartValues`] of `mesh`'s parts from the length table (every part
 /// needs an entry) and the `density` parameters.
+/// `default_density` is the density of fur parts the `density` table does not list.
 fn part_values(
     mesh: &Mesh,
     table: &LengthTable,
     lengths_path: &std::path::Path,
     p: &RootsParams,
+    default_density: f32,
 ) -> Result<PartValues, StageError> {
     let names = p.protected_parts.clone();
     let prot = protected_parts(&mesh.part_names, &names);
     let densities = &p.density;
-    let default_density = p.default_density;
     let mut density = Vec::new();
     let mut length = Vec::new();
     let mut width = Vec::new();
@@ -1119,6 +1140,60 @@ fn part_values(
         density,
         length,
         width,
+    })
+}
+
+/// The density of fur parts the `density` table does not list, and how it was chosen.
+struct DefaultDensity {
+    per_cm2: f32,
+    footprint: Option<FootprintDensity>,
+}
+
+/// `roots_per_pixel`'s rule, for metrics.json.
+#[derive(Debug, Clone, Serialize)]
+struct FootprintDensity {
+    roots_per_pixel: f64,
+    pixel_footprint_cm: f64,
+    rule: &'static str,
+}
+
+/// `default_density`, or with `roots_per_pixel` that many roots per square pixel footprint at the
+/// subject (the views' median camera distance to the centre of `mesh` over their focal length,
+/// [`crate::growth::view_axes::pixel_footprint`], in cm with `s_cm`).
+fn default_density(
+    ctx: &StageContext<'_>,
+    p: &RootsParams,
+    mesh: &Mesh,
+    s_cm: f32,
+) -> Result<DefaultDensity, StageError> {
+    let Some(per_pixel) = p.roots_per_pixel else {
+        return Ok(DefaultDensity {
+            per_cm2: p.default_density,
+            footprint: None,
+        });
+    };
+    let Some(views) = ctx.input_opt("views") else {
+        return Err(StageError::param(
+            "roots_per_pixel",
+            "needs the `views` input (the training cameras give the pixel footprint)",
+        ));
+    };
+    let cams = crate::formats::cameras::read_views(views)?;
+    let foot = crate::growth::view_axes::pixel_footprint(&cams.train, mesh) as f64 * s_cm as f64;
+    if !(foot.is_finite() && foot > 0.0) {
+        return Err(StageError::input(
+            "views",
+            views,
+            "the training cameras give no pixel footprint at the root mesh (no cameras, or zero focal lengths)",
+        ));
+    }
+    Ok(DefaultDensity {
+        per_cm2: (per_pixel / (foot * foot)) as f32,
+        footprint: Some(FootprintDensity {
+            roots_per_pixel: per_pixel,
+            pixel_footprint_cm: foot,
+            rule: "roots_per_pixel / pixel_footprint_cm^2",
+        }),
     })
 }
 
@@ -1178,6 +1253,7 @@ impl Stage for RootsStage {
                 "per-part lengths and widths (stage `lengths`)",
             ),
             PortSpec::file("shell", "json", "Frosting shell widths, for rho"),
+            PortSpec::dir("views", "views dir (training cameras), for roots_per_pixel").optional(),
         ]
     }
     fn outputs(&self, _: &Params) -> Vec<PortSpec> {
@@ -1212,7 +1288,14 @@ impl Stage for RootsStage {
                 "need one width per shell position (and at least one)",
             ));
         }
-        let per_part = part_values(&mesh, &table, lengths_path, &p)?;
+        let density = default_density(ctx, &p, &mesh, table.s_cm)?;
+        if let Some(d) = &density.footprint {
+            ctx.progress.note(&format!(
+                "{:.3} cm per pixel at the subject: {:.3} roots per cm^2",
+                d.pixel_footprint_cm, density.per_cm2
+            ));
+        }
+        let per_part = part_values(&mesh, &table, lengths_path, &p, density.per_cm2)?;
         let unknown: Vec<&String> = p
             .density
             .keys()
@@ -1272,6 +1355,13 @@ impl Stage for RootsStage {
         if let Some(o) = m.as_object_mut() {
             o.insert("seconds".into(), t0.elapsed().as_secs_f64().into());
             o.insert("rho_normaliser".into(), norm.into());
+            o.insert("default_density_per_cm2".into(), density.per_cm2.into());
+            if let Some(d) = &density.footprint {
+                o.insert(
+                    "density_rule".into(),
+                    serde_json::to_value(d).map_err(StageError::failed)?,
+                );
+            }
         }
         write_json(ctx.output("metrics")?, &m)?;
         Ok(())
@@ -1537,6 +1627,162 @@ mod tests {
             alignment(&smooth) < a - 0.05,
             "smooth {} vs aligned {a}",
             alignment(&smooth)
+        );
+    }
+
+    /// Runs the stage on a sphere of radius 10 cm in scene units of `1 / unit` cm, seen by six
+    /// 64 px cameras (fx 100) at `distance` cm from its centre; `views` connects the cameras.
+    fn roots_stage_metrics(
+        dir: &std::path::Path,
+        unit: f32,
+        distance: f32,
+        params: &[(&str, fure_stage_api::Value)],
+        views: bool,
+    ) -> Result<serde_json::Value, StageError> {
+        use crate::data::camera::{Camera, CameraSet};
+        use crate::thickness::lengths::PartLength;
+        std::fs::create_dir_all(dir).unwrap();
+        let mesh = icosphere(10.0 * unit, 3, 0.8);
+        crate::formats::obj::write_obj(dir.join("root.obj"), &mesh).unwrap();
+        let parts = mesh
+            .part_names
+            .iter()
+            .map(|name| {
+                let fur = name != "eyes";
+                let entry = PartLength {
+                    fur,
+                    vertices: 0,
+                    width_p75: 0.1 * unit,
+                    t_cm: 0.1,
+                    multiplier: 2.5,
+                    shape_cm: 1.0,
+                    reference_cm: None,
+                    length_cm: 1.0,
+                    length: unit,
+                    width_cm: 0.03,
+                    width: 0.03 * unit,
+                };
+                (name.clone(), entry)
+            })
+            .collect();
+        let table = LengthTable {
+            s_cm: 1.0 / unit,
+            s_cm_source: "test".into(),
+            variant: "v1".into(),
+            parts,
+        };
+        write_json(dir.join("lengths.json"), &table).unwrap();
+        let shell = ShellWidths {
+            positions: mesh.positions.clone(),
+            normals: mesh.positions.iter().map(|p| p.normalize()).collect(),
+            widths: vec![0.1 * unit; mesh.positions.len()],
+        };
+        write_json(dir.join("shell.json"), &shell).unwrap();
+        let cameras = [Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z]
+            .iter()
+            .map(|d| Camera {
+                file_path: "v.png".into(),
+                c2w: glam::Mat4::look_at_rh(
+                    *d * distance * unit,
+                    Vec3::ZERO,
+                    d.any_orthonormal_vector(),
+                )
+                .inverse(),
+                fx: 100.0,
+                fy: 100.0,
+                cx: 32.0,
+                cy: 32.0,
+                width: 64,
+                height: 64,
+            })
+            .collect();
+        crate::formats::cameras::write_views(
+            dir.join("views"),
+            &CameraSet {
+                train: cameras,
+                test: Vec::new(),
+            },
+        )
+        .unwrap();
+        let mut inputs = vec![
+            ("root_mesh", dir.join("root.obj")),
+            ("lengths", dir.join("lengths.json")),
+            ("shell", dir.join("shell.json")),
+        ];
+        if views {
+            inputs.push(("views", dir.join("views")));
+        }
+        let mut p = Params::default();
+        for spec in RootsStage.params() {
+            if let Some(d) = spec.default.clone() {
+                p.0.insert(spec.name.to_string(), d);
+            }
+        }
+        for (k, v) in params {
+            p.0.insert(k.to_string(), v.clone());
+        }
+        let out = dir.join("out");
+        std::fs::create_dir_all(&out).unwrap();
+        let outputs: BTreeMap<String, std::path::PathBuf> = RootsStage
+            .outputs(&p)
+            .iter()
+            .map(|port| (port.name.clone(), out.join(port.file_name())))
+            .collect();
+        let ctx = StageContext {
+            name: "roots",
+            params: &p,
+            inputs: inputs
+                .into_iter()
+                .map(|(k, v)| (k.to_string(), v))
+                .collect(),
+            outputs: outputs.clone(),
+            progress: &fure_stage_api::NoProgress,
+        };
+        RootsStage.run(&ctx)?;
+        Ok(read_json(&outputs["metrics"]).unwrap())
+    }
+
+    #[test]
+    fn roots_per_pixel_follows_the_views_footprint_in_any_unit() {
+        use fure_stage_api::Value;
+        let d = tempfile::tempdir().unwrap();
+        let per_pixel = [("roots_per_pixel", Value::Float(1.0))];
+        let total = |m: &serde_json::Value| m["total"].as_u64().unwrap() as f64;
+        // 100 cm away at fx 100: one cm per pixel, one root per cm^2 of fur.
+        let near =
+            roots_stage_metrics(&d.path().join("near"), 1.0, 100.0, &per_pixel, true).unwrap();
+        let foot = near["density_rule"]["pixel_footprint_cm"].as_f64().unwrap();
+        assert!((foot - 1.0).abs() < 1e-3, "footprint {foot} cm");
+        assert!((near["default_density_per_cm2"].as_f64().unwrap() - 1.0).abs() < 1e-3);
+        // Twice as far: each pixel covers four times the area, a quarter of the roots.
+        let far = roots_stage_metrics(&d.path().join("far"), 1.0, 200.0, &per_pixel, true).unwrap();
+        let ratio = total(&near) / total(&far);
+        assert!(
+            (ratio - 4.0).abs() < 0.1,
+            "{} / {} roots",
+            total(&near),
+            total(&far)
+        );
+        // The same capture in metres (s_cm = 100): the same roots.
+        let metres =
+            roots_stage_metrics(&d.path().join("m"), 0.01, 100.0, &per_pixel, true).unwrap();
+        assert!(
+            (total(&metres) - total(&near)).abs() <= 1.0,
+            "{} vs {}",
+            total(&metres),
+            total(&near)
+        );
+        // Without it the density is default_density whatever the views.
+        let fixed = roots_stage_metrics(&d.path().join("fixed"), 1.0, 200.0, &[], true).unwrap();
+        assert!(fixed.get("density_rule").is_none());
+        assert!((total(&fixed) / total(&near) - 4.0).abs() < 0.1);
+        // The rule needs the cameras.
+        let err = roots_stage_metrics(&d.path().join("none"), 1.0, 100.0, &per_pixel, false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("roots_per_pixel") && err.contains("views"),
+            "{err}"
         );
     }
 }
