@@ -45,7 +45,7 @@ gaussians = 1500
 iterations = 40
 
 [stages.roots]
-default_density = 0.1
+roots_per_pixel = 1.0
 
 [stages.codec]
 iterations = 10
@@ -325,7 +325,7 @@ pub(crate) const TINY_CAPTURE: [&str; 8] = [
     "--set",
     "frosting.iterations=40",
     "--set",
-    "roots.default_density=0.1",
+    "roots.roots_per_pixel=1.0",
     "--set",
     "codec.iterations=10",
 ];

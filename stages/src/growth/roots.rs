@@ -27,7 +27,7 @@
 //! view-axes radius is measured in), times `s_cm`. The model then grows with
 //! the resolution and the framing, not with the animal's size or the
 //! capture's unit. Needs the `views` input; metrics.json records the rule,
-//! `f` and the density (`density_rule`, `default_density_per_cm2`).
+//! `f` and the density (`density_rule`).
 //!
 //! **Attributes.** Position and normal are barycentric interpolations of
 //! `M_root`'s vertices and vertex normals. Length and width are the part's
@@ -1154,6 +1154,8 @@ struct DefaultDensity {
 struct FootprintDensity {
     roots_per_pixel: f64,
     pixel_footprint_cm: f64,
+    /// The resulting density of the fur parts `density` does not list.
+    density_per_cm2: f64,
     rule: &'static str,
 }
 
@@ -1187,11 +1189,13 @@ fn default_density(
             "the training cameras give no pixel footprint at the root mesh (no cameras, or zero focal lengths)",
         ));
     }
+    let per_cm2 = per_pixel / (foot * foot);
     Ok(DefaultDensity {
-        per_cm2: (per_pixel / (foot * foot)) as f32,
+        per_cm2: per_cm2 as f32,
         footprint: Some(FootprintDensity {
             roots_per_pixel: per_pixel,
             pixel_footprint_cm: foot,
+            density_per_cm2: per_cm2,
             rule: "roots_per_pixel / pixel_footprint_cm^2",
         }),
     })
@@ -1355,7 +1359,6 @@ impl Stage for RootsStage {
         if let Some(o) = m.as_object_mut() {
             o.insert("seconds".into(), t0.elapsed().as_secs_f64().into());
             o.insert("rho_normaliser".into(), norm.into());
-            o.insert("default_density_per_cm2".into(), density.per_cm2.into());
             if let Some(d) = &density.footprint {
                 o.insert(
                     "density_rule".into(),
@@ -1753,7 +1756,7 @@ mod tests {
             roots_stage_metrics(&d.path().join("near"), 1.0, 100.0, &per_pixel, true).unwrap();
         let foot = near["density_rule"]["pixel_footprint_cm"].as_f64().unwrap();
         assert!((foot - 1.0).abs() < 1e-3, "footprint {foot} cm");
-        assert!((near["default_density_per_cm2"].as_f64().unwrap() - 1.0).abs() < 1e-3);
+        assert!((near["density_rule"]["density_per_cm2"].as_f64().unwrap() - 1.0).abs() < 1e-3);
         // Twice as far: each pixel covers four times the area, a quarter of the roots.
         let far = roots_stage_metrics(&d.path().join("far"), 1.0, 200.0, &per_pixel, true).unwrap();
         let ratio = total(&near) / total(&far);
