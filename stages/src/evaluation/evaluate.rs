@@ -1632,11 +1632,24 @@ pub(crate) mod tests {
         inputs: &[(&str, PathBuf)],
         out: &Path,
     ) -> Result<BTreeMap<String, PathBuf>, StageError> {
+        run_stage_with(st, &[], inputs, out)
+    }
+
+    /// [`run_stage`] with the parameters `set` over the defaults.
+    pub(crate) fn run_stage_with(
+        st: &dyn Stage,
+        set: &[(&str, fure_stage_api::Value)],
+        inputs: &[(&str, PathBuf)],
+        out: &Path,
+    ) -> Result<BTreeMap<String, PathBuf>, StageError> {
         let mut params = Params::default();
         for spec in st.params() {
             if let Some(d) = spec.default.clone() {
                 params.0.insert(spec.name.to_string(), d);
             }
+        }
+        for (k, v) in set {
+            params.0.insert(k.to_string(), v.clone());
         }
         std::fs::create_dir_all(out).unwrap();
         let outputs: BTreeMap<String, PathBuf> = st

@@ -1634,7 +1634,7 @@ mod tests {
     }
 
     /// Runs the stage on a sphere of radius 10 cm in scene units of `1 / unit` cm, seen by six
-    /// 64 px cameras (fx 100) at `distance` cm from its centre; `views` connects the cameras.
+    /// 100 px cameras (fx 120) at `distance` cm from its centre; `views` connects the cameras.
     fn roots_stage_metrics(
         dir: &std::path::Path,
         unit: f32,
@@ -1681,24 +1681,21 @@ mod tests {
             widths: vec![0.1 * unit; mesh.positions.len()],
         };
         write_json(dir.join("shell.json"), &shell).unwrap();
-        let cameras = [Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z]
-            .iter()
-            .map(|d| Camera {
-                file_path: "v.png".into(),
-                c2w: glam::Mat4::look_at_rh(
-                    *d * distance * unit,
-                    Vec3::ZERO,
-                    d.any_orthonormal_vector(),
-                )
-                .inverse(),
-                fx: 100.0,
-                fy: 100.0,
-                cx: 32.0,
-                cy: 32.0,
-                width: 64,
-                height: 64,
-            })
-            .collect();
+        // 100 px views: fx = 120, one cm per pixel at 120 cm.
+        let cameras = [
+            Vec3::X,
+            -Vec3::X,
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::ONE.normalize(),
+            Vec3::new(-1.0, 1.0, -1.0).normalize(),
+        ]
+        .iter()
+        .map(|d| Camera {
+            file_path: "v.png".into(),
+            ..crate::render::tests::test_camera(100, *d * distance * unit, Vec3::ZERO)
+        })
+        .collect();
         crate::formats::cameras::write_views(
             dir.join("views"),
             &CameraSet {
@@ -1715,33 +1712,12 @@ mod tests {
         if views {
             inputs.push(("views", dir.join("views")));
         }
-        let mut p = Params::default();
-        for spec in RootsStage.params() {
-            if let Some(d) = spec.default.clone() {
-                p.0.insert(spec.name.to_string(), d);
-            }
-        }
-        for (k, v) in params {
-            p.0.insert(k.to_string(), v.clone());
-        }
-        let out = dir.join("out");
-        std::fs::create_dir_all(&out).unwrap();
-        let outputs: BTreeMap<String, std::path::PathBuf> = RootsStage
-            .outputs(&p)
-            .iter()
-            .map(|port| (port.name.clone(), out.join(port.file_name())))
-            .collect();
-        let ctx = StageContext {
-            name: "roots",
-            params: &p,
-            inputs: inputs
-                .into_iter()
-                .map(|(k, v)| (k.to_string(), v))
-                .collect(),
-            outputs: outputs.clone(),
-            progress: &fure_stage_api::NoProgress,
-        };
-        RootsStage.run(&ctx)?;
+        let outputs = crate::evaluation::evaluate::tests::run_stage_with(
+            &RootsStage,
+            params,
+            &inputs,
+            &dir.join("out"),
+        )?;
         Ok(read_json(&outputs["metrics"]).unwrap())
     }
 
@@ -1751,14 +1727,14 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let per_pixel = [("roots_per_pixel", Value::Float(1.0))];
         let total = |m: &serde_json::Value| m["total"].as_u64().unwrap() as f64;
-        // 100 cm away at fx 100: one cm per pixel, one root per cm^2 of fur.
+        // 120 cm away at fx 120: one cm per pixel, one root per cm^2 of fur.
         let near =
-            roots_stage_metrics(&d.path().join("near"), 1.0, 100.0, &per_pixel, true).unwrap();
+            roots_stage_metrics(&d.path().join("near"), 1.0, 120.0, &per_pixel, true).unwrap();
         let foot = near["density_rule"]["pixel_footprint_cm"].as_f64().unwrap();
         assert!((foot - 1.0).abs() < 1e-3, "footprint {foot} cm");
         assert!((near["density_rule"]["density_per_cm2"].as_f64().unwrap() - 1.0).abs() < 1e-3);
         // Twice as far: each pixel covers four times the area, a quarter of the roots.
-        let far = roots_stage_metrics(&d.path().join("far"), 1.0, 200.0, &per_pixel, true).unwrap();
+        let far = roots_stage_metrics(&d.path().join("far"), 1.0, 240.0, &per_pixel, true).unwrap();
         let ratio = total(&near) / total(&far);
         assert!(
             (ratio - 4.0).abs() < 0.1,
@@ -1768,7 +1744,7 @@ mod tests {
         );
         // The same capture in metres (s_cm = 100): the same roots.
         let metres =
-            roots_stage_metrics(&d.path().join("m"), 0.01, 100.0, &per_pixel, true).unwrap();
+            roots_stage_metrics(&d.path().join("m"), 0.01, 120.0, &per_pixel, true).unwrap();
         assert!(
             (total(&metres) - total(&near)).abs() <= 1.0,
             "{} vs {}",
@@ -1776,11 +1752,11 @@ mod tests {
             total(&near)
         );
         // Without it the density is default_density whatever the views.
-        let fixed = roots_stage_metrics(&d.path().join("fixed"), 1.0, 200.0, &[], true).unwrap();
+        let fixed = roots_stage_metrics(&d.path().join("fixed"), 1.0, 240.0, &[], true).unwrap();
         assert!(fixed.get("density_rule").is_none());
         assert!((total(&fixed) / total(&near) - 4.0).abs() < 0.1);
         // The rule needs the cameras.
-        let err = roots_stage_metrics(&d.path().join("none"), 1.0, 100.0, &per_pixel, false)
+        let err = roots_stage_metrics(&d.path().join("none"), 1.0, 120.0, &per_pixel, false)
             .unwrap_err()
             .to_string();
         assert!(

@@ -301,4 +301,4 @@ pub fn orientation_from_feature(ox: f32, oy: f32) -> f32 {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
