@@ -26,10 +26,7 @@
 //! can only average that (rendering a synthetic scene's GT strands this way,
 //! the `appearance_ceiling` example, bounds what one colour reaches). The ramp
 //! is fitted with the colour, in closed form, by every colour fit and stays
-//! fixed while training; the exported strands carry the middle colour. With
-//! `color_pool_px` every colour fit pools each strand's sums with those of the
-//! strands rooted within that many pixel footprints ([`pool_sums`]): the views
-//! do not resolve colour between strands that share a footprint. Colours start
+//! fixed while training; the exported strands carry the middle colour. Colours start
 //! from the views ([`ImageLosses::fit_colors`], `fit_colors`): every
 //! strand and body occluder takes the mean of the training pixels it makes
 //! (with a ramp: the weighted least-squares line through its segments' means,
@@ -83,7 +80,6 @@ use crate::data::image::ImageF32;
 use crate::data::mesh::Mesh;
 use crate::data::strands::Strands;
 use crate::formats;
-use crate::maths::geom::PointIndex;
 use crate::render::device::{ImageLoss, ResidentTarget, ViewTargets};
 use crate::render::{self, GaussianGrads, Gaussians, OutputGrads, RenderSettings};
 
@@ -112,9 +108,6 @@ pub struct ImageConfig {
     /// Give every strand a colour ramp from root to tip, fitted with its
     /// colour by [`ImageLosses::fit_colors`] (see `set_ramp`).
     pub color_ramp: bool,
-    /// Radius, in pixel footprints, over which the colour fits pool their
-    /// strands' sums (0 = each strand alone; see [`pool_sums`]).
-    pub color_pool_px: f32,
 }
 
 /// One training view's targets.
@@ -148,9 +141,6 @@ pub struct ImageLosses {
     /// Colour change from root to tip per strand (see `set_ramp`); empty
     /// without `color_ramp`. Set by the colour fits, fixed while training.
     ramp: Vec<[f32; 3]>,
-    /// Root distance (scene units) within which the colour fits pool their
-    /// strands' sums; 0 = off.
-    pool_radius: f32,
     settings: RenderSettings,
     timing: ImageTiming,
 }
@@ -340,11 +330,6 @@ impl ImageLosses {
         let mut body_adam = render::Adam::default();
         let body_group = body_adam.add_group("body_colour", cfg.lr_color, body.len() * 3);
         let n = widths.len();
-        let pool_radius = if cfg.color_pool_px > 0.0 {
-            cfg.color_pool_px * crate::growth::view_axes::pixel_footprint(&cams.train, body_mesh)
-        } else {
-            0.0
-        };
         let resident = views
             .iter()
             .map(|v| cfg.device.resident_target(&v.targets()))
@@ -367,7 +352,6 @@ impl ImageLosses {
             } else {
                 Vec::new()
             },
-            pool_radius,
             settings: RenderSettings {
                 sh_degree: cfg.sh_degree.min(1),
                 ..RenderSettings::default()
@@ -468,16 +452,6 @@ impl ImageLosses {
                     acc[k] += c[k] as f64;
                 }
                 acc[3] += ((bw[b].x + bw[b].y + bw[b].z) / 3.0) as f64;
-            }
-        }
-        if self.pool_radius > 0.0 {
-            let roots: Vec<Vec3> = points.chunks_exact(l).map(|s| s[0]).collect();
-            let index = PointIndex::new(&roots).map_err(StageError::failed)?;
-            let add4 =
-                |a: &mut [f64; 4], b: &[f64; 4]| a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-            strand_acc = pool_sums(&index, &roots, self.pool_radius, &strand_acc, add4);
-            if !ramp_acc.is_empty() {
-                ramp_acc = pool_sums(&index, &roots, self.pool_radius, &ramp_acc, RampSums::merge);
             }
         }
         // Below this many pixels of blending weight over all views a
@@ -695,16 +669,6 @@ struct RampSums {
 }
 
 impl RampSums {
-    fn merge(&mut self, o: &RampSums) {
-        self.weight += o.weight;
-        self.wu += o.wu;
-        self.wuu += o.wuu;
-        for k in 0..3 {
-            self.wt[k] += o.wt[k];
-            self.uwt[k] += o.uwt[k];
-        }
-    }
-
     fn add(&mut self, u: f32, wt: Vec3, w: f32) {
         let (u, w) = (u as f64, w as f64);
         self.weight += w;
@@ -733,39 +697,6 @@ impl RampSums {
         }
         (colour, ramp)
     }
-}
-
-/// Every strand's colour-fit sums replaced by the sum over the strands whose
-/// roots lie within `radius` of its root (itself included), in index order.
-/// Why: the views cannot tell apart strands closer than a pixel footprint, so
-/// a colour fitted from one strand's own few pixels is mostly noise when many
-/// strands share a footprint (held-out PSNR falls as the strand count grows;
-/// docs/history.md "Roots per pixel"); pooled, each strand takes its
-/// neighbourhood's weighted mean pixel, what the views do resolve.
-fn pool_sums<T: Clone + Default + Send + Sync>(
-    index: &PointIndex,
-    roots: &[Vec3],
-    radius: f32,
-    sums: &[T],
-    merge: impl Fn(&mut T, &T) + Sync,
-) -> Vec<T> {
-    use rayon::prelude::*;
-    roots
-        .par_iter()
-        .map(|&p| {
-            let mut near: Vec<usize> = index
-                .within(p, radius)
-                .into_iter()
-                .map(|(j, _)| j)
-                .collect();
-            near.sort_unstable();
-            let mut acc = T::default();
-            for j in near {
-                merge(&mut acc, &sums[j]);
-            }
-            acc
-        })
-        .collect()
 }
 
 /// How held-out renders cover pixels with strands (see [`width_coverage`]).
@@ -1199,36 +1130,6 @@ mod tests {
             let got = s[0] * render::SH_C0 + Vec3::splat(0.5);
             assert!((got - want).length() < 1e-5, "segment {k}: {got} vs {want}");
         }
-    }
-
-    #[test]
-    fn pooled_colour_sums_add_each_strands_neighbourhood() {
-        let roots = [
-            Vec3::ZERO,
-            Vec3::new(0.1, 0.0, 0.0),
-            Vec3::new(0.2, 0.0, 0.0),
-            Vec3::new(5.0, 0.0, 0.0),
-        ];
-        let sums = [
-            [1.0, 0.0, 0.0, 1.0],
-            [0.0, 2.0, 0.0, 1.0],
-            [0.0, 0.0, 3.0, 1.0],
-            [4.0, 4.0, 4.0, 2.0],
-        ];
-        let index = PointIndex::new(&roots).unwrap();
-        let add = |a: &mut [f64; 4], b: &[f64; 4]| a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-        let pooled = pool_sums(&index, &roots, 0.15, &sums, add);
-        assert_eq!(
-            pooled,
-            vec![
-                [1.0, 2.0, 0.0, 2.0],
-                [1.0, 2.0, 3.0, 3.0],
-                [0.0, 2.0, 3.0, 2.0],
-                [4.0, 4.0, 4.0, 2.0],
-            ]
-        );
-        // A radius below the spacing leaves every strand alone.
-        assert_eq!(pool_sums(&index, &roots, 0.05, &sums, add), sums.to_vec());
     }
 
     #[test]

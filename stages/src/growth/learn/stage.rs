@@ -92,9 +92,6 @@ fure_stage_api::stage_params! {
         /// and fixed while training (learn::image, `set_ramp`); unset = off, one colour per
         /// strand.
         color_ramp: Option<bool> = optional(ParamType::Bool),
-        /// Pool every colour fit's sums over the strands whose roots lie within this many pixel
-        /// footprints (learn::image, `pool_sums`); unset = each strand alone.
-        color_pool_px: Option<f64> = optional(ParamType::Float).positive(),
         /// Weight of L_rgb (L1 + D-SSIM on the photo).
         l_rgb: f32 = float(1.0).min(0.0),
         /// Weight of L_sil (rendered vs given silhouette).
@@ -1019,7 +1016,6 @@ impl LearnParams {
             device,
             sh_degree: self.sh_degree.unwrap_or(0) as u32,
             color_ramp: self.color_ramp.unwrap_or(false),
-            color_pool_px: self.color_pool_px.unwrap_or(0.0) as f32,
         }
     }
 }
