@@ -105,7 +105,7 @@ fn a_perm_npz_runs_through_codec_training_to_evaluation() {
     }
     let out = p.path("out/tiny");
 
-    // The basis came from PERM: all 6 blend shapes, tiger.toml's 8 points, unit length.
+    // The basis came from PERM: all 6 blend shapes, the automatic 8 points, unit length.
     let m = read_json(&out.join("basis/metrics.json"));
     assert_eq!(m["source"], "perm", "{m}");
     assert_eq!(m["k"], 6, "{m}");
