@@ -15,9 +15,9 @@
 //! rejection, no randomness beyond the `seed`.
 //!
 //! **How many roots** (`roots_per_pixel`). A density in roots per cm^2 means
-//! a different model for every capture: the same 1.5 per cm^2 is about one
-//! root per pixel footprint for a tiger filling a 256 px view (1.1 cm per
-//! pixel) and one per seven footprints for a cat in the same frame (0.33 cm).
+//! a different model for every capture: the same 1.5 per cm^2 is about two
+//! roots per pixel footprint for a tiger filling a 256 px view (1.1 cm per
+//! pixel) and one per six footprints for a cat in the same frame (0.33 cm).
 //! The views cannot tell strands apart below their pixel footprint, and they
 //! show every pixel of fur above it, so `roots_per_pixel = r` sets the fur
 //! parts' density (those the `density` table does not list) to `r / f^2`,
@@ -27,7 +27,8 @@
 //! view-axes radius is measured in), times `s_cm`. The model then grows with
 //! the resolution and the framing, not with the animal's size or the
 //! capture's unit. Needs the `views` input; metrics.json records the rule,
-//! `f` and the density (`density_rule`).
+//! `f` and the density (`density_rule`). `default_density` is then not used
+//! (the stage says so, so an override of it is not silently lost).
 //!
 //! **Attributes.** Position and normal are barycentric interpolations of
 //! `M_root`'s vertices and vertex normals. Length and width are the part's
@@ -1295,8 +1296,9 @@ impl Stage for RootsStage {
         let density = default_density(ctx, &p, &mesh, table.s_cm)?;
         if let Some(d) = &density.footprint {
             ctx.progress.note(&format!(
-                "{:.3} cm per pixel at the subject: {:.3} roots per cm^2",
-                d.pixel_footprint_cm, density.per_cm2
+                "{:.3} cm per pixel at the subject: {:.3} roots per cm^2 \
+                 (roots_per_pixel {}; default_density {} not used)",
+                d.pixel_footprint_cm, density.per_cm2, d.roots_per_pixel, p.default_density
             ));
         }
         let per_part = part_values(&mesh, &table, lengths_path, &p, density.per_cm2)?;
