@@ -751,11 +751,14 @@ const PALETTE: [RGBColor; 6] = [
 ];
 
 /// A scatter chart, one colour per series, x on a log axis; a series' points are its seeds.
+/// With `chosen`, the first series' points are ringed and the text is written under the
+/// title: the size the first method chose for itself.
 fn draw_scatter<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
     x_desc: &str,
     series: &[(String, Vec<(f64, f64)>)],
+    chosen: Option<&str>,
 ) -> Result<(), String> {
     root.fill(&WHITE).map_err(chart_err)?;
     let pts: Vec<(f64, f64)> = series.iter().flat_map(|(_, p)| p.iter().copied()).collect();
@@ -788,6 +791,18 @@ fn draw_scatter<DB: DrawingBackend>(
             .label(name.clone())
             .legend(move |(x, y)| Circle::new((x + 10, y), 5, c.filled()));
     }
+    if let (Some(text), Some((_, first))) = (chosen, series.first()) {
+        let ring = PALETTE[0].stroke_width(2);
+        chart
+            .draw_series(first.iter().map(|&q| Circle::new(q, 11, ring)))
+            .map_err(chart_err)?;
+        root.draw(&Text::new(
+            text.to_string(),
+            (76, 40),
+            ("sans-serif", 14).into_font().color(&PALETTE[0]),
+        ))
+        .map_err(chart_err)?;
+    }
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.85))
@@ -797,6 +812,32 @@ fn draw_scatter<DB: DrawingBackend>(
         .draw()
         .map_err(chart_err)?;
     root.present().map_err(chart_err)
+}
+
+/// The size a learner chose from the views, over a scene's runs: strand count (mean over
+/// seeds), points per strand and, where the record has the `basis` stage's rank, the basis
+/// rank (`roots_per_pixel`, `strand_basis`'s automatic points and rank). None without the
+/// learner's strand count.
+fn chosen_size(runs: &[&VariantRecord], learner: &str, method: &str) -> Option<String> {
+    let mean = |key: String| -> Option<f64> {
+        let v: Vec<f64> = runs
+            .iter()
+            .filter_map(|r| r.metrics.get(&key).copied())
+            .collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let strands = mean(format!("{learner}.strands"))?;
+    let mut text = format!(
+        "ringed: {method} as chosen from the views, {} strands",
+        fmt_num(strands.round())
+    );
+    if let Some(l) = mean(format!("{learner}.points_per_strand")) {
+        let _ = write!(text, " x {l:.0} points");
+    }
+    if let Some(k) = mean("basis.k".to_string()) {
+        let _ = write!(text, ", basis rank {k:.0}");
+    }
+    Some(text)
 }
 
 /// Per scene: F (3 cm, signed) against training seconds and against optimised parameters.
@@ -826,18 +867,24 @@ fn write_charts(rec: &SweepRecord, cfg: &Config, dir: &Path) -> Result<(), Stage
                     .collect::<Vec<_>>(),
             ));
         }
-        for (stem, title, xdesc, series) in [
+        let chosen = cfg
+            .methods
+            .first()
+            .and_then(|m| chosen_size(&sc.runs, m.learner.as_deref()?, &m.name));
+        for (stem, title, xdesc, series, chosen) in [
             (
                 "f_vs_time",
                 format!("{}: F vs strand-training time", sc.name),
                 "learning stage compute time (s, log)",
                 &time,
+                None,
             ),
             (
                 "f_vs_size",
                 format!("{}: F vs model size", sc.name),
                 "optimised parameters (log)",
                 &size,
+                chosen.as_deref(),
             ),
         ] {
             if series.iter().all(|(_, p)| p.is_empty()) {
@@ -846,10 +893,10 @@ fn write_charts(rec: &SweepRecord, cfg: &Config, dir: &Path) -> Result<(), Stage
             let name = format!("{stem}_{}", safe(&sc.name));
             let size = (820, 600);
             write_png_chart(&dir.join(format!("{name}.png")), size, |r| {
-                draw_scatter(r, &title, xdesc, series)
+                draw_scatter(r, &title, xdesc, series, chosen)
             })?;
             write_svg_chart(&dir.join(format!("{name}.svg")), size, |r| {
-                draw_scatter(r, &title, xdesc, series)
+                draw_scatter(r, &title, xdesc, series, chosen)
             })?;
         }
     }
@@ -1024,7 +1071,8 @@ mod tests {
                     "metrics": {
                         "evaluate": {"prf_signed": {"3cm_30deg": {"fscore": fc}}},
                         "evaluate_dense": {"prf_signed": {"3cm_30deg": {"fscore": fd}}},
-                        "codec": {"optimised_parameters": 1000},
+                        "codec": {"optimised_parameters": 1000, "strands": 40000 + 2000 * i, "points_per_strand": 8},
+                        "basis": {"k": 14},
                     },
                     "costs": {"codec": {"seconds": 10.0, "peak_rss_bytes": 1048576, "threads": threads(i)}, "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
                 })
@@ -1176,5 +1224,15 @@ mod tests {
         ] {
             assert!(dir.path().join(f).is_file(), "{f}");
         }
+        // The size chart names the size the first method chose (mean strands over seeds).
+        let svg = std::fs::read_to_string(dir.path().join("f_vs_size_tiger.svg")).unwrap();
+        assert!(
+            svg.contains(
+                "ringed: FurE as chosen from the views, 41000 strands x 8 points, basis rank 14"
+            ),
+            "{svg}"
+        );
+        let time = std::fs::read_to_string(dir.path().join("f_vs_time_tiger.svg")).unwrap();
+        assert!(!time.contains("ringed"));
     }
 }

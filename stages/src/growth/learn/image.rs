@@ -96,8 +96,10 @@ pub struct ImageConfig {
     pub seed: u64,
     /// Normalised confidence below which a pixel has no orientation target.
     pub ori_min_confidence: f32,
-    /// Training views the colour fit uses, evenly spaced (0 = all).
+    /// Training views the final colour fit uses, evenly spaced (0 = all).
     pub fit_color_views: usize,
+    /// Training views the start colour fit uses (0 = all).
+    pub fit_color_views_start: usize,
     /// Strand coverage in the held-out renders.
     pub held_out_coverage: Coverage,
     /// Where the renderer runs (the stage's `device` parameter).
@@ -375,6 +377,7 @@ impl ImageLosses {
         points: &[Vec3],
         l: usize,
         coverage: Coverage,
+        pass: ColorFitPass,
     ) -> Result<f32, StageError> {
         let n = self.colors.len();
         if n == 0 || l < 2 || points.len() != n * l {
@@ -394,7 +397,11 @@ impl ImageLosses {
         let mut ramp_acc = vec![RampSums::default(); if self.ramp.is_empty() { 0 } else { n }];
         let mut body_acc = vec![[0.0f64; 4]; nb];
         let nv = self.views.len();
-        let used = match self.cfg.fit_color_views {
+        let views = match pass {
+            ColorFitPass::Start => self.cfg.fit_color_views_start,
+            ColorFitPass::Final => self.cfg.fit_color_views,
+        };
+        let used = match views {
             0 => nv,
             k => k.min(nv),
         };
@@ -697,6 +704,16 @@ impl RampSums {
         }
         (colour, ramp)
     }
+}
+
+/// Which colour fit runs: its number of training views differs
+/// (`fit_color_views_start`, `fit_color_views`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ColorFitPass {
+    /// Before the first iteration: colours that make the first photometric losses meaningful.
+    Start,
+    /// After training: the colours the learner writes.
+    Final,
 }
 
 /// How held-out renders cover pixels with strands (see [`width_coverage`]).

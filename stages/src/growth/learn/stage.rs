@@ -13,7 +13,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::geomloss::DistanceGrid;
-use super::image::{read_orientation, Coverage, ImageConfig, ImageLosses};
+use super::image::{read_orientation, ColorFitPass, Coverage, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
 use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
@@ -154,6 +154,12 @@ fure_stage_api::stage_params! {
         /// Training views the colour fit renders, evenly spaced in the views' order (0 = all;
         /// each costs a render of every strand and two backward passes).
         fit_color_views: usize = int(12).min(0.0),
+        /// Training views the colour fit before the first iteration renders (0 = all). Those
+        /// colours only make the first photometric losses meaningful; the codec's written
+        /// colours come from the final fit (fit_colors = start_held_out). 6: half the start
+        /// fit's cost at the same F and PSNR on the dev split (3 tied too but left a quarter
+        /// of the strands uncoloured; docs/history.md, "The start colour fit").
+        fit_color_views_start: usize = int(6).min(0.0),
     }
 }
 
@@ -331,7 +337,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        10
+        11
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -358,7 +364,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        8
+        9
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
@@ -872,7 +878,12 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         if fit_colors != FitColors::Never {
             ctx.progress.message("colours from the views");
             let t0 = std::time::Instant::now();
-            colors_fitted.push(img.fit_colors(&model.all_points(&s.prep), l, Coverage::Opaque)?);
+            colors_fitted.push(img.fit_colors(
+                &model.all_points(&s.prep),
+                l,
+                Coverage::Opaque,
+                ColorFitPass::Start,
+            )?);
             cfg.clock_start = t0.elapsed().as_secs_f64();
             color_fit_seconds = cfg.clock_start;
         }
@@ -902,7 +913,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             ctx.progress
                 .message("colours from the views (final strands)");
             let t0 = std::time::Instant::now();
-            colors_fitted.push(img.fit_colors(&pts, l, coverage)?);
+            colors_fitted.push(img.fit_colors(&pts, l, coverage, ColorFitPass::Final)?);
             color_fit_seconds += t0.elapsed().as_secs_f64();
         }
     }
@@ -1009,6 +1020,7 @@ impl LearnParams {
             seed: self.seed,
             ori_min_confidence: self.ori_min_confidence,
             fit_color_views: self.fit_color_views,
+            fit_color_views_start: self.fit_color_views_start,
             held_out_coverage: match self.held_out_coverage {
                 HeldOutCoverage::Opaque => Coverage::Opaque,
                 HeldOutCoverage::Width => Coverage::Width,
@@ -1457,6 +1469,7 @@ mod tests {
                     ("iterations", Value::Int(0)),
                     ("fit_colors", Value::Str(fit.into())),
                     ("fit_color_views", Value::Int(0)),
+                    ("fit_color_views_start", Value::Int(0)),
                 ],
             );
             let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
@@ -1488,6 +1501,7 @@ mod tests {
                 ("iterations", Value::Int(0)),
                 ("fit_colors", Value::Str("start".into())),
                 ("fit_color_views", Value::Int(0)),
+                ("fit_color_views_start", Value::Int(0)),
             ];
             if let Some(on) = ramp {
                 params.push(("color_ramp", Value::Bool(on)));
