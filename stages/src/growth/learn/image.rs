@@ -38,8 +38,10 @@
 //! sampled only ~8 times in the codec's 100 iterations, so from one common
 //! starting colour Adam leaves the coat a washed-out brown, and L_rgb then
 //! pulls geometry to explain colour errors. The fit renders every strand, so it
-//! costs about one training iteration per view per strand subset; 12 evenly
-//! spaced views are the default. A second fit after training under the same
+//! costs about one training iteration per view per strand subset. The fit
+//! before training only makes the first photometric losses meaningful and
+//! renders 6 evenly spaced views (`fit_color_views_start`); the final fit,
+//! whose colours are written, renders 12 (`fit_color_views`). A second fit after training under the same
 //! opacity (`start_end`) gave no further gain on the dev scenes. One under the
 //! held-out renders' coverage (`start_held_out`), where deeper strands and the
 //! body show through the thinner strands, is the codec's default: the colours
