@@ -574,6 +574,22 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         },
         &mut |row| print_variant(row, a.dry_run, &cache),
     )?;
+    if crate::signals::received().is_some() {
+        // An interrupted sweep writes no record and runs no aggregate: the last complete
+        // sweep's tables, record and published documents stay as they were. What finished
+        // is cached, so the same command resumes.
+        let complete = rows
+            .iter()
+            .filter(|r| r.status != sweep::VariantStatus::Failed)
+            .count();
+        eprintln!(
+            "sweep {}: interrupted; {complete} of {total} variants complete (cached), the \
+             previous record, tables and published documents kept; rerun the same command to \
+             resume",
+            p.name
+        );
+        return Ok(ExitCode::from(EXIT_FAILED));
+    }
     if a.dry_run {
         if !p.aggregates.is_empty() {
             println!(

@@ -2,7 +2,10 @@
 //!
 //! Every command stage runs in its own process group (so a terminal's
 //! Ctrl-C reaches fure alone). The handler records the first signal and
-//! sends it to every registered group; the scheduler then starts nothing
+//! sends it to every registered group; in-process stages see it through
+//! their progress sink (`Progress::interrupted`, checked between steps: a
+//! thread cannot be killed, and a learner would otherwise run its minutes
+//! out); the scheduler, and a sweep's loop over variants, then start nothing
 //! new, the killed commands fail (as does one that exits 0 after the
 //! signal: its outputs may be partial), their staging directories are removed,
 //! and `fure` exits with 128 + the signal number. A second signal of the

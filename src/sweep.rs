@@ -372,6 +372,10 @@ pub fn run_sweep(
         return Ok(rows);
     }
     for (v, plan) in variants.iter().zip(&plans) {
+        // Interrupted: the variants not started stay unstarted (see `cmd_sweep`).
+        if crate::signals::received().is_some() {
+            break;
+        }
         on_start(v);
         let report = exec::run(plan, cache, &opts);
         let row = make_row(v, plan, report, cache);

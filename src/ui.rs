@@ -187,4 +187,7 @@ impl Progress for StageProgress {
             _ => {}
         }
     }
+    fn interrupted(&self) -> bool {
+        crate::signals::received().is_some()
+    }
 }

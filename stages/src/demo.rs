@@ -255,6 +255,7 @@ impl Stage for DemoSleepStage {
         ctx.progress.set_total(steps);
         ctx.progress.message("sleeping");
         for _ in 0..steps {
+            ctx.progress.check_interrupted()?;
             std::thread::sleep(std::time::Duration::from_secs_f64(seconds / steps as f64));
             ctx.progress.advance(1);
         }

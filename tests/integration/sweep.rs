@@ -504,3 +504,84 @@ outs = ["results.md", "charts/"]
     );
     assert!(!p.path("out/bad").exists(), "{}", s.all());
 }
+
+/// SIGTERM during a sweep: the running in-process stage stops between two of its steps, no
+/// later variant starts, nothing is cached or left in staging, and the last complete sweep's
+/// record stays as it was.
+#[test]
+fn an_interrupted_sweep_stops_soon_and_keeps_the_last_record() {
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let p = Project::new();
+    p.write(
+        "s.toml",
+        r#"
+[stages.wait]
+kind = "demo_sleep"
+seconds = 0.01
+steps = 1
+
+[sweep]
+"wait.label" = ["a", "b"]
+"#,
+    );
+    let s = p.sweep(&["sweep", "s.toml", "--jobs", "1", "--quiet"]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    let before = p.read("out/s/sweep.json");
+    // Each variant now waits ten minutes, in steps of a tenth of a second.
+    let child = p
+        .cmd(&[
+            "sweep",
+            "s.toml",
+            "--jobs",
+            "1",
+            "--quiet",
+            "--grid",
+            "wait.seconds=600",
+            "--grid",
+            "wait.steps=6000",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let staging = |p: &Project| {
+        std::fs::read_dir(p.path("cache/tmp"))
+            .map(|d| d.count())
+            .unwrap_or(0)
+    };
+    let t = Instant::now();
+    while staging(&p) == 0 {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "the stage never started"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let t = Instant::now();
+    let k = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(k.success());
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        t.elapsed() < Duration::from_secs(10),
+        "fure took {:?}",
+        t.elapsed()
+    );
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(143), "{stdout}\n{stderr}");
+    assert!(stderr.contains("interrupted by SIGTERM"), "{stderr}");
+    assert!(stderr.contains("0 of 2 variants complete"), "{stderr}");
+    assert!(
+        stdout.contains("stopped: the run was interrupted"),
+        "{stdout}"
+    );
+    assert!(!stdout.contains("variant 1 ("), "{stdout}");
+    assert_eq!(p.read("out/s/sweep.json"), before);
+    assert_eq!(staging(&p), 0);
+}

@@ -52,6 +52,10 @@ pub enum StageError {
     /// Anything else that makes the stage fail, with a human explanation.
     #[error("{0}")]
     Failed(String),
+    /// The run was interrupted (SIGINT, SIGTERM or SIGHUP to fure) and the
+    /// stage stopped between two steps ([`Progress::check_interrupted`]).
+    #[error("stopped: the run was interrupted")]
+    Interrupted,
 }
 
 impl StageError {
@@ -139,6 +143,20 @@ pub trait Progress: Send + Sync {
     fn message(&self, text: &str);
     /// A line for the run log that stays after the stage ends (what the stage chose, say).
     fn note(&self, text: &str);
+    /// Whether the run was interrupted. A stage that computes for long checks it between
+    /// steps (through [`Progress::check_interrupted`]): the engine cannot stop a stage that
+    /// runs in its own process, so without the check fure waits for the stage to end.
+    fn interrupted(&self) -> bool {
+        false
+    }
+    /// `Err(StageError::Interrupted)` once the run was interrupted: `?` it between steps.
+    fn check_interrupted(&self) -> Result<(), StageError> {
+        if self.interrupted() {
+            Err(StageError::Interrupted)
+        } else {
+            Ok(())
+        }
+    }
 }
 
 /// A progress sink that discards everything (for tests and library use).

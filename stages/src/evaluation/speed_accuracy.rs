@@ -573,6 +573,7 @@ impl Scoring {
         for (method, dir, list) in &lists {
             let mut v = Vec::new();
             for s in list {
+                ctx.progress.check_interrupted()?;
                 ctx.progress
                     .message(&format!("scoring {method} {}", s.file));
                 v.push(self.score(method, dir, s)?);

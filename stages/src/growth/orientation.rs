@@ -506,6 +506,7 @@ impl Stage for OrientationMapsStage {
         ctx.progress.set_total(jobs.len() as u64);
         let mut entries = Vec::with_capacity(jobs.len());
         for (rel, path, view) in jobs {
+            ctx.progress.check_interrupted()?;
             ctx.progress.message(&format!("Gabor filtering {rel}"));
             let (img, mask) = match view {
                 Some((dir, cam)) => {

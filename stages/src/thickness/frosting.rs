@@ -1152,6 +1152,7 @@ pub fn fit_gaussians_on(
     };
     progress.set_total(s.iterations as u64);
     for it in 0..s.iterations {
+        progress.check_interrupted()?;
         let k = it % views.len();
         if k == 0 {
             shuffle_views(&mut order, &mut rng);

@@ -154,6 +154,7 @@ pub fn train(
         snapshot(model, 0, trained)?;
     }
     for it in 0..cfg.iterations {
+        progress.check_interrupted()?;
         let t0 = Instant::now();
         let ids = subset(n, cfg.subset, cfg.seed, it);
         let (points, cache) = model.forward(prep, &ids);

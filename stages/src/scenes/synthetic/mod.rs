@@ -530,6 +530,7 @@ fn render_views(
         .collect();
     progress.set_total(all.len() as u64);
     for (k, (is_test, _i, cam)) in all.into_iter().enumerate() {
+        progress.check_interrupted()?;
         progress.message(&format!("rendering {}", cam.file_path));
         let mut frame = g.scene.render(cam, st.supersample, st.seed, k as u64);
         rays += cam.width as u64 * cam.height as u64 * (st.supersample as u64).pow(2);
