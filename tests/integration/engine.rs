@@ -14,6 +14,19 @@ pub(crate) fn data(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// Sends `kill -SIG` (`"TERM"`, `"INT"`, ...) to a running fure and waits for it: its output
+/// and how long it took to end after the signal.
+pub(crate) fn signal_and_wait(child: std::process::Child, sig: &str) -> (Output, Duration) {
+    let t = Instant::now();
+    let k = Command::new("kill")
+        .args([&format!("-{sig}"), &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(k.success(), "kill -{sig}");
+    let out = child.wait_with_output().unwrap();
+    (out, t.elapsed())
+}
+
 /// A project directory with its own cache (shared by the other integration modules).
 pub(crate) struct Project {
     dir: tempfile::TempDir,

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::engine::Project;
+use crate::engine::{signal_and_wait, Project};
 
 /// The manifest path of the entry a stage resolved to in the last report.
 fn manifest_of(p: &Project, run: &crate::engine::Run, stage: &str) -> PathBuf {
@@ -537,18 +537,8 @@ fn signals_to_fure_stop_its_commands_and_clean_up() {
     ] {
         let p = Project::new();
         let (child, pids) = start_sleepers(&p);
-        let t = Instant::now();
-        let k = Command::new("kill")
-            .args([&format!("-{sig}"), &child.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(k.success());
-        let out = child.wait_with_output().unwrap();
-        assert!(
-            t.elapsed() < Duration::from_secs(20),
-            "{name}: fure took {:?}",
-            t.elapsed()
-        );
+        let (out, took) = signal_and_wait(child, sig);
+        assert!(took < Duration::from_secs(20), "{name}: fure took {took:?}");
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(code), "{name}: {err}");
         assert!(err.contains(&format!("interrupted by {name}")), "{err}");

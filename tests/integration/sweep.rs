@@ -4,7 +4,7 @@
 
 use std::process::Output;
 
-use super::engine::{data, Project};
+use super::engine::{data, signal_and_wait, Project};
 
 /// `fure` through [`Project`], read as a sweep's output.
 trait SweepRun {
@@ -558,18 +558,8 @@ steps = 1
         );
         std::thread::sleep(Duration::from_millis(50));
     }
-    let t = Instant::now();
-    let k = std::process::Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(k.success());
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        t.elapsed() < Duration::from_secs(10),
-        "fure took {:?}",
-        t.elapsed()
-    );
+    let (out, took) = signal_and_wait(child, "TERM");
+    assert!(took < Duration::from_secs(10), "fure took {took:?}");
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr),
