@@ -751,8 +751,8 @@ const PALETTE: [RGBColor; 6] = [
 ];
 
 /// A scatter chart, one colour per series, x on a log axis; a series' points are its seeds.
-/// With `chosen`, the first series' points are ringed and the text is written under the
-/// title: the size the first method chose for itself.
+/// With `chosen`, the first series' points are ringed and the text is written in the plot's
+/// lower left: the size the first method chose for itself.
 fn draw_scatter<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
@@ -796,9 +796,11 @@ fn draw_scatter<DB: DrawingBackend>(
         chart
             .draw_series(first.iter().map(|&q| Circle::new(q, 11, ring)))
             .map_err(chart_err)?;
+        // Bottom left, clear of the points (F near the top) and of the legend (bottom right).
+        let (_, h) = root.dim_in_pixel();
         root.draw(&Text::new(
             text.to_string(),
-            (76, 40),
+            (76, h as i32 - 80),
             ("sans-serif", 14).into_font().color(&PALETTE[0]),
         ))
         .map_err(chart_err)?;
@@ -985,7 +987,7 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        5
+        6
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
