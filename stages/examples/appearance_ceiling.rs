@@ -18,9 +18,6 @@
 
 mod common;
 
-use std::error::Error;
-use std::path::Path;
-
 use fure_stages::data::strands::Strands;
 use fure_stages::evaluation::evaluate::image_metrics;
 use fure_stages::formats::hair::read_hair;
@@ -31,20 +28,18 @@ use fure_stages::growth::learn::stage::LearnParams;
 use fure_stages::growth::strand_basis::resample_count;
 use fure_stages::render::device::Renderer;
 
-type Res<T> = Result<T, Box<dyn Error>>;
+use common::Res;
 
 fn main() -> std::process::ExitCode {
     common::exit_code(run())
 }
 
 fn run() -> Res<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let Some(dir) = args.first().map(Path::new) else {
-        return Err("usage: appearance_ceiling <out/pipeline> [points_per_strand ...]".into());
-    };
-    let counts: Vec<usize> = if args.len() > 1 {
-        args[1..]
-            .iter()
+    let (dir, args) =
+        common::out_dir_and_args("appearance_ceiling <out/pipeline> [points_per_strand ...]")?;
+    let dir = dir.as_path();
+    let counts: Vec<usize> = if !args.is_empty() {
+        args.iter()
             .map(|a| {
                 a.parse()
                     .map_err(|_| format!("points per strand: {a:?} is not a count"))

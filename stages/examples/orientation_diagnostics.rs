@@ -23,7 +23,6 @@
 
 mod common;
 
-use std::error::Error;
 use std::path::Path;
 
 use fure_stages::data::image::ImageF32;
@@ -33,7 +32,7 @@ use fure_stages::formats::images::read_image;
 use fure_stages::growth::learn::image::normalise_confidence;
 use fure_stages::growth::orientation::{downscale, orientation_maps, GaborParams};
 
-type Res<T> = Result<T, Box<dyn Error>>;
+use common::Res;
 
 fn main() -> std::process::ExitCode {
     common::exit_code(run())

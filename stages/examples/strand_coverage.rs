@@ -14,9 +14,6 @@
 
 mod common;
 
-use std::error::Error;
-use std::path::Path;
-
 use fure_stages::data::strands::Strands;
 use fure_stages::evaluation::evaluate::image_metrics;
 use fure_stages::formats::hair::read_hair;
@@ -25,19 +22,18 @@ use fure_stages::growth::learn::image::{ColorFitPass, Coverage, ImageLosses};
 use fure_stages::growth::learn::stage::LearnParams;
 use fure_stages::render::device::Renderer;
 
-type Res<T> = Result<T, Box<dyn Error>>;
+use common::Res;
 
 fn main() -> std::process::ExitCode {
     common::exit_code(run())
 }
 
 fn run() -> Res<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let Some(dir) = args.first().map(Path::new) else {
-        return Err("usage: strand_coverage <out/pipeline> [learner stage] [k ...]".into());
-    };
-    let learner = args.get(1).map_or("codec", String::as_str);
-    let ks: Vec<f32> = match args.get(2..) {
+    let (dir, args) =
+        common::out_dir_and_args("strand_coverage <out/pipeline> [learner stage] [k ...]")?;
+    let dir = dir.as_path();
+    let learner = args.first().map_or("codec", String::as_str);
+    let ks: Vec<f32> = match args.get(1..) {
         Some(rest) if !rest.is_empty() => rest
             .iter()
             .map(|a| match a.parse::<f32>() {

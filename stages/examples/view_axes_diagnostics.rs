@@ -15,7 +15,6 @@
 
 mod common;
 
-use std::error::Error;
 use std::path::Path;
 
 use fure_stages::data::mesh::Mesh;
@@ -30,7 +29,7 @@ use fure_stages::growth::learn::image::read_orientation;
 use fure_stages::growth::view_axes::{pixel_footprint, view_axes, ViewOrientation};
 use glam::Mat3;
 
-type Res<T> = Result<T, Box<dyn Error>>;
+use common::Res;
 
 fn main() -> std::process::ExitCode {
     common::exit_code(run())
