@@ -1218,6 +1218,16 @@ mod tests {
     }
 
     fn run(stage: &dyn Stage, over: &[(&str, Value)], dir: &Path) -> PathBuf {
+        try_run(stage, over, dir, &NoProgress).unwrap()
+    }
+
+    /// [`run`] reporting to `progress`, its error returned.
+    fn try_run(
+        stage: &dyn Stage,
+        over: &[(&str, Value)],
+        dir: &Path,
+        progress: &dyn fure_stage_api::Progress,
+    ) -> Result<PathBuf, StageError> {
         let inputs = write_inputs(dir);
         let params = params(stage, over);
         let out = dir.join("out");
@@ -1235,10 +1245,10 @@ mod tests {
             params: &params,
             inputs,
             outputs,
-            progress: &NoProgress,
+            progress,
         };
-        stage.run(&ctx).unwrap();
-        out
+        stage.run(&ctx)?;
+        Ok(out)
     }
 
     fn small() -> Vec<(&'static str, Value)> {
@@ -1289,6 +1299,36 @@ mod tests {
             .join("snapshots")
             .join(&idx.last().unwrap().file)
             .is_file());
+    }
+
+    /// A run that was interrupted before the stage started.
+    struct InterruptedRun;
+    impl fure_stage_api::Progress for InterruptedRun {
+        fn set_total(&self, _: u64) {}
+        fn advance(&self, _: u64) {}
+        fn message(&self, _: &str) {}
+        fn note(&self, _: &str) {}
+        fn interrupted(&self) -> bool {
+            true
+        }
+    }
+
+    #[test]
+    fn both_learners_stop_when_the_run_is_interrupted() {
+        for stage in [&CodecStrandsStage as &dyn Stage, &DenseStrandsStage] {
+            let d = tempfile::tempdir().unwrap();
+            let err = try_run(stage, &small(), d.path(), &InterruptedRun).unwrap_err();
+            assert!(
+                matches!(err, StageError::Interrupted),
+                "{}: {err}",
+                stage.kind()
+            );
+            assert!(
+                !d.path().join("out/strands.hair").exists(),
+                "{}",
+                stage.kind()
+            );
+        }
     }
 
     #[test]
