@@ -27,7 +27,9 @@
 //! `costs.*.peak_rss_bytes` of the variant. Fur thickness: `defur.{outer,root,baseline}_to_skin_mean_frac`,
 //! `frosting.gt_vertex.pearson`, `lengths.length_error_mean_pct`, and for the V2 lengths (species
 //! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
-//! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`.
+//! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`. The size the first
+//! method chose, named on its F vs model-size chart: `LEARNER.strands`,
+//! `LEARNER.points_per_strand`, `basis.k`.
 //! A missing key is a missing figure (`-`), never a zero.
 
 use std::collections::BTreeMap;

@@ -41,8 +41,9 @@
 //! costs about one training iteration per view per strand subset. The fit
 //! before training only makes the first photometric losses meaningful and
 //! renders 6 evenly spaced views (`fit_color_views_start`); the final fit,
-//! whose colours are written, renders 12 (`fit_color_views`). A second fit after training under the same
-//! opacity (`start_end`) gave no further gain on the dev scenes. One under the
+//! whose colours are written, renders 12 (`fit_color_views`). A second fit
+//! after training under the same opacity (`start_end`) gave no further gain
+//! on the dev scenes. One under the
 //! held-out renders' coverage (`start_held_out`), where deeper strands and the
 //! body show through the thinner strands, is the codec's default: the colours
 //! are fitted in the image formation they are shown in (dev split: tiger

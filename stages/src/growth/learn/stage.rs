@@ -151,8 +151,8 @@ fure_stage_api::stage_params! {
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
         held_out_coverage: HeldOutCoverage = string("width").choices(HeldOutCoverage::NAMES),
-        /// Training views the colour fit renders, evenly spaced in the views' order (0 = all;
-        /// each costs a render of every strand and two backward passes).
+        /// Training views the final colour fit renders, evenly spaced in the views' order (0 =
+        /// all; each costs a render of every strand and two backward passes).
         fit_color_views: usize = int(12).min(0.0),
         /// Training views the colour fit before the first iteration renders (0 = all). Those
         /// colours only make the first photometric losses meaningful; the codec's written
