@@ -930,3 +930,78 @@ fn the_device_flag_reaches_the_renderers_and_is_recorded() {
     let (ct, gt) = (total(&codec), total(&gcodec));
     assert!((ct - gt).abs() <= 0.05 * ct, "final loss cpu {ct} gpu {gt}");
 }
+
+/// Issue 14's controlled test of the thickness cue: the same tiger twice, the second time
+/// with its torso's fur standing up (several times thicker, several pixels at 160 px) and
+/// nothing else changed. With `inner_level` (the fit's translucent fringe) the torso's width
+/// grows by more than 1.4 times as much as the widths of parts away from the torso. The
+/// pipelines' `inner_depth` reading hardly moves here (docs/history.md, "Frosting: a reading that
+/// follows the fur").
+#[test]
+fn frosting_widths_follow_a_thicker_fur_on_one_part() {
+    let p = Project::new();
+    let pipeline = |name: &str| {
+        format!(
+            r#"extends = '{}'
+
+[pipeline]
+name = "{name}"
+
+[stages.scene]
+resolution = 160
+views = 24
+test_views = 1
+
+[stages.frosting]
+width_reading = "frosting"
+inner_level = 0.5
+range_sigmas = 6.0
+samples = 61
+"#,
+            repo("pipelines/tiger.toml").display()
+        )
+    };
+    p.write("flat.toml", &pipeline("flat"));
+    p.write(
+        "raised.toml",
+        &format!(
+            "{}\n[stages.scene.parts.torso]\nlift_deg = 80.0\nlength_cm = 6.0\n",
+            pipeline("raised")
+        ),
+    );
+    let (mut width, mut truth) = (Vec::new(), Vec::new());
+    for name in ["flat", "raised"] {
+        p.run(&format!("{name}.toml"), &["--until", "frosting"])
+            .ok();
+        let m = read_json(&p.path(&format!("out/{name}/frosting/metrics.json")));
+        let scene = read_json(&p.path(&format!("out/{name}/scene/scene.json")));
+        width.push(m["part_median_width"].clone());
+        truth.push(number(
+            &scene["parts"]["torso"],
+            "mean_thickness_cm",
+            "scene.json",
+        ));
+    }
+    let ratio = |part: &str| {
+        number(&width[1], part, "raised metrics.json")
+            / number(&width[0], part, "flat metrics.json")
+    };
+    assert!(truth[1] > 3.0 * truth[0], "GT torso thickness {truth:?}");
+    // The longer fur also moves the framing and M_outer's area (hence the Gaussians' spacing),
+    // so every part's width moves a little, together; the torso's must move well beyond them.
+    let controls: Vec<f64> = ["head", "front_legs", "hind_legs", "tail"]
+        .iter()
+        .map(|part| ratio(part))
+        .collect();
+    let (lo, hi) = controls
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), &r| {
+            (lo.min(r), hi.max(r))
+        });
+    assert!(hi / lo < 1.2, "untouched parts' ratios {controls:?}");
+    assert!(
+        ratio("torso") > 1.4 * hi,
+        "torso ratio {} against untouched parts' {controls:?}, widths {width:?}",
+        ratio("torso")
+    );
+}
