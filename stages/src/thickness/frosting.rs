@@ -85,7 +85,7 @@
 //!   ray-hit distance through M_outer (the medial surface), so that on thin
 //!   parts (ears, muzzle) the density of the part's other side is not read
 //!   as fur.
-//! - `inner_level` (> 0): the inner offset is the first crossing of this
+//! - `inner_level` (> 0, above `level`): the inner offset is the first crossing of this
 //!   second, higher level from outside instead of the last crossing of
 //!   `level`; where the density never reaches it, the last crossing of
 //!   `level` stays. The width is then the fit's translucent fringe, from
@@ -1794,6 +1794,21 @@ impl Stage for FrostingStage {
         specs.extend(FrostingParams::specs());
         specs
     }
+    fn validate(&self, params: &Params) -> Result<(), StageError> {
+        let p = FrostingParams::from_params(params)?;
+        // A second level at or below the first would put the "inner" crossing outside the
+        // outer one: a width read from nothing.
+        if p.inner_level > 0.0 && p.inner_level <= p.level {
+            return Err(StageError::param(
+                "inner_level",
+                format!(
+                    "expected 0 (off) or a density level above `level` ({}), found {}",
+                    p.level, p.inner_level
+                ),
+            ));
+        }
+        Ok(())
+    }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
             PortSpec::file("mesh", "obj", "M_outer (labelled): the shell base"),
@@ -2126,6 +2141,25 @@ mod tests {
             thin.widths[0] > 0.2 && thin.widths[0] < 0.2 + 4.0 * sigma,
             "{:?}",
             thin.widths
+        );
+    }
+
+    #[test]
+    fn an_inner_level_at_or_below_the_level_is_refused() {
+        let mut p = Params::default();
+        for spec in FrostingStage.params() {
+            if let Some(d) = spec.default {
+                p.0.insert(spec.name.to_string(), d);
+            }
+        }
+        assert!(FrostingStage.validate(&p).is_ok());
+        p.0.insert("inner_level".into(), fure_stage_api::Value::Float(0.5));
+        assert!(FrostingStage.validate(&p).is_ok());
+        p.0.insert("inner_level".into(), fure_stage_api::Value::Float(0.005));
+        let e = FrostingStage.validate(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("inner_level") && e.contains("above `level`"),
+            "{e}"
         );
     }
 
