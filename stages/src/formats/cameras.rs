@@ -177,12 +177,15 @@ pub fn mask_file_path(file_path: &str) -> String {
     format!("{}_mask.png", &file_path[..stem_len])
 }
 
-/// One view's pixels: colour (3 channels, [0, 1]) and the foreground mask (1 channel, [0, 1]) if
-/// the capture has one.
+/// One view's pixels: colour (3 channels, [0, 1]), the foreground mask (1 channel, [0, 1]) if
+/// the capture has one, and the image's own alpha channel if it has one.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewImages {
     pub rgb: ImageF32,
     pub mask: Option<ImageF32>,
+    /// The image's alpha (soft coverage where a renderer wrote it: a translucent fur fringe
+    /// reads below 1), whether or not a mask file takes precedence as [`ViewImages::mask`].
+    pub alpha: Option<ImageF32>,
 }
 
 /// Reads a camera's image and mask. The mask is `<stem>_mask.png` when that file exists (its first
@@ -224,6 +227,12 @@ pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, F
         };
         rgb.data[3 * i..3 * i + 3].copy_from_slice(&[r, g, b]);
     }
+    let alpha = (c == 2 || c == 4).then(|| ImageF32 {
+        width: img.width,
+        height: img.height,
+        channels: 1,
+        data: img.data.chunks_exact(c).map(|p| p[c - 1]).collect(),
+    });
     let mpath = mask_path(dir, camera);
     let mask = if mpath.is_file() {
         let m = super::images::read_png(&mpath)?;
@@ -243,17 +252,10 @@ pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, F
             channels: 1,
             data: m.data.chunks_exact(mc).map(|p| p[0]).collect(),
         })
-    } else if c == 2 || c == 4 {
-        Some(ImageF32 {
-            width: img.width,
-            height: img.height,
-            channels: 1,
-            data: img.data.chunks_exact(c).map(|p| p[c - 1]).collect(),
-        })
     } else {
-        None
+        alpha.clone()
     };
-    Ok(ViewImages { rgb, mask })
+    Ok(ViewImages { rgb, mask, alpha })
 }
 
 /// Reads one `transforms*.json` file. `file_path`s are resolved against the file's directory.
@@ -1221,6 +1223,36 @@ mod tests {
             .iter()
             .zip(&rgb.data)
             .all(|(a, b)| (a - b).abs() <= 1.0 / 255.0));
+    }
+
+    #[test]
+    fn soft_alpha_is_kept_beside_a_mask_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut rgba = ImageF32::new(4, 3, 4);
+        for (i, px) in rgba.data.chunks_exact_mut(4).enumerate() {
+            px[3] = ((i % 5) * 51) as f32 / 255.0; // exact in 8 bits
+        }
+        super::super::images::write_png(dir.path().join("r_0.png"), &rgba).unwrap();
+        let cam = Camera {
+            file_path: "r_0.png".into(),
+            width: 4,
+            height: 3,
+            ..camera(0, 10.0)
+        };
+        let soft: Vec<f32> = rgba.data.chunks_exact(4).map(|p| p[3]).collect();
+        let near = |a: &[f32]| a.iter().zip(&soft).all(|(x, y)| (x - y).abs() < 1e-6);
+        // Without a mask file the alpha is both.
+        let v = read_view(dir.path(), &cam).unwrap();
+        assert!(near(&v.mask.unwrap().data) && near(&v.alpha.unwrap().data));
+        // A (binary) mask file takes over the mask; the soft alpha is still there.
+        let mut m = ImageF32::new(4, 3, 1);
+        for (d, a) in m.data.iter_mut().zip(&soft) {
+            *d = if *a >= 0.5 { 1.0 } else { 0.0 };
+        }
+        super::super::images::write_png(dir.path().join("r_0_mask.png"), &m).unwrap();
+        let v = read_view(dir.path(), &cam).unwrap();
+        assert_eq!(v.mask.unwrap().data, m.data);
+        assert!(near(&v.alpha.unwrap().data));
     }
 
     #[test]

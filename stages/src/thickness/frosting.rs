@@ -97,6 +97,12 @@
 //!   thickness that the pipelines' `inner_depth` reading hardly sees (docs/history.md,
 //!   "Frosting: a reading that follows the fur"); use a wider window with it
 //!   (`range_sigmas = 6`), the fringe can start outside M_outer.
+//! - `coverage = "alpha"`: the fit composites the colour with, and matches its
+//!   silhouette to, the image's own alpha channel where it has one (a
+//!   renderer's soft coverage: a translucent fur fringe reads below 1)
+//!   instead of the capture's mask (a binary mask file, when there is one,
+//!   is a thresholded silhouette and says nothing about how far the fur's
+//!   fringe thins out). Images without alpha fall back to the mask.
 //! - `prune_visibility`: after the fit, Gaussians whose total blending weight
 //!   over the training views ([`visibility`], pixels) is below this are
 //!   dropped (Frosting's Gaussians come from a vanilla 3DGS fit, which has no
@@ -175,6 +181,19 @@ fure_stage_api::param_enum! {
         /// `max(0, -inner)`: from M_outer down to the innermost crossing (the
         /// level set's extent plus how far it lies under a visual-hull M_outer).
         InnerDepth = "inner_depth",
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// What the fit's silhouette term and colour compositing take as the
+    /// object's coverage of a pixel.
+    pub enum Coverage {
+        /// The capture's mask ([`read_view`](crate::formats::cameras::read_view):
+        /// the mask file, else the image's alpha).
+        Mask = "mask",
+        /// The image's own alpha channel where it has one (soft: a translucent
+        /// fur fringe reads below 1), else the mask.
+        Alpha = "alpha",
     }
 }
 
@@ -1487,6 +1506,8 @@ fure_stage_api::stage_params! {
         silhouette_weight: f32 = float(0.5).range(0.0, 100.0),
         /// Gaussians below this opacity after fitting are dropped
         prune_opacity: f32 = float(0.005).range(0.0, 1.0),
+        /// the coverage the fit matches and composites the colour with: the mask, or the image's alpha where it has one (soft fur fringe)
+        coverage: Coverage = string("mask").choices(Coverage::NAMES),
         /// initial band: under M_outer, or on both sides of it (then the images decide where the surface is)
         init_band: InitBand = string("under").choices(InitBand::NAMES),
         /// clone/split Gaussians with large view-space gradients every this many iterations (0: no densification)
@@ -1574,15 +1595,23 @@ impl FrostingParams {
     }
 }
 
-/// Reads the training views as fitting targets (RGB composited on black with the mask).
-fn read_train_views(dir: &std::path::Path) -> Result<Vec<TrainView>, StageError> {
+/// Reads the training views as fitting targets: RGB composited on black with
+/// the `coverage`, which is also the silhouette target.
+fn read_train_views(
+    dir: &std::path::Path,
+    coverage: Coverage,
+) -> Result<Vec<TrainView>, StageError> {
     let set = crate::formats::cameras::read_training_views(dir)?;
     let out: Vec<Result<TrainView, StageError>> = set
         .train
         .par_iter()
         .map(|cam| {
             let img = crate::formats::cameras::read_view(dir, cam)?;
-            let mask = img.mask.ok_or_else(|| {
+            let coverage = match coverage {
+                Coverage::Alpha => img.alpha.or(img.mask),
+                Coverage::Mask => img.mask,
+            };
+            let mask = coverage.ok_or_else(|| {
                 StageError::input(
                     "views",
                     &crate::formats::cameras::mask_path(dir, cam),
@@ -1680,7 +1709,7 @@ fn fit_widths(
     dir: &std::path::Path,
 ) -> Result<WidthsOutcome, StageError> {
     ctx.progress.message("reading training views");
-    let train = read_train_views(dir)?;
+    let train = read_train_views(dir, params.coverage)?;
     ctx.progress.message("fitting Gaussians");
     let fs = params.fit_settings();
     let (g, rep) = fit_gaussians_on(device, mesh, &train, &fs, ctx.progress)?;
@@ -1946,6 +1975,51 @@ impl Stage for FrostingStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn coverage_alpha_fits_the_soft_alpha_and_mask_the_mask_file() {
+        use crate::formats::{cameras, images};
+        let dir = tempfile::tempdir().unwrap();
+        let mut rgba = ImageF32::new(5, 1, 4);
+        for (i, px) in rgba.data.chunks_exact_mut(4).enumerate() {
+            px.copy_from_slice(&[1.0, 0.6, 0.2, (i * 51) as f32 / 255.0]);
+        }
+        images::write_png(dir.path().join("v.png"), &rgba).unwrap();
+        // The mask file: the alpha thresholded at 0.5 (as the synthetic scenes write it).
+        let mut m = ImageF32::new(5, 1, 1);
+        m.data = vec![0.0, 0.0, 0.0, 1.0, 1.0];
+        images::write_png(dir.path().join("v_mask.png"), &m).unwrap();
+        let camera = Camera {
+            file_path: "v.png".into(),
+            c2w: Mat4::IDENTITY,
+            fx: 5.0,
+            fy: 5.0,
+            cx: 2.5,
+            cy: 0.5,
+            width: 5,
+            height: 1,
+        };
+        let set = crate::data::camera::CameraSet {
+            train: vec![camera],
+            test: vec![],
+        };
+        cameras::write_views(dir.path(), &set).unwrap();
+        let red =
+            |v: &TrainView| -> Vec<f32> { v.rgb.data.chunks_exact(3).map(|p| p[0]).collect() };
+        let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-3);
+        let soft = [0.0, 0.2, 0.4, 0.6, 0.8];
+        let by_mask = read_train_views(dir.path(), Coverage::Mask).unwrap();
+        assert_eq!(by_mask[0].mask.data, m.data);
+        assert!(near(&red(&by_mask[0]), &m.data), "{:?}", red(&by_mask[0]));
+        let by_alpha = read_train_views(dir.path(), Coverage::Alpha).unwrap();
+        assert!(
+            near(&by_alpha[0].mask.data, &soft),
+            "{:?}",
+            by_alpha[0].mask.data
+        );
+        // Composited on black with the soft coverage: premultiplied colour.
+        assert!(near(&red(&by_alpha[0]), &soft), "{:?}", red(&by_alpha[0]));
+    }
 
     fn jitter(i: i32, j: i32, k: i32, amp: f32) -> Vec3 {
         let mut x = (i as u32).wrapping_mul(73856093)
