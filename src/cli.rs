@@ -608,8 +608,18 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     // part of any key: only its content is).
     let abs = std::path::absolute(&record_path)
         .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+    // The published documents describe the pipeline as declared: a sweep narrowed or changed on
+    // the command line (a study, a dev-only rerun) keeps its report under `out` and leaves them.
+    let changed_by: Vec<&str> = [
+        ("--grid", !a.grids.is_empty()),
+        ("--each", !a.eaches.is_empty()),
+        ("--set", !a.sets.is_empty()),
+    ]
+    .into_iter()
+    .filter_map(|(flag, used)| used.then_some(flag))
+    .collect();
     match sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
-        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out),
+        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, &changed_by),
         None => Ok(ExitCode::SUCCESS),
     }
 }
@@ -692,13 +702,14 @@ fn write_sweep_results(
     Ok(record_path)
 }
 
-/// Prints the aggregate stages' outcome and, when all succeeded, publishes
-/// the pipeline's `[publish]` files.
+/// Prints the aggregate stages' outcome and, when all succeeded and no flag in
+/// `changed_by` altered the sweep, publishes the pipeline's `[publish]` files.
 fn report_aggregates(
     p: &crate::pipeline::Pipeline,
     rep: &RunReport,
     cache: &Cache,
     out: &Path,
+    changed_by: &[&str],
 ) -> Result<ExitCode, Failure> {
     if let Ok(json) = serde_json::to_vec_pretty(rep) {
         cache.save_run_report(&rep.pipeline, &json);
@@ -731,7 +742,15 @@ fn report_aggregates(
         }
         return Ok(ExitCode::from(EXIT_FAILED));
     }
-    if !p.publish.is_empty() {
+    if !p.publish.is_empty() && !changed_by.is_empty() {
+        println!(
+            "not published: {} changed the sweep; the documents of [publish] describe {} as \
+             declared and are left as they were; the report is in {}",
+            changed_by.join(", "),
+            p.file.display(),
+            out.join(&p.name).display()
+        );
+    } else if !p.publish.is_empty() {
         let command: Vec<String> = std::env::args()
             .enumerate()
             .map(|(i, a)| if i == 0 { "fure".into() } else { a })

@@ -23,7 +23,8 @@
 //! machine, git revision (and whether the tree was dirty) and the exact
 //! command. Every destination is written to a temporary name beside it and
 //! renamed, so a reader never sees half a document; any failure is an error
-//! (the sweep exits 1).
+//! (the sweep exits 1). `fure sweep` publishes only the sweep as declared: one
+//! changed by `--grid`, `--each` or `--set` leaves the documents alone.
 
 use std::path::{Path, PathBuf};
 

@@ -472,6 +472,25 @@ outs = ["results.md", "charts/"]
     assert!(md.ends_with("end\n"), "{md}");
     assert_eq!(json(&p.read("docs/charts/record.json")), r);
 
+    // A sweep changed on the command line (one value of the axis, another setting) reports under
+    // `out` and leaves the published documents alone: they describe the pipeline as declared.
+    for flags in [
+        &["--grid", "a.scale,b.scale=2.0"][..],
+        &["--set", "a.count=4"][..],
+    ] {
+        let s = p.sweep(&[&["sweep", "pipes/lk.toml", "--jobs", "1"][..], flags].concat());
+        assert_eq!(s.code(), 0, "{}", s.all());
+        assert!(
+            s.stdout()
+                .contains(&format!("not published: {} changed the sweep", flags[0])),
+            "{}",
+            s.all()
+        );
+        assert_eq!(p.read("docs/results.md"), md);
+        assert_eq!(json(&p.read("docs/charts/record.json")), r);
+        assert_ne!(json(&p.read("out/lk/sweep.json")), r);
+    }
+
     // A publish key naming no aggregate is a located usage error; nothing runs.
     p.write(
         "pipes/bad.toml",
