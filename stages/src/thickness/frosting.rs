@@ -122,9 +122,16 @@
 //! tiger's ground truth would be calibrating on it), and the options stay
 //! off. The measurements are in docs/history.md, section "Frosting: what the
 //! widths measure". `inner_level` stays off too: it answers a thicker fur
-//! where the default does not, but on the dev scenes it raised the width's
-//! correlation with the truth on the tiger and lowered it on the fox, and
-//! moved M_root further from the skin on both.
+//! where the default does not, but alone it raised the width's correlation
+//! with the truth on the tiger and lowered it on the fox. Together with
+//! `coverage = "alpha"` it raises the correlation on both dev scenes and
+//! shortens the tiger's length errors, yet the benchmark's signed F is a tie
+//! on the dev split and M_root moves further from the tiger's skin; and a
+//! reading that follows the fit also follows the fit's rounding-level
+//! differences (the same capture in metres and centimetres then places some
+//! roots differently, because systematic root sampling carries a small area
+//! change on through the cumulative count). Both stay options until root
+//! placement is local (docs/history.md, "Frosting: the soft coverage").
 //!
 //! # Imported widths
 //!
