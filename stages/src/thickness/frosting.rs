@@ -126,12 +126,15 @@
 //! with the truth on the tiger and lowered it on the fox. Together with
 //! `coverage = "alpha"` it raises the correlation on both dev scenes and
 //! shortens the tiger's length errors, yet the benchmark's signed F is a tie
-//! on the dev split and M_root moves further from the tiger's skin; and a
-//! reading that follows the fit also follows the fit's rounding-level
-//! differences (the same capture in metres and centimetres then places some
-//! roots differently, because systematic root sampling carries a small area
-//! change on through the cumulative count). Both stay options until root
-//! placement is local (docs/history.md, "Frosting: the soft coverage").
+//! on the dev split and M_root moves further from the tiger's skin. Its
+//! widths end where the fit turns opaque, inside the fur, so they are
+//! thinner than the default's and the per-part lengths (multipliers times
+//! the widths' 75th percentile) shrink with them; and a reading that follows
+//! the fit also follows the fit's rounding-level differences (the same
+//! capture in metres and centimetres then places some roots differently
+//! unless `roots.placement = "local"`). Both stay options until the length
+//! multipliers are chosen with them (docs/history.md, "Frosting: the soft
+//! coverage").
 //!
 //! # Imported widths
 //!
