@@ -17,8 +17,8 @@
 //! one part's area (two runs whose widths differ in the last digits, as the
 //! same capture in metres and in centimetres) moves roots on every later
 //! triangle. `placement = "local"` rounds each triangle's expectation with
-//! its own offset (a Weyl sequence over the triangle index, shifted by the
-//! seed) instead: a triangle's count then depends on that triangle alone,
+//! its own offset (the golden-ratio Weyl sequence over the triangle index,
+//! shifted by the seed) instead: a triangle's count then depends on that triangle alone,
 //! and the total is exact only in expectation. Off by default until it is
 //! measured on the dev split (docs/history.md).
 //!
