@@ -103,6 +103,13 @@
 //!   instead of the capture's mask (a binary mask file, when there is one,
 //!   is a thresholded silhouette and says nothing about how far the fur's
 //!   fringe thins out). Images without alpha fall back to the mask.
+//! - `width_scale` (1): a factor on every width read (not on imported ones).
+//!   The `inner_level` reading ends where the fit turns opaque, which is
+//!   inside the fur, not at the skin: its depth is a fraction of the fur's,
+//!   and that fraction belongs to fur (how deep one sees into a coat before
+//!   it hides what is under it), not to a scene. `width_scale` is its
+//!   inverse, so that `defur` (how far in the roots go) and `lengths` (`T_p`)
+//!   both read one estimate of the fur's depth.
 //! - `prune_visibility`: after the fit, Gaussians whose total blending weight
 //!   over the training views ([`visibility`], pixels) is below this are
 //!   dropped (Frosting's Gaussians come from a vanilla 3DGS fit, which has no
@@ -234,6 +241,8 @@ pub struct WidthSettings {
     pub sigma_floor: f32,
     /// Absolute minimum width.
     pub min_width: f32,
+    /// Factor on every width read (the reading's depth -> the fur's; module doc).
+    pub scale: f32,
     pub smooth_k: usize,
     /// Per-vertex cap of the inward half of the window (empty: none). The
     /// stage sets it to half the inward ray-hit distance through M_outer
@@ -459,11 +468,11 @@ pub fn shell_widths(
         .iter()
         .zip(&inner)
         .map(|(o, i)| {
-            match s.reading {
+            let read = match s.reading {
                 WidthReading::Frosting => (o - i).abs(),
                 WidthReading::InnerDepth => (-i).max(0.0),
-            }
-            .max(s.min_width)
+            };
+            (read * s.scale).max(s.min_width)
         })
         .collect();
     ensure_finite("shell widths", widths.iter().copied())?;
@@ -1550,6 +1559,8 @@ fure_stage_api::stage_params! {
         inner_level: f32 = float(0.0).range(0.0, 1.0),
         /// minimum width as a fraction of D
         min_width_frac: f32 = float(0.001).range(0.0, 1.0),
+        /// factor on every width read: 1 / the fraction of the fur's depth the reading sees (module doc)
+        width_scale: f32 = float(1.0).range(0.01, 100.0).positive(),
         /// frosting: |outer - inner| (Gaussian Frosting); inner_depth: from M_outer down to the innermost crossing
         width_reading: WidthReading = string("frosting").choices(WidthReading::NAMES),
         /// cap the inward window at half the inward ray-hit distance through M_outer (thin parts: ears, muzzle)
@@ -1573,6 +1584,7 @@ impl FrostingParams {
             sigma_mode: self.sigma_n,
             sigma_floor: self.sigma_n_frac * d,
             min_width: self.min_width_frac * d,
+            scale: self.width_scale,
             smooth_k: self.smooth_k,
             inner_limit: Vec::new(),
         }
@@ -2103,6 +2115,7 @@ mod tests {
             sigma_mode: mode,
             sigma_floor: floor,
             min_width: 0.001,
+            scale: 1.0,
             smooth_k: 4,
             inner_limit: Vec::new(),
             inner_level: 0.0,
@@ -2183,7 +2196,7 @@ mod tests {
         // 1) that fills the rest of the window: Frosting's last crossing of 0.01 saturates at
         // the window's end whatever the fringe, the first crossing of 0.5 follows the fringe.
         let (h, sigma) = (0.05, 0.03);
-        let read = |fringe: f32, inner_level: f32| {
+        let read_scaled = |fringe: f32, inner_level: f32, scale: f32| {
             let mut g = Gaussians::default();
             slab(-fringe, 0.0, 0.3, h, sigma, 0.02, &mut g);
             slab(-1.2, -fringe - h, 0.3, h, sigma, 0.5, &mut g);
@@ -2192,10 +2205,12 @@ mod tests {
                 samples: 241,
                 smooth_k: 1,
                 inner_level,
+                scale,
                 ..settings(SigmaMode::Fixed, 0.2)
             };
             shell_widths(&field, &[Vec3::ZERO], &[Vec3::Z], &s).unwrap()
         };
+        let read = |fringe: f32, inner_level: f32| read_scaled(fringe, inner_level, 1.0);
         for fringe in [0.2, 0.4] {
             let r = read(fringe, 0.0);
             assert_eq!(r.saturated_inner, 1, "fringe {fringe}");
@@ -2225,6 +2240,18 @@ mod tests {
             thin.widths[0] > 0.2 && thin.widths[0] < 0.2 + 4.0 * sigma,
             "{:?}",
             thin.widths
+        );
+        // `width_scale` multiplies the width read and nothing else.
+        let scaled = read_scaled(0.2, 0.5, 1.5);
+        assert!(
+            (scaled.widths[0] - 1.5 * thin.widths[0]).abs() < 1e-5,
+            "{:?} vs 1.5 x {:?}",
+            scaled.widths,
+            thin.widths
+        );
+        assert_eq!(
+            (scaled.outer[0], scaled.inner[0]),
+            (thin.outer[0], thin.inner[0])
         );
     }
 
