@@ -343,8 +343,8 @@ fn obj_vertices(text: &str) -> Vec<[f64; 3]> {
 
 /// The same capture in metres and in centimetres (every length x 100)
 /// gives the same reconstruction up to the scale: the metric scale, the
-/// per-part strand lengths in cm, the defurred surface (x 100) and the root
-/// count.
+/// per-part strand lengths in cm (against a reseed), the defurred surface
+/// (x 100), the strands (against a reseed) and the root count.
 #[test]
 fn a_capture_in_centimetres_gives_the_metre_result_times_100() {
     let p = Project::new();
@@ -385,15 +385,39 @@ fn a_capture_in_centimetres_gives_the_metre_result_times_100() {
         read_json(&m.join("lengths/lengths.json")),
         read_json(&cm.join("lengths/lengths.json")),
     );
+    // The per-part lengths follow the Frosting widths, which follow the fit (the same in both
+    // units up to float rounding, whose last digits move a vertex's crossing a little): the
+    // yardstick is the metre capture with Frosting reseeded, which the change of units must
+    // move less than a tenth as far, summed over the parts.
+    let mut args_refit = TINY_CAPTURE.to_vec();
+    args_refit.extend([
+        "--until",
+        "lengths",
+        "--out",
+        "out_mf",
+        "--set",
+        "frosting.seed=1",
+    ]);
+    p.run("cap_m/capture.toml", &args_refit).ok();
+    let len_refit = read_json(&p.path("out_mf/capture/lengths/lengths.json"));
     let parts_m = len_m["parts"].as_object().expect("lengths.json parts");
+    let (mut units, mut refit) = (0.0f64, 0.0f64);
     for (name, part) in parts_m {
         let a = part["length_cm"].as_f64().unwrap();
         let b = len_cm["parts"][name]["length_cm"].as_f64().unwrap();
+        let c = len_refit["parts"][name]["length_cm"].as_f64().unwrap();
         assert!(
-            (a - b).abs() <= 0.01 * a.max(0.01),
+            (a - b).abs() <= 0.05 * a.max(0.01),
             "{name}: {a} cm (m) against {b} cm (cm)"
         );
+        units += (a - b).abs();
+        refit += (a - c).abs();
     }
+    eprintln!("part lengths m vs cm: {units:.3} cm in all (Frosting reseeded: {refit:.3} cm)");
+    assert!(
+        units < 0.1 * refit,
+        "part lengths differ by {units} cm in all between the units, {refit} cm for a reseed"
+    );
 
     let vm = obj_vertices(&std::fs::read_to_string(m.join("defur/root_mesh.obj")).unwrap());
     let vc = obj_vertices(&std::fs::read_to_string(cm.join("defur/root_mesh.obj")).unwrap());
@@ -429,10 +453,11 @@ fn a_capture_in_centimetres_gives_the_metre_result_times_100() {
     );
     // The learnt strands, matched by their roots: every strand's points x
     // 100 against those of the strand rooted nearest. The metric scale from
-    // the eyes differs in its last digits between the units, and the
-    // systematic root sampling runs over the cumulative expected count, so
-    // a few triangles round their count the other way (seen: 77 of 3413
-    // roots, each a whole root spacing away) and every later index shifts.
+    // the eyes differs in its last digits between the units, so a triangle
+    // whose expected root count sits at a rounding edge may round it the
+    // other way (`placement = "local"` keeps that to the triangle; the
+    // systematic sampling's running sum carried it to every later triangle:
+    // 77 of 3413 roots seen) and every later index shifts.
     let read = |dir: &std::path::Path| {
         fure_stages::formats::hair::read_hair(dir.join("codec/strands.hair")).unwrap()
     };

@@ -19,8 +19,10 @@
 //! triangle. `placement = "local"` rounds each triangle's expectation with
 //! its own offset (the golden-ratio Weyl sequence over the triangle index,
 //! shifted by the seed) instead: a triangle's count then depends on that triangle alone,
-//! and the total is exact only in expectation. Off by default until it is
-//! measured on the dev split (docs/history.md).
+//! and the total is exact only in expectation. The stage's default stays
+//! `systematic` (exact totals); the pipelines set `local`: a tie on the dev
+//! split's F, and the same capture in other units then places the same
+//! roots (docs/history.md, "Frosting: the soft coverage").
 //!
 //! **How many roots** (`roots_per_pixel`). A density in roots per cm^2 means
 //! a different model for every capture: the same 1.5 per cm^2 is about two

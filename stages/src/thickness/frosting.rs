@@ -128,20 +128,24 @@
 //! definition and 12,000 Gaussians (choosing the count that best matches the
 //! tiger's ground truth would be calibrating on it), and the options stay
 //! off. The measurements are in docs/history.md, section "Frosting: what the
-//! widths measure". `inner_level` stays off too: it answers a thicker fur
-//! where the default does not, but alone it raised the width's correlation
-//! with the truth on the tiger and lowered it on the fox. Together with
-//! `coverage = "alpha"` it raises the correlation on both dev scenes and
-//! shortens the tiger's length errors, yet the benchmark's signed F is a tie
-//! on the dev split and M_root moves further from the tiger's skin. Its
-//! widths end where the fit turns opaque, inside the fur, so they are
-//! thinner than the default's and the per-part lengths (multipliers times
-//! the widths' 75th percentile) shrink with them; and a reading that follows
-//! the fit also follows the fit's rounding-level differences (the same
-//! capture in metres and centimetres then places some roots differently
-//! unless `roots.placement = "local"`). Both stay options until the length
-//! multipliers are chosen with them (docs/history.md, "Frosting: the soft
-//! coverage").
+//! widths measure".
+//!
+//! The pipelines (tiger.toml, capture.toml) read the widths differently,
+//! chosen on the benchmark's dev split (docs/history.md, "Frosting: the
+//! opaque crossing scaled to the fur"): `inner_depth` down to where the fit
+//! turns opaque (`inner_level = 0.5`, window `range_sigmas = 6`, 61
+//! samples), the fit matched to each image's soft alpha (`coverage =
+//! "alpha"`), and that depth scaled to the fur's (`width_scale = 1.5`).
+//! `inner_level` needs the soft alpha: alone it raised the correlation with
+//! the truth on the tiger and lowered it on the fox; with it, on both. The
+//! opaque crossing lies inside the coat, so unscaled its widths put the
+//! roots too high and the lengths too short; scaling only the lengths made
+//! strands that stick out of the coat and lost F, scaling the widths (which
+//! `defur` and `lengths` both read) won it. The stage's own defaults stay
+//! Frosting's definition, so `kind = "frosting"` alone computes what the
+//! paper names; a reading that follows the fit also follows its
+//! rounding-level differences between units, which the pipelines' `roots`
+//! absorb with `placement = "local"`.
 //!
 //! # Imported widths
 //!
