@@ -205,6 +205,12 @@ pub struct Sample {
     pub v: f32,
 }
 
+/// The golden ratio's fractional part: the Weyl sequence `t * this mod 1` spreads
+/// consecutive triangles' offsets evenly. The `local` rounding offset and the in-triangle
+/// start both use it, so they are correlated (measured as is; another irrational for one of
+/// them would re-key every run).
+const GOLDEN_FRACTION: f64 = 0.618_033_988_749_895;
+
 /// Stratified sampling of `expected[t]` roots per triangle: the count rounded
 /// by `placement`, the positions a folded R2 sequence.
 pub fn sample_triangles(expected: &[f64], seed: u64, placement: Placement) -> Vec<Sample> {
@@ -226,12 +232,12 @@ pub fn sample_triangles(expected: &[f64], seed: u64, placement: Placement) -> Ve
             Placement::Local => {
                 // The triangle's own offset: the golden-ratio sequence at its index, shifted
                 // by the seed (neighbouring triangles get well-spread offsets).
-                let u = (offset + t as f64 * 0.618_033_988_749_895).fract();
+                let u = (offset + t as f64 * GOLDEN_FRACTION).fract();
                 (e.max(0.0) + u).floor() as usize
             }
         };
         // A per-triangle start so neighbouring triangles do not repeat the same pattern.
-        let tshift = (t as f64 * 0.618_033_988_749_895).fract();
+        let tshift = (t as f64 * GOLDEN_FRACTION).fract();
         for i in 0..k {
             let n = (i + 1) as f64;
             let mut x = (s1 + tshift + n * a1).fract();
