@@ -1030,3 +1030,52 @@ samples = 61
         ratio("torso")
     );
 }
+
+/// Issue 14's budget test of the thickness cue, at the benchmark's size (the tiger at 256 px,
+/// 36 views, the pipelines' reading): doubling the Gaussians moves the mean width, over seeds
+/// 0-2, by less than the seed spread. The composited-opacity profile reads the depth where the
+/// fit turns opaque, which the images fix, rather than a level of the summed density, which
+/// grows with the number of overlapping Gaussians (docs/history.md, "Frosting: the depth where
+/// the fit turns opaque, whatever the budget").
+#[test]
+fn frosting_widths_do_not_follow_the_gaussian_budget() {
+    let p = Project::new();
+    p.write(
+        "budget.toml",
+        &format!(
+            "extends = '{}'\n\n[pipeline]\nname = \"budget\"\n",
+            repo("pipelines/tiger.toml").display()
+        ),
+    );
+    let mean_width = |seed: u32, gaussians: u32| -> f64 {
+        let sets = [
+            format!("scene.seed={seed}"),
+            format!("frosting.seed={seed}"),
+            format!("frosting.gaussians={gaussians}"),
+        ];
+        let mut args = vec!["--until", "frosting"];
+        for s in &sets {
+            args.extend(["--set", s.as_str()]);
+        }
+        p.run("budget.toml", &args).ok();
+        let m = read_json(&p.path("out/budget/frosting/metrics.json"));
+        let w = &m["widths"];
+        assert!(
+            number(w, "at_min_fraction", "metrics.json") < 0.1,
+            "widths at their floor: {w}"
+        );
+        number(w, "mean", "metrics.json")
+    };
+    let stats = |v: &[f64]| {
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len() - 1) as f64;
+        (mean, var.sqrt())
+    };
+    let base: Vec<f64> = (0..3).map(|s| mean_width(s, 12_000)).collect();
+    let doubled: Vec<f64> = (0..3).map(|s| mean_width(s, 24_000)).collect();
+    let ((m1, s1), (m2, s2)) = (stats(&base), stats(&doubled));
+    assert!(
+        (m2 - m1).abs() < s1.max(s2),
+        "mean width {m1} (sd {s1}) at 12,000 Gaussians, {m2} (sd {s2}) at 24,000"
+    );
+}

@@ -1,5 +1,6 @@
 //! Statistics the stages share: percentiles (NumPy's default `linear`
-//! method), the PSNR of two images and standard normal samples.
+//! method), the PSNR of two images, standard normal samples and the standard
+//! normal CDF.
 
 use rand::Rng;
 
@@ -57,6 +58,23 @@ pub fn psnr(a: &ImageF32, b: &ImageF32) -> f32 {
     }
 }
 
+/// The standard normal CDF `Phi(x)`, from Abramowitz and Stegun's erf
+/// approximation 7.1.26 (absolute error below 1.5e-7): no special-function crate
+/// for one smooth step.
+pub fn normal_cdf(x: f32) -> f32 {
+    let z = x.abs() / std::f32::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.327_591_1 * z);
+    let poly = t
+        * (0.254_829_6
+            + t * (-0.284_496_74 + t * (1.421_413_7 + t * (-1.453_152 + t * 1.061_405_4))));
+    let erf = 1.0 - poly * (-z * z).exp();
+    if x >= 0.0 {
+        0.5 * (1.0 + erf)
+    } else {
+        0.5 * (1.0 - erf)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -69,5 +87,22 @@ mod tests {
         // numpy.percentile([1,2,3,4], 75) == 3.25
         assert!((percentile(&v, 75.0).unwrap() - 3.25).abs() < 1e-6);
         assert_eq!(percentile(&[], 50.0), None);
+    }
+
+    #[test]
+    fn normal_cdf_matches_known_values() {
+        // Phi(0) = 0.5, Phi(1) = 0.841344746, Phi(-1.96) = 0.024997895, Phi(3) = 0.998650102.
+        for (x, want) in [
+            (0.0, 0.5),
+            (1.0, 0.841_344_7),
+            (-1.96, 0.024_997_9),
+            (3.0, 0.998_650_1),
+        ] {
+            assert!(
+                (normal_cdf(x) - want).abs() < 1e-6,
+                "Phi({x}) = {}",
+                normal_cdf(x)
+            );
+        }
     }
 }

@@ -178,7 +178,7 @@ use crate::data::image::ImageF32;
 use crate::data::mesh::Mesh;
 use crate::data::shell::ShellWidths;
 use crate::maths::geom::{MeshQuery, PointIndex};
-use crate::maths::stats::{percentile, psnr, standard_normal};
+use crate::maths::stats::{normal_cdf, percentile, psnr, standard_normal};
 use crate::render::device::{ImageLoss, ViewTargets};
 use crate::render::{self, Adam, Gaussians, OutputGrads, RenderSettings};
 
@@ -202,6 +202,17 @@ fure_stage_api::param_enum! {
         /// `max(0, -inner)`: from M_outer down to the innermost crossing (the
         /// level set's extent plus how far it lies under a visual-hull M_outer).
         InnerDepth = "inner_depth",
+    }
+}
+
+fure_stage_api::param_enum! {
+    /// What is sampled along each vertex's normal to find the crossings.
+    pub enum Profile {
+        /// The Gaussians' summed density (Gaussian Frosting).
+        Density = "density",
+        /// The opacity composited from outside down to each depth: what a view
+        /// looking down the normal would see (the quantity the images constrain).
+        Opacity = "opacity",
     }
 }
 
@@ -232,6 +243,7 @@ fure_stage_api::param_enum! {
 #[derive(Debug, Clone)]
 pub struct WidthSettings {
     pub reading: WidthReading,
+    pub profile: Profile,
     pub samples: usize,
     pub knn: usize,
     pub level: f32,
@@ -322,6 +334,48 @@ impl DensityField {
         s.min(1.0)
     }
 
+    /// Opacity composited along the line `x + t n` from outside (large `t`)
+    /// down to each offset of `t` (ordered outside -> inside), over the
+    /// Gaussians among the `knn` nearest to any sample. A Gaussian's peak
+    /// opacity on the line is `opacity exp(-0.5 m)`, `m` the least Mahalanobis
+    /// distance of the line (its splat's value on the ray, as the renderer
+    /// composites it); it is laid down progressively, in proportion to the
+    /// Gaussian's mass along the line already passed (a normal CDF), so the
+    /// profile is smooth and non-decreasing inward.
+    pub fn opacity_along(&self, x: Vec3, n: Vec3, t: &[f32]) -> Vec<f32> {
+        let mut near: Vec<usize> = t
+            .iter()
+            .flat_map(|&tj| self.index.nearest_n(x + tj * n, self.knn))
+            .map(|(i, _)| i)
+            .collect();
+        near.sort_unstable();
+        near.dedup();
+        // (peak opacity on the line, offset of the peak, spread along the line)
+        let terms: Vec<(f32, f32, f32)> = near
+            .iter()
+            .filter_map(|&i| {
+                let e = x - self.means[i];
+                let ic = self.inv_cov[i];
+                let a = n.dot(ic * n);
+                if !(a > 0.0 && a.is_finite()) {
+                    return None;
+                }
+                let b = n.dot(ic * e);
+                let m = (e.dot(ic * e) - b * b / a).max(0.0);
+                let alpha = self.opacity[i] * (-0.5 * m).exp();
+                (alpha > 1e-6).then(|| (alpha, -b / a, 1.0 / a.sqrt()))
+            })
+            .collect();
+        t.iter()
+            .map(|&tj| {
+                let transmitted = terms.iter().fold(1.0f32, |acc, &(alpha, tc, sd)| {
+                    acc * (1.0 - alpha * normal_cdf((tc - tj) / sd))
+                });
+                1.0 - transmitted
+            })
+            .collect()
+    }
+
     /// Mean standard deviation along `n` of the `k` Gaussians nearest to `p`.
     pub fn sigma_along(&self, p: Vec3, n: Vec3, k: usize) -> f32 {
         let near = self.index.nearest_n(p, k.max(1));
@@ -410,7 +464,10 @@ pub fn shell_widths(
             let t: Vec<f32> = (0..ns)
                 .map(|j| r - (r + ri) * j as f32 / (ns - 1) as f32)
                 .collect();
-            let d: Vec<f32> = t.iter().map(|&tj| field.density(x + tj * n)).collect();
+            let d: Vec<f32> = match s.profile {
+                Profile::Density => t.iter().map(|&tj| field.density(x + tj * n)).collect(),
+                Profile::Opacity => field.opacity_along(x, n, &t),
+            };
             let c = crossings(&t, &d, s.level).map(|(o, i)| {
                 if s.inner_level > 0.0 {
                     (
@@ -1559,6 +1616,8 @@ fure_stage_api::stage_params! {
         knn: usize = int(16).range(1.0, 1024.0),
         /// density level of the shell boundary
         level: f32 = float(0.01).range(1e-6, 1.0),
+        /// sampled along the normal: density (Gaussian Frosting: the Gaussians' summed density) or opacity (composited from outside, what a view down the normal sees; needs inner_level)
+        profile: Profile = string("density").choices(Profile::NAMES),
         /// when > 0, the inner offset is the first crossing of this level from outside, where the fit turns opaque (0: Frosting's last crossing of `level`)
         inner_level: f32 = float(0.0).range(0.0, 1.0),
         /// minimum width as a fraction of D
@@ -1579,6 +1638,7 @@ impl FrostingParams {
     fn width_settings(&self, d: f32) -> WidthSettings {
         WidthSettings {
             reading: self.width_reading,
+            profile: self.profile,
             samples: self.samples,
             knn: self.knn,
             level: self.level,
@@ -1853,6 +1913,14 @@ impl Stage for FrostingStage {
         let p = FrostingParams::from_params(params)?;
         // A second level at or below the first would put the "inner" crossing outside the
         // outer one: a width read from nothing.
+        // Composited opacity never falls again inward: its last crossing of `level` is the
+        // window's end, so the opacity profile is read at its `inner_level` crossing only.
+        if p.profile == Profile::Opacity && p.inner_level <= 0.0 {
+            return Err(StageError::param(
+                "inner_level",
+                "expected a level above 0 with `profile = \"opacity\"` (the depth where the composited opacity reaches it is the inner offset), found 0",
+            ));
+        }
         if p.inner_level > 0.0 && p.inner_level <= p.level {
             return Err(StageError::param(
                 "inner_level",
@@ -2111,6 +2179,7 @@ mod tests {
     fn settings(mode: SigmaMode, floor: f32) -> WidthSettings {
         WidthSettings {
             reading: WidthReading::Frosting,
+            profile: Profile::Density,
             samples: 21,
             knn: 16,
             level: 0.01,
@@ -2190,6 +2259,76 @@ mod tests {
                 "{} vs {}",
                 r21.widths[k],
                 r.widths[k]
+            );
+        }
+    }
+
+    #[test]
+    fn opacity_profile_composites_along_the_normal_and_reads_depth_not_count() {
+        // One Gaussian off the line x = y = 0: its peak opacity on the line, o exp(-m / 2) with
+        // m = 1 here, is laid down half by its centre's depth and whole below it.
+        let mut one = Gaussians::default();
+        let (centre, scales) = (Vec3::new(0.1, 0.0, -0.3), Vec3::new(0.1, 0.2, 0.05));
+        one.push(centre, scales, Quat::IDENTITY, 0.8, Vec3::splat(0.5), false);
+        let a = DensityField::new(&one, 1).unwrap().opacity_along(
+            Vec3::ZERO,
+            Vec3::Z,
+            &[1.0, -0.3, -2.0],
+        );
+        let peak = 0.8 * (-0.5f32).exp();
+        assert!(a[0] < 1e-6, "{a:?}");
+        assert!((a[1] - 0.5 * peak).abs() < 1e-5, "{a:?}");
+        assert!((a[2] - peak).abs() < 1e-5, "{a:?}");
+
+        // A translucent layer 0.4 deep, once as Gaussians at spacing h and once at h / 2 (8x as
+        // many, half the size) with the opacity that lets through as much light: the depth where
+        // the composited opacity reaches 0.5 is the layer's, whatever the count.
+        let layer = |h: f32, opacity: f32| {
+            let mut g = Gaussians::default();
+            slab(-0.4, 0.0, 0.3, h, 0.6 * h, opacity, &mut g);
+            DensityField::new(&g, 16).unwrap()
+        };
+        // (The Gaussians composited are those nearest to the samples: sample the whole line.)
+        let line: Vec<f32> = (0..81).map(|j| 1.0 - j as f32 / 40.0).collect();
+        let total = |f: &DensityField| f.opacity_along(Vec3::ZERO, Vec3::Z, &line)[80];
+        let coarse = layer(0.05, 0.1);
+        let want = total(&coarse);
+        let (mut lo, mut hi) = (0.0f32, 0.1f32);
+        for _ in 0..30 {
+            let mid = 0.5 * (lo + hi);
+            if total(&layer(0.025, mid)) < want {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let fine = layer(0.025, 0.5 * (lo + hi));
+        let s = WidthSettings {
+            reading: WidthReading::InnerDepth,
+            profile: Profile::Opacity,
+            inner_level: 0.5,
+            samples: 241,
+            smooth_k: 1,
+            range_sigmas: 6.0,
+            ..settings(SigmaMode::Fixed, 0.2)
+        };
+        let depth = |f: &DensityField| {
+            shell_widths(f, &[Vec3::ZERO], &[Vec3::Z], &s)
+                .unwrap()
+                .widths[0]
+        };
+        let (d_coarse, d_fine) = (depth(&coarse), depth(&fine));
+        // Uniform absorption through the layer: 1 - (1 - A)^(z / 0.4) = 0.5.
+        let uniform = 0.4 * std::f32::consts::LN_2 / -(1.0 - want).ln();
+        assert!(want > 0.6 && want < 0.999, "total opacity {want}");
+        assert!(
+            (d_coarse - d_fine).abs() < 0.02,
+            "coarse {d_coarse}, fine {d_fine}"
+        );
+        for d in [d_coarse, d_fine] {
+            assert!(
+                (d - uniform).abs() < 0.04,
+                "depth {d}, uniform layer {uniform}"
             );
         }
     }
@@ -2276,6 +2415,16 @@ mod tests {
             e.contains("inner_level") && e.contains("above `level`"),
             "{e}"
         );
+        // The opacity profile is read at `inner_level` only: without it, refused.
+        p.0.insert(
+            "profile".into(),
+            fure_stage_api::Value::Str("opacity".into()),
+        );
+        p.0.insert("inner_level".into(), fure_stage_api::Value::Float(0.0));
+        let e = FrostingStage.validate(&p).unwrap_err().to_string();
+        assert!(e.contains("inner_level") && e.contains("opacity"), "{e}");
+        p.0.insert("inner_level".into(), fure_stage_api::Value::Float(0.5));
+        assert!(FrostingStage.validate(&p).is_ok());
     }
 
     #[test]
