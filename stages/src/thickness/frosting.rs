@@ -148,10 +148,12 @@
 //! "opacity"`, `inner_level = 0.5`, window `range_sigmas = 6`, 61 samples),
 //! the fit matched to each image's soft alpha (`coverage = "alpha"`), and
 //! that depth scaled to the fur's (`width_scale = 1.15`, the scale at which
-//! the dev scenes' summed per-part length error is least). The composited
-//! opacity makes the widths independent of the Gaussian budget at the
-//! benchmark's resolution, which the summed density's level did not; the
-//! dev split's F-scores tie.
+//! the dev scenes' summed per-part length error is least). With the
+//! composited opacity, doubling the Gaussian budget moves the mean width on
+//! the dev scenes by about the seed spread, against several times it for the
+//! summed density's level (partly because the 6-sigma window caps the
+//! fringe's slight growth with more, smaller Gaussians); the dev split's
+//! F-scores tie.
 //! `inner_level` needs the soft alpha: alone it raised the correlation with
 //! the truth on the tiger and lowered it on the fox; with it, on both. The
 //! opaque crossing lies inside the coat, so unscaled its widths put the
