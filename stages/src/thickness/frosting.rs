@@ -105,8 +105,9 @@
 //!   profile never falls again inward, so the inner offset is where it
 //!   reaches `inner_level`. The summed density's level crossing depends on how
 //!   many Gaussians overlap (`min(1, sum)` at a fixed level: more, smaller
-//!   Gaussians reach it at other depths), the composited opacity is the
-//!   quantity the images fix, whatever the budget.
+//!   Gaussians reach it at other depths); the composited opacity is the
+//!   quantity the images fix, so it moves far less with the budget (not
+//!   nothing: docs/history.md).
 //! - `coverage = "alpha"`: the fit composites the colour with, and matches its
 //!   silhouette to, the image's own alpha channel where it has one (a
 //!   renderer's soft coverage: a translucent fur fringe reads below 1)
@@ -1929,8 +1930,6 @@ impl Stage for FrostingStage {
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
         let p = FrostingParams::from_params(params)?;
-        // A second level at or below the first would put the "inner" crossing outside the
-        // outer one: a width read from nothing.
         // Composited opacity never falls again inward: its last crossing of `level` is the
         // window's end, so the opacity profile is read at its `inner_level` crossing only.
         if p.profile == Profile::Opacity && p.inner_level <= 0.0 {
@@ -1939,6 +1938,8 @@ impl Stage for FrostingStage {
                 "expected a level above 0 with `profile = \"opacity\"` (the depth where the composited opacity reaches it is the inner offset), found 0",
             ));
         }
+        // A second level at or below the first would put the "inner" crossing outside the
+        // outer one: a width read from nothing.
         if p.inner_level > 0.0 && p.inner_level <= p.level {
             return Err(StageError::param(
                 "inner_level",
