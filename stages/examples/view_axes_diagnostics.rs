@@ -17,6 +17,7 @@ mod common;
 
 use std::path::Path;
 
+use fure_stages::data::camera::pixel_footprint;
 use fure_stages::data::mesh::Mesh;
 use fure_stages::data::rootset::Roots;
 use fure_stages::data::strands::Strands;
@@ -26,7 +27,7 @@ use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
 use fure_stages::growth::learn::image::read_orientation;
-use fure_stages::growth::view_axes::{pixel_footprint, view_axes, ViewOrientation};
+use fure_stages::growth::view_axes::{view_axes, ViewOrientation};
 use glam::Mat3;
 
 use common::Res;

@@ -51,3 +51,22 @@ pub struct CameraSet {
     pub train: Vec<Camera>,
     pub test: Vec<Camera>,
 }
+
+/// The views' pixel footprint at the subject, in scene units: the median over
+/// the cameras of their distance to the centre of `outer`'s bounding box over
+/// their focal length in pixels. Radii given in pixels scale with it, so they
+/// mean the same in any unit and at any resolution.
+pub fn pixel_footprint(cameras: &[Camera], outer: &crate::data::mesh::Mesh) -> f32 {
+    let (lo, hi) = outer.bounds();
+    let centre = 0.5 * (lo + hi);
+    let mut f: Vec<f32> = cameras
+        .iter()
+        .map(|c| (c.center() - centre).length() / c.fx.abs().max(1e-12))
+        .filter(|x| x.is_finite())
+        .collect();
+    if f.is_empty() {
+        return 0.0;
+    }
+    f.sort_by(f32::total_cmp);
+    f[f.len() / 2]
+}

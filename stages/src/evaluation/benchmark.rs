@@ -25,7 +25,8 @@
 //! (`LEARNER.optimised_parameters`, and the compute seconds `costs.LEARNER.seconds`). Preprocessing
 //! time is the sum of `costs.S.seconds` over the `preprocessing` stages; peak memory the largest
 //! `costs.*.peak_rss_bytes` of the variant. Fur thickness: `defur.{outer,root,baseline}_to_skin_mean_frac`,
-//! `frosting.gt_vertex.pearson`, `lengths.length_error_mean_pct`, and for the V2 lengths (species
+//! `frosting.gt_vertex.pearson`, `frosting.resolution.{median_width_px,gt_median_thickness_px}`,
+//! `lengths.length_error_mean_pct`, and for the V2 lengths (species
 //! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
 //! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`. The size the first
 //! method chose, named on its F vs model-size chart: `LEARNER.strands`,
@@ -582,6 +583,8 @@ fn write_thickness_and_speed(
     let root = g("defur.root_to_skin_mean_frac");
     let base = g("defur.baseline_to_skin_mean_frac");
     let corr = g("frosting.gt_vertex.pearson");
+    let width_px = g("frosting.resolution.median_width_px");
+    let coat_px = g("frosting.resolution.gt_median_thickness_px");
     let inside = g("defur.root_inside_body_frac");
     let len_err = g("lengths.length_error_mean_pct");
     let len_err_v2 = g(&format!("{}.length_error_mean_pct", cfg.v2_lengths));
@@ -602,13 +605,16 @@ fn write_thickness_and_speed(
         md,
         "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
          M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
-         distance, per-vertex Pearson {}; mean per-part length error {} % (V2, species reference \
+         distance, per-vertex Pearson {}, median width {} px of the training views (the GT's fur, median \
+         over parts: {} px); mean per-part length error {} % (V2, species reference \
          lengths: {} %). Preprocessing {} s; peak memory of a stage {} MiB.\n",
         fmt_stat(outer, 2),
         fmt_stat(root, 2),
         fmt_stat(inside, 3),
         fmt_stat(base, 2),
         fmt_stat(corr, 2),
+        fmt_stat(width_px, 2),
+        fmt_stat(coat_px, 2),
         fmt_stat(len_err, 0),
         fmt_stat(len_err_v2, 0),
         fmt_stat(pre, 1),
@@ -989,7 +995,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        6
+        // 7: the fur-thickness line gives the widths and the GT coat in pixels.
+        7
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \

@@ -33,7 +33,7 @@
 //! parts' density (those the `density` table does not list) to `r / f^2`,
 //! `f` the pixel footprint at the subject in cm: the training cameras'
 //! median distance to the centre of the root mesh's bounding box over their
-//! focal length in pixels (`view_axes::pixel_footprint`, the footprint the
+//! focal length in pixels (`data::camera::pixel_footprint`, the footprint the
 //! view-axes radius is measured in), times `s_cm`. The model then grows with
 //! the resolution and the framing, not with the animal's size or the
 //! capture's unit. Needs the `views` input; metrics.json records the rule,
@@ -1206,7 +1206,7 @@ struct FootprintDensity {
 
 /// `default_density`, or with `roots_per_pixel` that many roots per square pixel footprint at the
 /// subject (the views' median camera distance to the centre of `mesh` over their focal length,
-/// [`crate::growth::view_axes::pixel_footprint`], in cm with `s_cm`).
+/// [`crate::data::camera::pixel_footprint`], in cm with `s_cm`).
 fn default_density(
     ctx: &StageContext<'_>,
     p: &RootsParams,
@@ -1226,7 +1226,7 @@ fn default_density(
         ));
     };
     let cams = crate::formats::cameras::read_views(views)?;
-    let foot = crate::growth::view_axes::pixel_footprint(&cams.train, mesh) as f64 * s_cm as f64;
+    let foot = crate::data::camera::pixel_footprint(&cams.train, mesh) as f64 * s_cm as f64;
     if !(foot.is_finite() && foot > 0.0) {
         return Err(StageError::input(
             "views",

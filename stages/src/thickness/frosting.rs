@@ -166,6 +166,28 @@
 //! rounding-level differences between units, which the pipelines' `roots`
 //! absorb with `placement = "local"`.
 //!
+//! # What the widths can resolve
+//!
+//! A coat is seen from outside down to where it turns opaque. With `n`
+//! strands per unit of skin, `w` their mean width and `T` the coat's
+//! thickness, the strand area projected on the skin is `tau = n w L` for
+//! strands of length `L` (fur that lies down covers the skin `L / T` times
+//! more than its thickness), and a layer of that optical depth turns
+//! half-opaque `ln 2 T / tau = ln 2 sin(theta) / (n w)` below its tips:
+//! a depth set by the strands' density, width and lift `theta`, not by their
+//! length. Longer fur on the same coat shows the same top layer over a skin
+//! that no longer shows through. Only a coat thin enough for the skin to
+//! show (`tau` below about 2) has a thickness the views see, and such a coat
+//! is thin. So a photometric reading follows the fur's thickness only where
+//! some coat is both several pixels thick and translucent; elsewhere it
+//! reads about the pixel: a bare surface's own reading (the eyes, nose and
+//! pads) is about one pixel at 256 px. `metrics.json` `resolution` gives the
+//! widths in pixels of the training views (`median_width_px`, and with
+//! `gt_scene` the GT's `gt_median_thickness_px`), and the run log says when
+//! the median width is under two pixels. The measurements, on the six
+//! benchmark scenes at 128, 256 and 512 px, are in docs/history.md, "Frosting:
+//! the widths follow the pixel".
+//!
 //! # Imported widths
 //!
 //! Inputs `imported_widths` (per-vertex values, [`crate::formats::scalars`])
@@ -181,7 +203,8 @@
 //! (M_outer's vertices splatted from the first training camera, or a fixed
 //! three-quarter view, coloured by width on a blue-green-yellow-red ramp from 0
 //! to the 95th percentile), `metrics` (fit loss, training PSNR, Gaussian
-//! counts, width statistics overall and per part, seconds).
+//! counts, width statistics overall and per part, the widths in pixels,
+//! seconds).
 
 use std::collections::BTreeMap;
 
@@ -1457,6 +1480,9 @@ struct Metrics {
     fit: Option<FitReport>,
     widths: WidthStats,
     part_median_width: BTreeMap<String, f32>,
+    /// The widths in pixels of the training views (with `views`): what the reading can resolve.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    resolution: Option<WidthsInPixels>,
     #[serde(skip_serializing_if = "Option::is_none")]
     gt: Option<GtComparison>,
     /// Per-vertex Pearson correlation of the widths with the true outer-to-skin distance
@@ -1482,6 +1508,51 @@ struct GtComparison {
     pearson: f32,
     /// Spearman rank correlation over fur parts.
     spearman: f32,
+}
+
+/// The widths measured in the training views' pixels (module doc, "What the widths can
+/// resolve").
+#[derive(Serialize)]
+struct WidthsInPixels {
+    /// Scene units per pixel at the subject ([`crate::data::camera::pixel_footprint`]).
+    pixel_footprint: f32,
+    /// Median and 95th percentile of the per-vertex widths, in pixels.
+    median_width_px: f32,
+    p95_width_px: f32,
+    /// Median over fur parts of the GT mean fur thickness, in pixels (with `gt_scene`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    gt_median_thickness_px: Option<f32>,
+}
+
+/// Below this median width (pixels) the log says the widths follow the pixel more than the fur.
+const RESOLVED_WIDTH_PX: f32 = 2.0;
+
+fn widths_in_pixels(
+    widths: &[f32],
+    footprint: f32,
+    gt_scene: Option<&crate::data::scene::SceneInfo>,
+) -> Option<WidthsInPixels> {
+    if !(footprint > 0.0 && footprint.is_finite()) {
+        return None;
+    }
+    let px = |q: f64| percentile(widths, q).unwrap_or(0.0) / footprint;
+    let gt_median_thickness_px = gt_scene.and_then(|sc| {
+        let t: Vec<f32> = sc
+            .parts
+            .values()
+            .filter(|p| p.fur)
+            .filter_map(|p| p.mean_thickness_cm)
+            .map(|cm| cm / sc.s_cm / footprint)
+            .filter(|x| x.is_finite())
+            .collect();
+        percentile(&t, 50.0)
+    });
+    Some(WidthsInPixels {
+        pixel_footprint: footprint,
+        median_width_px: px(50.0),
+        p95_width_px: px(95.0),
+        gt_median_thickness_px,
+    })
 }
 
 fn pearson(a: &[f32], b: &[f32]) -> f32 {
@@ -1914,7 +1985,8 @@ impl Stage for FrostingStage {
     fn version(&self) -> u32 {
         // 4: the reported width and gradient percentiles interpolate in f64
         // (the one `stats::percentile`), which may change their last bits.
-        4
+        // 5: metrics report the widths in pixels (`resolution`); the shell is unchanged.
+        5
     }
     fn doc(&self) -> &'static str {
         "Gaussian Frosting shell widths on M_outer: fit unconstrained 3D Gaussians (initialised in a band \
@@ -2066,6 +2138,20 @@ impl Stage for FrostingStage {
             .as_ref()
             .and_then(|sc| gt_comparison(sc, &part_median_width));
         let gt_vertex = gt_skin_correlation(ctx, &mesh, widths, gt_scene.as_ref())?;
+        let resolution = views.as_ref().and_then(|(_, set)| {
+            let footprint = crate::data::camera::pixel_footprint(&set.train, &mesh);
+            widths_in_pixels(widths, footprint, gt_scene.as_ref())
+        });
+        if let Some(r) = resolution
+            .as_ref()
+            .filter(|r| r.median_width_px < RESOLVED_WIDTH_PX)
+        {
+            ctx.progress.note(&format!(
+                "median shell width {:.2} px: under about {RESOLVED_WIDTH_PX} px the widths follow \
+                 the views' pixel more than the fur (frosting module doc, \"What the widths can resolve\")",
+                r.median_width_px
+            ));
+        }
         let metrics = Metrics {
             source: out.source,
             vertices: mesh.positions.len(),
@@ -2073,6 +2159,7 @@ impl Stage for FrostingStage {
             fit: out.fit,
             widths: stats,
             part_median_width,
+            resolution,
             gt,
             width_truth_pearson: gt_vertex.as_ref().map(|v| v.pearson),
             gt_vertex,
@@ -2415,6 +2502,48 @@ mod tests {
             (scaled.outer[0], scaled.inner[0]),
             (thin.outer[0], thin.inner[0])
         );
+    }
+
+    #[test]
+    fn widths_in_pixels_do_not_depend_on_the_unit() {
+        use crate::data::scene::{PartInfo, SceneInfo};
+        let part = |fur: bool, cm: f32| PartInfo {
+            fur,
+            mean_length_cm: None,
+            density_per_cm2: None,
+            mean_thickness_cm: Some(cm),
+        };
+        let scene = |s_cm: f32| SceneInfo {
+            s_cm,
+            eyes: [Vec3::ZERO, Vec3::X],
+            eye_separation_cm: None,
+            parts: [
+                ("torso".to_string(), part(true, 2.0)),
+                ("tail".to_string(), part(true, 4.0)),
+                ("neck".to_string(), part(true, 3.0)),
+                // A non-fur part's thickness is not the coat's.
+                ("nose".to_string(), part(false, 50.0)),
+            ]
+            .into_iter()
+            .collect(),
+        };
+        // Widths of 1..=5 pixels of 0.01 units; s_cm 100 makes a pixel 1 cm.
+        let widths: Vec<f32> = (1..=5).map(|k| 0.01 * k as f32).collect();
+        let a = widths_in_pixels(&widths, 0.01, Some(&scene(100.0))).unwrap();
+        assert!(
+            (a.median_width_px - 3.0).abs() < 1e-4,
+            "{}",
+            a.median_width_px
+        );
+        assert!((a.p95_width_px - 4.8).abs() < 1e-4, "{}", a.p95_width_px);
+        assert!((a.gt_median_thickness_px.unwrap() - 3.0).abs() < 1e-4);
+        // The same capture in a unit 100 times smaller: every figure in pixels is the same.
+        let small: Vec<f32> = widths.iter().map(|w| w * 100.0).collect();
+        let b = widths_in_pixels(&small, 1.0, Some(&scene(1.0))).unwrap();
+        assert!((b.median_width_px - a.median_width_px).abs() < 1e-4);
+        assert!((b.gt_median_thickness_px.unwrap() - 3.0).abs() < 1e-4);
+        // No footprint (no usable camera): no figure rather than an infinite one.
+        assert!(widths_in_pixels(&widths, 0.0, None).is_none());
     }
 
     #[test]

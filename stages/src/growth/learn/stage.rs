@@ -18,12 +18,13 @@ use super::mlp::{Mlp, PositionalEncoding};
 use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
 use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
+use crate::data::camera::pixel_footprint;
 use crate::data::mesh::Mesh;
 use crate::data::rootset::Roots;
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
-use crate::growth::view_axes::{pixel_footprint, view_axes, vote_signs, ViewOrientation};
+use crate::growth::view_axes::{view_axes, vote_signs, ViewOrientation};
 use crate::maths::geom::MeshQuery;
 
 fure_stage_api::param_enum! {
