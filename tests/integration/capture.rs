@@ -358,6 +358,8 @@ fn a_capture_rendered_by_blender_runs_end_to_end() {
     let eval = read_json(&out.join("evaluate/metrics.json"));
     let f4 = eval["prf_signed"]["4cm_40deg"]["fscore"].as_f64().unwrap();
     eprintln!("Blender-rendered capture: signed F {}", eval["prf_signed"]);
-    assert!(f4 > 60.0, "signed F at 4 cm {f4}: the strands miss Blender's hair");
+    assert!(
+        f4 > 60.0,
+        "signed F at 4 cm {f4}: the strands miss Blender's hair"
+    );
 }
-
