@@ -2148,7 +2148,9 @@ impl Stage for FrostingStage {
         {
             ctx.progress.note(&format!(
                 "median shell width {:.2} px: under about {RESOLVED_WIDTH_PX} px the widths follow \
-                 the views' pixel more than the fur (frosting module doc, \"What the widths can resolve\")",
+                 the views' pixel more than the fur, and so do the lengths read from them; known \
+                 lengths can be given to `lengths` (`species`, `reference_length_cm`) (frosting \
+                 module doc, \"What the widths can resolve\")",
                 r.median_width_px
             ));
         }
