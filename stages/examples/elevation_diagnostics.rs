@@ -14,17 +14,11 @@
 mod common;
 
 use fure_stages::data::camera::pixel_footprint;
-use fure_stages::data::mesh::Mesh;
-use fure_stages::data::rootset::Roots;
-use fure_stages::formats::cameras::read_views;
 use fure_stages::formats::hair::read_hair;
-use fure_stages::formats::json::read_json;
-use fure_stages::formats::obj::read_obj;
-use fure_stages::growth::learn::image::read_orientation;
 use fure_stages::maths::geom::{MeshQuery, PointIndex};
 use glam::{Mat3, Vec2, Vec3};
 
-use common::Res;
+use common::{OrientationRun, Res};
 
 fn main() -> std::process::ExitCode {
     common::exit_code(run())
@@ -49,14 +43,8 @@ fn median(mut v: Vec<f32>) -> f32 {
 fn run() -> Res<()> {
     let (dir, args) = common::out_dir_and_args("elevation_diagnostics OUT_DIR [radius_px]")?;
     let radius_px: f32 = args.first().map_or(Ok(4.0), |a| a.parse())?;
-    let roots: Roots = read_json(dir.join("roots/roots.json"))?;
-    let outer: Mesh = read_obj(dir.join("parts/mesh.obj"))?;
-    let cams = read_views(dir.join("scene/views"))?.train;
-    let maps = cams
-        .iter()
-        .map(|c| read_orientation(&dir.join("orientation/maps"), c))
-        .collect::<Result<Vec<_>, _>>()?;
-    let gt = read_hair(dir.join("scene/strands.hair"))?;
+    let run = OrientationRun::load(&dir)?;
+    let (roots, outer, cams, maps, gt) = (run.roots, run.outer, run.cameras, run.maps, run.gt);
     let footprint = pixel_footprint(&cams, &outer);
     let query = MeshQuery::new(&outer)?;
     let lift = 1e-3 * outer.diagonal();

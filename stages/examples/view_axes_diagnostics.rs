@@ -19,18 +19,13 @@ use std::path::Path;
 
 use fure_stages::data::camera::pixel_footprint;
 use fure_stages::data::mesh::Mesh;
-use fure_stages::data::rootset::Roots;
 use fure_stages::data::strands::Strands;
 use fure_stages::evaluation::evaluate::direction_error_deg;
-use fure_stages::formats::cameras::read_views;
-use fure_stages::formats::hair::read_hair;
-use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
-use fure_stages::growth::learn::image::read_orientation;
 use fure_stages::growth::view_axes::{view_axes, ViewOrientation};
 use glam::Mat3;
 
-use common::Res;
+use common::{OrientationRun, Res};
 
 fn main() -> std::process::ExitCode {
     common::exit_code(run())
@@ -50,15 +45,14 @@ fn run() -> Res<()> {
     } else {
         vec![0.0, 1.0, 2.0, 4.0]
     };
-    let roots: Roots = read_json(dir.join("roots/roots.json"))?;
-    let outer: Mesh = read_obj(dir.join("parts/mesh.obj"))?;
-    let cams = read_views(dir.join("scene/views"))?.train;
-    let maps = cams
-        .iter()
-        .map(|c| read_orientation(&dir.join("orientation/maps"), c))
-        .collect::<Result<Vec<_>, _>>()?;
+    let OrientationRun {
+        roots,
+        outer,
+        cameras: cams,
+        maps,
+        gt,
+    } = OrientationRun::load(dir)?;
     let views = ViewOrientation::pair(&cams, &maps);
-    let gt = read_hair(dir.join("scene/strands.hair"))?;
     let skin: Mesh = read_obj(dir.join("scene/skin.obj"))?;
     let footprint = pixel_footprint(&cams, &outer);
     println!(
