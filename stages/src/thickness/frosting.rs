@@ -169,12 +169,12 @@
 //! # What the widths can resolve
 //!
 //! A coat is seen from outside down to where it turns opaque. With `n`
-//! strands per unit of skin, `w` their mean width and `T` the coat's
-//! thickness, the strand area projected on the skin is `tau = n w L` for
-//! strands of length `L` (fur that lies down covers the skin `L / T` times
-//! more than its thickness), and a layer of that optical depth turns
+//! strands per unit of skin, `w` their mean width, `L` their length and
+//! `theta` their lift, the coat is `T = L sin(theta)` thick and the strand
+//! area projected on the skin is `tau = n w L` per unit of skin (its optical
+//! depth seen along the normal). A layer of that optical depth turns
 //! half-opaque `ln 2 T / tau = ln 2 sin(theta) / (n w)` below its tips:
-//! a depth set by the strands' density, width and lift `theta`, not by their
+//! a depth set by the strands' density, width and lift, not by their
 //! length. Longer fur on the same coat shows the same top layer over a skin
 //! that no longer shows through. Only a coat thin enough for the skin to
 //! show (`tau` below about 2) has a thickness the views see, and such a coat
