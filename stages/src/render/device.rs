@@ -255,7 +255,7 @@ impl Renderer {
     /// [`super::losses`] in the order of [`ImageLoss`] (SSIM on this
     /// device) and [`Renderer::backward`]; with a `resident` target on the
     /// GPU the same formulas with the images kept on the device
-    /// ([`super::gpu::GpuRenderer::image_step`]).
+    /// (`gpu::GpuRenderer::image_step`, feature `gpu`).
     pub fn image_step(
         &self,
         g: &Gaussians,
