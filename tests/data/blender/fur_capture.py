@@ -33,6 +33,8 @@ ap.add_argument("--resolution", type=int, default=128)
 ap.add_argument("--hairs", type=int, default=20000)
 ap.add_argument("--length", type=float, default=0.04, help="typical hair length, mesh units")
 ap.add_argument("--radius", type=float, default=0.004, help="hair root radius, mesh units")
+ap.add_argument("--rise", type=float, default=0.6,
+                help="how much the hair leaves along the normal against lying toward -x, -y")
 ap.add_argument("--samples", type=int, default=16)
 ap.add_argument("--seed", type=int, default=0)
 ap.add_argument("--bare", default="eyes,nose,pads")
@@ -94,9 +96,9 @@ ps.distribution = "RAND"
 ps.use_even_distribution = True
 # Advanced hair: each strand leaves along its emission velocity, four times as long as the
 # velocity, so fur that lies down toward the tail (-x) and the ground (-y) is a velocity of
-# 0.6 n + (-0.5, -0.4, 0), scaled to the length.
+# rise n + (-0.5, -0.4, 0), scaled to the length (rise 0.6: about 40 degrees over the skin).
 ps.use_advanced_hair = True
-ps.normal_factor = 0.6 * args.length / 4
+ps.normal_factor = args.rise * args.length / 4
 ps.object_align_factor = (-0.5 * args.length / 4, -0.4 * args.length / 4, 0.0)
 ps.factor_random = 0.1 * args.length / 4
 ps.child_type = "NONE"
