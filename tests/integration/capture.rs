@@ -278,10 +278,6 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
 /// note without a `blender` on the PATH or with FURE_SKIP_BLENDER set, as the groom's check.
 #[test]
 fn a_capture_rendered_by_blender_runs_end_to_end() {
-    if std::env::var_os("FURE_SKIP_BLENDER").is_some() {
-        eprintln!("FURE_SKIP_BLENDER set: skipping the Blender-rendered capture");
-        return;
-    }
     let p = Project::new();
     p.write("tiny.toml", &crate::method::tiny_pipeline());
     p.run("tiny.toml", &["--until", "scene"]).ok();
@@ -289,22 +285,16 @@ fn a_capture_rendered_by_blender_runs_end_to_end() {
     let s_cm = scene["s_cm"].as_f64().unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/blender/fur_capture.py");
     let length = format!("{}", 3.3 / s_cm);
-    let run = std::process::Command::new("blender")
-        .args(["-b", "--factory-startup", "--python"])
+    let mut cmd = std::process::Command::new("blender");
+    cmd.args(["-b", "--factory-startup", "--python"])
         .arg(&script)
         .arg("--")
         .arg(p.path("out/tiny/scene/skin.obj"))
         .arg(p.path("cap"))
         .args(["--views", "16", "--test-views", "1", "--resolution", "96"])
-        .args(["--hairs", "6000", "--samples", "8", "--length", &length])
-        .output();
-    let run = match run {
-        Ok(o) => o,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            eprintln!("blender not found on the PATH: skipping the Blender-rendered capture");
-            return;
-        }
-        Err(e) => panic!("blender: {e}"),
+        .args(["--hairs", "6000", "--samples", "8", "--length", &length]);
+    let Some(run) = crate::groom::blender(cmd, "the Blender-rendered capture") else {
+        return;
     };
     let stdout = String::from_utf8_lossy(&run.stdout);
     assert!(
@@ -315,23 +305,14 @@ fn a_capture_rendered_by_blender_runs_end_to_end() {
     );
 
     // The user's side: eyes and part flags, no scale; the GT side only reaches `evaluate`.
-    let parts: serde_json::Map<String, Json> = scene["parts"]
-        .as_object()
-        .unwrap()
-        .iter()
-        .map(|(k, v)| (k.clone(), serde_json::json!({ "fur": v["fur"] })))
-        .collect();
-    let capture = |s_cm: f64| {
-        serde_json::json!({
-            "s_cm": s_cm,
-            "eyes": scene["eyes"],
-            "eye_separation_cm": scene["eye_separation_cm"],
-            "parts": parts,
-        })
-        .to_string()
-    };
-    p.write("cap/scene.json", &capture(1.0));
-    p.write("cap/gt/scene.json", &capture(s_cm));
+    p.write(
+        "cap/scene.json",
+        &crate::method::capture_scene(&scene, 1.0, 1.0),
+    );
+    p.write(
+        "cap/gt/scene.json",
+        &crate::method::capture_scene(&scene, 1.0, s_cm),
+    );
     p.write("cap/labels.obj", &p.read("out/tiny/scene/skin.obj"));
     let shipped = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/capture.toml"),

@@ -63,6 +63,23 @@ print("FURE_USD " + json.dumps({
 }))
 "#;
 
+/// Runs a `blender` command: its output, or `None` with a note naming `what` is skipped when
+/// FURE_SKIP_BLENDER is set or no `blender` is on the PATH.
+pub(crate) fn blender(mut cmd: Command, what: &str) -> Option<std::process::Output> {
+    if std::env::var_os("FURE_SKIP_BLENDER").is_some() {
+        eprintln!("FURE_SKIP_BLENDER set: skipping {what}");
+        return None;
+    }
+    match cmd.output() {
+        Ok(o) => Some(o),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            eprintln!("blender not found on the PATH: skipping {what}");
+            None
+        }
+        Err(e) => panic!("blender: {e}"),
+    }
+}
+
 /// What the Blender check prints after `blender.py` ran (one JSON line).
 const BLENDER_CHECK: &str = r#"
 import bpy, json
@@ -153,14 +170,10 @@ fn tiger_groom_opens_in_blender_as_hair_curves_on_the_root_mesh() {
     }
 
     // Blender.
-    if std::env::var_os("FURE_SKIP_BLENDER").is_some() {
-        eprintln!("FURE_SKIP_BLENDER set: skipping the Blender import of the groom");
-        return;
-    }
     let script = out.join("groom/blender.py");
     let started = std::time::Instant::now();
-    let run = Command::new("blender")
-        .args(["-b", "--factory-startup", "--python"])
+    let mut cmd = Command::new("blender");
+    cmd.args(["-b", "--factory-startup", "--python"])
         .arg(&script)
         .args([
             "--python-expr",
@@ -169,15 +182,9 @@ fn tiger_groom_opens_in_blender_as_hair_curves_on_the_root_mesh() {
             "--particles",
             "--save",
         ])
-        .arg(p.path("groom.blend"))
-        .output();
-    let run = match run {
-        Ok(o) => o,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            eprintln!("blender not found on the PATH: skipping the Blender import of the groom");
-            return;
-        }
-        Err(e) => panic!("blender: {e}"),
+        .arg(p.path("groom.blend"));
+    let Some(run) = blender(cmd, "the Blender import of the groom") else {
+        return;
     };
     let stdout = String::from_utf8_lossy(&run.stdout);
     let line = stdout

@@ -287,6 +287,20 @@ fn write_capture(p: &Project, dir: &str, scale: f64) {
         crate::capture::map_obj(&p.read("out/tiny/scene/skin.obj"), |v| v.map(|x| x * scale));
     p.write(&format!("{dir}/labels.obj"), &scaled);
     let gt = read_json(&scene.join("scene.json"));
+    p.write(
+        &format!("{dir}/scene.json"),
+        &capture_scene(&gt, scale, 1.0),
+    );
+    p.write(
+        &format!("{dir}/capture.toml"),
+        &std::fs::read_to_string(repo("pipelines/capture.toml")).unwrap(),
+    );
+}
+
+/// A capture's `scene.json` from a synthetic scene's: the eyes (times `scale`), the eye
+/// separation and each part's fur flag, with `s_cm` as given (a user's file is not read for
+/// it; an `evaluate` stage's `gt_scene` is).
+pub(crate) fn capture_scene(gt: &Json, scale: f64, s_cm: f64) -> String {
     let parts: serde_json::Map<String, Json> = gt["parts"]
         .as_object()
         .unwrap()
@@ -305,17 +319,13 @@ fn write_capture(p: &Project, dir: &str, scale: f64) {
                 .collect()
         })
         .collect();
-    let capture = serde_json::json!({
-        "s_cm": 1.0,
+    serde_json::json!({
+        "s_cm": s_cm,
         "eyes": eyes,
         "eye_separation_cm": gt["eye_separation_cm"],
         "parts": parts,
-    });
-    p.write(&format!("{dir}/scene.json"), &capture.to_string());
-    p.write(
-        &format!("{dir}/capture.toml"),
-        &std::fs::read_to_string(repo("pipelines/capture.toml")).unwrap(),
-    );
+    })
+    .to_string()
 }
 
 /// The tiny capture's settings for `capture.toml`.
