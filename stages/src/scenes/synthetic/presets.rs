@@ -1,11 +1,13 @@
 //! Species presets: body proportions (in centimetres), per-part fur and colour patterns.
 //!
-//! Every preset is built by one parametric quadruped (`Dims` -> primitives) so the five animals
+//! Every preset is built by one parametric quadruped (`Dims` -> primitives) so the animals
 //! differ only in numbers: body length and height, head, muzzle, ears, legs, tail, eye separation,
 //! plus species extras (the bison's hump, horns and hooves). Sizes are those of a typical adult:
-//! tiger 190 cm nose to rump, panda 150 cm, bison 300 cm, fox 65 cm, cat 46 cm, wolf 120 cm.
-//! The wolf is the held-out shape: long legs under a short, deep chest, a long muzzle, a winter
-//! coat with a long neck ruff and a long bushy tail, and grey colours no other preset has.
+//! tiger 190 cm nose to rump, panda 150 cm, bison 300 cm, fox 65 cm, cat 46 cm, wolf 120 cm,
+//! lynx 100 cm. The wolf is the held-out shape: long legs under a short, deep chest, a long
+//! muzzle, a winter coat with a long neck ruff and a long bushy tail, and grey colours no other
+//! preset has. The lynx is the coat that stands up: its fur leaves the skin at 40-50 degrees
+//! (every other preset's at 8-35), with almost no gravity, on a short-tailed cat body.
 //!
 //! Fur lengths per part are chosen so that the mean GT strand length is near the paper's table
 //! (Artemis: panda 5.22 cm, fox 3.80 cm, cat 1.60 cm, white tiger 3.70 cm); the bison gets long
@@ -19,7 +21,7 @@ use fure_stage_api::{StageError, Value};
 use glam::{Quat, Vec3};
 
 /// The presets the stage offers.
-pub const PRESETS: &[&str] = &["tiger", "fox", "cat", "panda", "bison", "wolf"];
+pub const PRESETS: &[&str] = &["tiger", "fox", "cat", "panda", "bison", "wolf", "lynx"];
 
 /// Keys a `parts.<name>` override table may hold.
 pub const OVERRIDE_KEYS: &[&str] = &[
@@ -597,7 +599,7 @@ struct PresetData {
 }
 
 /// Every preset's data, in [`PRESETS`] order.
-const PRESET_DATA: [&PresetData; 6] = [&TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF];
+const PRESET_DATA: [&PresetData; 7] = [&TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF, &LYNX];
 
 const TIGER: PresetData = {
     const O: [f32; 3] = [0.85, 0.42, 0.12];
@@ -914,6 +916,61 @@ const WOLF: PresetData = {
             ("eyes", FurParams::bare([0.55, 0.45, 0.1])),
         ],
         pattern: Pattern::Wolf,
+    }
+};
+
+/// The coat that stands up: every fur part leaves the skin at 40-50 degrees with
+/// little gravity, where the other presets' fur lies at 8-35 degrees, so a default
+/// chosen on the dev split has to hold for fur whose elevation training must keep.
+const LYNX: PresetData = {
+    const T: [f32; 3] = [0.62, 0.52, 0.4];
+    const C: [f32; 3] = [0.88, 0.85, 0.78];
+    PresetData {
+        name: "lynx",
+        dims: Dims {
+            body_length: 100.0,
+            torso_y: 46.0,
+            torso_len: 44.0,
+            chest_r: 13.0,
+            hip_r: 12.0,
+            torso_squash: 0.8,
+            neck_len: 10.0,
+            neck_r: 8.0,
+            neck_rise: 0.5,
+            head_r: 8.0,
+            muzzle_len: 3.0,
+            muzzle_r: 3.5,
+            ear_len: 7.0,
+            ear_r: 2.5,
+            ear_taper: 0.2,
+            eye_r: 1.2,
+            eye_sep: 5.0,
+            leg_r: 4.0,
+            paw_r: 4.4,
+            tail_len: 15.0,
+            tail_r: 3.0,
+            tail_droop: 0.3,
+            tail_curve: -0.2,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(4.0, 45.0, 0.05, 0.3, 0.05, T)),
+            ("belly", FurParams::fur(4.5, 45.0, 0.05, 0.3, 0.1, C)),
+            ("neck", FurParams::fur(5.0, 50.0, 0.05, 0.35, 0.05, T)),
+            ("head", FurParams::fur(2.5, 40.0, 0.0, 0.2, 0.0, T)),
+            ("muzzle", FurParams::fur(1.2, 40.0, 0.0, 0.1, 0.0, C)),
+            ("ears", FurParams::fur(1.5, 40.0, 0.0, 0.1, 0.0, T)),
+            ("front_legs", FurParams::fur(3.0, 40.0, 0.0, 0.2, 0.05, T)),
+            ("hind_legs", FurParams::fur(3.0, 40.0, 0.0, 0.2, 0.05, T)),
+            ("paws", FurParams::fur(2.5, 40.0, 0.0, 0.1, 0.0, C)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(3.5, 45.0, 0.05, 0.3, 0.05, T)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare([0.55, 0.45, 0.1])),
+        ],
+        pattern: Pattern::Tabby,
     }
 };
 

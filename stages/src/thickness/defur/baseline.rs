@@ -15,7 +15,8 @@
 //!   region" from general knowledge of the animal (encyclopedia descriptions
 //!   of coat length: a tiger's short sleek coat, a fox's and a wolf's long
 //!   winter coat with a thick neck ruff and brush, a bison's shaggy mane over
-//!   short-haired hindquarters, a short-haired house cat), taken as about half
+//!   short-haired hindquarters, a short-haired house cat, a lynx's dense
+//!   winter coat), taken as about half
 //!   the hair length since fur lies at a shallow angle, rounded to 0.5 cm
 //!   (0.3 for the cat's face). They are coarse on purpose, never read from a
 //!   scene, and written without looking at `scene.json`; but they were written
@@ -62,7 +63,7 @@ pub const DEFAULT_THICKNESS_CM: &[(&str, f32)] = &[
 ];
 
 /// The species `defur_baseline.species` accepts.
-pub const SPECIES: &[&str] = &["panda", "tiger", "fox", "cat", "bison", "wolf"];
+pub const SPECIES: &[&str] = &["panda", "tiger", "fox", "cat", "bison", "wolf", "lynx"];
 
 /// Coarse per-part effective fur thickness (cm) of a species (module doc); `None` for an
 /// unknown species.
@@ -134,6 +135,19 @@ pub fn species_thickness_cm(species: &str) -> Option<&'static [(&'static str, f3
             ("hind_legs", 1.5),
             ("legs", 1.0),
             ("paws", 0.5),
+        ],
+        "lynx" => &[
+            ("torso", 2.0),
+            ("belly", 2.0),
+            ("neck", 2.5),
+            ("tail", 2.0),
+            ("head", 1.0),
+            ("muzzle", 0.5),
+            ("ears", 0.5),
+            ("front_legs", 1.5),
+            ("hind_legs", 1.5),
+            ("legs", 1.5),
+            ("paws", 1.0),
         ],
         _ => return None,
     })
