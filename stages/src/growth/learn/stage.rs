@@ -1275,6 +1275,9 @@ mod tests {
             // one uniform lean that styled strands cannot match, so the mechanisms are
             // checked without them.
             ("style", Value::Float(0.0)),
+            // The toys without views learn from the geometric terms alone: keep the hinge
+            // (the codec's default weight is 0) so they have something to learn.
+            ("l_chm", Value::Float(0.1)),
         ]
     }
 
