@@ -608,6 +608,7 @@ fn setup(
     p: &LearnParams,
     pe_frequencies: usize,
     components: usize,
+    chamfer: bool,
 ) -> Result<Setup, StageError> {
     let roots_path = ctx.input("roots")?;
     let mut roots: Roots = formats::json::read_json(roots_path)?;
@@ -671,7 +672,7 @@ fn setup(
     let decoder = Decoder::new(&basis.mean, &basis.components[..k]);
 
     ctx.progress.message("distance grids");
-    let geometry = distance_grids(ctx, p, &prep, &outer, &body_mesh)?;
+    let geometry = distance_grids(ctx, p, &prep, &outer, &body_mesh, chamfer)?;
     Ok(Setup {
         prep,
         keep,
@@ -783,14 +784,15 @@ fn fur_roots(lengths: &[f32], max: usize, seed: u64) -> Vec<usize> {
     pick.into_iter().map(|j| keep[j]).collect()
 }
 
-/// L_chm's and L_sdf's distance grids over both meshes' box, padded by 10%
-/// of its diagonal, and the optional chamfer gate.
+/// L_sdf's distance grid over both meshes' box, padded by 10% of its
+/// diagonal, and with `chamfer` (L_chm weighted) L_chm's grid and optional gate.
 fn distance_grids(
     ctx: &StageContext<'_>,
     p: &LearnParams,
     prep: &Prepared,
     outer: &Mesh,
     body_mesh: &Mesh,
+    chamfer: bool,
 ) -> Result<Geometry, StageError> {
     let (lo, hi) = outer.bounds();
     let (blo, bhi) = body_mesh.bounds();
@@ -801,7 +803,7 @@ fn distance_grids(
     let oq = MeshQuery::new(outer)?;
     let bq = MeshQuery::new(body_mesh)?;
     let reach = p.chamfer_reach;
-    let chamfer_gate = (reach > 0.0).then(|| {
+    let chamfer_gate = (chamfer && reach > 0.0).then(|| {
         (0..prep.len())
             .map(|j| oq.closest_point(prep.roots[j]).1 <= reach * prep.lengths[j])
             .collect::<Vec<bool>>()
@@ -814,12 +816,15 @@ fn distance_grids(
         ));
     }
     let geometry = Geometry {
-        outer: if p.chamfer_mode == ChamferMode::Inside {
+        outer: chamfer.then(|| match p.chamfer_mode {
             // Signed (negative inside): the loss's clamp at 0 makes it a hinge.
-            DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.signed_distance(x))
-        } else {
-            DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.closest_point(x).1)
-        },
+            ChamferMode::Inside => {
+                DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.signed_distance(x))
+            }
+            ChamferMode::Surface => {
+                DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| oq.closest_point(x).1)
+            }
+        }),
         body: DistanceGrid::from_fn(lo - pad, hi + pad, res, |x| bq.signed_distance(x)),
         chamfer_gate,
     };
@@ -827,8 +832,8 @@ fn distance_grids(
         "distance grids",
         geometry
             .outer
-            .values
             .iter()
+            .flat_map(|g| &g.values)
             .chain(&geometry.body.values)
             .copied(),
     )?;
@@ -860,7 +865,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         Learner::Dense(_) => (0, 0),
     };
     ctx.progress.message("reading inputs");
-    let s = setup(ctx, &p, pe_f, comps)?;
+    let s = setup(ctx, &p, pe_f, comps, learner.l_chm() > 0.0)?;
     let l = s.prep.points;
 
     let (mut model, rates) = initial_model(&learner, &s, seed);

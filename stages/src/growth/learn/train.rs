@@ -74,8 +74,9 @@ pub trait ImageTerm {
 /// Geometry the losses read.
 pub struct Geometry {
     /// Distance to M_outer: unsigned, or signed (negative inside) for the
-    /// one-sided L_chm (`chamfer_mode = "inside"`).
-    pub outer: DistanceGrid,
+    /// one-sided L_chm (`chamfer_mode = "inside"`); none where L_chm has no
+    /// weight (the grid is built only for it).
+    pub outer: Option<DistanceGrid>,
     /// Signed distance to M_root (negative inside).
     pub body: DistanceGrid,
     /// Per strand: whether L_chm pulls it (none: all; see `geomloss`).
@@ -160,13 +161,13 @@ pub fn train(
         let (points, cache) = model.forward(prep, &ids);
         let mut grad = vec![Vec3::ZERO; points.len()];
         let mut terms: Vec<(&'static str, f32)> = Vec::new();
-        if cfg.w_chm > 0.0 {
+        if let (true, Some(outer)) = (cfg.w_chm > 0.0, &geometry.outer) {
             let gate: Option<Vec<bool>> = geometry
                 .chamfer_gate
                 .as_ref()
                 .map(|g| ids.iter().map(|&i| g[i as usize]).collect());
             let v = geomloss::chamfer_tips(
-                &geometry.outer,
+                outer,
                 &points,
                 l,
                 lbar,
@@ -268,7 +269,9 @@ mod tests {
         let lo = Vec3::splat(-2.0);
         let hi = Vec3::splat(2.0);
         let geometry = Geometry {
-            outer: DistanceGrid::from_fn(lo, hi, 33, |p| (p.length() - 1.3).abs()),
+            outer: Some(DistanceGrid::from_fn(lo, hi, 33, |p| {
+                (p.length() - 1.3).abs()
+            })),
             body: DistanceGrid::from_fn(lo, hi, 33, |p| p.length() - 1.0),
             chamfer_gate: None,
         };
