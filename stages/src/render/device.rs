@@ -180,6 +180,76 @@ impl Renderer {
     }
 }
 
+impl Renderer {
+    /// [`super::blend_sums`] on this device: the CPU's one compositing pass;
+    /// on the GPU, [`Renderer::blend_sums_by_backward`] (its render and
+    /// backward kernels).
+    pub fn blend_sums(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        target: &ImageF32,
+        pixel_weight: &ImageF32,
+    ) -> Result<Vec<[f32; 4]>, RenderError> {
+        match self {
+            Renderer::Cpu => super::blend_sums(g, cam, s, target, pixel_weight),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => self.blend_sums_by_backward(g, cam, s, target, pixel_weight),
+        }
+    }
+
+    /// The sums of [`super::blend_sums`] as colour gradients: a render and
+    /// two backward passes with `target` and then `pixel_weight` (on every
+    /// channel) as the RGB output gradient, read from the degree-0 SH
+    /// gradients. The colours are set to grey first, so that no clamp at 0
+    /// zeroes a gradient and the gradients are the sums exactly.
+    pub fn blend_sums_by_backward(
+        &self,
+        g: &Gaussians,
+        cam: &Camera,
+        s: &RenderSettings,
+        target: &ImageF32,
+        pixel_weight: &ImageF32,
+    ) -> Result<Vec<[f32; 4]>, RenderError> {
+        let mut grey = g.clone();
+        for sh in &mut grey.sh {
+            *sh = [glam::Vec3::ZERO; 4];
+        }
+        let (_, state) = self.render(&grey, cam, s)?;
+        super::raster::check_image(
+            "blend pixel weight",
+            pixel_weight,
+            target.width,
+            target.height,
+            1,
+        )?;
+        let weight3 = ImageF32 {
+            width: pixel_weight.width,
+            height: pixel_weight.height,
+            channels: 3,
+            data: pixel_weight.data.iter().flat_map(|&v| [v; 3]).collect(),
+        };
+        let mut sums = vec![[0.0f32; 4]; g.len()];
+        for (c, img) in [target, &weight3].into_iter().enumerate() {
+            let dl = OutputGrads {
+                rgb: Some(img.clone()),
+                ..Default::default()
+            };
+            let gg = self.backward(&grey, cam, s, &state, &dl)?;
+            for (out, sh) in sums.iter_mut().zip(&gg.sh) {
+                let v = sh[0] / super::SH_C0;
+                if c == 0 {
+                    out[..3].copy_from_slice(&v.to_array());
+                } else {
+                    out[3] = (v.x + v.y + v.z) / 3.0;
+                }
+            }
+        }
+        Ok(sums)
+    }
+}
+
 /// One view's targets for [`Renderer::image_step`]: the colour, and what
 /// the view has of the rest.
 #[derive(Debug, Clone, Copy)]

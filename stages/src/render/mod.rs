@@ -138,7 +138,7 @@ pub use gaussians::{
     strands_backward, strands_to_gaussians, GaussianGrads, Gaussians, StrandGrads, MIN_SEGMENT,
     STRAND_OPACITY, THIN_SIGMA_PER_WIDTH,
 };
-pub use raster::{backward, render, OutputGrads, RenderOutput, RenderState};
+pub use raster::{backward, blend_sums, render, OutputGrads, RenderOutput, RenderState};
 
 /// The vector types of this API, re-exported for users without a glam dependency.
 pub use glam::{Mat3, Mat4, Quat, Vec2, Vec3};

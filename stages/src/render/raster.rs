@@ -426,12 +426,40 @@ fn composite_tile(
     h: u32,
     s: &RenderSettings,
 ) -> TileOut {
+    let mut acc = vec![[0.0f32; NF]; TP];
+    let mut nc = vec![0u32; TP];
+    let (tr, evals) = composite_tile_with(t, bins, splats, w, h, s, |k, sp, p, wgt| {
+        for c in 0..NF {
+            acc[p][c] += sp.feat[c] * wgt;
+        }
+        nc[p] = k as u32 + 1;
+    });
+    TileOut {
+        acc,
+        t: tr,
+        nc,
+        evals,
+    }
+}
+
+/// The compositing loop of tile `t`, front to back: calls `blend(k, splat,
+/// p, alpha T)` for every splat blended into tile pixel `p` (`k` its index
+/// in the tile's list), in blending order. Returns the tile's final
+/// transmittance and its Gaussian-pixel evaluations.
+#[inline(always)]
+fn composite_tile_with(
+    t: usize,
+    bins: &TileBins,
+    splats: &[Splat],
+    w: u32,
+    h: u32,
+    s: &RenderSettings,
+    mut blend: impl FnMut(usize, &Splat, usize, f32),
+) -> (Vec<f32>, u64) {
     let rect = tile_rect(t, bins.tiles_x, w, h);
     let (x0, y0, x1, y1) = rect;
     let npix = ((x1 - x0) * (y1 - y0)) as usize;
-    let mut acc = vec![[0.0f32; NF]; TP];
     let mut tr = vec![1.0f32; TP];
-    let mut nc = vec![0u32; TP];
     let mut done = [false; TP];
     let mut n_done = 0usize;
     let mut evals = 0u64;
@@ -452,23 +480,77 @@ fn composite_tile(
                 n_done += 1;
                 return;
             }
-            let wgt = alpha * tr[p];
-            for c in 0..NF {
-                acc[p][c] += sp.feat[c] * wgt;
-            }
+            blend(k, sp, p, alpha * tr[p]);
             tr[p] = tn;
-            nc[p] = k as u32 + 1;
         });
         if n_done == npix {
             break;
         }
     }
-    TileOut {
-        acc,
-        t: tr,
-        nc,
-        evals,
+    (tr, evals)
+}
+
+/// Per Gaussian, its blending weights `alpha_i T_i` summed over the pixels
+/// of a view of `g` from `cam`, weighted by two images: `target` (3
+/// channels) and `pixel_weight` (1 channel), as `[sum w t_r, sum w t_g, sum
+/// w t_b, sum w pixel_weight]`.
+///
+/// These are the colour gradients of the linear losses `sum_p target_p .
+/// rgb_p` and `sum_p pixel_weight_p (r + g + b)_p / 3` (before the SH
+/// factor), which a colour fit needs, computed in one front-to-back pass
+/// instead of a render and two backward passes. Sums are taken per (tile,
+/// Gaussian) instance and then per Gaussian in instance order, so the result
+/// does not depend on the thread count.
+pub fn blend_sums(
+    g: &Gaussians,
+    cam: &Camera,
+    s: &RenderSettings,
+    target: &ImageF32,
+    pixel_weight: &ImageF32,
+) -> Result<Vec<[f32; 4]>, RenderError> {
+    s.validate()?;
+    g.validate()?;
+    let cd = CamData::new(cam)?;
+    let (w, h) = (cd.width, cd.height);
+    check_image("blend target", target, w, h, 3)?;
+    check_image("blend pixel weight", pixel_weight, w, h, 1)?;
+    for (what, img) in [("blend target", target), ("blend pixel weight", pixel_weight)] {
+        if let Some(index) = img.data.iter().position(|v| !v.is_finite()) {
+            return Err(RenderError::NonFinite { what, index });
+        }
     }
+    let splats = project_all(g, &cd, s);
+    let bins = bin_by_tile(&splats, w, h);
+    let tiles: Vec<Vec<[f32; 4]>> = (0..bins.tile_ranges.len())
+        .into_par_iter()
+        .map(|t| {
+            let (x0, y0, x1, y1) = tile_rect(t, bins.tiles_x, w, h);
+            let mut px = [[0.0f32; 4]; TP];
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let p = ((y - y0) as u32 * TILE + (x - x0) as u32) as usize;
+                    let q = (y as u32 * w + x as u32) as usize;
+                    let rgb = &target.data[3 * q..3 * q + 3];
+                    px[p] = [rgb[0], rgb[1], rgb[2], pixel_weight.data[q]];
+                }
+            }
+            let (a, b) = bins.tile_ranges[t];
+            let mut sums = vec![[0.0f32; 4]; (b - a) as usize];
+            composite_tile_with(t, &bins, &splats, w, h, s, |k, _, p, wgt| {
+                for c in 0..4 {
+                    sums[k][c] += px[p][c] * wgt;
+                }
+            });
+            sums
+        })
+        .collect();
+    let mut out = vec![[0.0f32; 4]; g.len()];
+    for (&gi, inst) in bins.instances.iter().zip(tiles.iter().flatten()) {
+        for c in 0..4 {
+            out[gi as usize][c] += inst[c];
+        }
+    }
+    Ok(out)
 }
 
 /// Step 5: scatters the tiles into the images; also the final transmittance,

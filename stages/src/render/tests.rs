@@ -682,3 +682,65 @@ fn bad_settings_cameras_and_gradient_images_are_errors() {
     let gr = backward(&g, &cam, &s, &st, &OutputGrads::default()).unwrap();
     assert!(grads_bits(&gr).iter().all(|&b| f32::from_bits(b) == 0.0));
 }
+
+#[test]
+fn blend_sums_are_the_colour_gradients_and_add_up_to_the_alpha() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut g = random_gaussians(&mut rng, 3000);
+    for (m, s) in g.means.iter_mut().zip(g.scales.iter_mut()) {
+        *m *= 2.0;
+        *s *= 0.4;
+    }
+    let cam = test_camera(64, Vec3::new(0.3, 0.5, 4.5), Vec3::ZERO);
+    let s = RenderSettings {
+        sh_degree: 1,
+        ..Default::default()
+    };
+    let mut target = random_image(&mut rng, 64, 64, 3, 1.0);
+    target.data.iter_mut().for_each(|v| *v = v.abs());
+    let mut weight = ImageF32::new(64, 64, 1);
+    weight
+        .data
+        .iter_mut()
+        .for_each(|v| *v = if rng.gen_bool(0.7) { 1.0 } else { 0.0 });
+    let sums = blend_sums(&g, &cam, &s, &target, &weight).unwrap();
+    // Against the backward pass of the linear losses.
+    let by_backward = device::Renderer::Cpu
+        .blend_sums_by_backward(&g, &cam, &s, &target, &weight)
+        .unwrap();
+    let scale = sums.iter().flatten().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(scale > 1.0, "the view should blend whole pixels: {scale}");
+    let worst = sums
+        .iter()
+        .flatten()
+        .zip(by_backward.iter().flatten())
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(worst < 1e-4 * scale, "worst {worst} of {scale}");
+    // Every pixel's weights add up to its alpha.
+    let (out, _) = render(&g, &cam, &s).unwrap();
+    let expected: f64 = out
+        .alpha
+        .data
+        .iter()
+        .zip(&weight.data)
+        .map(|(a, w)| (a * w) as f64)
+        .sum();
+    let total: f64 = sums.iter().map(|v| v[3] as f64).sum();
+    assert!(
+        (total - expected).abs() < 1e-4 * expected,
+        "{total} against {expected}"
+    );
+    // Any thread count gives the same bits.
+    let bits = |threads: usize| -> Vec<u32> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| blend_sums(&g, &cam, &s, &target, &weight).unwrap())
+            .iter()
+            .flatten()
+            .map(|v| v.to_bits())
+            .collect()
+    };
+    assert_eq!(bits(1), bits(3));
+}

@@ -222,7 +222,7 @@ use crate::data::shell::ShellWidths;
 use crate::maths::geom::{MeshQuery, PointIndex};
 use crate::maths::stats::{normal_cdf, percentile, psnr, standard_normal};
 use crate::render::device::{ImageLoss, ViewTargets};
-use crate::render::{self, Adam, Gaussians, OutputGrads, RenderSettings};
+use crate::render::{self, Adam, Gaussians, RenderSettings};
 
 fure_stage_api::param_enum! {
     /// How `sigma_n` (the sampling half-range unit) is defined.
@@ -809,29 +809,18 @@ pub fn init_gaussians(
 }
 
 /// Total blending weight `sum_views sum_pixels alpha_i T_i` of every
-/// Gaussian (in pixels): how much of the training images it makes. Read off
-/// the colour gradient of an all-ones RGB loss with every colour set to the
-/// unclamped grey 0.5 (weights do not depend on colour).
+/// Gaussian (in pixels): how much of the training images it makes
+/// ([`render::blend_sums`] with a pixel weight of one everywhere).
 pub fn visibility(g: &Gaussians, cams: &[&Camera]) -> Result<Vec<f32>, StageError> {
-    let mut grey = g.clone();
-    for c in &mut grey.sh {
-        *c = [Vec3::ZERO; 4];
-    }
     let settings = RenderSettings::default();
     let mut v = vec![0.0f32; g.len()];
     for cam in cams {
-        let (out, state) = render::render(&grey, cam, &settings)?;
-        let ones = ImageF32 {
-            data: vec![1.0; out.rgb.data.len()],
-            ..out.rgb.clone()
-        };
-        let dl = OutputGrads {
-            rgb: Some(ones),
-            ..Default::default()
-        };
-        let gr = render::backward(&grey, cam, &settings, &state, &dl)?;
-        for (vi, c) in v.iter_mut().zip(&gr.sh) {
-            *vi += (c[0].x + c[0].y + c[0].z).abs() / (3.0 * render::SH_C0);
+        let none = ImageF32::new(cam.width, cam.height, 3);
+        let mut ones = ImageF32::new(cam.width, cam.height, 1);
+        ones.data.fill(1.0);
+        let sums = render::blend_sums(g, cam, &settings, &none, &ones)?;
+        for (vi, s) in v.iter_mut().zip(&sums) {
+            *vi += s[3];
         }
     }
     ensure_finite("Gaussian visibility", v.iter().copied())?;

@@ -84,7 +84,7 @@ use crate::data::mesh::Mesh;
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::render::device::{ImageLoss, ResidentTarget, ViewTargets};
-use crate::render::{self, GaussianGrads, Gaussians, OutputGrads, RenderSettings};
+use crate::render::{self, GaussianGrads, Gaussians, RenderSettings};
 
 /// Settings of the image losses.
 #[derive(Debug, Clone)]
@@ -368,9 +368,9 @@ impl ImageLosses {
     /// Sets every strand's colour and every body occluder's colour to the
     /// blending-weighted mean of the training pixels it makes (see the module
     /// doc): all `points` (every strand, `l` points each) are rendered with
-    /// the body in each training view; two colour backward passes give, per
-    /// Gaussian, `sum_p w(p) target(p)` and `sum_p w(p)` over the pixels inside
-    /// the view's mask. Strands or occluders no view shows keep their colour.
+    /// the body in each training view; one compositing pass
+    /// ([`render::blend_sums`]) gives, per Gaussian, `sum_p w(p) target(p)` and
+    /// `sum_p w(p)` over the pixels inside the view's mask. Strands or occluders no view shows keep their colour.
     /// `coverage` is the image formation the colours are for: the training
     /// opacity, or the held-out renders' width coverage, under which more of
     /// the layers beneath (deeper strands, the body) shows through.
@@ -386,12 +386,9 @@ impl ImageLosses {
         if n == 0 || l < 2 || points.len() != n * l {
             return Ok(0.0);
         }
+        // The blending weights do not depend on the colours.
         let grey = vec![[0.5f32; 3]; n];
-        let (mut g, segs) = self.scene(points, l, &self.widths, &grey, None, None)?;
-        for sh in &mut g.sh[segs..] {
-            *sh = [Vec3::ZERO; 4];
-        }
-        let starts: Vec<u32> = (0..=n).map(|s| (s * l) as u32).collect();
+        let (g, segs) = self.scene(points, l, &self.widths, &grey, None, None)?;
         let nb = self.body.len();
         // Per strand / occluder: weighted colour sum (3) and weight.
         let mut strand_acc = vec![[0.0f64; 4]; n];
@@ -411,7 +408,7 @@ impl ImageLosses {
         for view in (0..used).map(|j| &self.views[j * nv / used]) {
             let (w, h) = (view.camera.width, view.camera.height);
             let mut target = ImageF32::new(w, h, 3);
-            let mut weight = ImageF32::new(w, h, 3);
+            let mut weight = ImageF32::new(w, h, 1);
             for p in 0..(w * h) as usize {
                 let a = view.mask.as_ref().map_or(1.0, |m| m.data[p]);
                 if a < 0.5 {
@@ -419,49 +416,28 @@ impl ImageLosses {
                 }
                 for k in 0..3 {
                     target.data[3 * p + k] = (view.rgb.data[3 * p + k] / a).clamp(0.0, 1.0);
-                    weight.data[3 * p + k] = 1.0;
                 }
+                weight.data[p] = 1.0;
             }
             let g = coverage.apply(&g, segs, &view.camera, self.settings.low_pass);
-            let (_, state) = self.cfg.device.render(&g, &view.camera, &self.settings)?;
-            let mut sums = Vec::with_capacity(2);
-            let mut seg_sums: Vec<Vec<Vec3>> = Vec::with_capacity(2);
-            for img in [target, weight] {
-                let dl = OutputGrads {
-                    rgb: Some(img),
-                    ..Default::default()
-                };
-                let gg = self
-                    .cfg
-                    .device
-                    .backward(&g, &view.camera, &self.settings, &state, &dl)?;
-                let sg = render::strands_backward(points, &starts, &self.widths, &head(&gg, segs))?;
-                let body: Vec<Vec3> = gg.sh[segs..].iter().map(|s| s[0] / render::SH_C0).collect();
-                sums.push((sg.colors, body));
-                if !ramp_acc.is_empty() {
-                    seg_sums.push(gg.sh[..segs].iter().map(|s| s[0] / render::SH_C0).collect());
+            let sums = self
+                .cfg
+                .device
+                .blend_sums(&g, &view.camera, &self.settings, &target, &weight)?;
+            let add = |acc: &mut [f64; 4], v: &[f32; 4]| {
+                for (a, &v) in acc.iter_mut().zip(v) {
+                    *a += v as f64;
+                }
+            };
+            for (seg, v) in sums[..segs].iter().enumerate() {
+                let (s, k) = (seg / (l - 1), seg % (l - 1));
+                add(&mut strand_acc[s], v);
+                if let Some(r) = ramp_acc.get_mut(s) {
+                    r.add(ramp_position(k, l), Vec3::new(v[0], v[1], v[2]), v[3]);
                 }
             }
-            if let [wt, w] = seg_sums.as_slice() {
-                for (seg, (wt, w)) in wt.iter().zip(w).enumerate() {
-                    let (s, k) = (seg / (l - 1), seg % (l - 1));
-                    ramp_acc[s].add(ramp_position(k, l), *wt, (w.x + w.y + w.z) / 3.0);
-                }
-            }
-            let (wsum, bw) = (&sums[1].0, &sums[1].1);
-            for (i, acc) in strand_acc.iter_mut().enumerate() {
-                let c = sums[0].0[i];
-                for k in 0..3 {
-                    acc[k] += c[k] as f64;
-                }
-                acc[3] += (wsum[i].iter().sum::<f32>() / 3.0) as f64;
-            }
-            for (b, acc) in body_acc.iter_mut().enumerate() {
-                let c = sums[0].1[b];
-                for k in 0..3 {
-                    acc[k] += c[k] as f64;
-                }
-                acc[3] += ((bw[b].x + bw[b].y + bw[b].z) / 3.0) as f64;
+            for (acc, v) in body_acc.iter_mut().zip(&sums[segs..]) {
+                add(acc, v);
             }
         }
         // Below this many pixels of blending weight over all views a
@@ -1061,7 +1037,7 @@ mod tests {
                 .zip(&w)
                 .map(|(a, b)| (a * b) as f64)
                 .sum();
-            let dl = OutputGrads {
+            let dl = render::OutputGrads {
                 rgb: Some(ImageF32 {
                     width: cam.width,
                     height: cam.height,

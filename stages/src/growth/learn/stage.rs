@@ -151,7 +151,7 @@ fure_stage_api::stage_params! {
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
         held_out_coverage: HeldOutCoverage = string("width").choices(HeldOutCoverage::NAMES),
         /// Training views the final colour fit renders, evenly spaced in the views' order (0 =
-        /// all; each costs a render of every strand and two backward passes).
+        /// all; each costs one compositing pass over every strand, render::blend_sums).
         fit_color_views: usize = int(12).min(0.0),
         /// Training views the colour fit before the first iteration renders (0 = all). Those
         /// colours only make the first photometric losses meaningful; the codec's written
@@ -348,7 +348,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        11
+        12
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -375,7 +375,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        9
+        10
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \

@@ -869,3 +869,44 @@ fn gpu_image_step_matches_cpu() {
         .image_step(&sc.g, &sc.cam, &sc.s, &only(&rgb), rt.as_ref(), &bad)
         .is_err());
 }
+
+#[test]
+fn gpu_blend_sums_match_cpu() {
+    let Some(r) = gpu(GpuMode::Deterministic) else {
+        return;
+    };
+    let r = crate::render::device::Renderer::Gpu(std::sync::Arc::new(r));
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    for sc in scenes() {
+        let (w, h) = (sc.cam.width, sc.cam.height);
+        let mut target = ImageF32::new(w, h, 3);
+        target
+            .data
+            .iter_mut()
+            .for_each(|v| *v = rng.gen_range(0.0..1.0));
+        let mut weight = ImageF32::new(w, h, 1);
+        weight
+            .data
+            .iter_mut()
+            .for_each(|v| *v = if rng.gen_bool(0.7) { 1.0 } else { 0.0 });
+        let cpu = crate::render::blend_sums(&sc.g, &sc.cam, &sc.s, &target, &weight).unwrap();
+        let gpu = r
+            .blend_sums(&sc.g, &sc.cam, &sc.s, &target, &weight)
+            .unwrap();
+        let scale = cpu.iter().flatten().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
+        let diff = cpu
+            .iter()
+            .flatten()
+            .zip(gpu.iter().flatten())
+            .fold(0.0f64, |m, (a, b)| {
+                assert!(b.is_finite(), "{}: blend sum {b} on the GPU", sc.name);
+                m.max((a - b).abs() as f64)
+            });
+        eprintln!("{}: blend sums max |cpu| {scale:.3e}, max |gpu - cpu| {diff:.3e}", sc.name);
+        assert!(
+            diff <= GRAD_TOL * scale.max(1e-6),
+            "{}: blend sums differ by {diff:.3e} of {scale:.3e}",
+            sc.name
+        );
+    }
+}
