@@ -9,7 +9,11 @@
 //! of several runs, and prints milliseconds and Gaussian-pixel evaluations
 //! per second (evaluations counted by the forward pass). It then times the
 //! issue's target case (256^2, 200k segments, forward + backward <= 0.5 s)
-//! and writes every record as JSON to `target/bench/render.json`.
+//! and writes every record as JSON to `target/bench/render.json`. Every
+//! record also times a colour fit's per-view sums both ways
+//! (`render::blend_sums`, one compositing pass, against the render and two
+//! backward passes it replaces, `Renderer::blend_sums_by_backward`) and
+//! gives their ratio.
 //!
 //! Environment: `FURE_BENCH_QUICK=1` runs only the target case;
 //! `RAYON_NUM_THREADS` sets the thread count.
@@ -17,7 +21,8 @@
 use std::time::Instant;
 
 use fure_stages::data::image::ImageF32;
-use fure_stages::render::{backward, render, OutputGrads, RenderSettings, Vec3};
+use fure_stages::render::device::Renderer;
+use fure_stages::render::{backward, blend_sums, render, OutputGrads, RenderSettings, Vec3};
 
 mod common;
 #[path = "common/scene.rs"]
@@ -49,6 +54,10 @@ struct Record {
     forward_backward_ms: f64,
     /// Mean CPU time of one forward + backward (all threads).
     cpu_ms: Option<f64>,
+    /// A colour fit's sums for the view: one compositing pass, and a render
+    /// with two backward passes.
+    blend_sums_ms: f64,
+    blend_sums_by_backward_ms: f64,
 }
 
 fn bench(size: u32, segments: usize) -> Record {
@@ -88,7 +97,26 @@ fn bench(size: u32, segments: usize) -> Record {
         both.push((t2 - t0).as_secs_f64() * 1e3);
     }
     let cpu = cpu0.zip(cpu_ms()).map(|(a, b)| (b - a) / reps as f64);
+    let target = out.rgb.clone();
+    let mut weight = ImageF32::new(size, size, 1);
+    weight.data.fill(1.0);
+    let mut one_pass = Vec::new();
+    let mut by_backward = Vec::new();
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let a = blend_sums(&g, &cam, &s, &target, &weight).expect("blend_sums");
+        let t1 = Instant::now();
+        let b = Renderer::Cpu
+            .blend_sums_by_backward(&g, &cam, &s, &target, &weight)
+            .expect("blend_sums_by_backward");
+        let t2 = Instant::now();
+        std::hint::black_box((&a, &b));
+        one_pass.push((t1 - t0).as_secs_f64() * 1e3);
+        by_backward.push((t2 - t1).as_secs_f64() * 1e3);
+    }
     Record {
+        blend_sums_ms: median(one_pass),
+        blend_sums_by_backward_ms: median(by_backward),
         cpu_ms: cpu,
         size,
         segments: g.len(),
@@ -101,14 +129,17 @@ fn bench(size: u32, segments: usize) -> Record {
 
 fn print(r: &Record) {
     println!(
-        "{:>4}^2 {:>8} segs  {:>9} inst  fwd {:>8.1} ms  fwd+bwd {:>8.1} ms (cpu {:>8.1} ms)  {:>6.1} M Gaussian-px evals/s (fwd)",
+        "{:>4}^2 {:>8} segs  {:>9} inst  fwd {:>8.1} ms  fwd+bwd {:>8.1} ms (cpu {:>8.1} ms)  {:>6.1} M Gaussian-px evals/s (fwd)  colour-fit sums {:>7.1} ms (render + 2 bwd {:>7.1} ms, {:.1}x)",
         r.size,
         r.segments,
         r.instances,
         r.forward_ms,
         r.forward_backward_ms,
         r.cpu_ms.unwrap_or(f64::NAN),
-        r.evaluations as f64 / (r.forward_ms * 1e-3) / 1e6
+        r.evaluations as f64 / (r.forward_ms * 1e-3) / 1e6,
+        r.blend_sums_ms,
+        r.blend_sums_by_backward_ms,
+        r.blend_sums_by_backward_ms / r.blend_sums_ms
     );
 }
 
@@ -150,6 +181,9 @@ fn main() {
                 "forward_backward_ms": r.forward_backward_ms,
                 "forward_backward_cpu_ms": r.cpu_ms,
                 "evaluations_per_s": r.evaluations as f64 / (r.forward_ms * 1e-3),
+                "blend_sums_ms": r.blend_sums_ms,
+                "blend_sums_by_backward_ms": r.blend_sums_by_backward_ms,
+                "blend_sums_speedup": r.blend_sums_by_backward_ms / r.blend_sums_ms,
             })
         })
         .collect();

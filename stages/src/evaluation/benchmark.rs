@@ -636,6 +636,7 @@ fn write_thickness_and_speed(
     let reached = count("codec_reached_dense_final");
     let at_start = count("codec_reached_dense_final_at_start");
     let dense_flat = count("dense_start_reaches_final");
+    let dense_caught_up = count("dense_reached_codec_final");
     let start_codec = g(&format!("{}.codec_start_fscore_3cm_30deg", cfg.speedup));
     let start_dense = g(&format!("{}.dense_start_fscore_3cm_30deg", cfg.speedup));
     let _ = writeln!(
@@ -644,11 +645,13 @@ fn write_thickness_and_speed(
          (the codec reached dense's final F in {reached} of {} seeds, {at_start} of them at its \
          untrained start, where its time is its colour fit's; undefined in {dense_flat} seeds \
          where dense's own untrained start already reaches its final F; snapshot bracket {}–{}). \
-         Untrained start, F at 3 cm unsigned: codec {}, dense {}.\n",
+         Dense reached the codec's final F in {dense_caught_up} of {} seeds. Untrained start, F at \
+         3 cm unsigned: codec {}, dense {}.\n",
         fmt_stat(sp, 1),
         sc.runs.len(),
         lo.map_or("-".into(), |x| format!("{x:.1}")),
         hi.map_or("-".into(), |x| format!("{x:.1}")),
+        sc.runs.len(),
         fmt_stat(start_codec, 1),
         fmt_stat(start_dense, 1),
     );
@@ -668,7 +671,7 @@ fn write_thickness_and_speed(
     );
     sj.insert(
         "speedup".into(),
-        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "dense_start_reaches_final": dense_flat, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense)}),
+        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "dense_start_reaches_final": dense_flat, "dense_reached_codec_final": dense_caught_up, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense)}),
     );
 }
 
@@ -995,8 +998,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 7: the fur-thickness line gives the widths and the GT coat in pixels.
-        7
+        // 8: whether dense reached the codec's final F-score.
+        8
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \

@@ -39,6 +39,11 @@
 //! ratio is known within a factor `g` either way, at any time scale. When no codec snapshot reaches `F*`
 //! the speed-up is `null` and `speedup_note` says so.
 //!
+//! The reverse question, asked because dense's final F-score can lie below the codec's untrained
+//! start (the ratio then compares dense's climb with the codec's colour fit):
+//! `dense_seconds_to_codec_final` is the training time of the first dense snapshot whose F-score
+//! reaches the codec's final one, `null` when none does (`dense_reached_codec_final` 0).
+//!
 //! Charts are drawn with [`crate::evaluation::charts`]; time axes are logarithmic, snapshots at 0 s
 //! are drawn at 0.01 s.
 
@@ -110,6 +115,9 @@ pub struct Speedup {
     pub codec_at_start: bool,
     /// Dense's untrained snapshot already reaches its own final F-score: the ratio is undefined.
     pub dense_start_reaches_final: bool,
+    /// Training time of the first dense snapshot reaching the codec's final F-score (`None`:
+    /// dense never reaches it).
+    pub dense_seconds_to_codec_final: Option<f64>,
 }
 
 /// Computes [`Speedup`] from time-ordered scored snapshots of both methods (each non-empty).
@@ -186,6 +194,10 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         speedup_note: note,
         codec_at_start,
         dense_start_reaches_final,
+        dense_seconds_to_codec_final: dense
+            .iter()
+            .find(|s| s.f3() >= cl.f3())
+            .map(|s| s.seconds),
     })
 }
 
@@ -432,7 +444,8 @@ impl Stage for SpeedAccuracyStage {
         "speed_accuracy"
     }
     fn version(&self) -> u32 {
-        6
+        // 7: dense's time to the codec's final F-score.
+        7
     }
     fn doc(&self) -> &'static str {
         "Scores the codec and dense learners' strand snapshots against GT strands and charts F-score at \
@@ -502,6 +515,8 @@ impl Stage for SpeedAccuracyStage {
             "codec_seconds_to_dense_final": sp.codec_seconds_to_dense_final,
             "codec_final_fscore_3cm_30deg": sp.codec_final_fscore,
             "codec_seconds_total": sp.codec_seconds_total,
+            "dense_seconds_to_codec_final": sp.dense_seconds_to_codec_final,
+            "dense_reached_codec_final": f64::from(u8::from(sp.dense_seconds_to_codec_final.is_some())),
             "dense_best_fscore_3cm_30deg": dense.iter().map(|s| s.f3()).fold(0.0, f64::max),
             "codec_best_fscore_3cm_30deg": codec.iter().map(|s| s.f3()).fold(0.0, f64::max),
             // The untrained start (first snapshot) and whether the codec reached dense's final
@@ -702,6 +717,12 @@ mod tests {
         assert_eq!(s.dense_seconds_to_final, 1000.0);
         assert_eq!(s.codec_seconds_to_dense_final, Some(50.0));
         assert_eq!(s.speedup_to_dense_final_fscore, Some(20.0));
+        // Dense never reaches the codec's final 35.
+        assert_eq!(s.dense_seconds_to_codec_final, None);
+        let s = speedup(&codec[..2], &dense).unwrap();
+        assert_eq!(s.dense_seconds_to_codec_final, None, "31 is above dense's best 30");
+        let s = speedup(&codec[..1], &dense).unwrap();
+        assert_eq!(s.dense_seconds_to_codec_final, Some(1000.0));
         // A codec that never gets there: null with a note.
         let slow = vec![snap("codec", 10.0, 20.0, 500)];
         let s = speedup(&slow, &dense).unwrap();

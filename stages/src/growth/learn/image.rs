@@ -33,12 +33,14 @@
 //! a small ridge keeping strands seen at one segment flat),
 //! weighted by its blending weight `alpha_i T_i` there, so the renderer itself
 //! decides what is visible (occlusion by the body and by other strands). The
-//! two sums are colour gradients of two linear losses (the masked straight
-//! colour, then the mask) at a grey that no clamp touches. Why: a strand is
+//! two sums (weighted pixels, weights) are the colour gradients of two linear
+//! losses (the masked straight colour, then the mask). Why: a strand is
 //! sampled only ~8 times in the codec's 100 iterations, so from one common
 //! starting colour Adam leaves the coat a washed-out brown, and L_rgb then
-//! pulls geometry to explain colour errors. The fit renders every strand, so it
-//! costs about one training iteration per view per strand subset. The fit
+//! pulls geometry to explain colour errors. The fit composites every strand in
+//! each of its views once ([`render::blend_sums`] takes both sums in the
+//! compositing pass itself rather than through a render and two backward
+//! passes: a view costs about one forward render of the coat). The fit
 //! before training only makes the first photometric losses meaningful and
 //! renders 6 evenly spaced views (`fit_color_views_start`); the final fit,
 //! whose colours are written, renders 12 (`fit_color_views`). A second fit
