@@ -194,10 +194,7 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         speedup_note: note,
         codec_at_start,
         dense_start_reaches_final,
-        dense_seconds_to_codec_final: dense
-            .iter()
-            .find(|s| s.f3() >= cl.f3())
-            .map(|s| s.seconds),
+        dense_seconds_to_codec_final: dense.iter().find(|s| s.f3() >= cl.f3()).map(|s| s.seconds),
     })
 }
 
@@ -720,7 +717,10 @@ mod tests {
         // Dense never reaches the codec's final 35.
         assert_eq!(s.dense_seconds_to_codec_final, None);
         let s = speedup(&codec[..2], &dense).unwrap();
-        assert_eq!(s.dense_seconds_to_codec_final, None, "31 is above dense's best 30");
+        assert_eq!(
+            s.dense_seconds_to_codec_final, None,
+            "31 is above dense's best 30"
+        );
         let s = speedup(&codec[..1], &dense).unwrap();
         assert_eq!(s.dense_seconds_to_codec_final, Some(1000.0));
         // A codec that never gets there: null with a note.

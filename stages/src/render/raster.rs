@@ -514,7 +514,10 @@ pub fn blend_sums(
     let (w, h) = (cd.width, cd.height);
     check_image("blend target", target, w, h, 3)?;
     check_image("blend pixel weight", pixel_weight, w, h, 1)?;
-    for (what, img) in [("blend target", target), ("blend pixel weight", pixel_weight)] {
+    for (what, img) in [
+        ("blend target", target),
+        ("blend pixel weight", pixel_weight),
+    ] {
         if let Some(index) = img.data.iter().position(|v| !v.is_finite()) {
             return Err(RenderError::NonFinite { what, index });
         }

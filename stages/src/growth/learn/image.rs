@@ -422,10 +422,10 @@ impl ImageLosses {
                 weight.data[p] = 1.0;
             }
             let g = coverage.apply(&g, segs, &view.camera, self.settings.low_pass);
-            let sums = self
-                .cfg
-                .device
-                .blend_sums(&g, &view.camera, &self.settings, &target, &weight)?;
+            let sums =
+                self.cfg
+                    .device
+                    .blend_sums(&g, &view.camera, &self.settings, &target, &weight)?;
             let add = |acc: &mut [f64; 4], v: &[f32; 4]| {
                 for (a, &v) in acc.iter_mut().zip(v) {
                     *a += v as f64;

@@ -902,7 +902,10 @@ fn gpu_blend_sums_match_cpu() {
                 assert!(b.is_finite(), "{}: blend sum {b} on the GPU", sc.name);
                 m.max((a - b).abs() as f64)
             });
-        eprintln!("{}: blend sums max |cpu| {scale:.3e}, max |gpu - cpu| {diff:.3e}", sc.name);
+        eprintln!(
+            "{}: blend sums max |cpu| {scale:.3e}, max |gpu - cpu| {diff:.3e}",
+            sc.name
+        );
         assert!(
             diff <= GRAD_TOL * scale.max(1e-6),
             "{}: blend sums differ by {diff:.3e} of {scale:.3e}",
