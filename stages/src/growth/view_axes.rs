@@ -120,12 +120,9 @@ pub fn view_axes(
             };
             match &index {
                 Some(ix) => {
-                    let mut near: Vec<usize> =
-                        ix.within(p, radius).into_iter().map(|(j, _)| j).collect();
-                    // Fixed summation order whatever the tree returns.
-                    near.sort_unstable();
-                    for j in near {
-                        add(&own[j].0);
+                    // Ascending indices: a fixed summation order.
+                    for j in ix.indices_within(p, radius) {
+                        add(&own[j as usize].0);
                     }
                 }
                 None => add(&own[i].0),
@@ -177,14 +174,12 @@ pub fn vote_signs(
         .par_iter()
         .enumerate()
         .map(|(i, &p)| {
-            let mut near: Vec<usize> = index
-                .within(p, radius)
+            let sum: Vec3 = index
+                .indices_within(p, radius)
                 .into_iter()
-                .map(|(j, _)| j)
-                .filter(|&j| j != i)
-                .collect();
-            near.sort_unstable();
-            let sum: Vec3 = near.iter().map(|&j| frames[j].x_axis).sum();
+                .filter(|&j| j as usize != i)
+                .map(|j| frames[j as usize].x_axis)
+                .sum();
             sum.dot(frames[i].x_axis) < 0.0
         })
         .collect();

@@ -239,8 +239,26 @@ impl PointIndex {
 
     /// All points within distance `r`, closest first, as (index, distance).
     pub fn within(&self, p: Vec3, r: f32) -> Vec<(usize, f32)> {
-        let r2 = r * r;
         let mut out = Vec::new();
+        self.for_each_within(p, r, |i, d2| out.push((i as usize, d2.sqrt())));
+        sort_by_distance(&mut out);
+        out
+    }
+
+    /// The indices of all points within distance `r`, ascending: a fixed
+    /// order for sums over neighbourhoods, without [`PointIndex::within`]'s
+    /// distances and sort by them.
+    pub fn indices_within(&self, p: Vec3, r: f32) -> Vec<u32> {
+        let mut out = Vec::new();
+        self.for_each_within(p, r, |i, _| out.push(i));
+        out.sort_unstable();
+        out
+    }
+
+    /// Calls `f(index, squared distance)` for every point within distance
+    /// `r`, in the tree's order.
+    fn for_each_within(&self, p: Vec3, r: f32, mut f: impl FnMut(u32, f32)) {
+        let r2 = r * r;
         let mut stack = vec![0u32];
         while let Some(id) = stack.pop() {
             let node = self.nodes[id as usize];
@@ -251,7 +269,7 @@ impl PointIndex {
                 for &i in &self.order[node.start as usize..node.end as usize] {
                     let d2 = self.points[i as usize].distance_squared(p);
                     if d2 <= r2 {
-                        out.push((i as usize, d2.sqrt()));
+                        f(i, d2);
                     }
                 }
             } else {
@@ -259,8 +277,6 @@ impl PointIndex {
                 stack.push(node.right);
             }
         }
-        sort_by_distance(&mut out);
-        out
     }
 }
 
@@ -375,6 +391,13 @@ mod tests {
             idx.within(q, r).len(),
             brute.iter().filter(|x| x.1 <= r).count()
         );
+        let mut inside: Vec<u32> = brute
+            .iter()
+            .filter(|x| x.1 <= r)
+            .map(|x| x.0 as u32)
+            .collect();
+        inside.sort_unstable();
+        assert_eq!(idx.indices_within(q, r), inside);
     }
 
     #[test]
