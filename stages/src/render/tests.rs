@@ -417,19 +417,27 @@ fn grads_bits(gr: &GaussianGrads) -> Vec<u32> {
     v
 }
 
-#[test]
-fn images_and_gradients_are_identical_for_any_thread_count() {
-    let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let mut g = random_gaussians(&mut rng, 3000);
+/// 3,000 random Gaussians, small and spread over a 64 px view (many per
+/// tile, so thread counts and summation orders have work to differ on), and
+/// degree-1 settings.
+fn crowded_scene(rng: &mut ChaCha8Rng) -> (Gaussians, RenderSettings) {
+    let mut g = random_gaussians(rng, 3000);
     for (m, s) in g.means.iter_mut().zip(g.scales.iter_mut()) {
         *m *= 2.0;
         *s *= 0.4;
     }
-    let cam = test_camera(64, Vec3::new(0.0, 0.5, 4.5), Vec3::ZERO);
     let s = RenderSettings {
         sh_degree: 1,
         ..Default::default()
     };
+    (g, s)
+}
+
+#[test]
+fn images_and_gradients_are_identical_for_any_thread_count() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (g, s) = crowded_scene(&mut rng);
+    let cam = test_camera(64, Vec3::new(0.0, 0.5, 4.5), Vec3::ZERO);
     let loss = LinearLoss::new(&mut rng, 64, 64);
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -686,16 +694,8 @@ fn bad_settings_cameras_and_gradient_images_are_errors() {
 #[test]
 fn blend_sums_are_the_colour_gradients_and_add_up_to_the_alpha() {
     let mut rng = ChaCha8Rng::seed_from_u64(11);
-    let mut g = random_gaussians(&mut rng, 3000);
-    for (m, s) in g.means.iter_mut().zip(g.scales.iter_mut()) {
-        *m *= 2.0;
-        *s *= 0.4;
-    }
+    let (g, s) = crowded_scene(&mut rng);
     let cam = test_camera(64, Vec3::new(0.3, 0.5, 4.5), Vec3::ZERO);
-    let s = RenderSettings {
-        sh_degree: 1,
-        ..Default::default()
-    };
     let mut target = random_image(&mut rng, 64, 64, 3, 1.0);
     target.data.iter_mut().for_each(|v| *v = v.abs());
     let mut weight = ImageF32::new(64, 64, 1);
