@@ -212,11 +212,6 @@ impl Renderer {
         target: &ImageF32,
         pixel_weight: &ImageF32,
     ) -> Result<Vec<[f32; 4]>, RenderError> {
-        let mut grey = g.clone();
-        for sh in &mut grey.sh {
-            *sh = [glam::Vec3::ZERO; 4];
-        }
-        let (_, state) = self.render(&grey, cam, s)?;
         super::raster::check_image(
             "blend pixel weight",
             pixel_weight,
@@ -224,6 +219,11 @@ impl Renderer {
             target.height,
             1,
         )?;
+        let mut grey = g.clone();
+        for sh in &mut grey.sh {
+            *sh = [glam::Vec3::ZERO; 4];
+        }
+        let (_, state) = self.render(&grey, cam, s)?;
         let weight3 = ImageF32 {
             width: pixel_weight.width,
             height: pixel_weight.height,

@@ -254,12 +254,7 @@ pub fn render(
     cam: &Camera,
     s: &RenderSettings,
 ) -> Result<(RenderOutput, RenderState), RenderError> {
-    s.validate()?;
-    g.validate()?;
-    let cd = CamData::new(cam)?;
-    let (w, h) = (cd.width, cd.height);
-    let splats = project_all(g, &cd, s);
-    let bins = bin_by_tile(&splats, w, h);
+    let (w, h, splats, bins) = project_and_bin(g, cam, s)?;
     let tiles: Vec<TileOut> = (0..bins.tile_ranges.len())
         .into_par_iter()
         .map(|t| composite_tile(t, &bins, &splats, w, h, s))
@@ -277,6 +272,21 @@ pub fn render(
         evaluations,
     };
     Ok((out, state))
+}
+
+/// Steps 1 to 3 for a view of `g` from `cam` (inputs validated): the image
+/// size, every Gaussian's splat and the splats binned by tile.
+fn project_and_bin(
+    g: &Gaussians,
+    cam: &Camera,
+    s: &RenderSettings,
+) -> Result<(u32, u32, Vec<Splat>, TileBins), RenderError> {
+    s.validate()?;
+    g.validate()?;
+    let cd = CamData::new(cam)?;
+    let splats = project_all(g, &cd, s);
+    let bins = bin_by_tile(&splats, cd.width, cd.height);
+    Ok((cd.width, cd.height, splats, bins))
 }
 
 /// Step 1: projects every Gaussian (independent per Gaussian).
@@ -508,10 +518,7 @@ pub fn blend_sums(
     target: &ImageF32,
     pixel_weight: &ImageF32,
 ) -> Result<Vec<[f32; 4]>, RenderError> {
-    s.validate()?;
-    g.validate()?;
-    let cd = CamData::new(cam)?;
-    let (w, h) = (cd.width, cd.height);
+    let (w, h) = (cam.width, cam.height);
     check_image("blend target", target, w, h, 3)?;
     check_image("blend pixel weight", pixel_weight, w, h, 1)?;
     for (what, img) in [
@@ -522,8 +529,7 @@ pub fn blend_sums(
             return Err(RenderError::NonFinite { what, index });
         }
     }
-    let splats = project_all(g, &cd, s);
-    let bins = bin_by_tile(&splats, w, h);
+    let (w, h, splats, bins) = project_and_bin(g, cam, s)?;
     let tiles: Vec<Vec<[f32; 4]>> = (0..bins.tile_ranges.len())
         .into_par_iter()
         .map(|t| {
