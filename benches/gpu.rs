@@ -22,6 +22,10 @@
 //! SSIM on the device, gradients uploaded) and the GPU's fused step (images
 //! stay on the device).
 //!
+//! And the colour fits' per-Gaussian blend sums three ways: the CPU's one
+//! compositing pass, the GPU's `blend` kernels, and the GPU's render + two
+//! backward passes.
+//!
 //! After the timed runs, the same calls run once more per repetition with
 //! [`GpuRenderer::set_profiling`] on, and the time per phase (upload, each
 //! kernel group, readbacks, host packing) is printed and recorded under
@@ -125,6 +129,57 @@ fn photometric_steps(
     (med[0], med[1], med[2])
 }
 
+/// The colour fits' blend sums (`Renderer::blend_sums`, target = the CPU's
+/// render, pixel weight 1) three ways: the CPU's one compositing pass, the
+/// GPU's `blend` kernels, and the GPU's render + two backward passes (how
+/// the GPU took them before). Returns the three medians (ms) and the
+/// largest |gpu - cpu| difference with the largest |cpu| sum.
+fn blend_sums_timings(
+    gpu: &Arc<GpuRenderer>,
+    g: &fure_stages::render::Gaussians,
+    cam: &fure_stages::data::camera::Camera,
+    s: &RenderSettings,
+    out: &fure_stages::render::RenderOutput,
+    reps: usize,
+) -> ([f64; 3], f32, f32) {
+    let cpu = Renderer::Cpu;
+    let dev = Renderer::Gpu(gpu.clone());
+    let mut weight = ImageF32::new(out.rgb.width, out.rgb.height, 1);
+    weight.data.fill(1.0);
+    let target = &out.rgb;
+    let reference = cpu
+        .blend_sums(g, cam, s, target, &weight)
+        .expect("cpu sums");
+    let on_gpu = dev
+        .blend_sums(g, cam, s, target, &weight)
+        .expect("gpu sums");
+    let scale = reference
+        .iter()
+        .flatten()
+        .fold(0.0f32, |m, v| m.max(v.abs()));
+    let diff = reference
+        .iter()
+        .flatten()
+        .zip(on_gpu.iter().flatten())
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    let mut med = [0.0; 3];
+    for (way, m) in med.iter_mut().enumerate() {
+        let mut v = Vec::new();
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            let sums = match way {
+                0 => cpu.blend_sums(g, cam, s, target, &weight),
+                1 => dev.blend_sums(g, cam, s, target, &weight),
+                _ => dev.blend_sums_by_backward(g, cam, s, target, &weight),
+            };
+            std::hint::black_box(sums.expect("blend sums"));
+            v.push(ms(t0));
+        }
+        *m = median(v);
+    }
+    (med, diff, scale)
+}
+
 fn bench(
     gpu: &Arc<GpuRenderer>,
     atomic: &GpuRenderer,
@@ -211,6 +266,12 @@ fn bench(
          gpu fused {sf:>8.1} ms | cpu/gpu fused {:>6.2}x",
         sc / sf
     );
+    let ([bc, bg, bb], bdiff, bscale) = blend_sums_timings(gpu, &g, &cam, &s, &out, reps);
+    println!(
+        "{size:>4}^2 blend sums | cpu {bc:>8.1} ms | gpu kernels {bg:>8.1} ms | gpu render + 2 backward \
+         {bb:>8.1} ms | cpu/gpu {:>6.2}x | max |gpu - cpu| {bdiff:.1e} of {bscale:.1e}",
+        bc / bg
+    );
     println!(
         "{size:>4}^2 {:>8} segs {:>9} inst | cpu fwd {cf:>8.1} ms fwd+bwd {cb:>8.1} ms | gpu fwd {gf:>8.1} ms \
          fwd+bwd {gb:>8.1} ms (atomic {ab:>8.1} ms) | cpu/gpu fwd+bwd {:>6.2}x | max |rgb diff| {max_img:.1e}, \
@@ -240,6 +301,11 @@ fn bench(
         "step_gpu_host_losses_ms": sh,
         "step_gpu_fused_ms": sf,
         "cpu_over_gpu_fused_step": sc / sf,
+        "blend_sums_cpu_ms": bc,
+        "blend_sums_gpu_ms": bg,
+        "blend_sums_gpu_by_backward_ms": bb,
+        "blend_sums_max_abs_difference": bdiff,
+        "blend_sums_max_abs": bscale,
     })
 }
 

@@ -181,9 +181,8 @@ impl Renderer {
 }
 
 impl Renderer {
-    /// [`super::blend_sums`] on this device: the CPU's one compositing pass;
-    /// on the GPU, [`Renderer::blend_sums_by_backward`] (its render and
-    /// backward kernels).
+    /// [`super::blend_sums`] on this device: the CPU's one compositing pass,
+    /// or the GPU's `blend` kernels (`render/gpu/blend.rs`).
     pub fn blend_sums(
         &self,
         g: &Gaussians,
@@ -195,12 +194,13 @@ impl Renderer {
         match self {
             Renderer::Cpu => super::blend_sums(g, cam, s, target, pixel_weight),
             #[cfg(feature = "gpu")]
-            Renderer::Gpu(_) => self.blend_sums_by_backward(g, cam, s, target, pixel_weight),
+            Renderer::Gpu(r) => r.blend_sums(g, cam, s, target, pixel_weight),
         }
     }
 
-    /// The sums of [`super::blend_sums`] as colour gradients: a render and
-    /// two backward passes with `target` and then `pixel_weight` (on every
+    /// The sums of [`super::blend_sums`] as colour gradients (what they
+    /// mean, and how they were taken before; the tests and the render bench
+    /// compare against it): a render and two backward passes with `target` and then `pixel_weight` (on every
     /// channel) as the RGB output gradient, read from the degree-0 SH
     /// gradients. The colours are set to grey first, so that no clamp at 0
     /// zeroes a gradient and the gradients are the sums exactly.

@@ -518,17 +518,7 @@ pub fn blend_sums(
     target: &ImageF32,
     pixel_weight: &ImageF32,
 ) -> Result<Vec<[f32; 4]>, RenderError> {
-    let (w, h) = (cam.width, cam.height);
-    check_image("blend target", target, w, h, 3)?;
-    check_image("blend pixel weight", pixel_weight, w, h, 1)?;
-    for (what, img) in [
-        ("blend target", target),
-        ("blend pixel weight", pixel_weight),
-    ] {
-        if let Some(index) = img.data.iter().position(|v| !v.is_finite()) {
-            return Err(RenderError::NonFinite { what, index });
-        }
-    }
+    check_blend_images(target, pixel_weight, cam.width, cam.height)?;
     let (w, h, splats, bins) = project_and_bin(g, cam, s)?;
     let tiles: Vec<Vec<[f32; 4]>> = (0..bins.tile_ranges.len())
         .into_par_iter()
@@ -560,6 +550,27 @@ pub fn blend_sums(
         }
     }
     Ok(out)
+}
+
+/// The images of [`blend_sums`] (shared with the GPU path): `target` 3
+/// channels and `pixel_weight` 1, both `w` x `h`, every value finite.
+pub(crate) fn check_blend_images(
+    target: &ImageF32,
+    pixel_weight: &ImageF32,
+    w: u32,
+    h: u32,
+) -> Result<(), RenderError> {
+    check_image("blend target", target, w, h, 3)?;
+    check_image("blend pixel weight", pixel_weight, w, h, 1)?;
+    for (what, img) in [
+        ("blend target", target),
+        ("blend pixel weight", pixel_weight),
+    ] {
+        if let Some(index) = img.data.iter().position(|v| !v.is_finite()) {
+            return Err(RenderError::NonFinite { what, index });
+        }
+    }
+    Ok(())
 }
 
 /// Step 5: scatters the tiles into the images; also the final transmittance,

@@ -66,6 +66,7 @@ use super::{losses, RenderError, RenderSettings, TILE};
 use crate::data::camera::Camera;
 use crate::data::image::ImageF32;
 
+mod blend;
 mod gabor;
 mod pool;
 #[cfg(test)]
@@ -180,6 +181,8 @@ struct Kernels {
     ranges: wgpu::ComputePipeline,
     forward: wgpu::ComputePipeline,
     backward: wgpu::ComputePipeline,
+    blend: wgpu::ComputePipeline,
+    blend_gather: wgpu::ComputePipeline,
     project_backward: wgpu::ComputePipeline,
     ssim_maps: wgpu::ComputePipeline,
     ssim_blur: wgpu::ComputePipeline,
@@ -1557,6 +1560,8 @@ impl Kernels {
             ranges: make("ranges", &[COMMON, include_str!("ranges.wgsl")]),
             forward: make("forward", &[COMMON, include_str!("forward.wgsl")]),
             backward: make("backward", &[COMMON, include_str!("backward.wgsl")]),
+            blend: make("blend", &[COMMON, include_str!("blend.wgsl")]),
+            blend_gather: make("blend_gather", &[COMMON, include_str!("blend_gather.wgsl")]),
             project_backward: make(
                 "project_backward",
                 &[COMMON, PROJ, include_str!("project_backward.wgsl")],

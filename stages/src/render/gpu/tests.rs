@@ -872,10 +872,15 @@ fn gpu_image_step_matches_cpu() {
 
 #[test]
 fn gpu_blend_sums_match_cpu() {
+    // The blend kernels use instance slots in both modes: the atomic
+    // renderer must give the same bits.
     let Some(r) = gpu(GpuMode::Deterministic) else {
         return;
     };
     let r = crate::render::device::Renderer::Gpu(std::sync::Arc::new(r));
+    let atomic = crate::render::device::Renderer::Gpu(std::sync::Arc::new(
+        gpu(GpuMode::Atomic).expect("a second renderer on the same adapter"),
+    ));
     let mut rng = ChaCha8Rng::seed_from_u64(31);
     for sc in scenes() {
         let (w, h) = (sc.cam.width, sc.cam.height);
@@ -904,6 +909,17 @@ fn gpu_blend_sums_match_cpu() {
             });
         eprintln!(
             "{}: blend sums max |cpu| {scale:.3e}, max |gpu - cpu| {diff:.3e}",
+            sc.name
+        );
+        let again = atomic
+            .blend_sums(&sc.g, &sc.cam, &sc.s, &target, &weight)
+            .unwrap();
+        assert!(
+            gpu.iter()
+                .flatten()
+                .map(|v| v.to_bits())
+                .eq(again.iter().flatten().map(|v| v.to_bits())),
+            "{}: blend sums differ between two GPU runs",
             sc.name
         );
         assert!(
