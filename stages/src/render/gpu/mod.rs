@@ -29,6 +29,12 @@
 //! 8. `project_backward` (per Gaussian): sums its slots in tile order (as the
 //!    CPU does) and applies the adjoint of the projection.
 //!
+//! 9. `blend` + `blend_gather` (`blend.rs`): the colour fits' per-Gaussian
+//!    blend sums ([`crate::render::blend_sums`]) after a render that reads no
+//!    image back: `forward`'s layout and arithmetic, each instance's four
+//!    sums reduced like `backward`'s records into its slot, then per Gaussian
+//!    its slots in tile order.
+//!
 //! Also here: the photometric loss's SSIM term ([`GpuRenderer::ssim`]:
 //! `ssim_maps`, `ssim_blur` along rows then columns, `ssim_terms`, the
 //! adjoints through the window again, `ssim_grad`), because at view sizes of
