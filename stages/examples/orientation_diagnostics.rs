@@ -5,7 +5,12 @@
 //! ```sh
 //! fure run pipelines/tiger.toml --until orientation
 //! cargo run -p fure-stages --release --example orientation_diagnostics -- out/tiger [KEY=VALUE ...]
+//! cargo run -p fure-stages --release --example orientation_diagnostics -- CAPTURE_DIR [KEY=VALUE ...]
 //! ```
+//!
+//! `CAPTURE_DIR` is a capture written by `tests/data/blender/fur_capture.py` (`views/`, and the
+//! hair Blender rendered in `gt/`): it has no depth map or fur mask, so the nearest GT segment
+//! per pixel stands for the visible surface and the silhouette for the fur mask.
 //!
 //! The GT strands are projected into every training view directly (no renderer):
 //! per pixel, the structure tensor of the GT segments whose midpoint falls in it
@@ -159,6 +164,36 @@ fn gt_structure_tensor(
     t
 }
 
+/// Per pixel, the depth of the nearest GT segment midpoint projecting into it (0 where none).
+fn gt_depth(
+    gt: &fure_stages::data::strands::Strands,
+    cam: &fure_stages::data::camera::Camera,
+    w: u32,
+    h: u32,
+) -> ImageF32 {
+    let mut d = ImageF32::new(w, h, 1);
+    for s in 0..gt.len() {
+        for seg in gt.strand(s).windows(2) {
+            let (a, za) = cam.project(seg[0]);
+            let (b, zb) = cam.project(seg[1]);
+            if za <= 0.0 || zb <= 0.0 {
+                continue;
+            }
+            let m = 0.5 * (a + b);
+            let (x, y) = (m.x.floor() as i64, m.y.floor() as i64);
+            if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 {
+                continue;
+            }
+            let v = &mut d.data[(y as u32 * w + x as u32) as usize];
+            let z = 0.5 * (za + zb);
+            if *v == 0.0 || z < *v {
+                *v = z;
+            }
+        }
+    }
+    d
+}
+
 fn run() -> Res<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let dir = Path::new(
@@ -166,11 +201,17 @@ fn run() -> Res<()> {
             .ok_or("usage: orientation_diagnostics RUN_DIR [KEY=VALUE ...]")?,
     );
     let (gp, factor, min_confidence) = params(&args[1..])?;
-    let views = dir.join("scene/views");
+    // A pipeline run (`scene/` holds the synthetic scene) or a capture written by
+    // tests/data/blender/fur_capture.py (`views/`, and the hair it rendered in `gt/`).
+    let (views, gt_dir) = if dir.join("scene/views").is_dir() {
+        (dir.join("scene/views"), dir.join("scene"))
+    } else {
+        (dir.join("views"), dir.join("gt"))
+    };
     let cams = read_views(&views)?;
-    let gt = read_hair(dir.join("scene/strands.hair"))?;
+    let gt = read_hair(gt_dir.join("strands.hair"))?;
     let scene: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("scene/scene.json"))?)?;
+        serde_json::from_slice(&std::fs::read(gt_dir.join("scene.json"))?)?;
     let s_cm = scene["s_cm"].as_f64().ok_or("scene.json: no s_cm")? as f32;
     let tolerance = DEPTH_TOLERANCE_CM / s_cm;
     let mut total = Agreement::default();
@@ -188,8 +229,16 @@ fn run() -> Res<()> {
             orientation_maps(&im, mask.as_ref().map(|m| m.data.as_slice()), &gp);
         normalise_confidence(&mut conf);
         let stem = cam.file_path.trim_end_matches(".png");
-        let fur = read_image(views.join(format!("{stem}_fur.png")))?;
-        let depth = read_image(views.join(format!("{stem}_depth.exr")))?;
+        // Without the synthetic scene's fur mask and depth map (a Blender capture): the
+        // silhouette, and the nearest GT segment per pixel as the visible surface.
+        let fur = match read_image(views.join(format!("{stem}_fur.png"))) {
+            Ok(f) => f,
+            Err(_) => mask.clone().ok_or("no fur mask and no silhouette")?,
+        };
+        let depth = match read_image(views.join(format!("{stem}_depth.exr"))) {
+            Ok(d) => d,
+            Err(_) => gt_depth(&gt, cam, fur.width, fur.height),
+        };
         let (w, h) = (depth.width, depth.height);
         let tensor = gt_structure_tensor(&gt, cam, &depth, tolerance);
         let mut a = Agreement::default();

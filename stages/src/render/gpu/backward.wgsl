@@ -82,21 +82,13 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
         var gop = 0.0;
         var gf0 = vec3<f32>(0.0);
         var gf1 = vec4<f32>(0.0);
-        let r0 = bitcast<i32>(sp.b.w);
-        let r1 = bitcast<i32>(sp.f0.w);
-        var hit = k < nc && y >= r0 && y <= r1;
-        if hit {
-            let s = row_span(sp.a.xy, sp.a.z, sp.a.w, sp.b.x, sp.b.z, y);
-            hit = x >= s.x && x <= s.y;
-        }
-        if hit {
+        if k < nc && covers(sp.a, sp.b, sp.f0.w, x, y) {
             let ca = sp.a.z;
             let cb = sp.a.w;
             let cc = sp.b.x;
             let dx = px - sp.a.x;
             let dy = py - sp.a.y;
-            let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-            let gauss = exp(min(power, 0.0));
+            let gauss = falloff(sp.a, sp.b, px, py);
             let raw = sp.b.y * gauss;
             let clamped = raw > P.alpha_max;
             let alpha = select(raw, P.alpha_max, clamped);

@@ -52,20 +52,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
         let key = keys[base + k];
         let sp = S[key.z];
         var c = vec4<f32>(0.0);
-        let r0 = bitcast<i32>(sp.b.w);
-        let r1 = bitcast<i32>(sp.f0.w);
         // k < nc: the pixel had not stopped (its last blend is at nc - 1).
-        var hit = k < nc && y >= r0 && y <= r1;
-        if hit {
-            let s = row_span(sp.a.xy, sp.a.z, sp.a.w, sp.b.x, sp.b.z, y);
-            hit = x >= s.x && x <= s.y;
-        }
-        if hit {
-            let dx = px - sp.a.x;
-            let dy = py - sp.a.y;
-            let power = -0.5 * (sp.a.z * dx * dx + sp.b.x * dy * dy) - sp.a.w * dx * dy;
-            let gauss = exp(min(power, 0.0));
-            let raw = sp.b.y * gauss;
+        if k < nc && covers(sp.a, sp.b, sp.f0.w, x, y) {
+            let raw = sp.b.y * falloff(sp.a, sp.b, px, py);
             let alpha = select(raw, P.alpha_max, raw > P.alpha_max);
             if !(alpha < P.alpha_min || !(alpha > 0.0)) {
                 c = v * (alpha * tr);

@@ -78,21 +78,11 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             }
             let a = sa[kk];
             let b = sb[kk];
-            let r0 = bitcast<i32>(b.w);
-            let r1 = bitcast<i32>(sf0[kk].w);
-            if y < r0 || y > r1 {
-                continue;
-            }
-            let s = row_span(a.xy, a.z, a.w, b.x, b.z, y);
-            if x < s.x || x > s.y {
+            if !covers(a, b, sf0[kk].w, x, y) {
                 continue;
             }
             evals += 1u;
-            let dx = px - a.x;
-            let dy = py - a.y;
-            let power = -0.5 * (a.z * dx * dx + b.x * dy * dy) - a.w * dx * dy;
-            let gauss = exp(min(power, 0.0));
-            let raw = b.y * gauss;
+            let raw = b.y * falloff(a, b, px, py);
             let alpha = select(raw, P.alpha_max, raw > P.alpha_max);
             if alpha < P.alpha_min || !(alpha > 0.0) {
                 continue;
