@@ -600,6 +600,22 @@ fn gpu_errors_are_the_cpus() {
         .backward(&g, &cam, &RenderSettings::default(), &st, &dl)
         .unwrap_err();
     assert!(e.to_string().contains("rgb gradient"), "{e}");
+    // The blend sums' images: checked before anything runs, as on the CPU.
+    let s = RenderSettings::default();
+    let (target, weight) = (ImageF32::new(16, 16, 3), ImageF32::new(16, 16, 1));
+    for (t, w, what) in [
+        (&ImageF32::new(8, 16, 3), &weight, "blend target"),
+        (&target, &ImageF32::new(16, 16, 3), "blend pixel weight"),
+    ] {
+        let cpu = crate::render::blend_sums(&g, &cam, &s, t, w).unwrap_err();
+        let e = r.blend_sums(&g, &cam, &s, t, w).unwrap_err();
+        assert_eq!(e.to_string(), cpu.to_string());
+        assert!(e.to_string().contains(what), "{e}");
+    }
+    let mut bad = target.clone();
+    bad.data[5] = f32::INFINITY;
+    let e = r.blend_sums(&g, &cam, &s, &bad, &weight).unwrap_err();
+    assert!(e.to_string().contains("blend target"), "{e}");
     g.means[0].x = f32::NAN;
     let e = r.render(&g, &cam, &RenderSettings::default()).unwrap_err();
     assert!(e.to_string().contains("gaussians.means[0]"), "{e}");
