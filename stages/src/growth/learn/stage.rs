@@ -142,6 +142,10 @@ fure_stage_api::stage_params! {
         /// Frames whose pooled lines agree less than this (coherence in [0, 1]) keep their
         /// start (view_axes_radius_px).
         view_axes_min_coherence: f32 = float(0.2).range(0.0, 1.0),
+        /// Gate the turn on the excess coherence (the pooled lines' agreement beyond the
+        /// expectation under random map angles, growth::view_axes) instead of the coherence
+        /// (unset = false).
+        view_axes_excess_gate: Option<bool> = optional(ParamType::Bool),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
@@ -596,6 +600,8 @@ pub struct ViewAxesReport {
     pub mean_turn_deg: f32,
     /// Mean coherence over all strands.
     pub mean_coherence: f32,
+    /// Mean excess coherence (over random maps' expectation) over all strands.
+    pub mean_excess_coherence: f32,
     /// Fraction of the strands no view saw.
     pub unseen_fraction: f32,
     /// Fraction of the strands flipped by the neighbours' sign vote (view_axes_sign_vote).
@@ -719,7 +725,12 @@ fn turn_onto_view_axes(
         if a.views == 0 {
             unseen += 1;
         }
-        if a.coherence >= p.view_axes_min_coherence && a.coherence > 0.0 {
+        let agreement = if p.view_axes_excess_gate == Some(true) {
+            a.excess_coherence
+        } else {
+            a.coherence
+        };
+        if agreement >= p.view_axes_min_coherence && a.coherence > 0.0 {
             *f *= Mat3::from_rotation_z(a.turn);
             turned += 1;
             turn_sum += a.turn.abs().to_degrees() as f64;
@@ -743,6 +754,8 @@ fn turn_onto_view_axes(
             0.0
         },
         mean_coherence: (axes.iter().map(|a| a.coherence as f64).sum::<f64>() / n as f64) as f32,
+        mean_excess_coherence: (axes.iter().map(|a| a.excess_coherence as f64).sum::<f64>()
+            / n as f64) as f32,
         unseen_fraction: unseen as f32 / n,
     }))
 }
