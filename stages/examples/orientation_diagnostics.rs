@@ -122,56 +122,15 @@ fn at(m: &ImageF32, x: u32, y: u32, w: u32, h: u32) -> f32 {
 /// GT segments whose midpoint lies at most this far behind the rendered GT depth count as visible.
 const DEPTH_TOLERANCE_CM: f32 = 1.5;
 
-/// Per pixel, the structure tensor `[du du, du dv, dv dv]` of the visible GT segments whose
-/// projected midpoint falls in it, each weighted by its projected length (a direct projection
-/// of the polylines, independent of both renderers).
-fn gt_structure_tensor(
-    gt: &fure_stages::data::strands::Strands,
-    cam: &fure_stages::data::camera::Camera,
-    depth: &ImageF32,
-    tolerance: f32,
-) -> Vec<[f32; 3]> {
-    let (w, h) = (depth.width as i64, depth.height as i64);
-    let mut t = vec![[0.0f32; 3]; (w * h) as usize];
-    for s in 0..gt.len() {
-        for seg in gt.strand(s).windows(2) {
-            let (a, za) = cam.project(seg[0]);
-            let (b, zb) = cam.project(seg[1]);
-            if za <= 0.0 || zb <= 0.0 {
-                continue;
-            }
-            let m = 0.5 * (a + b);
-            let (x, y) = (m.x.floor() as i64, m.y.floor() as i64);
-            if x < 0 || y < 0 || x >= w || y >= h {
-                continue;
-            }
-            let i = (y * w + x) as usize;
-            let d = depth.data[i * depth.channels as usize];
-            if d <= 0.0 || 0.5 * (za + zb) > d + tolerance {
-                continue;
-            }
-            let dir = b - a;
-            let len = dir.length();
-            if len <= 0.0 {
-                continue;
-            }
-            let (du, dv) = (dir.x / len, dir.y / len);
-            t[i][0] += len * du * du;
-            t[i][1] += len * du * dv;
-            t[i][2] += len * dv * dv;
-        }
-    }
-    t
-}
-
-/// Per pixel, the depth of the nearest GT segment midpoint projecting into it (0 where none).
-fn gt_depth(
+/// Calls `f(pixel, midpoint depth, image direction)` for every GT segment whose projected
+/// midpoint falls inside a `w` x `h` view (both ends in front of the camera).
+fn for_each_projected_segment(
     gt: &fure_stages::data::strands::Strands,
     cam: &fure_stages::data::camera::Camera,
     w: u32,
     h: u32,
-) -> ImageF32 {
-    let mut d = ImageF32::new(w, h, 1);
+    mut f: impl FnMut(usize, f32, glam::Vec2),
+) {
     for s in 0..gt.len() {
         for seg in gt.strand(s).windows(2) {
             let (a, za) = cam.project(seg[0]);
@@ -184,13 +143,49 @@ fn gt_depth(
             if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 {
                 continue;
             }
-            let v = &mut d.data[(y as u32 * w + x as u32) as usize];
-            let z = 0.5 * (za + zb);
-            if *v == 0.0 || z < *v {
-                *v = z;
-            }
+            f((y as u32 * w + x as u32) as usize, 0.5 * (za + zb), b - a);
         }
     }
+}
+
+/// Per pixel, the structure tensor `[du du, du dv, dv dv]` of the visible GT segments whose
+/// projected midpoint falls in it, each weighted by its projected length (a direct projection
+/// of the polylines, independent of both renderers).
+fn gt_structure_tensor(
+    gt: &fure_stages::data::strands::Strands,
+    cam: &fure_stages::data::camera::Camera,
+    depth: &ImageF32,
+    tolerance: f32,
+) -> Vec<[f32; 3]> {
+    let mut t = vec![[0.0f32; 3]; (depth.width * depth.height) as usize];
+    for_each_projected_segment(gt, cam, depth.width, depth.height, |i, z, dir| {
+        let d = depth.data[i * depth.channels as usize];
+        let len = dir.length();
+        if d <= 0.0 || z > d + tolerance || len <= 0.0 {
+            return;
+        }
+        let (du, dv) = (dir.x / len, dir.y / len);
+        t[i][0] += len * du * du;
+        t[i][1] += len * du * dv;
+        t[i][2] += len * dv * dv;
+    });
+    t
+}
+
+/// Per pixel, the depth of the nearest GT segment midpoint projecting into it (0 where none).
+fn gt_depth(
+    gt: &fure_stages::data::strands::Strands,
+    cam: &fure_stages::data::camera::Camera,
+    w: u32,
+    h: u32,
+) -> ImageF32 {
+    let mut d = ImageF32::new(w, h, 1);
+    for_each_projected_segment(gt, cam, w, h, |i, z, _| {
+        let v = &mut d.data[i];
+        if *v == 0.0 || z < *v {
+            *v = z;
+        }
+    });
     d
 }
 

@@ -23,10 +23,11 @@ var<workgroup> last: u32;
 @compute @workgroup_size(16, 16)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid3: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let tile = wid.x + wid.y * P.tiles_x;
-    let x = i32(wid.x * TILE + lid3.x);
-    let y = i32(wid.y * TILE + lid3.y);
-    let inside = x < i32(P.width) && y < i32(P.height);
+    let tp = tile_pixel(wid, lid3);
+    let tile = tp.tile;
+    let x = tp.x;
+    let y = tp.y;
+    let inside = tp.inside;
     if lid == 0u {
         atomicStore(&max_nc, 0u);
     }

@@ -101,25 +101,6 @@ fn row_span(mean: vec2<f32>, ca: f32, cb: f32, cc: f32, k2: f32, y: i32) -> vec2
     return vec2<i32>(ceil_i(x0 - 0.5), floor_i(x1 - 0.5));
 }
 
-// Whether pixel (x, y) lies in a splat's support (raster.rs for_each_covered):
-// its rows `bits(b.w) ..= bits(row1)`, then that row's span.
-fn covers(a: vec4<f32>, b: vec4<f32>, row1: f32, x: i32, y: i32) -> bool {
-    if y < bitcast<i32>(b.w) || y > bitcast<i32>(row1) {
-        return false;
-    }
-    let s = row_span(a.xy, a.z, a.w, b.x, b.z, y);
-    return x >= s.x && x <= s.y;
-}
-
-// A splat's Gaussian falloff at the pixel centre (px, py) (raster.rs eval);
-// alpha is `opacity (b.y) x falloff` clamped at alpha_max.
-fn falloff(a: vec4<f32>, b: vec4<f32>, px: f32, py: f32) -> f32 {
-    let dx = px - a.x;
-    let dy = py - a.y;
-    let power = -0.5 * (a.z * dx * dx + b.x * dy * dy) - a.w * dx * dy;
-    return exp(min(power, 0.0));
-}
-
 // The instance keys' order (`sort`, `sort_local`): tile, then depth bits,
 // then Gaussian index (the slot, .w, never decides: the first three are unique).
 fn key_less(a: vec4<u32>, b: vec4<u32>) -> bool {

@@ -3,8 +3,9 @@
 //! ([`crate::render::render`] and [`crate::render::backward`]). See
 //! `docs/gpu.md` for the design, the tolerances and the determinism rule.
 //!
-//! Kernels (the `.wgsl` files beside this one; `common.wgsl` and, for the
-//! per-Gaussian ones, `proj_common.wgsl` are prepended):
+//! Kernels (the `.wgsl` files beside this one; `common.wgsl` is prepended to
+//! every one, `proj_common.wgsl` to the per-Gaussian ones and
+//! `tile_common.wgsl` to the per-tile compositing ones):
 //!
 //! 1. `project` (per Gaussian): EWA projection with the CPU's clamps, low-pass
 //!    and near cull, the support rows, and the number of 16x16 tiles the
@@ -1540,6 +1541,7 @@ impl Kernels {
         const PROJ: &str = include_str!("proj_common.wgsl");
         const SSIM: &str = include_str!("ssim_common.wgsl");
         const PHOTO: &str = include_str!("photo_common.wgsl");
+        const TILE_K: &str = include_str!("tile_common.wgsl");
         let make = |name: &str, parts: &[&str]| {
             let src: String = parts.concat();
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -1564,9 +1566,9 @@ impl Kernels {
             sort: make("sort", &[COMMON, include_str!("sort.wgsl")]),
             sort_local: make("sort_local", &[COMMON, include_str!("sort_local.wgsl")]),
             ranges: make("ranges", &[COMMON, include_str!("ranges.wgsl")]),
-            forward: make("forward", &[COMMON, include_str!("forward.wgsl")]),
-            backward: make("backward", &[COMMON, include_str!("backward.wgsl")]),
-            blend: make("blend", &[COMMON, include_str!("blend.wgsl")]),
+            forward: make("forward", &[COMMON, TILE_K, include_str!("forward.wgsl")]),
+            backward: make("backward", &[COMMON, TILE_K, include_str!("backward.wgsl")]),
+            blend: make("blend", &[COMMON, TILE_K, include_str!("blend.wgsl")]),
             blend_gather: make("blend_gather", &[COMMON, include_str!("blend_gather.wgsl")]),
             project_backward: make(
                 "project_backward",
