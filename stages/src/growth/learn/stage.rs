@@ -142,10 +142,10 @@ fure_stage_api::stage_params! {
         /// Frames whose pooled lines agree less than this (coherence in [0, 1]) keep their
         /// start (view_axes_radius_px).
         view_axes_min_coherence: f32 = float(0.2).range(0.0, 1.0),
-        /// Gate the turn on the excess coherence (the pooled lines' agreement beyond the
-        /// expectation under random map angles, growth::view_axes) instead of the coherence
-        /// (unset = false).
-        view_axes_excess_gate: Option<bool> = optional(ParamType::Bool),
+        /// Frames whose excess coherence (the pooled lines' agreement beyond the expectation
+        /// under random map angles, growth::view_axes) is below this also keep their start
+        /// (unset = no such test).
+        view_axes_min_excess: Option<f64> = optional(ParamType::Float).range(0.0, 1.0),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
@@ -725,12 +725,10 @@ fn turn_onto_view_axes(
         if a.views == 0 {
             unseen += 1;
         }
-        let agreement = if p.view_axes_excess_gate == Some(true) {
-            a.excess_coherence
-        } else {
-            a.coherence
-        };
-        if agreement >= p.view_axes_min_coherence && a.coherence > 0.0 {
+        let excess_ok = p
+            .view_axes_min_excess
+            .is_none_or(|m| a.excess_coherence as f64 >= m);
+        if a.coherence >= p.view_axes_min_coherence && excess_ok && a.coherence > 0.0 {
             *f *= Mat3::from_rotation_z(a.turn);
             turned += 1;
             turn_sum += a.turn.abs().to_degrees() as f64;
@@ -749,11 +747,11 @@ fn turn_onto_view_axes(
         (axes.iter().map(|a| a.excess_coherence as f64).sum::<f64>() / n as f64) as f32;
     // The benchmark's renders keep 0.75-0.85 of their agreement beyond random maps', Blender's
     // Cycles renders at 256 px 0.54 (docs/guide.md, "Views that do not show the fur's direction").
-    if p.view_axes_excess_gate.is_none() && mean_excess_coherence < 0.65 * mean_coherence {
+    if p.view_axes_min_excess.is_none() && mean_excess_coherence < 0.65 * mean_coherence {
         ctx.progress.note(&format!(
             "the orientation maps agree little beyond what the views' geometry gives random maps \
              (excess coherence {mean_excess_coherence:.2} of {mean_coherence:.2}): they may not show \
-             the fur's direction; consider view_axes_excess_gate = true"
+             the fur's direction; consider view_axes_min_excess (docs/guide.md)"
         ));
     }
     Ok(Some(ViewAxesReport {
