@@ -185,6 +185,126 @@ pub fn view_axes(
     Ok(axes)
 }
 
+/// The fur's elevation above the envelope read from the views, at every
+/// `stride`-th root: `(root index, radians in [0, pi/2])` for each such root
+/// whose neighbourhood some view saw. Each view's Gabor line at the root's
+/// envelope point, with the camera centre, spans a plane that holds the
+/// fur's 3D direction; the plane normals' outer products (weight: the map's
+/// confidence times the cosine of the view angle; views within about 78
+/// degrees of grazing, unoccluded) are summed over the roots within `radius`,
+/// and the direction closest to lying in all those planes is the sum's least
+/// eigenvector. A line has no sign, so neither has the elevation. Per root it
+/// is noisy (the views see the coat's surface, not each strand); its median
+/// over the roots is what the learners use (module doc of `learn`).
+pub fn view_elevations(
+    positions: &[Vec3],
+    outer: &Mesh,
+    views: &[ViewOrientation<'_>],
+    radius: f32,
+    stride: usize,
+) -> Result<Vec<(usize, f32)>, GeomError> {
+    let query = MeshQuery::new(outer)?;
+    let (lo, hi) = outer.bounds();
+    let lift = 1e-3 * (hi - lo).length();
+    // Per root: its envelope normal and plane-normal tensor.
+    let own: Vec<(Vec3, Mat3)> = positions
+        .par_iter()
+        .map(|&p| plane_tensor(p, &query, outer, views, lift))
+        .collect();
+    let index = PointIndex::new(positions)?;
+    let sampled: Vec<usize> = (0..positions.len()).step_by(stride.max(1)).collect();
+    Ok(sampled
+        .into_par_iter()
+        .filter_map(|i| {
+            let mut m = Mat3::ZERO;
+            // Ascending indices: a fixed summation order.
+            for j in index.indices_within(positions[i], radius) {
+                m += own[j as usize].1;
+            }
+            if !(m.x_axis.x + m.y_axis.y + m.z_axis.z > 0.0) {
+                return None;
+            }
+            let d = least_eigenvector(m);
+            Some((i, d.dot(own[i].0).abs().clamp(0.0, 1.0).asin()))
+        })
+        .collect())
+}
+
+/// One root's envelope normal and the sum over the views that see its
+/// envelope point of `w n n^T`, `n` the normal of the plane through the camera
+/// centre and the pixel's Gabor line ([`view_elevations`]).
+fn plane_tensor(
+    p: Vec3,
+    query: &MeshQuery,
+    outer: &Mesh,
+    views: &[ViewOrientation<'_>],
+    lift: f32,
+) -> (Vec3, Mat3) {
+    let (q, _, tri) = query.closest_point(p);
+    let nq = outer
+        .triangles
+        .get(tri as usize)
+        .and_then(|t| {
+            let [a, b, c] = t.map(|k| outer.positions[k as usize]);
+            (b - a).cross(c - a).try_normalize()
+        })
+        .unwrap_or(Vec3::Z);
+    let mut m = Mat3::ZERO;
+    for v in views {
+        let cam = v.camera;
+        let to_cam = cam.center() - q;
+        let dist = to_cam.length();
+        if !(dist > 0.0) {
+            continue;
+        }
+        let facing = nq.dot(to_cam / dist);
+        if facing < 0.2 {
+            continue;
+        }
+        let (px, depth) = cam.project(q);
+        if !(depth > 0.0) || px.x < 0.0 || px.y < 0.0 {
+            continue;
+        }
+        let (x, y) = (px.x as u32, px.y as u32);
+        if x >= cam.width || y >= cam.height {
+            continue;
+        }
+        let k = (y * cam.width + x) as usize;
+        let (Some(&alpha), Some(&c)) = (v.angle.data.get(k), v.confidence.data.get(k)) else {
+            continue;
+        };
+        if !(c > 0.0) || !alpha.is_finite() {
+            continue;
+        }
+        if query
+            .ray_hit(q + nq * lift, to_cam / dist, dist - lift)
+            .is_some()
+        {
+            continue;
+        }
+        let u = Vec2::new(alpha.cos(), alpha.sin());
+        let (_, r1) = cam.ray(px.x, px.y);
+        let (_, r2) = cam.ray(px.x + u.x, px.y + u.y);
+        let Some(pn) = r1.cross(r2).try_normalize() else {
+            continue;
+        };
+        m += Mat3::from_cols(pn * pn.x, pn * pn.y, pn * pn.z) * (c * facing);
+    }
+    (nq, m)
+}
+
+/// The unit eigenvector of a symmetric 3x3 matrix with the least eigenvalue
+/// (power iteration on `trace I - m`, whose largest eigenvalue is `m`'s
+/// least).
+fn least_eigenvector(m: Mat3) -> Vec3 {
+    let shift = Mat3::from_diagonal(Vec3::splat(m.x_axis.x + m.y_axis.y + m.z_axis.z)) - m;
+    let mut v = Vec3::new(0.3, 0.5, 0.8).normalize();
+    for _ in 0..100 {
+        v = (shift * v).try_normalize().unwrap_or(Vec3::Z);
+    }
+    v
+}
+
 /// Flips every frame whose tangent points against the sum of its
 /// neighbours' tangents within `radius` (itself excluded), all decided from
 /// the frames as given (one Jacobi pass, so the order of the roots does not
@@ -466,6 +586,38 @@ mod tests {
         // A true line field keeps most of its agreement.
         let (coherence, excess) = mean(&true_maps);
         assert!(coherence > 0.999 && excess > 0.5, "{coherence} {excess}");
+    }
+
+    #[test]
+    fn the_views_give_the_elevation_of_a_rising_line_field() {
+        // Lines rising 30 degrees off the plane toward +x: every view sees
+        // their projection, and the planes through the cameras meet in them.
+        let mesh = plane(2.0);
+        let rise = 30f32.to_radians();
+        let dir = Vec3::new(rise.cos(), 0.0, rise.sin());
+        let cams = [
+            camera_at(Vec3::new(3.0, 1.0, 4.0)),
+            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
+            camera_at(Vec3::new(0.5, -3.0, 2.0)),
+        ];
+        let maps: Vec<_> = cams.iter().map(|c| maps_of(c, dir)).collect();
+        let views = ViewOrientation::pair(&cams, &maps);
+        let positions: Vec<Vec3> = (0..25)
+            .map(|i| Vec3::new((i % 5) as f32 * 0.05, (i / 5) as f32 * 0.05, -0.01))
+            .collect();
+        let e = view_elevations(&positions, &mesh, &views, 0.1, 4).unwrap();
+        assert_eq!(e.len(), 7, "every 4th of 25 roots");
+        for (i, el) in e {
+            assert!(
+                (el - rise).abs() < 0.02,
+                "root {i}: {} degrees",
+                el.to_degrees()
+            );
+        }
+        // One view alone leaves the direction in a plane: no elevation claimed
+        // beyond what that plane allows, but still a finite answer.
+        let one = view_elevations(&positions, &mesh, &views[..1], 0.1, 25).unwrap();
+        assert!(one.iter().all(|(_, e)| e.is_finite()));
     }
 
     #[test]

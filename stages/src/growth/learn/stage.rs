@@ -24,7 +24,7 @@ use crate::data::rootset::Roots;
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
-use crate::growth::view_axes::{view_axes, vote_signs, ViewOrientation};
+use crate::growth::view_axes::{view_axes, view_elevations, vote_signs, ViewOrientation};
 use crate::maths::geom::MeshQuery;
 
 fure_stage_api::param_enum! {
@@ -146,6 +146,11 @@ fure_stage_api::stage_params! {
         /// under random map angles, growth::view_axes) is below this also keep their start
         /// (unset = no such test).
         view_axes_min_excess: Option<f64> = optional(ParamType::Float).range(0.0, 1.0),
+        /// Tilt every frame about its bitangent so that the basis' mean strand rises off the
+        /// surface as steeply as the fur does in the views (the median over the roots of
+        /// growth::view_axes::view_elevations; needs the `views` and `orientation` inputs;
+        /// chosen on the dev split with learn_tilt off, learn module doc).
+        view_elevation: bool = bool(true),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
@@ -189,9 +194,10 @@ fure_stage_api::stage_params! {
         /// normal (a learned growth-direction field, zero at the start; learn::model).
         learn_rotation: bool = bool(true),
         /// The encoder also outputs a tilt per strand that turns its frame about its
-        /// bitangent (a learned elevation field, zero at the start; learn::model; chosen on
-        /// the dev split, learn module doc).
-        learn_tilt: bool = bool(true),
+        /// bitangent (a learned elevation field, zero at the start; learn::model). Off since
+        /// the start elevation comes from the views (view_elevation; dev split, learn module
+        /// doc): the learned tilt lays upright fur down.
+        learn_tilt: bool = bool(false),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
         /// Hidden width of the encoder.
@@ -352,7 +358,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        12
+        13
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -379,7 +385,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        10
+        11
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
@@ -444,6 +450,9 @@ pub struct LearnMetrics {
     /// The frames turned onto the views' axes (view_axes_radius_px > 0).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub view_axes: Option<ViewAxesReport>,
+    /// The frames tilted to the views' elevation (view_elevation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view_elevation: Option<ViewElevationReport>,
 }
 
 /// Checks the roots' arrays agree and are finite.
@@ -587,6 +596,8 @@ struct Setup {
     outer: Mesh,
     /// What turning the frames onto the views' axes did (view_axes_radius_px > 0).
     view_axes: Option<ViewAxesReport>,
+    /// What tilting the frames to the views' elevation did (view_elevation).
+    view_elevation: Option<ViewElevationReport>,
 }
 
 /// `metrics.json`'s record of the frames turned onto the views' axes.
@@ -607,6 +618,19 @@ pub struct ViewAxesReport {
     /// Fraction of the strands flipped by the neighbours' sign vote (view_axes_sign_vote).
     #[serde(default)]
     pub flipped_fraction: f32,
+}
+
+/// What `view_elevation` read and did (metrics.json `view_elevation`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ViewElevationReport {
+    /// The fur's median elevation over the envelope in the views, degrees.
+    pub views_deg: f32,
+    /// The basis mean strand's elevation (first third), degrees.
+    pub basis_deg: f32,
+    /// The tilt applied to every frame (positive lowers), degrees.
+    pub tilt_deg: f32,
+    /// Roots whose elevation entered the median.
+    pub sampled_roots: usize,
 }
 
 fn setup(
@@ -662,6 +686,7 @@ fn setup(
         .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
         .collect();
     let view_axes = turn_onto_view_axes(ctx, p, &positions, &mut frames, &outer)?;
+    let view_elevation = tilt_onto_view_elevation(ctx, p, &positions, &mut frames, &outer, &basis)?;
     let inputs = RootInputs {
         positions,
         frames,
@@ -689,6 +714,7 @@ fn setup(
         body_mesh,
         outer,
         view_axes,
+        view_elevation,
     })
 }
 
@@ -766,6 +792,66 @@ fn turn_onto_view_axes(
         mean_coherence,
         mean_excess_coherence,
         unseen_fraction: unseen as f32 / n,
+    }))
+}
+
+/// The start elevation from the views (`view_elevation`): every frame tilted
+/// about its bitangent by the basis mean strand's elevation (its first
+/// third's chord over the frame's normal) minus the fur's median elevation
+/// in the views ([`view_elevations`], pooled over 4 pixel footprints, at most
+/// about 4,000 roots sampled). `None` when off, when the views or maps are
+/// not connected, or when no root is seen.
+fn tilt_onto_view_elevation(
+    ctx: &StageContext<'_>,
+    p: &LearnParams,
+    positions: &[Vec3],
+    frames: &mut [Mat3],
+    outer: &Mesh,
+    basis: &StrandBasis,
+) -> Result<Option<ViewElevationReport>, StageError> {
+    let (Some(views_dir), Some(maps_dir)) = (ctx.input_opt("views"), ctx.input_opt("orientation"))
+    else {
+        return Ok(None);
+    };
+    if !p.view_elevation || frames.is_empty() || basis.mean.len() < 2 {
+        return Ok(None);
+    }
+    ctx.progress.message("fur elevation from the views");
+    let cams = formats::cameras::read_views(views_dir)?.train;
+    let maps = cams
+        .iter()
+        .map(|c| read_orientation(maps_dir, c))
+        .collect::<Result<Vec<_>, _>>()?;
+    let views = ViewOrientation::pair(&cams, &maps);
+    let radius = 4.0 * pixel_footprint(&cams, outer);
+    let outer_path = ctx.input("outer")?;
+    let stride = (positions.len() / 4000).max(1);
+    let mut elevations: Vec<f32> = view_elevations(positions, outer, &views, radius, stride)
+        .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?
+        .into_iter()
+        .map(|(_, e)| e)
+        .collect();
+    if elevations.is_empty() {
+        return Ok(None);
+    }
+    elevations.sort_by(f32::total_cmp);
+    let views_elevation = elevations[elevations.len() / 2];
+    let k = ((basis.mean.len() - 1) / 3).max(1);
+    let chord = basis.mean[k] - basis.mean[0];
+    let basis_elevation = (chord.z / chord.length().max(f32::MIN_POSITIVE))
+        .clamp(-1.0, 1.0)
+        .asin();
+    // Ry(beta) lowers a direction's elevation by beta.
+    let tilt = basis_elevation - views_elevation;
+    let r = Mat3::from_rotation_y(tilt);
+    for f in frames.iter_mut() {
+        *f *= r;
+    }
+    Ok(Some(ViewElevationReport {
+        views_deg: views_elevation.to_degrees(),
+        basis_deg: basis_elevation.to_degrees(),
+        tilt_deg: tilt.to_degrees(),
+        sampled_roots: elevations.len(),
     }))
 }
 
@@ -991,6 +1077,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             .map(|i| i.device_metrics()),
         image_seconds: image.as_ref().map(|i| i.timing()),
         view_axes: s.view_axes.clone(),
+        view_elevation: s.view_elevation.clone(),
     };
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;
