@@ -18,7 +18,8 @@ use super::mlp::{Mlp, PositionalEncoding};
 use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
 use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
-use crate::data::camera::pixel_footprint;
+use crate::data::camera::{pixel_footprint, Camera};
+use crate::data::image::ImageF32;
 use crate::data::mesh::Mesh;
 use crate::data::rootset::Roots;
 use crate::data::strands::Strands;
@@ -728,19 +729,12 @@ fn turn_onto_view_axes(
     frames: &mut [Mat3],
     outer: &Mesh,
 ) -> Result<Option<ViewAxesReport>, StageError> {
-    let (Some(views_dir), Some(maps_dir)) = (ctx.input_opt("views"), ctx.input_opt("orientation"))
-    else {
-        return Ok(None);
-    };
     if p.view_axes_radius_px <= 0.0 || frames.is_empty() {
         return Ok(None);
     }
-    ctx.progress.message("fur axes from the views");
-    let cams = formats::cameras::read_views(views_dir)?.train;
-    let maps = cams
-        .iter()
-        .map(|c| read_orientation(maps_dir, c))
-        .collect::<Result<Vec<_>, _>>()?;
+    let Some((cams, maps)) = training_maps(ctx, "fur axes from the views")? else {
+        return Ok(None);
+    };
     let views = ViewOrientation::pair(&cams, &maps);
     let radius = p.view_axes_radius_px * pixel_footprint(&cams, outer);
     let outer_path = ctx.input("outer")?;
@@ -795,6 +789,27 @@ fn turn_onto_view_axes(
     }))
 }
 
+/// The training cameras and their orientation maps (angle, confidence), or
+/// `None` when the `views` or `orientation` input is not connected; `what`
+/// is the progress message.
+#[allow(clippy::type_complexity)]
+fn training_maps(
+    ctx: &StageContext<'_>,
+    what: &str,
+) -> Result<Option<(Vec<Camera>, Vec<(ImageF32, ImageF32)>)>, StageError> {
+    let (Some(views_dir), Some(maps_dir)) = (ctx.input_opt("views"), ctx.input_opt("orientation"))
+    else {
+        return Ok(None);
+    };
+    ctx.progress.message(what);
+    let cams = formats::cameras::read_views(views_dir)?.train;
+    let maps = cams
+        .iter()
+        .map(|c| read_orientation(maps_dir, c))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Some((cams, maps)))
+}
+
 /// The start elevation from the views (`view_elevation`): every frame tilted
 /// about its bitangent by the basis mean strand's elevation (its first
 /// third's chord over the frame's normal) minus the fur's median elevation
@@ -809,19 +824,12 @@ fn tilt_onto_view_elevation(
     outer: &Mesh,
     basis: &StrandBasis,
 ) -> Result<Option<ViewElevationReport>, StageError> {
-    let (Some(views_dir), Some(maps_dir)) = (ctx.input_opt("views"), ctx.input_opt("orientation"))
-    else {
-        return Ok(None);
-    };
     if !p.view_elevation || frames.is_empty() || basis.mean.len() < 2 {
         return Ok(None);
     }
-    ctx.progress.message("fur elevation from the views");
-    let cams = formats::cameras::read_views(views_dir)?.train;
-    let maps = cams
-        .iter()
-        .map(|c| read_orientation(maps_dir, c))
-        .collect::<Result<Vec<_>, _>>()?;
+    let Some((cams, maps)) = training_maps(ctx, "fur elevation from the views")? else {
+        return Ok(None);
+    };
     let views = ViewOrientation::pair(&cams, &maps);
     let radius = 4.0 * pixel_footprint(&cams, outer);
     let outer_path = ctx.input("outer")?;
