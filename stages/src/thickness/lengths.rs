@@ -61,6 +61,19 @@
 //! % with any fixed `m_p`; that needs a per-species prior (V2's reference
 //! lengths).
 //!
+//! Pooling the parts. Each part's `m_p T_p` is one noisy reading: at 256 px
+//! the shell widths follow the fitted Gaussians as much as the fur (Pearson
+//! 0.36-0.63 per vertex on the dev scenes), and a part's percentile carries
+//! that noise whole. Parameter `pooling` moves each fur part's `m_p T_p` the
+//! given fraction of the way to the unweighted mean over the fur parts
+//! (before V2's blend): 0 keeps the per-part readings, 1 gives every part
+//! one length (the fixed-length ablation's). The default 0.5 was chosen on
+//! the dev split (docs/history.md, "Pooling the parts' lengths"): the
+//! lynx, whose front legs read 47 % long, gains at 1 and 2 cm; the tiger
+//! and the fox tie; full pooling loses the tiger's parts that the widths
+//! do tell apart. The pooled mean is the same as the per-part mean, so the
+//! coat's overall length (and the fixed-length ablation) does not move.
+//!
 //! A part is non-fur when its name is in `protected_parts` (case-insensitive)
 //! or in the optional `protected` input (the `parts` stage's list). The scene
 //! file gives only the eyes and the eye separation: its per-part fields are
@@ -186,11 +199,34 @@ pub fn metric_scale(
 
 /// V1 / V2 length in cm from `T_p`, `m_p` and an optional reference.
 pub fn part_length_cm(t_cm: f32, m: f32, reference: Option<f32>, v2: bool) -> f32 {
-    let shape = m * t_cm;
+    blend_reference(m * t_cm, reference, v2)
+}
+
+/// The shape estimate `shape` (cm) as V1 keeps it or V2 blends it with a reference.
+fn blend_reference(shape: f32, reference: Option<f32>, v2: bool) -> f32 {
     match (v2, reference) {
         (true, Some(r)) => (0.60 * shape + 0.40 * r).clamp(0.35 * r, 1.35 * r),
         _ => shape,
     }
+}
+
+/// Each positive entry of `shape_cm` moved the fraction `pooling` of the way to the mean of
+/// the positive entries (zeros stay zero: non-fur parts, parts without widths). The mean is
+/// unweighted, one vote per part, as the fixed-length ablation's, so `pooling = 1` gives that
+/// ablation's single length.
+pub fn pool_part_lengths(shape_cm: &[f32], pooling: f32) -> Vec<f32> {
+    let (sum, n) = shape_cm
+        .iter()
+        .filter(|&&l| l > 0.0)
+        .fold((0.0f64, 0usize), |(s, n), &l| (s + f64::from(l), n + 1));
+    if n == 0 || pooling == 0.0 {
+        return shape_cm.to_vec();
+    }
+    let mean = (sum / n as f64) as f32;
+    shape_cm
+        .iter()
+        .map(|&l| if l > 0.0 { l + pooling * (mean - l) } else { l })
+        .collect()
 }
 
 /// Coarse reference hair lengths (cm) of a species: twice the coat table's per-part fur
@@ -213,6 +249,9 @@ pub struct LengthSettings {
     pub multipliers: BTreeMap<String, f32>,
     pub default_multiplier: f32,
     pub references_cm: BTreeMap<String, f32>,
+    /// How far each fur part's `m_p T_p` moves toward the fur parts' mean (0: per part, 1: one
+    /// length for all); module doc, "Pooling the parts".
+    pub pooling: f32,
 }
 
 /// Per-part lengths from raw widths `tau` on vertices labelled `part`.
@@ -229,23 +268,39 @@ pub fn compute_lengths(
             v.push(t);
         }
     }
-    let mut parts = BTreeMap::new();
-    for (p, name) in part_names.iter().enumerate() {
-        let is_fur = fur.get(p).copied().unwrap_or(true);
-        let w75 = percentile(&per[p], 75.0).unwrap_or(0.0);
-        let m = s
-            .multipliers
+    let is_fur = |p: usize| fur.get(p).copied().unwrap_or(true);
+    let w75: Vec<f32> = per
+        .iter()
+        .map(|v| percentile(v, 75.0).unwrap_or(0.0))
+        .collect();
+    let multiplier = |name: &String| {
+        s.multipliers
             .get(name)
             .copied()
-            .unwrap_or(s.default_multiplier);
+            .unwrap_or(s.default_multiplier)
+    };
+    let shape_cm: Vec<f32> = part_names
+        .iter()
+        .enumerate()
+        .map(|(p, name)| {
+            if is_fur(p) {
+                multiplier(name) * (s.s_cm * w75[p])
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let pooled = pool_part_lengths(&shape_cm, s.pooling);
+    let mut parts = BTreeMap::new();
+    for (p, name) in part_names.iter().enumerate() {
+        let fur_part = is_fur(p);
         let reference = s.references_cm.get(name).copied();
-        let (t_cm, length_cm) = if is_fur {
-            let t = s.s_cm * w75;
-            (t, part_length_cm(t, m, reference, s.v2))
+        let length_cm = if fur_part {
+            blend_reference(pooled[p], reference, s.v2)
         } else {
-            (0.0, 0.0)
+            0.0
         };
-        let width_cm = if is_fur {
+        let width_cm = if fur_part {
             strand_width_cm(length_cm)
         } else {
             0.0
@@ -253,12 +308,12 @@ pub fn compute_lengths(
         parts.insert(
             name.clone(),
             PartLength {
-                fur: is_fur,
+                fur: fur_part,
                 vertices: per[p].len(),
-                width_p75: w75,
-                t_cm,
-                multiplier: m,
-                shape_cm: if is_fur { m * t_cm } else { 0.0 },
+                width_p75: w75[p],
+                t_cm: if fur_part { s.s_cm * w75[p] } else { 0.0 },
+                multiplier: multiplier(name),
+                shape_cm: shape_cm[p],
                 reference_cm: reference,
                 length_cm,
                 length: length_cm / s.s_cm,
@@ -306,6 +361,8 @@ fure_stage_api::stage_params! {
         reference_length_cm: BTreeMap<String, f32> = table(),
         /// v1: l = m T; v2: blend with reference lengths
         variant: Variant = string("v1").choices(Variant::NAMES),
+        /// fraction of the way each fur part's m T moves to the parts' mean (0: per part, 1: one length)
+        pooling: f64 = float(0.5).range(0.0, 1.0),
         /// non-fur part names (length 0), case-insensitive
         protected_parts: Vec<String> = str_list(DEFAULT_PROTECTED),
     }
@@ -415,10 +472,11 @@ impl Stage for LengthsStage {
         "lengths"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
-        "Metric scale from the eye separation and per-part strand lengths l_p = m_p T_p (V1) or blended \
+        "Metric scale from the eye separation and per-part strand lengths l_p = m_p T_p pooled halfway \
+         toward the fur parts' mean (V1) or blended \
          with reference lengths (V2), T_p = s_cm x P75 of the raw nearest-shell widths; strand widths \
          clip(0.03 l, 0.02, 0.12) cm."
     }
@@ -514,6 +572,7 @@ impl Stage for LengthsStage {
                 multipliers,
                 default_multiplier: p.default_multiplier,
                 references_cm,
+                pooling: p.pooling as f32,
             },
         );
         fure_stage_api::ensure_finite(
@@ -611,6 +670,7 @@ mod tests {
                 multipliers: BTreeMap::from([("torso".to_string(), 2.0)]),
                 default_multiplier: 2.5,
                 references_cm: BTreeMap::new(),
+                pooling: 0.0,
             },
         );
         let torso = &t.parts["torso"];
@@ -620,5 +680,45 @@ mod tests {
         assert!((torso.length - 0.105).abs() < 1e-6);
         let eyes = &t.parts["eyes"];
         assert_eq!((eyes.length_cm, eyes.width_cm, eyes.t_cm), (0.0, 0.0, 0.0));
+    }
+
+    #[test]
+    fn pooling_moves_fur_parts_toward_their_mean_and_leaves_the_rest() {
+        let shape = [1.0, 0.0, 3.0, 8.0];
+        assert_eq!(pool_part_lengths(&shape, 0.0), shape.to_vec());
+        // Mean of the positive entries: 4.
+        assert_eq!(pool_part_lengths(&shape, 1.0), vec![4.0, 0.0, 4.0, 4.0]);
+        assert_eq!(pool_part_lengths(&shape, 0.5), vec![2.5, 0.0, 3.5, 6.0]);
+        assert_eq!(pool_part_lengths(&[0.0, 0.0], 0.5), vec![0.0, 0.0]);
+        // Through the stage's computation: V2 blends the pooled estimate, not the raw one.
+        let tau = [0.1f32, 0.1, 0.3, 0.3];
+        let names = vec!["torso".to_string(), "head".to_string()];
+        let table = |pooling: f32, v2: bool| {
+            compute_lengths(
+                &tau,
+                &[0, 0, 1, 1],
+                &names,
+                &[true, true],
+                &LengthSettings {
+                    s_cm: 10.0,
+                    s_cm_source: "test".into(),
+                    v2,
+                    multipliers: BTreeMap::new(),
+                    default_multiplier: 2.0,
+                    references_cm: BTreeMap::from([("torso".to_string(), 4.0)]),
+                    pooling,
+                },
+            )
+        };
+        // m T: torso 2 cm, head 6 cm; pooled halfway: 3 and 5.
+        let half = table(0.5, false);
+        assert!((half.parts["torso"].length_cm - 3.0).abs() < 1e-5);
+        assert!((half.parts["head"].length_cm - 5.0).abs() < 1e-5);
+        assert!(
+            (half.parts["torso"].shape_cm - 2.0).abs() < 1e-5,
+            "shape_cm stays m T"
+        );
+        let v2 = table(0.5, true);
+        assert!((v2.parts["torso"].length_cm - (0.6 * 3.0 + 0.4 * 4.0)).abs() < 1e-5);
     }
 }
