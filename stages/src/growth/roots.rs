@@ -1740,6 +1740,7 @@ mod tests {
                     vertices: 0,
                     width_p75: 0.1 * unit,
                     t_cm: 0.1,
+                    pooled_t_cm: 0.1,
                     multiplier: 2.5,
                     shape_cm: 1.0,
                     reference_cm: None,

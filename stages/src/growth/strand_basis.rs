@@ -1988,6 +1988,7 @@ mod tests {
             vertices: 10,
             width_p75: 0.0,
             t_cm: 0.0,
+            pooled_t_cm: 0.0,
             multiplier: 1.0,
             shape_cm: 0.0,
             reference_cm: None,

@@ -61,18 +61,23 @@
 //! % with any fixed `m_p`; that needs a per-species prior (V2's reference
 //! lengths).
 //!
-//! Pooling the parts. Each part's `m_p T_p` is one noisy reading: at 256 px
-//! the shell widths follow the fitted Gaussians as much as the fur (Pearson
+//! Pooling the parts. Each part's `T_p` is one noisy reading: at 256 px the
+//! shell widths follow the fitted Gaussians as much as the fur (Pearson
 //! 0.36-0.63 per vertex on the dev scenes), and a part's percentile carries
-//! that noise whole. Parameter `pooling` moves each fur part's `m_p T_p` the
-//! given fraction of the way to the unweighted mean over the fur parts
-//! (before V2's blend): 0 keeps the per-part readings, 1 gives every part
-//! one length (the fixed-length ablation's). The default 0.5 was chosen on
-//! the dev split (docs/history.md, "Pooling the parts' lengths"): the
-//! lynx, whose front legs read 47 % long, gains at 1 and 2 cm; the tiger
-//! and the fox tie; full pooling loses the tiger's parts that the widths
-//! do tell apart. The pooled mean is the same as the per-part mean, so the
-//! coat's overall length (and the fixed-length ablation) does not move.
+//! that noise whole, over every strand of the part. Parameter `pooling`
+//! moves each fur part's `T_p` the given fraction of the way to the
+//! unweighted mean over the fur parts (one vote per part) before the
+//! multiplier: 0 keeps the per-part readings, 1 keeps only the coat's mean
+//! reading and the per-part multipliers. The multiplier acts on the pooled
+//! reading in full, so a user's `multiplier` for a part known to be longer
+//! is not diluted. The default 0.5 was chosen on the dev split (docs/history.md,
+//! "Pooling the parts' width readings"): it trades the two things the
+//! readings feed. The strands' F-score, weighted by where the strands are,
+//! gains on the lynx (whose front legs, a large part, read 47 % long) and
+//! ties on the tiger and the fox; the per-part length error, one vote per
+//! part, rises by 2-3 points on all three, since the readings do tell short
+//! parts from long ones. Full pooling gains a little more F on the lynx and
+//! loses 4-10 points of length error.
 //!
 //! A part is non-fur when its name is in `protected_parts` (case-insensitive)
 //! or in the optional `protected` input (the `parts` stage's list). The scene
@@ -122,8 +127,11 @@ pub struct PartLength {
     pub width_p75: f32,
     /// `T_p` in cm.
     pub t_cm: f32,
+    /// `T_p` pooled toward the fur parts' mean (`pooling`), cm.
+    #[serde(default)]
+    pub pooled_t_cm: f32,
     pub multiplier: f32,
-    /// `m_p T_p` in cm.
+    /// `m_p` times the pooled `T_p`, in cm: V1's length.
     pub shape_cm: f32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference_cm: Option<f32>,
@@ -210,20 +218,19 @@ fn blend_reference(shape: f32, reference: Option<f32>, v2: bool) -> f32 {
     }
 }
 
-/// Each positive entry of `shape_cm` moved the fraction `pooling` of the way to the mean of
-/// the positive entries (zeros stay zero: non-fur parts, parts without widths). The mean is
-/// unweighted, one vote per part, as the fixed-length ablation's, so `pooling = 1` gives that
-/// ablation's single length.
-pub fn pool_part_lengths(shape_cm: &[f32], pooling: f32) -> Vec<f32> {
-    let (sum, n) = shape_cm
+/// Each positive entry of `values` (one per part) moved the fraction `pooling` of the way to
+/// the unweighted mean of the positive entries, one vote per part; zeros stay zero (non-fur
+/// parts, parts without widths).
+pub fn pool_toward_mean(values: &[f32], pooling: f32) -> Vec<f32> {
+    let (sum, n) = values
         .iter()
         .filter(|&&l| l > 0.0)
         .fold((0.0f64, 0usize), |(s, n), &l| (s + f64::from(l), n + 1));
     if n == 0 || pooling == 0.0 {
-        return shape_cm.to_vec();
+        return values.to_vec();
     }
     let mean = (sum / n as f64) as f32;
-    shape_cm
+    values
         .iter()
         .map(|&l| if l > 0.0 { l + pooling * (mean - l) } else { l })
         .collect()
@@ -279,24 +286,17 @@ pub fn compute_lengths(
             .copied()
             .unwrap_or(s.default_multiplier)
     };
-    let shape_cm: Vec<f32> = part_names
-        .iter()
-        .enumerate()
-        .map(|(p, name)| {
-            if is_fur(p) {
-                multiplier(name) * (s.s_cm * w75[p])
-            } else {
-                0.0
-            }
-        })
+    let t_cm: Vec<f32> = (0..part_names.len())
+        .map(|p| if is_fur(p) { s.s_cm * w75[p] } else { 0.0 })
         .collect();
-    let pooled = pool_part_lengths(&shape_cm, s.pooling);
+    let pooled_t_cm = pool_toward_mean(&t_cm, s.pooling);
     let mut parts = BTreeMap::new();
     for (p, name) in part_names.iter().enumerate() {
         let fur_part = is_fur(p);
         let reference = s.references_cm.get(name).copied();
+        let shape_cm = multiplier(name) * pooled_t_cm[p];
         let length_cm = if fur_part {
-            blend_reference(pooled[p], reference, s.v2)
+            blend_reference(shape_cm, reference, s.v2)
         } else {
             0.0
         };
@@ -311,9 +311,10 @@ pub fn compute_lengths(
                 fur: fur_part,
                 vertices: per[p].len(),
                 width_p75: w75[p],
-                t_cm: if fur_part { s.s_cm * w75[p] } else { 0.0 },
+                t_cm: t_cm[p],
+                pooled_t_cm: pooled_t_cm[p],
                 multiplier: multiplier(name),
-                shape_cm: shape_cm[p],
+                shape_cm,
                 reference_cm: reference,
                 length_cm,
                 length: length_cm / s.s_cm,
@@ -361,7 +362,7 @@ fure_stage_api::stage_params! {
         reference_length_cm: BTreeMap<String, f32> = table(),
         /// v1: l = m T; v2: blend with reference lengths
         variant: Variant = string("v1").choices(Variant::NAMES),
-        /// fraction of the way each fur part's m T moves to the parts' mean (0: per part, 1: one length)
+        /// fraction of the way each fur part's width reading T moves to the parts' mean (0: per part, 1: one T)
         pooling: f64 = float(0.5).range(0.0, 1.0),
         /// non-fur part names (length 0), case-insensitive
         protected_parts: Vec<String> = str_list(DEFAULT_PROTECTED),
@@ -475,8 +476,8 @@ impl Stage for LengthsStage {
         3
     }
     fn doc(&self) -> &'static str {
-        "Metric scale from the eye separation and per-part strand lengths l_p = m_p T_p pooled halfway \
-         toward the fur parts' mean (V1) or blended \
+        "Metric scale from the eye separation and per-part strand lengths l_p = m_p T_p, T_p pooled \
+         halfway toward the fur parts' mean (V1), or blended \
          with reference lengths (V2), T_p = s_cm x P75 of the raw nearest-shell widths; strand widths \
          clip(0.03 l, 0.02, 0.12) cm."
     }
@@ -685,11 +686,11 @@ mod tests {
     #[test]
     fn pooling_moves_fur_parts_toward_their_mean_and_leaves_the_rest() {
         let shape = [1.0, 0.0, 3.0, 8.0];
-        assert_eq!(pool_part_lengths(&shape, 0.0), shape.to_vec());
+        assert_eq!(pool_toward_mean(&shape, 0.0), shape.to_vec());
         // Mean of the positive entries: 4.
-        assert_eq!(pool_part_lengths(&shape, 1.0), vec![4.0, 0.0, 4.0, 4.0]);
-        assert_eq!(pool_part_lengths(&shape, 0.5), vec![2.5, 0.0, 3.5, 6.0]);
-        assert_eq!(pool_part_lengths(&[0.0, 0.0], 0.5), vec![0.0, 0.0]);
+        assert_eq!(pool_toward_mean(&shape, 1.0), vec![4.0, 0.0, 4.0, 4.0]);
+        assert_eq!(pool_toward_mean(&shape, 0.5), vec![2.5, 0.0, 3.5, 6.0]);
+        assert_eq!(pool_toward_mean(&[0.0, 0.0], 0.5), vec![0.0, 0.0]);
         // Through the stage's computation: V2 blends the pooled estimate, not the raw one.
         let tau = [0.1f32, 0.1, 0.3, 0.3];
         let names = vec!["torso".to_string(), "head".to_string()];
@@ -703,20 +704,22 @@ mod tests {
                     s_cm: 10.0,
                     s_cm_source: "test".into(),
                     v2,
-                    multipliers: BTreeMap::new(),
+                    multipliers: BTreeMap::from([("head".to_string(), 3.0)]),
                     default_multiplier: 2.0,
                     references_cm: BTreeMap::from([("torso".to_string(), 4.0)]),
                     pooling,
                 },
             )
         };
-        // m T: torso 2 cm, head 6 cm; pooled halfway: 3 and 5.
+        // T: torso 1 cm, head 3 cm; pooled halfway: 1.5 and 2.5; the multipliers (2, and 3
+        // for the head) act on the pooled widths in full.
         let half = table(0.5, false);
+        assert!((half.parts["torso"].pooled_t_cm - 1.5).abs() < 1e-5);
         assert!((half.parts["torso"].length_cm - 3.0).abs() < 1e-5);
-        assert!((half.parts["head"].length_cm - 5.0).abs() < 1e-5);
+        assert!((half.parts["head"].length_cm - 7.5).abs() < 1e-5);
         assert!(
-            (half.parts["torso"].shape_cm - 2.0).abs() < 1e-5,
-            "shape_cm stays m T"
+            (half.parts["head"].t_cm - 3.0).abs() < 1e-5,
+            "t_cm stays the reading"
         );
         let v2 = table(0.5, true);
         assert!((v2.parts["torso"].length_cm - (0.6 * 3.0 + 0.4 * 4.0)).abs() < 1e-5);
