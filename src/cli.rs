@@ -148,6 +148,10 @@ pub struct SweepArgs {
     /// Only one line per variant, no stage lines.
     #[arg(long)]
     pub quiet: bool,
+    /// Publish the `[publish]` documents even when variants failed (the report lists them);
+    /// without it, a sweep with failed variants leaves the documents as they were.
+    #[arg(long)]
+    pub publish_failed: bool,
     #[command(flatten)]
     pub executor: ExecutorArgs,
     /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
@@ -618,8 +622,24 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     .into_iter()
     .filter_map(|(flag, used)| used.then_some(flag))
     .collect();
+    // A sweep some of whose variants failed (a full disk, a killed job, a broken scene) would
+    // replace a complete report with a partial one; it is published only when asked for.
+    let failed = rows
+        .iter()
+        .filter(|r| r.status == sweep::VariantStatus::Failed)
+        .count();
+    let withheld = if !changed_by.is_empty() {
+        Some(format!("{} changed the sweep", changed_by.join(", ")))
+    } else if failed > 0 && !a.publish_failed {
+        Some(format!(
+            "{failed} of {} variants failed (--publish-failed publishes a report with failures)",
+            rows.len()
+        ))
+    } else {
+        None
+    };
     match sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
-        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, &changed_by),
+        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, withheld.as_deref()),
         None => Ok(ExitCode::SUCCESS),
     }
 }
@@ -702,14 +722,15 @@ fn write_sweep_results(
     Ok(record_path)
 }
 
-/// Prints the aggregate stages' outcome and, when all succeeded and no flag in
-/// `changed_by` altered the sweep, publishes the pipeline's `[publish]` files.
+/// Prints the aggregate stages' outcome and, when all succeeded and nothing
+/// `withheld` them (the reason: a flag changed the sweep, variants failed),
+/// publishes the pipeline's `[publish]` files.
 fn report_aggregates(
     p: &crate::pipeline::Pipeline,
     rep: &RunReport,
     cache: &Cache,
     out: &Path,
-    changed_by: &[&str],
+    withheld: Option<&str>,
 ) -> Result<ExitCode, Failure> {
     if let Ok(json) = serde_json::to_vec_pretty(rep) {
         cache.save_run_report(&rep.pipeline, &json);
@@ -742,11 +763,10 @@ fn report_aggregates(
         }
         return Ok(ExitCode::from(EXIT_FAILED));
     }
-    if !p.publish.is_empty() && !changed_by.is_empty() {
+    if let (false, Some(why)) = (p.publish.is_empty(), withheld) {
         println!(
-            "not published: {} changed the sweep; the documents of [publish] describe {} as \
-             declared and are left as they were; the report is in {}",
-            changed_by.join(", "),
+            "not published: {why}; the documents of [publish] describe {} as declared and are \
+             left as they were; the report is in {}",
             p.file.display(),
             out.join(&p.name).display()
         );

@@ -24,7 +24,9 @@
 //! command. Every destination is written to a temporary name beside it and
 //! renamed, so a reader never sees half a document; any failure is an error
 //! (the sweep exits 1). `fure sweep` publishes only the sweep as declared: one
-//! changed by `--grid`, `--each` or `--set` leaves the documents alone.
+//! changed by `--grid`, `--each` or `--set` leaves the documents alone, and so
+//! does one with a failed variant unless `--publish-failed` asks for it (a
+//! partial report must not silently replace a complete one).
 
 use std::path::{Path, PathBuf};
 

@@ -491,6 +491,44 @@ outs = ["results.md", "charts/"]
         assert_ne!(json(&p.read("out/lk/sweep.json")), r);
     }
 
+    // A sweep with a failed variant (a full disk, a broken scene) leaves the published documents
+    // as they were, unless --publish-failed asks for a report with failures.
+    p.write(
+        "pipes/lkf.toml",
+        r#"extends = "lk.toml"
+
+[stages.c]
+kind = "command"
+cmd = ["sh", "-c", "if [ \"$MODE\" = fail ]; then echo 'disk full' >&2; exit 1; fi; echo 1 > out.txt"]
+outs = ["out.txt"]
+
+[sweep]
+"c.env" = [{ MODE = "ok" }, { MODE = "fail" }]
+"#,
+    );
+    let s = p.sweep(&["sweep", "pipes/lkf.toml", "--jobs", "1"]);
+    assert!(s.stdout().contains("variants failed"), "{}", s.all());
+    assert!(
+        s.stdout().contains("not published: ")
+            && s.stdout().contains("variants failed (--publish-failed"),
+        "{}",
+        s.all()
+    );
+    assert_eq!(p.read("docs/results.md"), md);
+    assert_eq!(json(&p.read("docs/charts/record.json")), r);
+    let s = p.sweep(&["sweep", "pipes/lkf.toml", "--jobs", "1", "--publish-failed"]);
+    assert!(s.stdout().contains("published "), "{}", s.all());
+    assert_ne!(json(&p.read("docs/charts/record.json")), r);
+    assert!(
+        json(&p.read("docs/charts/record.json"))["variants"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|v| v["status"] == "failed"),
+        "{}",
+        p.read("docs/charts/record.json")
+    );
+
     // A publish key naming no aggregate is a located usage error; nothing runs.
     p.write(
         "pipes/bad.toml",
