@@ -719,6 +719,9 @@ fn write_sweep_results(
         "{failed} of {} variants failed, {degraded} degraded",
         rows.len()
     );
+    if let Some(hint) = disk_full_hint(rows.iter().map(|r| r.reason.as_str())) {
+        eprintln!("{hint}");
+    }
     Ok(record_path)
 }
 
@@ -996,6 +999,20 @@ fn print_summary(rep: &RunReport, dry_run: bool, out: &Path) {
             s.error.clone().unwrap_or_default()
         );
     }
+    if let Some(hint) = disk_full_hint(rep.stages.iter().filter_map(|s| s.error.as_deref())) {
+        eprintln!("{hint}");
+    }
+}
+
+/// What to do when a failure says the disk is full (ENOSPC), or `None`.
+fn disk_full_hint<'a>(mut errors: impl Iterator<Item = &'a str>) -> Option<&'static str> {
+    errors
+        .any(|e| e.contains("No space left on device") || e.contains("os error 28"))
+        .then_some(
+            "hint: the disk is full. `fure gc --keep PIPELINE` (repeatable) removes the cache \
+             entries those pipelines no longer resolve to, `fure gc --max-size 20G` evicts the \
+             rest down to a size; what finished is cached, and the same command resumes.",
+        )
 }
 
 /// A kind's documentation for `fure stages`.
@@ -1156,4 +1173,19 @@ pub fn dag(plan: &Plan, format: DagFormat) -> String {
         }
     }
     o
+}
+
+#[cfg(test)]
+mod tests {
+    use super::disk_full_hint;
+
+    #[test]
+    fn a_full_disk_gets_a_hint_and_other_failures_do_not() {
+        let full = "codec: out/snapshots/snap_006.hair: No space left on device (os error 28)";
+        assert!(disk_full_hint(["no convergence", full].into_iter())
+            .is_some_and(|h| h.contains("fure gc --keep")));
+        assert!(disk_full_hint(["write failed (os error 28)"].into_iter()).is_some());
+        assert!(disk_full_hint(["no convergence", "os error 2"].into_iter()).is_none());
+        assert!(disk_full_hint(std::iter::empty()).is_none());
+    }
 }
