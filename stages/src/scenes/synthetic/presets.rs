@@ -7,7 +7,9 @@
 //! lynx 100 cm. The wolf is the held-out shape: long legs under a short, deep chest, a long
 //! muzzle, a winter coat with a long neck ruff and a long bushy tail, and grey colours no other
 //! preset has. The lynx is the coat that stands up: its fur leaves the skin at 40-50 degrees
-//! (every other preset's at 8-35), with almost no gravity, on a short-tailed cat body.
+//! (every other preset's at 8-35), with almost no gravity, on a short-tailed cat body. The
+//! sheepdog is the coat that hides its body: 5-12 cm of wavy, clumped hair on every part, head
+//! and legs included, hanging under its own weight (sheepdog 105 cm).
 //!
 //! Fur lengths per part are chosen so that the mean GT strand length is near the paper's table
 //! (Artemis: panda 5.22 cm, fox 3.80 cm, cat 1.60 cm, white tiger 3.70 cm); the bison gets long
@@ -21,7 +23,9 @@ use fure_stage_api::{StageError, Value};
 use glam::{Quat, Vec3};
 
 /// The presets the stage offers.
-pub const PRESETS: &[&str] = &["tiger", "fox", "cat", "panda", "bison", "wolf", "lynx"];
+pub const PRESETS: &[&str] = &[
+    "tiger", "fox", "cat", "panda", "bison", "wolf", "lynx", "sheepdog",
+];
 
 /// Keys a `parts.<name>` override table may hold.
 pub const OVERRIDE_KEYS: &[&str] = &[
@@ -599,7 +603,7 @@ struct PresetData {
 }
 
 /// Every preset's data, in [`PRESETS`] order.
-const PRESET_DATA: [&PresetData; 7] = [&TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF, &LYNX];
+const PRESET_DATA: [&PresetData; 8] = [&TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF, &LYNX, &SHEEPDOG];
 
 const TIGER: PresetData = {
     const O: [f32; 3] = [0.85, 0.42, 0.12];
@@ -969,6 +973,61 @@ const LYNX: PresetData = {
             ("tail", FurParams::fur(3.5, 45.0, 0.05, 0.3, 0.05, T)),
             ("nose", FurParams::bare(NOSE_COLOR)),
             ("eyes", FurParams::bare([0.55, 0.45, 0.1])),
+        ],
+        pattern: Pattern::Tabby,
+    }
+};
+
+/// The coat that hides the body: long, wavy, clumped hair on every part (head, legs and
+/// paws included) that leaves the skin steeply and then hangs, so the outer surface lies far
+/// from the skin everywhere and the views see mostly hanging strands.
+const SHEEPDOG: PresetData = {
+    const G: [f32; 3] = [0.5, 0.52, 0.55];
+    const W: [f32; 3] = [0.88, 0.87, 0.84];
+    PresetData {
+        name: "sheepdog",
+        dims: Dims {
+            body_length: 105.0,
+            torso_y: 48.0,
+            torso_len: 46.0,
+            chest_r: 15.0,
+            hip_r: 14.0,
+            torso_squash: 0.85,
+            neck_len: 10.0,
+            neck_r: 10.0,
+            neck_rise: 0.5,
+            head_r: 9.5,
+            muzzle_len: 7.0,
+            muzzle_r: 4.5,
+            ear_len: 7.0,
+            ear_r: 3.5,
+            ear_taper: 0.5,
+            eye_r: 1.2,
+            eye_sep: 6.0,
+            leg_r: 4.5,
+            paw_r: 5.0,
+            tail_len: 8.0,
+            tail_r: 4.0,
+            tail_droop: 0.5,
+            tail_curve: 0.0,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(11.0, 35.0, 0.15, 0.5, 0.7, G)),
+            ("belly", FurParams::fur(10.0, 30.0, 0.15, 0.5, 0.8, W)),
+            ("neck", FurParams::fur(12.0, 35.0, 0.15, 0.5, 0.7, W)),
+            ("head", FurParams::fur(8.0, 40.0, 0.15, 0.45, 0.6, W)),
+            ("muzzle", FurParams::fur(5.0, 35.0, 0.1, 0.4, 0.6, W)),
+            ("ears", FurParams::fur(8.0, 30.0, 0.15, 0.5, 0.7, G)),
+            ("front_legs", FurParams::fur(7.0, 30.0, 0.15, 0.45, 0.7, W)),
+            ("hind_legs", FurParams::fur(8.0, 30.0, 0.15, 0.45, 0.7, G)),
+            ("paws", FurParams::fur(5.0, 30.0, 0.1, 0.4, 0.6, W)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(7.0, 35.0, 0.15, 0.5, 0.6, G)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare([0.3, 0.25, 0.2])),
         ],
         pattern: Pattern::Tabby,
     }

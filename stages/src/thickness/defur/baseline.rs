@@ -63,7 +63,9 @@ pub const DEFAULT_THICKNESS_CM: &[(&str, f32)] = &[
 ];
 
 /// The species `defur_baseline.species` accepts.
-pub const SPECIES: &[&str] = &["panda", "tiger", "fox", "cat", "bison", "wolf", "lynx"];
+pub const SPECIES: &[&str] = &[
+    "panda", "tiger", "fox", "cat", "bison", "wolf", "lynx", "sheepdog",
+];
 
 /// Coarse per-part effective fur thickness (cm) of a species (module doc); `None` for an
 /// unknown species.
@@ -148,6 +150,19 @@ pub fn species_thickness_cm(species: &str) -> Option<&'static [(&'static str, f3
             ("hind_legs", 1.5),
             ("legs", 1.5),
             ("paws", 1.0),
+        ],
+        "sheepdog" => &[
+            ("torso", 5.0),
+            ("belly", 4.5),
+            ("neck", 5.5),
+            ("tail", 3.0),
+            ("head", 3.5),
+            ("muzzle", 2.0),
+            ("ears", 3.5),
+            ("front_legs", 3.0),
+            ("hind_legs", 3.5),
+            ("legs", 3.0),
+            ("paws", 2.0),
         ],
         _ => return None,
     })
