@@ -16,7 +16,8 @@
 //!   of coat length: a tiger's short sleek coat, a fox's and a wolf's long
 //!   winter coat with a thick neck ruff and brush, a bison's shaggy mane over
 //!   short-haired hindquarters, a short-haired house cat, a lynx's dense
-//!   winter coat), taken as about half
+//!   winter coat, an Old English sheepdog's long shaggy coat over the whole
+//!   body, face and legs included), taken as about half
 //!   the hair length since fur lies at a shallow angle, rounded to 0.5 cm
 //!   (0.3 for the cat's face). They are coarse on purpose, never read from a
 //!   scene, and written without looking at `scene.json`; but they were written
