@@ -230,6 +230,17 @@ pub fn view_elevations(
         .collect())
 }
 
+/// The point of the envelope `outer` nearest to `p` and the unit normal of its face (`None` for
+/// a degenerate face): where the views see a root's fur, and which way it faces.
+fn envelope_point(p: Vec3, query: &MeshQuery, outer: &Mesh) -> (Vec3, Option<Vec3>) {
+    let (q, _, tri) = query.closest_point(p);
+    let normal = outer.triangles.get(tri as usize).and_then(|t| {
+        let [a, b, c] = t.map(|k| outer.positions[k as usize]);
+        (b - a).cross(c - a).try_normalize()
+    });
+    (q, normal)
+}
+
 /// One root's envelope normal and the sum over the views that see its
 /// envelope point of `w n n^T`, `n` the normal of the plane through the camera
 /// centre and the pixel's Gabor line ([`view_elevations`]).
@@ -240,15 +251,8 @@ fn plane_tensor(
     views: &[ViewOrientation<'_>],
     lift: f32,
 ) -> (Vec3, Mat3) {
-    let (q, _, tri) = query.closest_point(p);
-    let nq = outer
-        .triangles
-        .get(tri as usize)
-        .and_then(|t| {
-            let [a, b, c] = t.map(|k| outer.positions[k as usize]);
-            (b - a).cross(c - a).try_normalize()
-        })
-        .unwrap_or(Vec3::Z);
+    let (q, nq) = envelope_point(p, query, outer);
+    let nq = nq.unwrap_or(Vec3::Z);
     let mut m = Mat3::ZERO;
     for v in views {
         let cam = v.camera;
@@ -360,15 +364,8 @@ fn root_tensor(
     let mut null = [0.0f32; 6];
     let mut seen = 0u32;
     let (t, b) = (frame.x_axis, frame.y_axis);
-    let (q, _, tri) = query.closest_point(p);
-    let normal = outer
-        .triangles
-        .get(tri as usize)
-        .and_then(|tr| {
-            let [a, bb, c] = tr.map(|v| outer.positions[v as usize]);
-            (bb - a).cross(c - a).try_normalize()
-        })
-        .unwrap_or(frame.z_axis);
+    let (q, normal) = envelope_point(p, query, outer);
+    let normal = normal.unwrap_or(frame.z_axis);
     for v in views {
         let cam = v.camera;
         let to_cam = cam.center() - q;

@@ -207,11 +207,7 @@ pub fn metric_scale(
 
 /// V1 / V2 length in cm from `T_p`, `m_p` and an optional reference.
 pub fn part_length_cm(t_cm: f32, m: f32, reference: Option<f32>, v2: bool) -> f32 {
-    blend_reference(m * t_cm, reference, v2)
-}
-
-/// The shape estimate `shape` (cm) as V1 keeps it or V2 blends it with a reference.
-fn blend_reference(shape: f32, reference: Option<f32>, v2: bool) -> f32 {
+    let shape = m * t_cm;
     match (v2, reference) {
         (true, Some(r)) => (0.60 * shape + 0.40 * r).clamp(0.35 * r, 1.35 * r),
         _ => shape,
@@ -294,9 +290,9 @@ pub fn compute_lengths(
     for (p, name) in part_names.iter().enumerate() {
         let fur_part = is_fur(p);
         let reference = s.references_cm.get(name).copied();
-        let shape_cm = multiplier(name) * pooled_t_cm[p];
+        let m = multiplier(name);
         let length_cm = if fur_part {
-            blend_reference(shape_cm, reference, s.v2)
+            part_length_cm(pooled_t_cm[p], m, reference, s.v2)
         } else {
             0.0
         };
@@ -313,8 +309,8 @@ pub fn compute_lengths(
                 width_p75: w75[p],
                 t_cm: t_cm[p],
                 pooled_t_cm: pooled_t_cm[p],
-                multiplier: multiplier(name),
-                shape_cm,
+                multiplier: m,
+                shape_cm: m * pooled_t_cm[p],
                 reference_cm: reference,
                 length_cm,
                 length: length_cm / s.s_cm,
