@@ -469,7 +469,7 @@ impl Stage for LengthsStage {
         "lengths"
     }
     fn version(&self) -> u32 {
-        3
+        4
     }
     fn doc(&self) -> &'static str {
         "Metric scale from the eye separation and per-part strand lengths l_p = m_p T_p, T_p pooled \
