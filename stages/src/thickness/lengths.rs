@@ -75,7 +75,7 @@
 //! readings feed. The strands' F-score, weighted by where the strands are,
 //! gains on the lynx (whose front legs, a large part, read 47 % long) and
 //! ties on the tiger and the fox; the per-part length error, one vote per
-//! part, rises by 2-3 points on all three, since the readings do tell short
+//! part, rises by 1-3 points on all three, since the readings do tell short
 //! parts from long ones. Full pooling gains a little more F on the lynx and
 //! loses 4-10 points of length error.
 //!
