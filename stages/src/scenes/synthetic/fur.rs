@@ -16,9 +16,14 @@
 //! strand (`curl` is the tangent of the cone angle). Clumping moves point `k` by
 //! `clump * (k/n)^2 * o`, `o` the tangential offset from the root to its clump centre (the
 //! nearest feature point of a jittered grid, cell `0.8 * part length`: Worley cells). The
-//! polyline is then re-integrated with the exact segment length `L / n`, following the shaped
-//! points while pushing any point that would enter the skin back out along the SDF gradient,
-//! so every strand has exactly its length and stays outside the body.
+//! polyline is then re-integrated with the exact segment length `L / n`, each segment along the
+//! direction of the shaped polyline's segment, pushing any point that would enter the skin back
+//! out along the SDF gradient, so every strand has exactly its length and stays outside the
+//! body. Following the shaped *directions* rather than chasing the shaped *points* matters: a
+//! clump pull can make a shaped segment shorter than `L / n`, the exact-length point then
+//! overshoots, and chasing the next point folds the strand back on itself (measured on the fox:
+//! 8 % of strands turned more than 90 degrees at one vertex, and those folds were 97 % of the
+//! GT's local curvature variance).
 //!
 //! Thickness: a strand's height is `max_k (x_k - root) . N`, its highest point above the root's
 //! tangent plane; a part's `mean_thickness_cm` is the mean height of its strands (the fur layer
@@ -451,14 +456,16 @@ fn grow_one(preset: &Preset, body: &Body, cfg: &FurConfig, i: usize, p0: Vec3, p
         let tk = (k + 1) as f32 / n as f32;
         shaped.push(p + off * (fp.clump * tk * tk));
     }
-    // Re-integrate with exact segment length and skin collision.
+    // Re-integrate with exact segment length and skin collision, segment by segment along the
+    // shaped polyline's directions. Chasing its points instead folds a strand back on itself
+    // wherever a clump pull shortens a shaped segment and the exact-length point overshoots.
     let margin = 0.5 * cfg.width;
     let mut pts = Vec::with_capacity(n + 1);
     pts.push(root);
     let mut cur = root;
     let mut height = 0.0f32;
-    for target in shaped.iter().skip(1) {
-        let mut d = (*target - cur).try_normalize().unwrap_or(t);
+    for seg in shaped.windows(2) {
+        let mut d = (seg[1] - seg[0]).try_normalize().unwrap_or(t);
         let mut cand = cur + d * h;
         for _ in 0..4 {
             let fd = body.sdf(cand);
@@ -562,6 +569,38 @@ mod tests {
             .fold(f32::INFINITY, f32::min);
         assert!(worst > -0.01, "a strand point is {worst} inside the skin");
         assert!(fur.strands.points.iter().all(|q| q.is_finite()));
+    }
+
+    /// The largest angle (degrees) between consecutive segments of any strand.
+    fn sharpest_turn_deg(strands: &Strands) -> (f32, f32) {
+        let mut turns: Vec<f32> = Vec::new();
+        for s in 0..strands.len() {
+            for w in strands.strand(s).windows(3) {
+                let (a, b) = ((w[1] - w[0]).normalize(), (w[2] - w[1]).normalize());
+                turns.push(a.dot(b).clamp(-1.0, 1.0).acos().to_degrees());
+            }
+        }
+        turns.sort_by(f32::total_cmp);
+        let p99 = turns[(turns.len() * 99) / 100];
+        (*turns.last().unwrap(), p99)
+    }
+
+    #[test]
+    fn strands_do_not_fold_back_on_themselves() {
+        // Curl, gravity and clumping bend a strand; none of them reverses it. Chasing the shaped
+        // points with exact-length segments did (the fox: 8 % of strands turned more than 90
+        // degrees at one vertex).
+        for name in super::super::presets::PRESETS {
+            let (p, body, mesh, mut cfg) = setup(name);
+            cfg.base_density_per_cm2 *= 0.5;
+            let fur = grow(&p, &body, &mesh, &cfg);
+            let (worst, p99) = sharpest_turn_deg(&fur.strands);
+            eprintln!("{name}: sharpest turn {worst:.1} deg, 99th percentile {p99:.1}");
+            assert!(
+                worst < 90.0,
+                "{name}: a strand turns {worst} degrees at one vertex"
+            );
+        }
     }
 
     #[test]
