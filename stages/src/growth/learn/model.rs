@@ -230,8 +230,13 @@ pub struct Codec {
 /// leading components (the largest-variance ones: a strand's overall lean
 /// and bend) are what the views do resolve, so `from` leaves them to the
 /// guide field alone; the offsets then only add the fine waves and curls.
-pub fn style_codes(n: usize, k: usize, from: usize, scale: f32, seed: u64) -> Vec<f32> {
-    if scale == 0.0 || k <= from {
+///
+/// `to` ends the styled components (exclusive; 0 or anything above `k` means `k`): the trailing
+/// components of a corpus basis are its vertex-scale wiggles, which no pixel shows, and an
+/// offset there kinks every strand.
+pub fn style_codes(n: usize, k: usize, from: usize, to: usize, scale: f32, seed: u64) -> Vec<f32> {
+    let to = if to == 0 { k } else { to.min(k) };
+    if scale == 0.0 || to <= from {
         return Vec::new();
     }
     let mut out = Vec::with_capacity(n * k);
@@ -240,10 +245,10 @@ pub fn style_codes(n: usize, k: usize, from: usize, scale: f32, seed: u64) -> Ve
         rng.set_stream(i as u64);
         out.extend((0..k).map(|j| {
             let e = standard_normal(&mut rng);
-            if j < from {
-                0.0
-            } else {
+            if (from..to).contains(&j) {
                 scale * e
+            } else {
+                0.0
             }
         }));
     }
@@ -663,17 +668,28 @@ mod tests {
 
     #[test]
     fn style_codes_are_per_strand_streams_with_the_asked_spread() {
-        assert!(style_codes(10, 4, 0, 0.0, 1).is_empty());
-        assert!(style_codes(10, 4, 4, 0.5, 1).is_empty());
-        let a = style_codes(5000, 3, 0, 0.5, 7);
-        let b = style_codes(20, 3, 0, 0.5, 7);
+        assert!(style_codes(10, 4, 0, 0, 0.0, 1).is_empty());
+        assert!(style_codes(10, 4, 4, 0, 0.5, 1).is_empty());
+        assert!(style_codes(10, 4, 2, 2, 0.5, 1).is_empty());
+        let a = style_codes(5000, 3, 0, 0, 0.5, 7);
+        let b = style_codes(20, 3, 0, 0, 0.5, 7);
         // Strand i's code does not depend on how many strands there are.
         assert_eq!(&a[..60], &b[..]);
-        assert_ne!(style_codes(20, 3, 0, 0.5, 8), b);
+        assert_ne!(style_codes(20, 3, 0, 0, 0.5, 8), b);
+        assert_eq!(
+            style_codes(20, 3, 0, 3, 0.5, 7),
+            b,
+            "to = k styles every component"
+        );
         // Skipping the leading components zeroes them and keeps the others.
-        let skipped = style_codes(20, 3, 2, 0.5, 7);
+        let skipped = style_codes(20, 3, 2, 0, 0.5, 7);
         for (j, (&s, &full)) in skipped.iter().zip(&b).enumerate() {
             assert_eq!(s, if j % 3 < 2 { 0.0 } else { full }, "entry {j}");
+        }
+        // Ending them early zeroes the trailing ones and keeps the same draws in between.
+        let band = style_codes(20, 3, 1, 2, 0.5, 7);
+        for (j, (&s, &full)) in band.iter().zip(&b).enumerate() {
+            assert_eq!(s, if j % 3 == 1 { full } else { 0.0 }, "entry {j}");
         }
         let n = a.len() as f64;
         let mean = a.iter().map(|&x| x as f64).sum::<f64>() / n;
@@ -727,7 +743,7 @@ mod tests {
         let mut model = Model::Codec(
             Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
                 .with_tilt(tilt, 1.7)
-                .with_style(style_codes(3, 2, 0, style, 4)),
+                .with_style(style_codes(3, 2, 0, 0, style, 4)),
         );
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)

@@ -215,6 +215,10 @@ fure_stage_api::stage_params! {
         /// The style offsets leave the first this-many basis components (the lean and bend
         /// the views resolve) to the encoder alone.
         style_from: usize = int(2).min(0.0),
+        /// The style offsets end before this basis component (0 = none left out): the trailing
+        /// components are the corpus' vertex-scale wiggles, below any pixel (5: the bends of
+        /// components 2-4 only; chosen on the dev split, learn module doc).
+        style_to: usize = int(5).min(0.0),
         /// Radians per unit of the encoder's angle output (learn_rotation): with Adam the
         /// angle moves about this much faster than the codes (chosen on the dev split among
         /// 1 / 3 / 5 / 10, learn module doc).
@@ -359,7 +363,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        14
+        15
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -1146,6 +1150,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                             s.prep.len(),
                             s.decoder.k,
                             c.style_from,
+                            c.style_to,
                             c.style,
                             seed ^ STYLE_STREAM,
                         ))
