@@ -1,13 +1,11 @@
 //! Part labels without a hand-made mesh (`fit_template`, issue 19), on every synthetic preset with
-//! its labels withheld: the scene small (8 views of 96 px), its visual hull M_outer,
+//! its labels withheld: the scene at its smallest (8 views of 64 px), its visual hull M_outer,
 //! the fit of the nearest preset's labelled body, and `parts` run twice on M_outer, once from the
 //! fitted template and once from the scene's `labels.obj` (the truth). Targets: the fitted
 //! labels agree with the true ones on at least 85% of the fur area (M_outer's vertex areas, fur
 //! parts of the truth) and the fitted eyes give s_cm within 10% (with the fitted preset's
 //! eye separation). The library holds the scene's own species, as it would for a user's tiger:
-//! fitting a species with another one's body is not what these targets cover. At 64 px the
-//! fox's hull fits the tiger's body as well as its own (scores within 10 %, the pick changing
-//! with the scene's seed), so the scene is 96 px, where the fox wins by 10-11 % on seeds 0-2.
+//! fitting a species with another one's body is not what these targets cover.
 
 use std::path::Path;
 
@@ -29,7 +27,7 @@ preset = "{preset}"
 size = "quick"
 views = 8
 test_views = 1
-resolution = 96
+resolution = 64
 supersample = 1
 
 [stages.outer]
