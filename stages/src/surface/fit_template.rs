@@ -564,7 +564,7 @@ impl Stage for FitTemplateStage {
             PortSpec::file(
                 "metrics",
                 "json",
-                "chosen preset, score per preset, residual",
+                "chosen preset, score per preset, residual, fur shell",
             ),
         ]
     }

@@ -85,7 +85,7 @@
 //!   from the geometry parameters (`optimised_parameters`). Both start from
 //!   the views (`fit_colors`, see [`image`]); the fit's time counts as
 //!   training time.
-//! - Style codes (`style` 1.0 from component 2, codec): the paper leaves
+//! - Style codes (`style` 1.0 on components 2-4, codec): the paper leaves
 //!   local strand detail to an optional style map; here every strand's code
 //!   gets a fixed offset drawn from the basis' own unit-variance
 //!   distribution times `style` (seeded per strand, not trained), on every
@@ -100,6 +100,16 @@
 //!   0.5 on every component: it wins at 2 cm on the tiger and ties
 //!   elsewhere, has the unstyled in-plane error, and brings the tiger's
 //!   local curvature variance to about the GT's (0.19x without style).
+//!   The offsets stop before component `style_to` (5): a corpus basis'
+//!   trailing components are vertex-scale wiggles (their second differences
+//!   as large as the components themselves, against 0.01-0.3 for components
+//!   0-3), below any pixel, and offsets there kinked every strand. On the
+//!   dev split 5 ties styling every component at 1, 2 and 3 cm in the mean
+//!   over the four scenes (wins on the lynx at 1 and 2 cm, loses on the
+//!   sheepdog at 1 cm) and brings the strands' local curvature variance from
+//!   2.4-12x the GT's to 0.7-3.6x (tiger, fox, sheepdog); styling only
+//!   component 2 loses 2-5 points at 1 cm. Ties on F were broken by the
+//!   issue's shape target (curvature within 2x).
 //!   The dense baseline keeps its unstyled start: its free points can take
 //!   any per-strand shape the images ask for.
 //! - Learned growth direction (`learn_rotation`, codec, on by default): the
