@@ -714,4 +714,48 @@ mod tests {
             "eye separation {sep} vs {want}"
         );
     }
+
+    #[test]
+    fn a_body_under_a_coat_is_fitted_at_its_own_size_with_the_coat_as_shell() {
+        // The target: the fox grown by a uniform coat of 0.06 template units (3 % of the body
+        // length) along its normals, then scaled and moved. Fitting the bare skin to it would
+        // scale the body up; the shell takes the coat and leaves the scale, and so the eyes.
+        let st = FitSettings {
+            nonrigid_iterations: 6,
+            ..Default::default()
+        };
+        let templates: Vec<Template> = ["fox", "tiger"]
+            .iter()
+            .map(|n| template(n, 0.06).unwrap())
+            .collect();
+        let truth = template("fox", 0.035).unwrap();
+        let coat = 0.06f32;
+        let sim = Similarity {
+            s: 16.0,
+            r: Mat3::from_quat(Quat::from_euler(glam::EulerRot::XYZ, 0.3, 0.9, -0.2)),
+            t: Vec3::new(-1.0, 4.0, 2.5),
+        };
+        let mut target = truth.mesh.clone();
+        for (p, n) in target.positions.iter_mut().zip(&truth.mesh.normals) {
+            *p = sim.apply(*p + *n * coat);
+        }
+        let fit = fit(&target, &templates, &st).unwrap();
+        assert_eq!(fit.preset, "fox", "{:?}", fit.scores);
+        let shell = fit.shell / sim.s;
+        assert!(
+            (shell / coat - 1.0).abs() < 0.25,
+            "shell {shell} for a coat of {coat}"
+        );
+        assert!(
+            (fit.similarity.s / sim.s - 1.0).abs() < 0.03,
+            "scale {}",
+            fit.similarity.s
+        );
+        let sep = (fit.eyes[0] - fit.eyes[1]).length();
+        let want = (sim.apply(truth.eyes[0]) - sim.apply(truth.eyes[1])).length();
+        assert!(
+            (sep / want - 1.0).abs() < 0.05,
+            "eye separation {sep} vs {want}"
+        );
+    }
 }
