@@ -262,10 +262,18 @@ fn symmetric_pairs(
 /// The most a template's fur shell may take: 0.25 template units (1/8 of the body length).
 const MAX_SHELL: f32 = 0.25;
 
+/// A similarity fit of a template grown by a fur shell, and its score (lower is better).
+#[derive(Debug, Clone, Copy)]
+struct ShellFit {
+    sim: Similarity,
+    /// Fur shell, template units.
+    shell: f32,
+    score: f32,
+}
+
 /// Symmetric ICP for a similarity from `start` of the template grown by a fur shell: every
 /// vertex moved `shell` along its normal (template units), `shell` re-estimated after each
-/// similarity as the mean offset of the target along the template's normals. Returns the
-/// transform, the shell and the score.
+/// similarity as the mean offset of the target along the template's normals.
 fn icp(
     template: &[Vec3],
     normals: &[Vec3],
@@ -274,7 +282,7 @@ fn icp(
     start: Similarity,
     iterations: usize,
     rms: f32,
-) -> Result<(Similarity, f32, f32), FitError> {
+) -> Result<ShellFit, FitError> {
     let mut sim = start;
     let mut shell = 0.0f32;
     let mut score = f32::INFINITY;
@@ -296,7 +304,7 @@ fn icp(
             / template.len() as f64;
         shell = (offset as f32).clamp(0.0, MAX_SHELL);
     }
-    Ok((sim, shell, score))
+    Ok(ShellFit { sim, shell, score })
 }
 
 /// The 8 starts: template axes onto target axes, proper rotations only.
@@ -349,7 +357,8 @@ pub fn fit(target: &Mesh, templates: &[Template], st: &FitSettings) -> Result<Fi
         axes: ga,
         rms: grms,
     };
-    let (k, sim, shell, scores) = best_similarity(target, templates, &axes, st.icp_iterations)?;
+    let (k, ShellFit { sim, shell, .. }, scores) =
+        best_similarity(target, templates, &axes, st.icp_iterations)?;
     let tpl = &templates[k];
 
     // Non-rigid, coarse to fine, from the template grown by its fur shell: the eyes then
@@ -410,14 +419,14 @@ fn best_similarity(
     templates: &[Template],
     ax: &TargetAxes<'_>,
     icp_iterations: usize,
-) -> Result<(usize, Similarity, f32, BTreeMap<String, f32>), FitError> {
+) -> Result<(usize, ShellFit, BTreeMap<String, f32>), FitError> {
     let (gc, ga, grms) = (ax.centroid, ax.axes, ax.rms);
     let mut scores = BTreeMap::new();
-    let mut best: Option<(usize, Similarity, f32, f32)> = None;
+    let mut best: Option<(usize, ShellFit)> = None;
     for (k, tpl) in templates.iter().enumerate() {
         let tc = centroid(&tpl.mesh.positions);
         let (ta, trms) = principal_axes(&tpl.mesh.positions, tc);
-        let mut preset_best: Option<(Similarity, f32, f32)> = None;
+        let mut preset_best: Option<ShellFit> = None;
         for start in starts(tc, ta, trms, gc, ga, grms) {
             let r = icp(
                 &tpl.mesh.positions,
@@ -428,18 +437,18 @@ fn best_similarity(
                 icp_iterations,
                 grms,
             )?;
-            if preset_best.is_none_or(|b| r.2 < b.2) {
+            if preset_best.is_none_or(|b| r.score < b.score) {
                 preset_best = Some(r);
             }
         }
-        let (sim, shell, score) = preset_best.expect("eight starts");
-        scores.insert(tpl.name.clone(), score);
-        if best.is_none_or(|b| score < b.3) {
-            best = Some((k, sim, shell, score));
+        let fit = preset_best.expect("eight starts");
+        scores.insert(tpl.name.clone(), fit.score);
+        if best.is_none_or(|b| fit.score < b.1.score) {
+            best = Some((k, fit));
         }
     }
-    let (k, sim, shell, _) = best.expect("at least one template");
-    Ok((k, sim, shell, scores))
+    let (k, fit) = best.expect("at least one template");
+    Ok((k, fit, scores))
 }
 
 /// The non-rigid fit, coarse to fine: `rounds` rounds moving the template's
