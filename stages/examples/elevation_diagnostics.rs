@@ -51,7 +51,9 @@ fn run() -> Res<()> {
     let elevation = |d: Vec3, nq: Vec3| d.dot(nq).abs().clamp(0.0, 1.0).asin().to_degrees();
     let codec = read_hair(dir.join("codec/strands.hair")).ok();
     let (mut est, mut truth, mut learned) = (Vec::new(), Vec::new(), Vec::new());
+    let mut part_of = Vec::new();
     for (i, e) in sampled {
+        part_of.push(roots.part[i] as usize);
         // The envelope's normal at the root's closest point, as view_elevations measures.
         let (_, _, tri) = query.closest_point(roots.positions[i]);
         let [a, b, c] = outer.triangles[tri as usize].map(|k| outer.positions[k as usize]);
@@ -87,8 +89,33 @@ fn run() -> Res<()> {
         if learned.is_empty() {
             "-".to_string()
         } else {
-            format!("{:.1} deg", median(learned))
+            format!("{:.1} deg", median(learned.clone()))
         }
     );
+    // Per part: do the views tell a steep part from a flat one?
+    for (p, name) in roots.part_names.iter().enumerate() {
+        let pick = |v: &[f32]| -> Vec<f32> {
+            v.iter()
+                .zip(&part_of)
+                .filter(|&(_, &q)| q == p)
+                .map(|(x, _)| *x)
+                .collect()
+        };
+        let (e, t) = (pick(&est), pick(&truth));
+        if e.len() < 20 {
+            continue;
+        }
+        let c = if learned.len() == est.len() {
+            format!("{:.1}", median(pick(&learned)))
+        } else {
+            "-".into()
+        };
+        println!(
+            "  {name:<12} roots {:>5}: views {:.1} deg, GT {:.1} deg, codec {c}",
+            e.len(),
+            median(e),
+            median(t)
+        );
+    }
     Ok(())
 }

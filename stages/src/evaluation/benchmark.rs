@@ -26,7 +26,8 @@
 //! time is the sum of `costs.S.seconds` over the `preprocessing` stages; peak memory the largest
 //! `costs.*.peak_rss_bytes` of the variant. Fur thickness: `defur.{outer,root,baseline}_to_skin_mean_frac`,
 //! `frosting.gt_vertex.pearson`, `frosting.resolution.{median_width_px,gt_median_thickness_px}`,
-//! `lengths.length_error_mean_pct`, and for the V2 lengths (species
+//! `lengths.length_error_mean_pct` (and, carried through the first method's learned part scales
+//! `LEARNER.part_length_scale.P`, from `lengths.length_error_signed_pct.P`), and for the V2 lengths (species
 //! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
 //! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`. The size the first
 //! method chose, named on its F vs model-size chart: `LEARNER.strands`,
@@ -234,6 +235,27 @@ fn peak_rss(v: &VariantRecord) -> Option<f64> {
         .filter(|(k, _)| k.ends_with(".peak_rss_bytes"))
         .map(|(_, x)| *x)
         .reduce(f64::max)
+}
+
+/// The mean per-part length error (%) of `learner`'s trained strands: each part's error in
+/// `lengths.length_error_signed_pct.P` carried through the learner's learned scale
+/// `LEARNER.part_length_scale.P`. `None` without learned scales.
+fn trained_length_error(v: &VariantRecord, learner: &str) -> Option<f64> {
+    let prefix = "lengths.length_error_signed_pct.";
+    let scales = format!("{learner}.part_length_scale.");
+    if !v.metrics.keys().any(|k| k.starts_with(&scales)) {
+        return None;
+    }
+    let errors: Vec<f64> = v
+        .metrics
+        .iter()
+        .filter_map(|(k, &e)| {
+            let part = k.strip_prefix(prefix)?;
+            let scale = v.metrics.get(&format!("{scales}{part}")).copied()?;
+            Some(((1.0 + e / 100.0) * scale - 1.0).abs() * 100.0)
+        })
+        .collect();
+    (!errors.is_empty()).then(|| errors.iter().sum::<f64>() / errors.len() as f64)
 }
 
 fn preprocessing_seconds(v: &VariantRecord, cfg: &Config) -> Option<f64> {
@@ -587,6 +609,19 @@ fn write_thickness_and_speed(
     let coat_px = g("frosting.resolution.gt_median_thickness_px");
     let inside = g("defur.root_inside_body_frac");
     let len_err = g("lengths.length_error_mean_pct");
+    let len_err_trained = cfg
+        .methods
+        .first()
+        .and_then(|m| m.learner.as_deref())
+        .map(|learner| {
+            stat(
+                &sc.runs
+                    .iter()
+                    .filter_map(|v| trained_length_error(v, learner))
+                    .collect::<Vec<_>>(),
+            )
+        })
+        .unwrap_or(None);
     let len_err_v2 = g(&format!("{}.length_error_mean_pct", cfg.v2_lengths));
     let pre = stat(
         &sc.runs
@@ -606,8 +641,9 @@ fn write_thickness_and_speed(
         "Fur thickness (fractions of the GT fur thickness, mean distance to the GT skin): M_outer {}, \
          M_root {} (FurE defurring; fraction of its fur surface inside the GT body {}), NeuralFur baseline {}; Frosting widths vs true outer-to-skin \
          distance, per-vertex Pearson {}, median width {} px of the training views (the GT's fur, median \
-         over parts: {} px); mean per-part length error {} % (V2, species reference \
-         lengths: {} %). Preprocessing {} s; peak memory of a stage {} MiB.\n",
+         over parts: {} px); mean per-part length error {} % (after the first method's learned \
+         part scales: {} %; V2, species reference lengths: {} %). Preprocessing {} s; peak \
+         memory of a stage {} MiB.\n",
         fmt_stat(outer, 2),
         fmt_stat(root, 2),
         fmt_stat(inside, 3),
@@ -616,6 +652,7 @@ fn write_thickness_and_speed(
         fmt_stat(width_px, 2),
         fmt_stat(coat_px, 2),
         fmt_stat(len_err, 0),
+        fmt_stat(len_err_trained, 0),
         fmt_stat(len_err_v2, 0),
         fmt_stat(pre, 1),
         fmt_stat(mem, 0),
@@ -664,6 +701,7 @@ fn write_thickness_and_speed(
             "baseline_to_skin_frac": stat_json(base),
             "frosting_vertex_pearson": stat_json(corr),
             "length_error_mean_pct": stat_json(len_err),
+            "length_error_trained_mean_pct": stat_json(len_err_trained),
             "length_error_v2_mean_pct": stat_json(len_err_v2),
             "seconds": stat_json(pre),
             "peak_rss_mib": stat_json(mem),
@@ -998,8 +1036,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 8: whether dense reached the codec's final F-score.
-        8
+        // 9: the per-part length error after the first method's learned part scales.
+        9
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1131,6 +1169,30 @@ mod tests {
             .results
             .contains("**Stage seconds mix thread counts** (1, 2 threads)"));
         assert_eq!(mixed.metrics["stage_threads"], json!([1, 2]));
+    }
+
+    #[test]
+    fn the_trained_length_error_carries_each_part_through_its_learned_scale() {
+        let v = |scales: Json| {
+            let root = json!({"pipeline": "b", "crossed": {}, "each": {}, "variants": [{
+                "index": 0, "name": "b@v0", "status": "ok", "settings": {},
+                "metrics": {
+                    "lengths": {"length_error_signed_pct": {"torso": 100.0, "ears": -50.0}},
+                    "codec": scales,
+                },
+                "costs": {},
+            }]});
+            SweepRecord::from_json(Path::new("sweep.json"), &root).unwrap()
+        };
+        // Torso read twice too long and halved, ears read half too short and doubled: exact.
+        let rec = v(json!({"part_length_scale": {"torso": 0.5, "ears": 2.0}}));
+        assert_eq!(trained_length_error(&rec.variants[0], "codec"), Some(0.0));
+        // Left as read: the mean of 100 % and 50 %.
+        let rec = v(json!({"part_length_scale": {"torso": 1.0, "ears": 1.0}}));
+        assert_eq!(trained_length_error(&rec.variants[0], "codec"), Some(75.0));
+        // No learned scales: no figure, not the untrained one.
+        let rec = v(json!({"strands": 10}));
+        assert_eq!(trained_length_error(&rec.variants[0], "codec"), None);
     }
 
     #[test]

@@ -193,6 +193,30 @@
 //!   tips into the envelope from roots that sit high in the coat. From the
 //!   views' elevation it still loses the lynx's strict score (48.3 -> 41.1)
 //!   and the tiger's (75.6 -> 74.4).
+//! - Learned part lengths (`learn_length`, codec, on): one log length
+//!   scale per part ([`model::Codec::with_part_lengths`], own rate
+//!   `lr_length` 0.05 decayed with the geometry rates), so the views can
+//!   correct a part read long or short: the length estimate is one reading
+//!   per part, carried by every strand of the part. The scales keep the
+//!   coat's overall length (after each step the strand-weighted mean step is
+//!   taken back), because left free the image terms shorten every part:
+//!   on the dev split (codec, seeds 0-2, free scales at 0.02 / 0.05 / 0.1)
+//!   the F-scores tied, the held-out PSNR rose (the figure that rises as
+//!   strands fade) and the mean per-part length error rose on the three
+//!   scenes whose strands are already short (fox 31 -> 40 %, lynx 26 -> 33 %,
+//!   sheepdog 33 -> 54 % at 0.05). Keeping the overall length, at 0.05: the
+//!   F-scores tie at every threshold on all four scenes, and the mean
+//!   per-part length error of the trained strands falls on the tiger (34 ->
+//!   17 %) and the sheepdog (33 -> 27 %) and ties on the fox and the lynx; 0.1
+//!   ties 0.05 on the tiger and the sheepdog and trends worse on the fox and
+//!   the lynx. Taking the coat's mean pull out of the gradients before the
+//!   step instead (each part's pull per strand minus the strand-weighted
+//!   mean) lost on the fox and the sheepdog (34 and 39 %): Adam's normalised
+//!   step, a part's consistency of pull rather than its size, is what tells
+//!   the parts apart. The fixed-length ablation keeps it off (it would get
+//!   the views' split of length). The dense baseline keeps its lengths as
+//!   given, as NeuralFur scales every strand to its part's length; since
+//!   the scales tie on F, the codec-dense comparison does not rest on them.
 //! - Dense optimiser: lazy Adam (per-strand step counts, only sampled strands
 //!   move), learning rate `lr_points` in strand lengths (the canonical points
 //!   of a strand have unit arc length at the start), 0.001 by default (at

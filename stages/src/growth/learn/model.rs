@@ -37,6 +37,9 @@ pub struct Prepared {
     pub roots: Vec<Vec3>,
     pub frames: Vec<Mat3>,
     pub lengths: Vec<f32>,
+    /// Part index per root (below `part_count`).
+    pub parts: Vec<u16>,
+    pub part_count: usize,
     pub features: Vec<f32>,
     pub feature_dim: usize,
 }
@@ -86,6 +89,8 @@ impl Prepared {
             roots,
             frames,
             lengths,
+            parts,
+            part_count,
             features,
             feature_dim,
         }
@@ -181,6 +186,8 @@ pub struct Rates {
     pub encoder: f32,
     pub decoder: f32,
     pub points: f32,
+    /// The codec's per-part log length scales (`Codec::with_part_lengths`).
+    pub length: f32,
 }
 
 /// The codec: encoder E_theta and fine-tuned decoder D_psi.
@@ -211,8 +218,16 @@ pub struct Codec {
     /// Fixed per-strand style codes added to the encoder's K coefficients
     /// (`n * K`, strand-major; empty = none): see [`style_codes`].
     pub style: Vec<f32>,
+    /// Learned log length scale per part (empty = lengths as given): strand
+    /// `i` is placed at `length_i exp(part_log_length[part_i])`.
+    pub part_log_length: Vec<f32>,
+    /// Each part's share of the strands: after every step the share-weighted
+    /// mean of `part_log_length` is removed, so the scales keep the coat's
+    /// overall length.
+    pub part_shares: Vec<f32>,
     adam_theta: Adam,
     adam_psi: Adam,
+    adam_length: Adam,
 }
 
 /// Per-strand style codes (the paper's optional style map, as codes): strand
@@ -293,8 +308,15 @@ pub struct CodecChunk {
 
 /// Parameter gradients of one iteration.
 pub enum Grads {
-    Codec { theta: Vec<f32>, psi: Vec<f32> },
-    Dense { rows: Vec<f32> },
+    Codec {
+        theta: Vec<f32>,
+        psi: Vec<f32>,
+        /// Per part, d loss / d log length scale (empty without learned lengths).
+        length: Vec<f32>,
+    },
+    Dense {
+        rows: Vec<f32>,
+    },
 }
 
 impl Codec {
@@ -310,8 +332,39 @@ impl Codec {
             angle_scale: ANGLE_SCALE,
             tilt_scale: ANGLE_SCALE,
             style: Vec::new(),
+            part_log_length: Vec::new(),
+            part_shares: Vec::new(),
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
+            adam_length: Adam::new(0),
+        }
+    }
+
+    /// The same codec with one learned length scale per part (1 at the
+    /// start), so the views can correct each part's length: the length
+    /// estimate is one reading per part, and a part read long or short is
+    /// long or short over every one of its strands. The scales keep the
+    /// coat's overall length: after each Adam step (which moves every part
+    /// by about its rate, signed by how consistently its strands pull) the
+    /// mean step, weighted by `strands_per_part`, is taken back. Left free,
+    /// the image terms shorten every part alike (learn module doc), so only
+    /// the split of length between parts is theirs to move.
+    pub fn with_part_lengths(mut self, strands_per_part: &[f32]) -> Self {
+        let total: f32 = strands_per_part.iter().sum();
+        self.part_shares = match total > 0.0 {
+            true => strands_per_part.iter().map(|w| w / total).collect(),
+            false => vec![0.0; strands_per_part.len()],
+        };
+        self.part_log_length = vec![0.0; strands_per_part.len()];
+        self.adam_length = Adam::new(strands_per_part.len());
+        self
+    }
+
+    /// Strand `i`'s placed length: its target, times its part's learned scale.
+    pub fn length(&self, prep: &Prepared, i: usize) -> f32 {
+        match self.part_log_length.get(prep.parts[i] as usize) {
+            Some(&s) => prep.lengths[i] * s.exp(),
+            None => prep.lengths[i],
         }
     }
 
@@ -404,6 +457,7 @@ impl Model {
                     } else {
                         0
                     }
+                    + c.part_log_length.len()
             }
             Model::Dense(d) => d.points.len(),
         }
@@ -445,7 +499,7 @@ impl Model {
                                 loc,
                                 prep.roots[i],
                                 c.frame(prep.frames[i], &z, j),
-                                prep.lengths[i],
+                                c.length(prep, i),
                                 &mut world[j * l..(j + 1) * l],
                             );
                         }
@@ -487,13 +541,15 @@ impl Model {
                 let (k, st) = (c.decoder.k, c.stride());
                 let nt = c.mlp.param_count();
                 let np = c.decoder.params.len();
-                let per_chunk: Vec<(Vec<f32>, Vec<f32>)> = subset
+                let nparts = c.part_log_length.len();
+                let per_chunk: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = subset
                     .par_chunks(CHUNK)
                     .zip(chunks.par_iter())
                     .zip(grad.par_chunks(CHUNK * l))
                     .map(|((ids, ch), g)| {
                         let mut gz = vec![0.0f32; ids.len() * st];
                         let mut gpsi = vec![0.0f32; np];
+                        let mut glen = vec![0.0f32; nparts];
                         let mut gl = vec![Vec3::ZERO; l];
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
@@ -502,13 +558,23 @@ impl Model {
                             let turned = prep.frames[i] * turn;
                             let f = turned * tilt;
                             let gj = &g[j * l..(j + 1) * l];
-                            placement::place_backward(loc, f, prep.lengths[i], gj, &mut gl);
+                            let length = c.length(prep, i);
+                            placement::place_backward(loc, f, length, gj, &mut gl);
+                            let scale =
+                                length / (placement::arc_length(loc) + placement::PLACEMENT_EPS);
+                            if let Some(gp) = glen.get_mut(prep.parts[i] as usize) {
+                                // world_k - root = F q_k is proportional to the length, so
+                                // d world_k / d log scale = F q_k.
+                                *gp += loc
+                                    .iter()
+                                    .zip(gj)
+                                    .map(|(q, gk)| gk.dot(f * (scale * (*q - loc[0]))))
+                                    .sum::<f32>();
+                            }
                             if c.rotation || c.tilt {
                                 // With F = base Rz Ry: d world_k / d theta =
                                 // base Rz (e_z x Ry q), d world_k / d beta = F (e_y x q),
                                 // q the local offset, scaled as placement scales it.
-                                let scale = prep.lengths[i]
-                                    / (placement::arc_length(loc) + placement::PLACEMENT_EPS);
                                 let (mut dtheta, mut dbeta) = (0.0f32, 0.0f32);
                                 for (q, gk) in loc.iter().zip(gj) {
                                     let q = scale * (*q - loc[0]);
@@ -532,20 +598,24 @@ impl Model {
                         }
                         let mut gt = vec![0.0f32; nt];
                         c.mlp.backward(&ch.tape, &gz, &mut gt);
-                        (gt, gpsi)
+                        (gt, gpsi, glen)
                     })
                     .collect();
                 let mut theta = vec![0.0f32; nt];
                 let mut psi = vec![0.0f32; np];
-                for (gt, gp) in per_chunk {
+                let mut length = vec![0.0f32; nparts];
+                for (gt, gp, gl) in per_chunk {
                     for (a, b) in theta.iter_mut().zip(&gt) {
                         *a += b;
                     }
                     for (a, b) in psi.iter_mut().zip(&gp) {
                         *a += b;
                     }
+                    for (a, b) in length.iter_mut().zip(&gl) {
+                        *a += b;
+                    }
                 }
-                Grads::Codec { theta, psi }
+                Grads::Codec { theta, psi, length }
             }
             (Model::Dense(d), _) => {
                 let mut rows = Vec::with_capacity(subset.len() * (l - 1) * 3);
@@ -570,6 +640,7 @@ impl Model {
             (Model::Codec(_), Cache::Dense) => Grads::Codec {
                 theta: Vec::new(),
                 psi: Vec::new(),
+                length: Vec::new(),
             },
         }
     }
@@ -577,10 +648,23 @@ impl Model {
     /// One Adam step.
     pub fn step(&mut self, grads: &Grads, subset: &[u32], rates: Rates) {
         match (self, grads) {
-            (Model::Codec(c), Grads::Codec { theta, psi }) => {
+            (Model::Codec(c), Grads::Codec { theta, psi, length }) => {
                 c.adam_theta.step(&mut c.mlp.params, theta, rates.encoder);
                 if c.finetune_decoder {
                     c.adam_psi.step(&mut c.decoder.params, psi, rates.decoder);
+                }
+                if !c.part_log_length.is_empty() {
+                    c.adam_length
+                        .step(&mut c.part_log_length, length, rates.length);
+                    let mean: f32 = c
+                        .part_log_length
+                        .iter()
+                        .zip(&c.part_shares)
+                        .map(|(l, w)| l * w)
+                        .sum();
+                    for l in c.part_log_length.iter_mut() {
+                        *l -= mean;
+                    }
                 }
             }
             (Model::Dense(d), Grads::Dense { rows }) => {
@@ -700,6 +784,15 @@ mod tests {
     // Finite differences perturb parameter i and read gradient i.
     #[allow(clippy::needless_range_loop)]
     fn check_codec_gradients(rotation: bool, tilt: bool, style: f32) {
+        check_codec_gradients_with(rotation, tilt, style, false);
+    }
+
+    #[test]
+    fn codec_backward_with_learned_part_lengths_matches_finite_differences() {
+        check_codec_gradients_with(true, false, 0.5, true);
+    }
+
+    fn check_codec_gradients_with(rotation: bool, tilt: bool, style: f32, lengths: bool) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
         let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 3.0).collect();
@@ -740,11 +833,14 @@ mod tests {
         for (i, w) in mlp.params.iter_mut().enumerate().rev().take(21) {
             *w = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
         }
-        let mut model = Model::Codec(
-            Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
-                .with_tilt(tilt, 1.7)
-                .with_style(style_codes(3, 2, 0, 0, style, 4)),
-        );
+        let mut codec = Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
+            .with_tilt(tilt, 1.7)
+            .with_style(style_codes(3, 2, 0, 0, style, 4));
+        if lengths {
+            codec = codec.with_part_lengths(&[1.0, 2.0]);
+            codec.part_log_length = vec![0.2, -0.3];
+        }
+        let mut model = Model::Codec(codec);
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)
             .map(|i| Vec3::new((i % 3) as f32 - 1.0, 0.5, (i % 2) as f32))
@@ -755,9 +851,13 @@ mod tests {
         };
         let (_, cache) = model.forward(&prep, &subset);
         let grads = model.backward(&prep, &subset, &cache, &w);
-        let Grads::Codec { theta, psi } = grads else {
+        let Grads::Codec {
+            theta, psi, length, ..
+        } = grads
+        else {
             panic!()
         };
+        assert_eq!(length.len(), if lengths { 2 } else { 0 });
         let h = 1e-2f32;
         let Model::Codec(c) = &mut model else {
             panic!()
@@ -791,6 +891,85 @@ mod tests {
                 psi[i]
             );
         }
+        for (i, &g) in length.iter().enumerate() {
+            let o = c.part_log_length[i];
+            c.part_log_length[i] = o + h;
+            let fp = f(&Model::Codec(c.clone()));
+            c.part_log_length[i] = o - h;
+            let fm = f(&Model::Codec(c.clone()));
+            c.part_log_length[i] = o;
+            let fd = (fp - fm) / (2.0 * h as f64);
+            assert!(fd.abs() > 1e-3, "part {i}: the check needs a gradient");
+            assert!(
+                (fd - g as f64).abs() < 1e-2 * (1.0 + fd.abs()),
+                "part {i}: {fd} vs {g}"
+            );
+        }
+    }
+
+    fn rates_for_test() -> Rates {
+        Rates {
+            encoder: 0.0,
+            decoder: 0.0,
+            points: 0.0,
+            length: 0.1,
+        }
+    }
+
+    #[test]
+    fn learned_part_lengths_move_length_between_parts_not_the_coats_total() {
+        let l = 3;
+        let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32).collect();
+        let comps = vec![(0..l).map(|i| Vec3::X * i as f32 * 0.1).collect::<Vec<_>>()];
+        let pe = PositionalEncoding::new(1, [-1.0; 3], [1.0; 3]);
+        let n = 4;
+        let inputs = RootInputs {
+            positions: (0..n).map(|i| Vec3::X * i as f32 * 0.1).collect(),
+            frames: vec![Mat3::IDENTITY; n],
+            lengths: vec![1.0; n],
+            parts: vec![0, 0, 0, 1],
+            rho: vec![0.5; n],
+        };
+        let prep = Prepared::new(l, inputs, 2, &pe);
+        let mlp = Mlp::new(prep.feature_dim, 4, 1, 1, 3);
+        let mut model = Model::Codec(
+            Codec::new(mlp, Decoder::new(&mean, &comps), false, false)
+                .with_part_lengths(&[3.0, 1.0]),
+        );
+        // Pull every tip away from its root: left free, both parts would lengthen.
+        let subset: Vec<u32> = (0..n as u32).collect();
+        let (_, cache) = model.forward(&prep, &subset);
+        let grad: Vec<Vec3> = (0..n * l).map(|k| -Vec3::Z * (k % l) as f32).collect();
+        let grads = model.backward(&prep, &subset, &cache, &grad);
+        let Grads::Codec { length, .. } = &grads else {
+            panic!()
+        };
+        assert!(length.iter().all(|&g| g < 0.0), "{length:?}");
+        // Every strand pulled alike: Adam steps every part alike, and removing the coat's mean
+        // step leaves none moved.
+        for _ in 0..5 {
+            model.step(&grads, &subset, rates_for_test());
+        }
+        let Model::Codec(c) = &model else { panic!() };
+        assert!(
+            c.part_log_length.iter().all(|s| s.abs() < 1e-6),
+            "{:?}",
+            c.part_log_length
+        );
+        // Part 1's strand pulled the other way: it shortens, part 0 lengthens.
+        let mut grad_1 = grad.clone();
+        for g in &mut grad_1[3 * l..] {
+            *g *= -1.0;
+        }
+        let grads = model.backward(&prep, &subset, &cache, &grad_1);
+        for _ in 0..5 {
+            model.step(&grads, &subset, rates_for_test());
+        }
+        let Model::Codec(c) = &model else { panic!() };
+        let s = &c.part_log_length;
+        assert!((0.75 * s[0] + 0.25 * s[1]).abs() < 1e-6, "{s:?}");
+        let lengths: Vec<f32> = (0..n).map(|i| c.length(&prep, i)).collect();
+        assert!(lengths[3] < 1.0 && lengths[0] > 1.0, "{lengths:?}");
     }
 
     #[test]
@@ -867,7 +1046,8 @@ mod sized {
             pool.install(|| {
                 let (p, cache) = model.forward(&prep, &subset);
                 let g = point_grads(p.len());
-                let Grads::Codec { theta, psi } = model.backward(&prep, &subset, &cache, &g) else {
+                let Grads::Codec { theta, psi, .. } = model.backward(&prep, &subset, &cache, &g)
+                else {
                     panic!("codec gradients expected")
                 };
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();

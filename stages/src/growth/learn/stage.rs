@@ -199,6 +199,15 @@ fure_stage_api::stage_params! {
         /// the start elevation comes from the views (view_elevation; dev split, learn module
         /// doc): the learned tilt lays upright fur down.
         learn_tilt: bool = bool(false),
+        /// One learned length scale per part (1 at the start; learn::model) that keeps the
+        /// coat's overall length (the strand-weighted mean log scale stays 0): the views move
+        /// length between the parts read from the fur-thickness cue (chosen on the dev split,
+        /// learn module doc).
+        learn_length: bool = bool(true),
+        /// Initial Adam learning rate of the per-part log length scales (learn_length; decays
+        /// with lr_decay, so over the default 100 iterations a scale can move by at most about
+        /// exp(14.5 x this); 0.05 chosen on the dev split against 0.1).
+        lr_length: f32 = float(0.05).min(0.0),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
         /// Hidden width of the encoder.
@@ -363,7 +372,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        15
+        17
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -458,6 +467,10 @@ pub struct LearnMetrics {
     /// The frames tilted to the views' elevation (view_elevation).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub view_elevation: Option<ViewElevationReport>,
+    /// Per fur part, the learned length scale (learn_length): the trained strands' length
+    /// over the length they were given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part_length_scale: Option<std::collections::BTreeMap<String, f32>>,
 }
 
 /// Checks the roots' arrays agree and are finite.
@@ -1120,10 +1133,39 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         image_seconds: image.as_ref().map(|i| i.timing()),
         view_axes: s.view_axes.clone(),
         view_elevation: s.view_elevation.clone(),
+        part_length_scale: learned_length_scales(&model, &s),
     };
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;
     Ok(())
+}
+
+/// Per part with fur roots, the codec's learned length scale (`None` without learned lengths).
+fn learned_length_scales(
+    model: &Model,
+    s: &Setup,
+) -> Option<std::collections::BTreeMap<String, f32>> {
+    let Model::Codec(c) = model else { return None };
+    if c.part_log_length.is_empty() {
+        return None;
+    }
+    let mut has_roots = vec![false; c.part_log_length.len()];
+    for &p in &s.prep.parts {
+        if let Some(h) = has_roots.get_mut(p as usize) {
+            *h = true;
+        }
+    }
+    Some(
+        c.part_log_length
+            .iter()
+            .enumerate()
+            .filter(|&(p, _)| has_roots[p])
+            .map(|(p, &log)| {
+                let name = s.roots.part_names.get(p).cloned();
+                (name.unwrap_or_else(|| format!("part {p}")), log.exp())
+            })
+            .collect(),
+    )
 }
 
 /// Mixed into the codec seed for the style codes, so they are not the
@@ -1142,24 +1184,34 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                 s.decoder.k + c.learn_rotation as usize + c.learn_tilt as usize,
                 seed,
             );
+            let mut codec =
+                Codec::new(mlp, s.decoder.clone(), c.finetune_decoder, c.learn_rotation)
+                    .with_tilt(c.learn_tilt, c.tilt_scale)
+                    .with_style(style_codes(
+                        s.prep.len(),
+                        s.decoder.k,
+                        c.style_from,
+                        c.style_to,
+                        c.style,
+                        seed ^ STYLE_STREAM,
+                    ))
+                    .with_angle_scale(c.angle_scale);
+            if c.learn_length {
+                let mut strands_per_part = vec![0.0f32; s.prep.part_count];
+                for &p in &s.prep.parts {
+                    if let Some(w) = strands_per_part.get_mut(p as usize) {
+                        *w += 1.0;
+                    }
+                }
+                codec = codec.with_part_lengths(&strands_per_part);
+            }
             (
-                Model::Codec(
-                    Codec::new(mlp, s.decoder.clone(), c.finetune_decoder, c.learn_rotation)
-                        .with_tilt(c.learn_tilt, c.tilt_scale)
-                        .with_style(style_codes(
-                            s.prep.len(),
-                            s.decoder.k,
-                            c.style_from,
-                            c.style_to,
-                            c.style,
-                            seed ^ STYLE_STREAM,
-                        ))
-                        .with_angle_scale(c.angle_scale),
-                ),
+                Model::Codec(codec),
                 Rates {
                     encoder: c.lr_encoder,
                     decoder: c.lr_decoder,
                     points: 0.0,
+                    length: c.lr_length,
                 },
             )
         }
@@ -1169,6 +1221,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                 encoder: 0.0,
                 decoder: 0.0,
                 points: d.lr_points,
+                length: 0.0,
             },
         ),
     }

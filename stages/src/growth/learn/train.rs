@@ -124,6 +124,7 @@ pub fn decayed_rates(rates: Rates, decay: f32, iteration: usize, iterations: usi
         encoder: rates.encoder * f,
         decoder: rates.decoder * f,
         points: rates.points * f,
+        length: rates.length * f,
     }
 }
 
@@ -287,6 +288,7 @@ mod tests {
                 encoder: 3e-3,
                 decoder: 1e-4,
                 points: 0.02,
+                length: 0.0,
             },
             lr_decay: 1.0,
             w_chm: 1.0,
@@ -358,6 +360,7 @@ mod tests {
             encoder: 1e-3,
             decoder: 2e-4,
             points: 0.01,
+            length: 0.0,
         };
         let at = |it| decayed_rates(r, 0.01, it, 101);
         assert_eq!(at(0).encoder, r.encoder);
