@@ -76,6 +76,7 @@ fn time_model(model: &mut Model, prep: &Prepared, rng: &mut Rng) -> [f64; 4] {
         encoder: 1e-3,
         decoder: 1e-5,
         points: 1e-3,
+        length: 0.05,
     };
     let mut runs: Vec<[f64; 4]> = Vec::new();
     for it in 0..REPS + 2 {

@@ -218,16 +218,59 @@ pub struct Codec {
     /// Fixed per-strand style codes added to the encoder's K coefficients
     /// (`n * K`, strand-major; empty = none): see [`style_codes`].
     pub style: Vec<f32>,
-    /// Learned log length scale per part (empty = lengths as given): strand
-    /// `i` is placed at `length_i exp(part_log_length[part_i])`.
-    pub part_log_length: Vec<f32>,
-    /// Each part's share of the strands: after every step the share-weighted
-    /// mean of `part_log_length` is removed, so the scales keep the coat's
-    /// overall length.
-    pub part_shares: Vec<f32>,
+    /// Learned length scales per part (`None` = lengths as given).
+    pub part_lengths: Option<Box<PartLengths>>,
     adam_theta: Adam,
     adam_psi: Adam,
-    adam_length: Adam,
+}
+
+/// One learned length scale per part that keeps the coat's overall length:
+/// strand `i` is placed at `length_i exp(log_scale[part_i])`, and after each
+/// Adam step (which moves every part by about its rate, signed by how
+/// consistently its strands pull) the mean step, weighted by each part's
+/// share of the strands, is taken back. Left free, the image terms shorten
+/// every part alike (learn module doc), so only the split of length between
+/// parts is theirs to move.
+#[derive(Debug, Clone)]
+pub struct PartLengths {
+    pub log_scale: Vec<f32>,
+    shares: Vec<f32>,
+    adam: Adam,
+}
+
+impl PartLengths {
+    /// Scales of 1 for parts with `strands_per_part` strands each.
+    pub fn new(strands_per_part: &[f32]) -> Self {
+        let total: f32 = strands_per_part.iter().sum();
+        PartLengths {
+            log_scale: vec![0.0; strands_per_part.len()],
+            shares: strands_per_part
+                .iter()
+                .map(|w| if total > 0.0 { w / total } else { 0.0 })
+                .collect(),
+            adam: Adam::new(strands_per_part.len()),
+        }
+    }
+
+    /// Part `p`'s length scale (1 for a part it does not know).
+    pub fn scale(&self, p: usize) -> f32 {
+        self.log_scale.get(p).map_or(1.0, |s| s.exp())
+    }
+
+    /// One Adam step on `grad` (d loss / d log scale per part), then the
+    /// coat's mean step taken back.
+    fn step(&mut self, grad: &[f32], rate: f32) {
+        self.adam.step(&mut self.log_scale, grad, rate);
+        let mean: f32 = self
+            .log_scale
+            .iter()
+            .zip(&self.shares)
+            .map(|(l, w)| l * w)
+            .sum();
+        for l in self.log_scale.iter_mut() {
+            *l -= mean;
+        }
+    }
 }
 
 /// Per-strand style codes (the paper's optional style map, as codes): strand
@@ -332,38 +375,25 @@ impl Codec {
             angle_scale: ANGLE_SCALE,
             tilt_scale: ANGLE_SCALE,
             style: Vec::new(),
-            part_log_length: Vec::new(),
-            part_shares: Vec::new(),
+            part_lengths: None,
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
-            adam_length: Adam::new(0),
         }
     }
 
     /// The same codec with one learned length scale per part (1 at the
-    /// start), so the views can correct each part's length: the length
-    /// estimate is one reading per part, and a part read long or short is
-    /// long or short over every one of its strands. The scales keep the
-    /// coat's overall length: after each Adam step (which moves every part
-    /// by about its rate, signed by how consistently its strands pull) the
-    /// mean step, weighted by `strands_per_part`, is taken back. Left free,
-    /// the image terms shorten every part alike (learn module doc), so only
-    /// the split of length between parts is theirs to move.
+    /// start, [`PartLengths`]), so the views can correct each part's length:
+    /// the length estimate is one reading per part, and a part read long or
+    /// short is long or short over every one of its strands.
     pub fn with_part_lengths(mut self, strands_per_part: &[f32]) -> Self {
-        let total: f32 = strands_per_part.iter().sum();
-        self.part_shares = match total > 0.0 {
-            true => strands_per_part.iter().map(|w| w / total).collect(),
-            false => vec![0.0; strands_per_part.len()],
-        };
-        self.part_log_length = vec![0.0; strands_per_part.len()];
-        self.adam_length = Adam::new(strands_per_part.len());
+        self.part_lengths = Some(Box::new(PartLengths::new(strands_per_part)));
         self
     }
 
     /// Strand `i`'s placed length: its target, times its part's learned scale.
     pub fn length(&self, prep: &Prepared, i: usize) -> f32 {
-        match self.part_log_length.get(prep.parts[i] as usize) {
-            Some(&s) => prep.lengths[i] * s.exp(),
+        match &self.part_lengths {
+            Some(p) => prep.lengths[i] * p.scale(prep.parts[i] as usize),
             None => prep.lengths[i],
         }
     }
@@ -457,7 +487,7 @@ impl Model {
                     } else {
                         0
                     }
-                    + c.part_log_length.len()
+                    + c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len())
             }
             Model::Dense(d) => d.points.len(),
         }
@@ -541,7 +571,7 @@ impl Model {
                 let (k, st) = (c.decoder.k, c.stride());
                 let nt = c.mlp.param_count();
                 let np = c.decoder.params.len();
-                let nparts = c.part_log_length.len();
+                let nparts = c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len());
                 let per_chunk: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = subset
                     .par_chunks(CHUNK)
                     .zip(chunks.par_iter())
@@ -653,18 +683,8 @@ impl Model {
                 if c.finetune_decoder {
                     c.adam_psi.step(&mut c.decoder.params, psi, rates.decoder);
                 }
-                if !c.part_log_length.is_empty() {
-                    c.adam_length
-                        .step(&mut c.part_log_length, length, rates.length);
-                    let mean: f32 = c
-                        .part_log_length
-                        .iter()
-                        .zip(&c.part_shares)
-                        .map(|(l, w)| l * w)
-                        .sum();
-                    for l in c.part_log_length.iter_mut() {
-                        *l -= mean;
-                    }
+                if let Some(p) = c.part_lengths.as_mut() {
+                    p.step(length, rates.length);
                 }
             }
             (Model::Dense(d), Grads::Dense { rows }) => {
@@ -838,7 +858,7 @@ mod tests {
             .with_style(style_codes(3, 2, 0, 0, style, 4));
         if lengths {
             codec = codec.with_part_lengths(&[1.0, 2.0]);
-            codec.part_log_length = vec![0.2, -0.3];
+            codec.part_lengths.as_mut().unwrap().log_scale = vec![0.2, -0.3];
         }
         let mut model = Model::Codec(codec);
         let subset = [0u32, 2];
@@ -877,7 +897,7 @@ mod tests {
                 theta[i]
             );
         }
-        for i in 0..c.decoder.params.len() {
+        for (i, &g) in psi.iter().enumerate() {
             let o = c.decoder.params[i];
             c.decoder.params[i] = o + h;
             let fp = f(&Model::Codec(c.clone()));
@@ -886,18 +906,18 @@ mod tests {
             c.decoder.params[i] = o;
             let fd = (fp - fm) / (2.0 * h as f64);
             assert!(
-                (fd - psi[i] as f64).abs() < 1e-2 * (1.0 + fd.abs()),
-                "psi {i}: {fd} vs {}",
-                psi[i]
+                (fd - g as f64).abs() < 1e-2 * (1.0 + fd.abs()),
+                "psi {i}: {fd} vs {g}"
             );
         }
         for (i, &g) in length.iter().enumerate() {
-            let o = c.part_log_length[i];
-            c.part_log_length[i] = o + h;
+            let set = |c: &mut Codec, v: f32| c.part_lengths.as_mut().unwrap().log_scale[i] = v;
+            let o = c.part_lengths.as_ref().unwrap().log_scale[i];
+            set(c, o + h);
             let fp = f(&Model::Codec(c.clone()));
-            c.part_log_length[i] = o - h;
+            set(c, o - h);
             let fm = f(&Model::Codec(c.clone()));
-            c.part_log_length[i] = o;
+            set(c, o);
             let fd = (fp - fm) / (2.0 * h as f64);
             assert!(fd.abs() > 1e-3, "part {i}: the check needs a gradient");
             assert!(
@@ -951,11 +971,8 @@ mod tests {
             model.step(&grads, &subset, rates_for_test());
         }
         let Model::Codec(c) = &model else { panic!() };
-        assert!(
-            c.part_log_length.iter().all(|s| s.abs() < 1e-6),
-            "{:?}",
-            c.part_log_length
-        );
+        let s = &c.part_lengths.as_ref().unwrap().log_scale;
+        assert!(s.iter().all(|s| s.abs() < 1e-6), "{s:?}");
         // Part 1's strand pulled the other way: it shortens, part 0 lengthens.
         let mut grad_1 = grad.clone();
         for g in &mut grad_1[3 * l..] {
@@ -966,7 +983,7 @@ mod tests {
             model.step(&grads, &subset, rates_for_test());
         }
         let Model::Codec(c) = &model else { panic!() };
-        let s = &c.part_log_length;
+        let s = &c.part_lengths.as_ref().unwrap().log_scale;
         assert!((0.75 * s[0] + 0.25 * s[1]).abs() < 1e-6, "{s:?}");
         let lengths: Vec<f32> = (0..n).map(|i| c.length(&prep, i)).collect();
         assert!(lengths[3] < 1.0 && lengths[0] > 1.0, "{lengths:?}");

@@ -1146,23 +1146,22 @@ fn learned_length_scales(
     s: &Setup,
 ) -> Option<std::collections::BTreeMap<String, f32>> {
     let Model::Codec(c) = model else { return None };
-    if c.part_log_length.is_empty() {
-        return None;
-    }
-    let mut has_roots = vec![false; c.part_log_length.len()];
+    let lengths = c.part_lengths.as_ref()?;
+    let mut has_roots = vec![false; lengths.log_scale.len()];
     for &p in &s.prep.parts {
         if let Some(h) = has_roots.get_mut(p as usize) {
             *h = true;
         }
     }
     Some(
-        c.part_log_length
-            .iter()
-            .enumerate()
-            .filter(|&(p, _)| has_roots[p])
-            .map(|(p, &log)| {
+        (0..lengths.log_scale.len())
+            .filter(|&p| has_roots[p])
+            .map(|p| {
                 let name = s.roots.part_names.get(p).cloned();
-                (name.unwrap_or_else(|| format!("part {p}")), log.exp())
+                (
+                    name.unwrap_or_else(|| format!("part {p}")),
+                    lengths.scale(p),
+                )
             })
             .collect(),
     )
