@@ -213,8 +213,13 @@
 //!   step instead (each part's pull per strand minus the strand-weighted
 //!   mean) lost on the fox and the sheepdog (34 and 39 %): Adam's normalised
 //!   step, a part's consistency of pull rather than its size, is what tells
-//!   the parts apart. The fixed-length ablation keeps it off (it would get
-//!   the views' split of length). The dense baseline keeps its lengths as
+//!   the parts apart. The image terms also have length preferences of their
+//!   own: from exact part lengths the scales move them by 10-16 % on
+//!   average (paws, tails and legs shorten, heads and muzzles lengthen), so
+//!   the scales correct the readings only where their errors outweigh that,
+//!   and on the test split they do not on three scenes of four
+//!   (docs/history.md, "A learned length per part"). The fixed-length
+//!   ablation keeps it off (it would get the views' split of length). The dense baseline keeps its lengths as
 //!   given, as NeuralFur scales every strand to its part's length; since
 //!   the scales tie on F, the codec-dense comparison does not rest on them.
 //! - Dense optimiser: lazy Adam (per-strand step counts, only sampled strands
