@@ -54,6 +54,14 @@ iterations = 10
     )
 }
 
+/// `tiger.toml` at its shipped size under the name `name`, with `extra` TOML appended.
+fn tiger_as(name: &str, extra: &str) -> String {
+    format!(
+        "extends = '{}'\n\n[pipeline]\nname = \"{name}\"\n\n{extra}",
+        repo("pipelines/tiger.toml").display()
+    )
+}
+
 /// Every regular file under `dir`, relative to it, sorted.
 fn files(dir: &Path) -> BTreeSet<PathBuf> {
     fn walk(root: &Path, dir: &Path, out: &mut BTreeSet<PathBuf>) {
@@ -1051,10 +1059,7 @@ fn a_start_turned_45_degrees_is_brought_back_within_15_degrees_on_the_tiger() {
     let p = Project::new();
     p.write(
         "turned.toml",
-        &format!(
-            "extends = '{}'\n\n[pipeline]\nname = \"turned\"\n\n[stages.codec]\nframe_rotation_deg = 45.0\n",
-            repo("pipelines/tiger.toml").display()
-        ),
+        &tiger_as("turned", "[stages.codec]\nframe_rotation_deg = 45.0\n"),
     );
     let error = |extra: &[&str]| -> f64 {
         let mut args = vec!["--until", "evaluate"];
@@ -1087,13 +1092,7 @@ fn a_start_turned_45_degrees_is_brought_back_within_15_degrees_on_the_tiger() {
 #[test]
 fn frosting_widths_do_not_follow_the_gaussian_budget() {
     let p = Project::new();
-    p.write(
-        "budget.toml",
-        &format!(
-            "extends = '{}'\n\n[pipeline]\nname = \"budget\"\n",
-            repo("pipelines/tiger.toml").display()
-        ),
-    );
+    p.write("budget.toml", &tiger_as("budget", ""));
     let mean_width = |seed: u32, gaussians: u32| -> f64 {
         let sets = [
             format!("scene.seed={seed}"),
