@@ -271,6 +271,15 @@ struct ShellFit {
     score: f32,
 }
 
+/// A template's skin grown by a fur shell: every vertex moved `shell` along its normal.
+fn grown(positions: &[Vec3], normals: &[Vec3], shell: f32) -> Vec<Vec3> {
+    positions
+        .iter()
+        .zip(normals)
+        .map(|(&p, &n)| p + n * shell)
+        .collect()
+}
+
 /// Symmetric ICP for a similarity from `start` of the template grown by a fur shell: every
 /// vertex moved `shell` along its normal (template units), `shell` re-estimated after each
 /// similarity as the mean offset of the target along the template's normals.
@@ -287,11 +296,7 @@ fn icp(
     let mut shell = 0.0f32;
     let mut score = f32::INFINITY;
     for _ in 0..=iterations {
-        let furred: Vec<Vec3> = template
-            .iter()
-            .zip(normals)
-            .map(|(&p, &n)| p + n * shell)
-            .collect();
+        let furred = grown(template, normals, shell);
         let moved: Vec<Vec3> = furred.iter().map(|&p| sim.apply(p)).collect();
         let (src, dst, sq) = symmetric_pairs(&moved, target, target_index)?;
         score = sq / (rms * rms);
@@ -363,12 +368,9 @@ pub fn fit(target: &Mesh, templates: &[Template], st: &FitSettings) -> Result<Fi
 
     // Non-rigid, coarse to fine, from the template grown by its fur shell: the eyes then
     // follow the local departures from body plus fur, not the fur itself.
-    let start: Vec<Vec3> = tpl
-        .mesh
-        .positions
-        .iter()
-        .zip(&tpl.mesh.normals)
-        .map(|(&p, &n)| sim.apply(p + n * shell))
+    let start: Vec<Vec3> = grown(&tpl.mesh.positions, &tpl.mesh.normals, shell)
+        .into_iter()
+        .map(|p| sim.apply(p))
         .collect();
     let v = deform_nonrigid(&start, &tpl.mesh, target, &query, st.nonrigid_iterations)?;
     let (_, _, sq) = symmetric_pairs(&v, &target.positions, &target_index)?;

@@ -101,6 +101,17 @@ impl Prepared {
     pub fn is_empty(&self) -> bool {
         self.roots.is_empty()
     }
+    /// How many roots each of the `part_count` parts has.
+    pub fn strands_per_part(&self) -> Vec<usize> {
+        let mut n = vec![0usize; self.part_count];
+        for &p in &self.parts {
+            if let Some(c) = n.get_mut(p as usize) {
+                *c += 1;
+            }
+        }
+        n
+    }
+
     /// Mean target length (the `lbar` of the geometric losses).
     pub fn mean_length(&self) -> f32 {
         if self.lengths.is_empty() {
@@ -240,13 +251,13 @@ pub struct PartLengths {
 
 impl PartLengths {
     /// Scales of 1 for parts with `strands_per_part` strands each.
-    pub fn new(strands_per_part: &[f32]) -> Self {
-        let total: f32 = strands_per_part.iter().sum();
+    pub fn new(strands_per_part: &[usize]) -> Self {
+        let total = strands_per_part.iter().sum::<usize>() as f32;
         PartLengths {
             log_scale: vec![0.0; strands_per_part.len()],
             shares: strands_per_part
                 .iter()
-                .map(|w| if total > 0.0 { w / total } else { 0.0 })
+                .map(|&w| if total > 0.0 { w as f32 / total } else { 0.0 })
                 .collect(),
             adam: Adam::new(strands_per_part.len()),
         }
@@ -385,7 +396,7 @@ impl Codec {
     /// start, [`PartLengths`]), so the views can correct each part's length:
     /// the length estimate is one reading per part, and a part read long or
     /// short is long or short over every one of its strands.
-    pub fn with_part_lengths(mut self, strands_per_part: &[f32]) -> Self {
+    pub fn with_part_lengths(mut self, strands_per_part: &[usize]) -> Self {
         self.part_lengths = Some(Box::new(PartLengths::new(strands_per_part)));
         self
     }
@@ -592,24 +603,24 @@ impl Model {
                             placement::place_backward(loc, f, length, gj, &mut gl);
                             let scale =
                                 length / (placement::arc_length(loc) + placement::PLACEMENT_EPS);
-                            if let Some(gp) = glen.get_mut(prep.parts[i] as usize) {
-                                // world_k - root = F q_k is proportional to the length, so
-                                // d world_k / d log scale = F q_k.
-                                *gp += loc
-                                    .iter()
-                                    .zip(gj)
-                                    .map(|(q, gk)| gk.dot(f * (scale * (*q - loc[0]))))
-                                    .sum::<f32>();
-                            }
-                            if c.rotation || c.tilt {
-                                // With F = base Rz Ry: d world_k / d theta =
-                                // base Rz (e_z x Ry q), d world_k / d beta = F (e_y x q),
-                                // q the local offset, scaled as placement scales it.
-                                let (mut dtheta, mut dbeta) = (0.0f32, 0.0f32);
+                            let part = (prep.parts[i] as usize).min(nparts);
+                            let turns = c.rotation || c.tilt;
+                            if part < nparts || turns {
+                                // With q_k the local offset, scaled as placement scales it,
+                                // world_k - root = F q_k: d world_k / d log length scale =
+                                // F q_k; with F = base Rz Ry, d world_k / d theta =
+                                // base Rz (e_z x Ry q_k), d world_k / d beta = F (e_y x q_k).
+                                let (mut dlen, mut dtheta, mut dbeta) = (0.0f32, 0.0f32, 0.0f32);
                                 for (q, gk) in loc.iter().zip(gj) {
                                     let q = scale * (*q - loc[0]);
-                                    dtheta += gk.dot(turned * Vec3::Z.cross(tilt * q));
-                                    dbeta += gk.dot(f * Vec3::Y.cross(q));
+                                    dlen += gk.dot(f * q);
+                                    if turns {
+                                        dtheta += gk.dot(turned * Vec3::Z.cross(tilt * q));
+                                        dbeta += gk.dot(f * Vec3::Y.cross(q));
+                                    }
+                                }
+                                if let Some(gp) = glen.get_mut(part) {
+                                    *gp += dlen;
                                 }
                                 let at = j * st + k;
                                 if c.rotation {
@@ -801,8 +812,6 @@ mod tests {
         assert!(mean.abs() < 0.02 && (sd - 0.5).abs() < 0.02, "{mean} {sd}");
     }
 
-    // Finite differences perturb parameter i and read gradient i.
-    #[allow(clippy::needless_range_loop)]
     fn check_codec_gradients(rotation: bool, tilt: bool, style: f32) {
         check_codec_gradients_with(rotation, tilt, style, false);
     }
@@ -812,6 +821,7 @@ mod tests {
         check_codec_gradients_with(true, false, 0.5, true);
     }
 
+    // Finite differences perturb parameter i and read gradient i.
     fn check_codec_gradients_with(rotation: bool, tilt: bool, style: f32, lengths: bool) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
@@ -857,7 +867,7 @@ mod tests {
             .with_tilt(tilt, 1.7)
             .with_style(style_codes(3, 2, 0, 0, style, 4));
         if lengths {
-            codec = codec.with_part_lengths(&[1.0, 2.0]);
+            codec = codec.with_part_lengths(&[1, 2]);
             codec.part_lengths.as_mut().unwrap().log_scale = vec![0.2, -0.3];
         }
         let mut model = Model::Codec(codec);
@@ -953,8 +963,7 @@ mod tests {
         let prep = Prepared::new(l, inputs, 2, &pe);
         let mlp = Mlp::new(prep.feature_dim, 4, 1, 1, 3);
         let mut model = Model::Codec(
-            Codec::new(mlp, Decoder::new(&mean, &comps), false, false)
-                .with_part_lengths(&[3.0, 1.0]),
+            Codec::new(mlp, Decoder::new(&mean, &comps), false, false).with_part_lengths(&[3, 1]),
         );
         // Pull every tip away from its root: left free, both parts would lengthen.
         let subset: Vec<u32> = (0..n as u32).collect();

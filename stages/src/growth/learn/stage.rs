@@ -1147,15 +1147,10 @@ fn learned_length_scales(
 ) -> Option<std::collections::BTreeMap<String, f32>> {
     let Model::Codec(c) = model else { return None };
     let lengths = c.part_lengths.as_ref()?;
-    let mut has_roots = vec![false; lengths.log_scale.len()];
-    for &p in &s.prep.parts {
-        if let Some(h) = has_roots.get_mut(p as usize) {
-            *h = true;
-        }
-    }
+    let strands = s.prep.strands_per_part();
     Some(
         (0..lengths.log_scale.len())
-            .filter(|&p| has_roots[p])
+            .filter(|&p| strands.get(p).is_some_and(|&n| n > 0))
             .map(|p| {
                 let name = s.roots.part_names.get(p).cloned();
                 (
@@ -1196,13 +1191,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                     ))
                     .with_angle_scale(c.angle_scale);
             if c.learn_length {
-                let mut strands_per_part = vec![0.0f32; s.prep.part_count];
-                for &p in &s.prep.parts {
-                    if let Some(w) = strands_per_part.get_mut(p as usize) {
-                        *w += 1.0;
-                    }
-                }
-                codec = codec.with_part_lengths(&strands_per_part);
+                codec = codec.with_part_lengths(&s.prep.strands_per_part());
             }
             (
                 Model::Codec(codec),
