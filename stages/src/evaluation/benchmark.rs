@@ -498,6 +498,7 @@ fn write_comparisons(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) -> Opt
 fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
     let mut sj = Map::new();
     write_method_table(md, sc, cfg, &mut sj);
+    write_seams(md, sc, cfg);
     write_thickness_and_speed(md, sc, cfg, &mut sj);
     sj.insert("split".into(), sc.split.into());
     let _ = writeln!(
@@ -521,7 +522,7 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
     );
     let _ = writeln!(
         md,
-        "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | curvature var. / GT | PSNR (dB) | SSIM | learning stage (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|"
+        "| method | F 1 cm | F 2 cm | F 3 cm | F 4 cm | direction error (°) | part seams (°) | curvature var. / GT | PSNR (dB) | SSIM | learning stage (s) | parameters |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     let rows = cfg
         .methods
@@ -538,6 +539,7 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
             .map(|&t| stat(&values(sc, &f_key(&eval, t))))
             .collect();
         let dir = stat(&values(sc, &format!("{eval}.direction_error_deg")));
+        let seam = stat(&values(sc, &format!("{eval}.{SEAM_EXCESS_KEY}")));
         let curv = stat(&values(
             sc,
             &format!("{eval}.local_curvature_variance_vs_gt"),
@@ -562,8 +564,9 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
         }
         let _ = writeln!(
             md,
-            "{row} {} | {} | {} | {} | {} | {} |",
+            "{row} {} | {} | {} | {} | {} | {} | {} |",
             fmt_stat(dir, 1),
+            fmt_stat(seam, 1),
             fmt_stat(curv, 2),
             fmt_stat(psnr, 2),
             fmt_stat(ssim, 3),
@@ -581,6 +584,13 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
             );
         }
         mj.insert("direction_error_deg".into(), stat_json(dir));
+        mj.insert("part_seam_excess_deg".into(), stat_json(seam));
+        if let Some((parts, worst)) = worst_seam(sc, &eval) {
+            mj.insert(
+                "worst_part_seam".into(),
+                json!({"boundary": parts, "excess_deg": stat_json(Some(worst))}),
+            );
+        }
         mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
         mj.insert("psnr".into(), stat_json(psnr));
         mj.insert("ssim".into(), stat_json(ssim));
@@ -589,6 +599,53 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
         sj.insert(name, mj.into());
     }
     let _ = writeln!(md);
+}
+
+/// The key of a method's mean seam excess at part boundaries, after its evaluation prefix.
+const SEAM_EXCESS_KEY: &str = "seams.excess.mean_excess_deg";
+
+/// The boundary whose seam excess is largest in the mean over seeds (from
+/// `EVAL.seams.excess.by_boundary.A|B`), with that mean; boundaries judged in fewer than half
+/// of the seeds are left out.
+fn worst_seam(sc: &Scene<'_>, eval: &str) -> Option<(String, Stat)> {
+    let prefix = format!("{eval}.seams.excess.by_boundary.");
+    let mut by: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
+    for v in &sc.runs {
+        for (k, x) in &v.metrics {
+            if let Some(parts) = k.strip_prefix(&prefix) {
+                by.entry(parts).or_default().push(*x);
+            }
+        }
+    }
+    by.into_iter()
+        .filter(|(_, xs)| 2 * xs.len() >= sc.runs.len())
+        .filter_map(|(parts, xs)| stat(&xs).map(|s| (parts.to_string(), s)))
+        .max_by(|a, b| a.1.mean.total_cmp(&b.1.mean))
+}
+
+/// One line naming each method's worst part boundary (evaluation::seams).
+fn write_seams(md: &mut String, sc: &Scene<'_>, cfg: &Config) {
+    let worst: Vec<String> = cfg
+        .methods
+        .iter()
+        .map(|m| (m.name.as_str(), m.eval.as_str()))
+        .chain(std::iter::once(("ceiling", cfg.ceiling.as_str())))
+        .filter_map(|(name, eval)| {
+            worst_seam(sc, eval)
+                .map(|(parts, s)| format!("{name} {parts} {}", fmt_stat(Some(s), 1)))
+        })
+        .collect();
+    if worst.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        md,
+        "Part seams: how much more neighbouring strands (roots within 2 cm, in-plane directions) \
+         disagree across a part boundary than within the parts, minus the same for the GT there \
+         (0: the GT's own turn at the boundary, no seam); the column is the mean over boundaries, \
+         here the worst boundary, mean over seeds (°): {}.\n",
+        worst.join("; ")
+    );
 }
 
 /// Fur thickness, lengths and preprocessing (shared by every method of the scene), and the
@@ -724,7 +781,7 @@ fn runs_csv(scenes: &[Scene<'_>], cfg: &Config) -> String {
         );
     }
     csv.push_str(
-        ",direction_error_deg,curvature_vs_gt,psnr,ssim,training_seconds,optimised_parameters\n",
+        ",direction_error_deg,part_seam_excess_deg,curvature_vs_gt,psnr,ssim,training_seconds,optimised_parameters\n",
     );
     let num = |x: Option<f64>| x.map_or(String::new(), |x| format!("{x}"));
     for sc in scenes {
@@ -752,8 +809,9 @@ fn runs_csv(scenes: &[Scene<'_>], cfg: &Config) -> String {
                 let m = |k: &str| num(v.metrics.get(&format!("{eval}.{k}")).copied());
                 let _ = writeln!(
                     csv,
-                    ",{},{},{},{},{},{}",
+                    ",{},{},{},{},{},{},{}",
                     m("direction_error_deg"),
+                    m(SEAM_EXCESS_KEY),
                     m("local_curvature_variance_vs_gt"),
                     m("psnr"),
                     m("ssim"),
@@ -1036,8 +1094,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 9: the per-part length error after the first method's learned part scales.
-        9
+        // 10: the part seams (evaluation::seams) column and line.
+        10
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1269,6 +1327,35 @@ mod tests {
         assert!(headline.starts_with(PROVENANCE_MARK), "{headline}");
         assert!(headline.contains("| tiger | 3 | 61.0 ± 1.0 | 51.0 ± 1.0 | - |"));
         assert!(headline.contains("### Headline, test") && !headline.contains("Comparisons"));
+    }
+
+    #[test]
+    fn the_worst_part_seam_is_the_worst_in_the_mean_over_seeds() {
+        let mut rec = record(&[("tiger", 0, 60.0, 50.0), ("tiger", 1, 62.0, 51.0)]);
+        // Seed 0's worst boundary is ears|neck, but over both seeds hind_legs|torso is.
+        for (v, (ears, legs)) in rec.variants.iter_mut().zip([(12.0, 10.0), (2.0, 9.0)]) {
+            let by = "evaluate.seams.excess.by_boundary.";
+            v.metrics.insert(format!("{by}ears|neck"), ears);
+            v.metrics.insert(format!("{by}hind_legs|torso"), legs);
+            v.metrics
+                .insert(format!("evaluate.{SEAM_EXCESS_KEY}"), (ears + legs) / 2.0);
+        }
+        let Report {
+            results: md,
+            metrics: m,
+            ..
+        } = report(&rec, &cfg());
+        let worst = &m["scenes"]["tiger"]["FurE"]["worst_part_seam"];
+        assert_eq!(worst["boundary"], "hind_legs|torso", "{m}");
+        assert_eq!(worst["excess_deg"]["mean"], 9.5);
+        assert_eq!(
+            m["scenes"]["tiger"]["FurE"]["part_seam_excess_deg"]["mean"],
+            8.25
+        );
+        assert!(md.contains("FurE hind_legs|torso 9.5 ± 0.7"), "{md}");
+        // Dense has no seam figures: its column is missing, not zero, and the line skips it.
+        assert!(m["scenes"]["tiger"]["dense"]["part_seam_excess_deg"].is_null());
+        assert!(!md.contains("dense hind_legs"));
     }
 
     #[test]

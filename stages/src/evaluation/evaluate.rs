@@ -157,9 +157,7 @@ pub fn direction_error_deg(
             let (full_p, full_g) = (dp.length(), dg.length());
             let (dp, dg) = match (&query, skin) {
                 (Some(q), Some(m)) => {
-                    let (_, _, tri) = q.closest_point(root);
-                    let [a, b, c] = m.triangles[tri as usize].map(|v| m.positions[v as usize]);
-                    let n = (b - a).cross(c - a).normalize_or_zero();
+                    let (n, _, _) = super::seams::skin_plane_at(q, m, root);
                     (dp - n * dp.dot(n), dg - n * dg.dot(n))
                 }
                 _ => (dp, dg),
@@ -904,6 +902,8 @@ fure_stage_api::stage_params! {
         thresholds: Vec<f64> = float_list(&[1.0, 10.0, 2.0, 20.0, 3.0, 30.0, 4.0, 40.0]).min(0.0),
         /// root neighbourhood radius of the first-segment direction variance (cm)
         neighbour_cm: f32 = float(1.0).range(0.001, 1000.0),
+        /// neighbour radius of the direction seams at part boundaries (cm; needs `gt_skin`)
+        seam_radius_cm: f32 = float(2.0).range(0.01, 1000.0),
         /// evaluate at most this many evenly strided query points per side (0 = all)
         max_queries: usize = int(0).min(0.0),
         /// RGB background RGBA images are composited over before PSNR/SSIM
@@ -1033,11 +1033,11 @@ impl Stage for EvaluateStage {
         "evaluate"
     }
     fn version(&self) -> u32 {
-        5
+        6
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \
-         unsigned and signed), in-plane direction error, unsupervised strand-geometry metrics (and the \
+         unsigned and signed), in-plane direction error, direction seams at part boundaries, unsupervised strand-geometry metrics (and the \
          local curvature variance relative to the GT's), PSNR/SSIM on held-out views, training time."
     }
     fn params(&self) -> Vec<ParamSpec> {
@@ -1126,6 +1126,18 @@ impl Stage for EvaluateStage {
         let geo_gt = geometry_metrics(&gt, s_cm, spacing, neighbour);
         let skin = read_skin(ctx)?;
         let direction_error = direction_error_deg(&pred, &gt, skin.as_ref())?;
+        let seams = match skin.as_ref() {
+            Some(m) => {
+                let pred_seams = super::seams::seam_stats(&pred, m, s_cm, p.seam_radius_cm)?;
+                let gt_seams = super::seams::seam_stats(&gt, m, s_cm, p.seam_radius_cm)?;
+                let excess = match (&pred_seams, &gt_seams) {
+                    (Some(a), Some(b)) => super::seams::seam_excess(a, b),
+                    _ => None,
+                };
+                serde_json::json!({ "excess": excess, "pred": pred_seams, "gt": gt_seams })
+            }
+            None => serde_json::Value::Null,
+        };
         let curvature_ratio = curvature_variance_ratio(&geo, &geo_gt);
         ctx.progress.advance(1);
 
@@ -1148,6 +1160,7 @@ impl Stage for EvaluateStage {
             "first_segment_direction_variance": geo.first_segment_direction_variance,
             "local_curvature_variance_vs_gt": curvature_ratio,
             "direction_error_deg": direction_error,
+            "seams": seams,
             "direction_error_mode": if skin.is_some() { "in-plane (GT skin tangent plane)" } else { "3d" },
             "gt_geometry": geo_gt,
             "psnr": psnr_v,

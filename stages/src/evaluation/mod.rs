@@ -5,5 +5,6 @@
 pub mod benchmark;
 pub mod charts;
 pub mod evaluate;
+pub mod seams;
 pub mod speed_accuracy;
 pub mod stability;
