@@ -640,10 +640,11 @@ fn write_seams(md: &mut String, sc: &Scene<'_>, cfg: &Config) {
     }
     let _ = writeln!(
         md,
-        "Part seams: how much more neighbouring strands (roots within 2 cm, in-plane directions) \
-         disagree across a part boundary than within the parts, minus the same for the GT there \
-         (0: the GT's own turn at the boundary, no seam); the column is the mean over boundaries, \
-         here the worst boundary, mean over seeds (°): {}.\n",
+        "Part seams (evaluation::seams): around each root near a part boundary, the angle \
+         between the mean growth directions of its neighbours (in-plane, within the evaluation's `seam_radius_cm`, 3 cm by default) on either \
+         side, minus the same for the GT there (0: the boundary turns the fur as much as the GT's \
+         does; positive: a seam). The column is the mean over boundaries; here the worst \
+         boundary, mean over seeds (°): {}.\n",
         worst.join("; ")
     );
 }

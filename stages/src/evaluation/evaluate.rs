@@ -902,8 +902,10 @@ fure_stage_api::stage_params! {
         thresholds: Vec<f64> = float_list(&[1.0, 10.0, 2.0, 20.0, 3.0, 30.0, 4.0, 40.0]).min(0.0),
         /// root neighbourhood radius of the first-segment direction variance (cm)
         neighbour_cm: f32 = float(1.0).range(0.001, 1000.0),
-        /// neighbour radius of the direction seams at part boundaries (cm; needs `gt_skin`)
-        seam_radius_cm: f32 = float(2.0).range(0.01, 1000.0),
+        /// neighbour radius of the direction seams at part boundaries (cm; needs `gt_skin`).
+        /// 3: at 2 the tiger's sparser roots let only 2-3 boundaries be judged, at 3 and 4 the
+        /// same ten or eleven, with the same verdicts (evaluation::seams)
+        seam_radius_cm: f32 = float(3.0).range(0.01, 1000.0),
         /// evaluate at most this many evenly strided query points per side (0 = all)
         max_queries: usize = int(0).min(0.0),
         /// RGB background RGBA images are composited over before PSNR/SSIM
@@ -1033,7 +1035,7 @@ impl Stage for EvaluateStage {
         "evaluate"
     }
     fn version(&self) -> u32 {
-        6
+        8
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \

@@ -12,17 +12,22 @@
 //!    direction (the root-to-tip chord projected onto the GT skin's tangent plane at the root's
 //!    closest point, normalised; strands standing straight up are skipped, as in the direction
 //!    error) and a part: the label of the closest triangle's vertex nearest that point.
-//! 2. Every pair of sampled roots closer than `radius_cm` is a neighbour pair; its angle is the
-//!    angle between the two in-plane directions (0-180 degrees, growth sign counted). A pair is
-//!    *within* a part or *across* the boundary of two parts.
-//! 3. A set's **jump** at a boundary `A|B` is the mean angle of its pairs across `A|B` minus the
-//!    mean angle of all its within-part pairs: how much more neighbouring strands disagree across
-//!    that boundary than anywhere inside a part. It does not depend on the sampling density (the
-//!    radius is fixed in centimetres), and the set's own direction noise cancels.
+//! 2. Around each sampled root, the neighbours closer than `radius_cm` on its own part and on
+//!    each other part are summed into mean directions (growth sign counted). Where both sides
+//!    have at least [`MIN_SIDE`] neighbours, the root sees the boundary `A|B`, and the angle
+//!    between the two sides' mean directions (0-180 degrees) is its **jump** there. Means, not
+//!    single pairs: a coat's strand-to-strand scatter (the GT's neighbours differ by about 11
+//!    degrees on the tiger, a learner's smooth field by 5) would otherwise read as a seam on the
+//!    noisier set and hide one on the smoother.
+//! 3. A set's jump at `A|B` is the mean over the roots that see it; `opposed_frac` is the share
+//!    of those roots whose two sides grow more than 90 degrees apart (a sign flip). The radius is
+//!    fixed in centimetres, so the measure does not depend on the sampling density or the unit.
 //! 4. A method's **seam excess** at `A|B` is its jump minus the GT's jump there: the GT's fur turns
-//!    at some boundaries too (leg joints), and that turn is not a seam. Boundaries with fewer
-//!    than [`MIN_BOUNDARY_PAIRS`] pairs on either side are not judged. The report gives the worst
-//!    boundary and the mean over boundaries weighted by the method's pairs.
+//!    at some boundaries too (leg joints, the tail's root), and that turn is not a seam.
+//!    Boundaries seen by fewer than [`MIN_BOUNDARY_ROOTS`] roots on either side are not judged.
+//!    The report gives the worst boundary and the mean over boundaries weighted by the method's
+//!    roots there. `within_deg` (the mean angle between neighbouring strands on one part) is kept
+//!    beside it: the set's own scatter.
 //!
 //! Sums run in f64 in index order, so the result does not depend on threads.
 
@@ -38,21 +43,34 @@ use crate::maths::geom::{MeshQuery, PointIndex};
 use fure_stage_api::StageError;
 
 /// Most strands of a set the measure samples (an even stride over the rest).
-pub const SEAM_SAMPLE: usize = 20_000;
+pub const SEAM_SAMPLE: usize = 40_000;
 
-/// Fewest neighbour pairs across a boundary, on each side, for it to be judged.
-pub const MIN_BOUNDARY_PAIRS: usize = 30;
+/// Fewest roots near a boundary, on each side of the comparison, for it to be judged.
+pub const MIN_BOUNDARY_ROOTS: usize = 30;
 
-/// One boundary between two parts: its pairs and their mean angle.
+/// Fewest neighbours on each side of a boundary for a root to see it.
+pub const MIN_SIDE: usize = 3;
+
+/// The angle between two directions (degrees, 0-180); 0 when either vanishes.
+fn angle_deg(a: Vec3, b: Vec3) -> f64 {
+    let l = a.length() * b.length();
+    if !(l > 0.0) {
+        return 0.0;
+    }
+    ((a.dot(b) / l).clamp(-1.0, 1.0) as f64).acos().to_degrees()
+}
+
+/// One boundary between two parts, seen from the roots near it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Boundary {
     /// `A|B`, the two part names in name order.
     pub parts: String,
-    pub pairs: usize,
-    /// Mean angle of the pairs across it (degrees).
-    pub across_deg: f64,
-    /// `across_deg` minus the set's mean within-part angle.
+    /// Roots with at least [`MIN_SIDE`] neighbours on each side.
+    pub roots: usize,
+    /// Mean over those roots of the angle between the two sides' mean directions (degrees).
     pub jump_deg: f64,
+    /// Fraction of those roots whose two sides grow more than 90 degrees apart.
+    pub opposed_frac: f64,
 }
 
 /// Neighbouring strands' direction agreement within parts and across each boundary of one set.
@@ -60,10 +78,8 @@ pub struct Boundary {
 pub struct SeamStats {
     pub radius_cm: f64,
     pub within_pairs: usize,
-    /// Mean angle between neighbouring strands on one part (degrees).
+    /// Mean angle between neighbouring strands on one part (degrees): the set's own scatter.
     pub within_deg: f64,
-    pub across_pairs: usize,
-    pub across_deg: f64,
     /// Boundaries in name order.
     pub boundaries: Vec<Boundary>,
 }
@@ -75,7 +91,7 @@ pub struct SeamExcess {
     pub worst_boundary: String,
     /// The method's jump minus the GT's there (degrees).
     pub worst_excess_deg: f64,
-    /// Mean excess over the judged boundaries, weighted by the method's pairs.
+    /// Mean excess over the judged boundaries, weighted by the method's roots there.
     pub mean_excess_deg: f64,
     pub boundaries_judged: usize,
     /// Every judged boundary's excess (degrees), by `A|B`.
@@ -152,44 +168,54 @@ pub fn seam_stats(
     let roots: Vec<Vec3> = samples.iter().map(|s| s.0).collect();
     let index = PointIndex::new(&roots).map_err(StageError::failed)?;
     let radius = radius_cm / s_cm;
-    // Per root: its within-part sum and count, and its across pairs (j > i only, so each pair
-    // counts once), reduced below in root order.
+    // Per root: its within-part pair angles (j > i, so each pair counts once) and, for every other
+    // part among its neighbours, the angle between the two sides' summed directions; reduced
+    // below in root order.
     type Partial = (f64, usize, Vec<((u16, u16), f64)>);
     let partials: Vec<Partial> = (0..samples.len())
         .into_par_iter()
         .map(|i| {
             let (_, di, pi) = samples[i];
-            let (mut sum, mut n, mut across) = (0.0f64, 0usize, Vec::new());
+            let (mut sum, mut n) = (0.0f64, 0usize);
+            let (mut own, mut own_n) = (Vec3::ZERO, 0usize);
+            let mut other: BTreeMap<u16, (Vec3, usize)> = BTreeMap::new();
             for j in index.indices_within(roots[i], radius) {
                 let j = j as usize;
-                if j <= i {
-                    continue;
-                }
                 let (_, dj, pj) = samples[j];
-                let angle = (di.dot(dj).clamp(-1.0, 1.0) as f64).acos().to_degrees();
-                if pi == pj {
-                    sum += angle;
-                    n += 1;
+                if pj == pi {
+                    own += dj;
+                    own_n += 1;
+                    if j > i {
+                        sum += angle_deg(di, dj);
+                        n += 1;
+                    }
                 } else {
-                    across.push(((pi.min(pj), pi.max(pj)), angle));
+                    let e = other.entry(pj).or_insert((Vec3::ZERO, 0));
+                    e.0 += dj;
+                    e.1 += 1;
                 }
             }
-            (sum, n, across)
+            let jumps = other
+                .into_iter()
+                .filter(|&(_, (_, m))| own_n >= MIN_SIDE && m >= MIN_SIDE)
+                .map(|(q, (d, _))| ((pi.min(q), pi.max(q)), angle_deg(own, d)))
+                .collect();
+            (sum, n, jumps)
         })
         .collect();
     let (mut within_sum, mut within_pairs) = (0.0f64, 0usize);
-    let mut per: BTreeMap<(u16, u16), (f64, usize)> = BTreeMap::new();
-    for (sum, n, across) in partials {
+    let mut per: BTreeMap<(u16, u16), (f64, usize, usize)> = BTreeMap::new();
+    for (sum, n, jumps) in partials {
         within_sum += sum;
         within_pairs += n;
-        for (key, angle) in across {
+        for (key, angle) in jumps {
             let e = per.entry(key).or_default();
             e.0 += angle;
             e.1 += 1;
+            e.2 += usize::from(angle > 90.0);
         }
     }
-    let across_pairs: usize = per.values().map(|v| v.1).sum();
-    if within_pairs == 0 && across_pairs == 0 {
+    if within_pairs == 0 && per.is_empty() {
         return Ok(None);
     }
     let within_deg = if within_pairs > 0 {
@@ -205,34 +231,26 @@ pub fn seam_stats(
     };
     let mut boundaries: Vec<Boundary> = per
         .iter()
-        .map(|(&(a, b), &(sum, n))| {
+        .map(|(&(a, b), &(sum, n, opposed))| {
             let (na, nb) = (name(a), name(b));
             let parts = if na <= nb {
                 format!("{na}|{nb}")
             } else {
                 format!("{nb}|{na}")
             };
-            let across = sum / n as f64;
             Boundary {
                 parts,
-                pairs: n,
-                across_deg: across,
-                jump_deg: across - within_deg,
+                roots: n,
+                jump_deg: sum / n as f64,
+                opposed_frac: opposed as f64 / n as f64,
             }
         })
         .collect();
     boundaries.sort_by(|x, y| x.parts.cmp(&y.parts));
-    let across_deg = if across_pairs > 0 {
-        per.values().map(|v| v.0).sum::<f64>() / across_pairs as f64
-    } else {
-        0.0
-    };
     Ok(Some(SeamStats {
         radius_cm: radius_cm as f64,
         within_pairs,
         within_deg,
-        across_pairs,
-        across_deg,
         boundaries,
     }))
 }
@@ -243,13 +261,13 @@ pub fn seam_excess(pred: &SeamStats, gt: &SeamStats) -> Option<SeamExcess> {
     let gt_by: BTreeMap<&str, &Boundary> = gt
         .boundaries
         .iter()
-        .filter(|b| b.pairs >= MIN_BOUNDARY_PAIRS)
+        .filter(|b| b.roots >= MIN_BOUNDARY_ROOTS)
         .map(|b| (b.parts.as_str(), b))
         .collect();
     let judged: Vec<(&Boundary, f64)> = pred
         .boundaries
         .iter()
-        .filter(|b| b.pairs >= MIN_BOUNDARY_PAIRS)
+        .filter(|b| b.roots >= MIN_BOUNDARY_ROOTS)
         .filter_map(|b| {
             gt_by
                 .get(b.parts.as_str())
@@ -259,8 +277,8 @@ pub fn seam_excess(pred: &SeamStats, gt: &SeamStats) -> Option<SeamExcess> {
     let worst = judged
         .iter()
         .max_by(|x, y| x.1.total_cmp(&y.1).then_with(|| y.0.parts.cmp(&x.0.parts)))?;
-    let weight: usize = judged.iter().map(|(b, _)| b.pairs).sum();
-    let mean = judged.iter().map(|(b, e)| e * b.pairs as f64).sum::<f64>() / weight as f64;
+    let weight: usize = judged.iter().map(|(b, _)| b.roots).sum();
+    let mean = judged.iter().map(|(b, e)| e * b.roots as f64).sum::<f64>() / weight as f64;
     Some(SeamExcess {
         worst_boundary: worst.0.parts.clone(),
         worst_excess_deg: worst.1,
@@ -336,8 +354,10 @@ mod tests {
         let f = seam_stats(&flipped, &skin, 1.0, 2.1).unwrap().unwrap();
         assert_eq!(g.boundaries.len(), 1);
         assert_eq!(g.boundaries[0].parts, "left|right");
-        assert!(g.boundaries[0].jump_deg.abs() < 3.0, "{g:?}");
-        assert!(f.boundaries[0].across_deg > 150.0, "{f:?}");
+        assert!(g.boundaries[0].jump_deg < 6.0, "{g:?}");
+        assert!(f.boundaries[0].jump_deg > 170.0, "{f:?}");
+        assert!(f.boundaries[0].opposed_frac > 0.99, "{f:?}");
+        assert!(g.boundaries[0].opposed_frac == 0.0, "{g:?}");
         let e = seam_excess(&f, &g).unwrap();
         assert_eq!(e.worst_boundary, "left|right");
         assert!(e.worst_excess_deg > 140.0, "{e:?}");
@@ -349,13 +369,13 @@ mod tests {
         let gt_turn = seam_stats(&strands_on(1.0, turn), &skin, 1.0, 2.1)
             .unwrap()
             .unwrap();
-        assert!(gt_turn.boundaries[0].jump_deg > 80.0, "{gt_turn:?}");
+        assert!(gt_turn.boundaries[0].jump_deg > 60.0, "{gt_turn:?}");
         let e = seam_excess(&gt_turn, &gt_turn).unwrap();
         assert!(e.worst_excess_deg.abs() < 1e-9);
         // A method that keeps going straight where the GT turns is judged by the GT's turn:
         // negative excess (smoother than the truth), not a seam.
         let e = seam_excess(&g, &gt_turn).unwrap();
-        assert!(e.worst_excess_deg < -80.0, "{e:?}");
+        assert!(e.worst_excess_deg < -60.0, "{e:?}");
     }
 
     #[test]
@@ -375,7 +395,7 @@ mod tests {
             .unwrap()
             .unwrap();
         assert_eq!(cm.within_pairs, m.within_pairs);
-        assert_eq!(cm.across_pairs, m.across_pairs);
+        assert_eq!(cm.boundaries[0].roots, m.boundaries[0].roots);
         assert!((cm.within_deg - m.within_deg).abs() < 1e-3, "{cm:?} {m:?}");
         assert!((cm.boundaries[0].jump_deg - m.boundaries[0].jump_deg).abs() < 1e-3);
     }
