@@ -29,7 +29,8 @@
 //! `lengths.length_error_mean_pct` (and, carried through the first method's learned part scales
 //! `LEARNER.part_length_scale.P`, from `lengths.length_error_signed_pct.P`), and for the V2 lengths (species
 //! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
-//! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`. The size the first
+//! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`; each learner's final against its untrained
+//! start: `speed_accuracy.{codec,dense}_{start,final}_fscore_3cm_30deg`. The size the first
 //! method chose, named on its F vs model-size chart: `LEARNER.strands`,
 //! `LEARNER.points_per_strand`, `basis.k`.
 //! A missing key is a missing figure (`-`), never a zero.
@@ -734,21 +735,35 @@ fn write_thickness_and_speed(
     let dense_caught_up = count("dense_reached_codec_final");
     let start_codec = g(&format!("{}.codec_start_fscore_3cm_30deg", cfg.speedup));
     let start_dense = g(&format!("{}.dense_start_fscore_3cm_30deg", cfg.speedup));
+    let final_codec = g(&format!("{}.codec_final_fscore_3cm_30deg", cfg.speedup));
+    let final_dense = g(&format!("{}.dense_final_fscore_3cm_30deg", cfg.speedup));
+    // Issue 15's "both >= their own untrained start", by the protocol's rule.
+    let against_start = |fin: Option<Stat>, start: Option<Stat>| match (fin, start) {
+        (Some(f), Some(s)) => Some(verdict(&f, &s).label()),
+        _ => None,
+    };
+    let codec_vs_start = against_start(final_codec, start_codec);
+    let dense_vs_start = against_start(final_dense, start_dense);
     let _ = writeln!(
         md,
         "Speed-up of the first method to dense's final F (3 cm, unsigned, from the snapshots): {} \
          (the codec reached dense's final F in {reached} of {} seeds, {at_start} of them at its \
          untrained start, where its time is its colour fit's; undefined in {dense_flat} seeds \
          where dense's own untrained start already reaches its final F; snapshot bracket {}–{}). \
-         Dense reached the codec's final F in {dense_caught_up} of {} seeds. Untrained start, F at \
-         3 cm unsigned: codec {}, dense {}.\n",
+         Dense reached the codec's final F in {dense_caught_up} of {} seeds. Final against \
+         untrained start, F at 3 cm unsigned (the snapshots' scoring): codec {} against {} ({}), \
+         dense {} against {} ({}).\n",
         fmt_stat(sp, 1),
         sc.runs.len(),
         lo.map_or("-".into(), |x| format!("{x:.1}")),
         hi.map_or("-".into(), |x| format!("{x:.1}")),
         sc.runs.len(),
+        fmt_stat(final_codec, 1),
         fmt_stat(start_codec, 1),
+        codec_vs_start.unwrap_or("-"),
+        fmt_stat(final_dense, 1),
         fmt_stat(start_dense, 1),
+        dense_vs_start.unwrap_or("-"),
     );
     sj.insert(
         "preprocessing".into(),
@@ -767,7 +782,7 @@ fn write_thickness_and_speed(
     );
     sj.insert(
         "speedup".into(),
-        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "dense_start_reaches_final": dense_flat, "dense_reached_codec_final": dense_caught_up, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense)}),
+        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "dense_start_reaches_final": dense_flat, "dense_reached_codec_final": dense_caught_up, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense), "codec_final": stat_json(final_codec), "dense_final": stat_json(final_dense), "codec_against_start": codec_vs_start, "dense_against_start": dense_vs_start}),
     );
 }
 
@@ -1095,8 +1110,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 10: the part seams (evaluation::seams) column and line.
-        10
+        // 11: each learner's final F against its untrained start, with a verdict.
+        11
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1357,6 +1372,40 @@ mod tests {
         // Dense has no seam figures: its column is missing, not zero, and the line skips it.
         assert!(m["scenes"]["tiger"]["dense"]["part_seam_excess_deg"].is_null());
         assert!(!md.contains("dense hind_legs"));
+    }
+
+    #[test]
+    fn each_learner_is_judged_against_its_untrained_start() {
+        let mut rec = record(&[("tiger", 0, 60.0, 50.0), ("tiger", 1, 62.0, 51.0)]);
+        // The codec ends where it started (a tie); dense ends below its start by more than
+        // the spread (lost).
+        for (v, (cs, cf, ds, df)) in rec
+            .variants
+            .iter_mut()
+            .zip([(90.0, 90.5, 95.0, 90.0), (91.0, 90.5, 95.5, 90.5)])
+        {
+            for (k, x) in [
+                ("codec_start", cs),
+                ("codec_final", cf),
+                ("dense_start", ds),
+                ("dense_final", df),
+            ] {
+                v.metrics
+                    .insert(format!("speed_accuracy.{k}_fscore_3cm_30deg"), x);
+            }
+        }
+        let Report {
+            results: md,
+            metrics: m,
+            ..
+        } = report(&rec, &cfg());
+        let sp = &m["scenes"]["tiger"]["speedup"];
+        assert_eq!(sp["codec_against_start"], "tie", "{m}");
+        assert_eq!(sp["dense_against_start"], "lost", "{m}");
+        assert!(
+            md.contains("codec 90.5 ± 0.0 against 90.5 ± 0.7 (tie), dense 90.2 ± 0.4 against 95.2 ± 0.4 (lost)"),
+            "{md}"
+        );
     }
 
     #[test]

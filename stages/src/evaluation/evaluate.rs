@@ -53,6 +53,10 @@
 //!   20,000), the angle between its root-to-tip chord and the chord of the GT strand whose root is
 //!   nearest, growth sign counted (0-180 deg), both projected onto the GT skin's tangent plane at the
 //!   predicted root when `gt_skin` is connected (`direction_error_mode` says which); the mean.
+//! - `seams`: direction seams at part boundaries ([`super::seams`]), with `gt_skin` (its part
+//!   labels and tangent planes): per boundary, how far the mean growth directions on either side
+//!   of it differ around each root near it, for the method and for the GT (`pred`, `gt`), and the
+//!   method's excess over the GT's (`excess`: the worst boundary, the mean, every boundary).
 //! - `local_curvature_variance_vs_gt`: the predicted `local_curvature_variance` over the GT's
 //!   (1 = as kinky as the truth); `null` where fewer than half of either side's strands enter it
 //!   ([`curvature_variance_ratio`]): short fur, or a groom shorter than the truth, is not measured
