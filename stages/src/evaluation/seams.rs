@@ -256,7 +256,7 @@ pub fn seam_stats(
 }
 
 /// The method's seams over the GT's, on the boundaries where both have at least
-/// [`MIN_BOUNDARY_PAIRS`] pairs; `None` when there is no such boundary.
+/// [`MIN_BOUNDARY_ROOTS`] roots near it; `None` when there is no such boundary.
 pub fn seam_excess(pred: &SeamStats, gt: &SeamStats) -> Option<SeamExcess> {
     let gt_by: BTreeMap<&str, &Boundary> = gt
         .boundaries
