@@ -30,7 +30,8 @@
 //! `LEARNER.part_length_scale.P`, from `lengths.length_error_signed_pct.P`), and for the V2 lengths (species
 //! reference lengths, issue 14: reported beside V1, never instead) `V2.length_error_mean_pct` with
 //! `V2` the `v2_lengths` parameter. Speed: `speed_accuracy.speedup_*`; each learner's final against its untrained
-//! start: `speed_accuracy.{codec,dense}_{start,final}_fscore_3cm_30deg`. The size the first
+//! start: `speed_accuracy.{codec,dense}_{start,final}_fscore_3cm_30deg`; the same at the strict
+//! threshold, signed: `speed_accuracy.strict.*`. The size the first
 //! method chose, named on its F vs model-size chart: `LEARNER.strands`,
 //! `LEARNER.points_per_strand`, `basis.k`.
 //! A missing key is a missing figure (`-`), never a zero.
@@ -744,6 +745,33 @@ fn write_thickness_and_speed(
     };
     let codec_vs_start = against_start(final_codec, start_codec);
     let dense_vs_start = against_start(final_dense, start_dense);
+    // The strict threshold's speed-up (speed_accuracy's `strict`), where 3 cm saturates.
+    let strict = |k: &str| format!("{}.strict.{k}", cfg.speedup);
+    let sp_strict = g(&strict("speedup_to_dense_final_fscore"));
+    let count_strict = |k: &str| values(sc, &strict(k)).iter().filter(|&&x| x > 0.0).count();
+    let strict_seeds = values(sc, &strict("dense_final_fscore")).len();
+    let strict_line = if strict_seeds == 0 {
+        String::new()
+    } else {
+        format!(
+            " At the strict 1 cm / 10° (signed, the same snapshots): speed-up {} (the codec reached \
+             dense's final F in {} of {strict_seeds} seeds, {} of them at its untrained start; \
+             undefined in {} seeds where dense's untrained start already reaches it); final against \
+             start: codec {} against {} ({}), dense {} against {} ({}).",
+            fmt_stat(sp_strict, 1),
+            count_strict("codec_reached_dense_final"),
+            count_strict("codec_reached_dense_final_at_start"),
+            count_strict("dense_start_reaches_final"),
+            fmt_stat(g(&strict("codec_final_fscore")), 1),
+            fmt_stat(g(&strict("codec_start_fscore")), 1),
+            against_start(g(&strict("codec_final_fscore")), g(&strict("codec_start_fscore")))
+                .unwrap_or("-"),
+            fmt_stat(g(&strict("dense_final_fscore")), 1),
+            fmt_stat(g(&strict("dense_start_fscore")), 1),
+            against_start(g(&strict("dense_final_fscore")), g(&strict("dense_start_fscore")))
+                .unwrap_or("-"),
+        )
+    };
     let _ = writeln!(
         md,
         "Speed-up of the first method to dense's final F (3 cm, unsigned, from the snapshots): {} \
@@ -752,7 +780,7 @@ fn write_thickness_and_speed(
          where dense's own untrained start already reaches its final F; snapshot bracket {}–{}). \
          Dense reached the codec's final F in {dense_caught_up} of {} seeds. Final against \
          untrained start, F at 3 cm unsigned (the snapshots' scoring): codec {} against {} ({}), \
-         dense {} against {} ({}).\n",
+         dense {} against {} ({}).{strict_line}\n",
         fmt_stat(sp, 1),
         sc.runs.len(),
         lo.map_or("-".into(), |x| format!("{x:.1}")),
@@ -782,7 +810,7 @@ fn write_thickness_and_speed(
     );
     sj.insert(
         "speedup".into(),
-        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "dense_start_reaches_final": dense_flat, "dense_reached_codec_final": dense_caught_up, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense), "codec_final": stat_json(final_codec), "dense_final": stat_json(final_dense), "codec_against_start": codec_vs_start, "dense_against_start": dense_vs_start}),
+        json!({"ratio": stat_json(sp), "reached": reached, "reached_at_start": at_start, "dense_start_reaches_final": dense_flat, "dense_reached_codec_final": dense_caught_up, "seeds": sc.runs.len(), "low": lo, "high": hi, "codec_start": stat_json(start_codec), "dense_start": stat_json(start_dense), "codec_final": stat_json(final_codec), "dense_final": stat_json(final_dense), "codec_against_start": codec_vs_start, "dense_against_start": dense_vs_start, "strict_ratio": stat_json(sp_strict)}),
     );
 }
 
@@ -1110,8 +1138,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 11: each learner's final F against its untrained start, with a verdict.
-        11
+        // 12: the speed-up and final-against-start at the strict threshold.
+        12
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1393,6 +1421,19 @@ mod tests {
                 v.metrics
                     .insert(format!("speed_accuracy.{k}_fscore_3cm_30deg"), x);
             }
+            // At the strict threshold the codec starts above dense's final, at 2 s against 40.
+            for (k, x) in [
+                ("speedup_to_dense_final_fscore", 20.0),
+                ("codec_reached_dense_final", 1.0),
+                ("codec_reached_dense_final_at_start", 1.0),
+                ("dense_start_reaches_final", 0.0),
+                ("codec_start_fscore", 86.0),
+                ("codec_final_fscore", 87.0),
+                ("dense_start_fscore", 80.0),
+                ("dense_final_fscore", 85.0),
+            ] {
+                v.metrics.insert(format!("speed_accuracy.strict.{k}"), x);
+            }
         }
         let Report {
             results: md,
@@ -1406,6 +1447,11 @@ mod tests {
             md.contains("codec 90.5 ± 0.0 against 90.5 ± 0.7 (tie), dense 90.2 ± 0.4 against 95.2 ± 0.4 (lost)"),
             "{md}"
         );
+        assert!(
+            md.contains("At the strict 1 cm / 10° (signed, the same snapshots): speed-up 20.0 ± 0.0 (the codec reached dense's final F in 2 of 2 seeds, 2 of them at its untrained start; undefined in 0 seeds"),
+            "{md}"
+        );
+        assert!(md.contains("codec 87.0 ± 0.0 against 86.0 ± 0.0 (won), dense 85.0 ± 0.0 against 80.0 ± 0.0 (won)."), "{md}");
     }
 
     #[test]

@@ -39,6 +39,11 @@
 //! ratio is known within a factor `g` either way, at any time scale. When no codec snapshot reaches `F*`
 //! the speed-up is `null` and `speedup_note` says so.
 //!
+//! The same speed-up is computed at the strict 1 cm / 10 degrees, signed (`strict` in
+//! metrics.json): on a scene where both learners start at 99.9 at 3 cm (the cat), 3 cm compares
+//! hundredths of a point, while the strict score still separates them. Each snapshot is scored
+//! at the four thresholds in one pass (the matching grid's cell is then the strict 1 cm).
+//!
 //! The reverse question, asked because dense's final F-score can lie below the codec's untrained
 //! start (the ratio then compares dense's climb with the codec's colour fit):
 //! `dense_seconds_to_codec_final` is the training time of the first dense snapshot whose F-score
@@ -58,6 +63,7 @@ use crate::data::strands::Strands;
 use crate::evaluation::charts::{chart_err, fmt_num, write_png_chart, write_svg_chart};
 use crate::evaluation::evaluate::{
     match_cell, strand_prf_sets, threshold_key, OrientedSet, Prf, PAPER_THRESHOLDS,
+    STRICT_THRESHOLD,
 };
 
 /// One snapshot entry of `snapshots/index.json` (as written by the learning stages).
@@ -81,6 +87,10 @@ pub struct ScoredSnapshot {
     pub optimised_parameters: usize,
     /// Unsigned PRF (percent) at the paper's three thresholds.
     pub prf: Vec<Prf>,
+    /// Signed F-score (percent) at the strict 1 cm / 10 degrees (`None` in records written
+    /// before it was scored).
+    #[serde(default)]
+    pub strict_signed: Option<f32>,
 }
 
 impl ScoredSnapshot {
@@ -91,6 +101,11 @@ impl ScoredSnapshot {
             .find(|p| p.dist_cm == 3.0 && p.angle_deg == 30.0)
             .map(|p| p.fscore as f64)
             .unwrap_or(0.0)
+    }
+
+    /// Signed F-score at the strict 1 cm / 10 degrees (0 when not scored).
+    pub fn f_strict(&self) -> f64 {
+        self.strict_signed.map_or(0.0, f64::from)
     }
 }
 
@@ -120,18 +135,29 @@ pub struct Speedup {
     pub dense_seconds_to_codec_final: Option<f64>,
 }
 
-/// Computes [`Speedup`] from time-ordered scored snapshots of both methods (each non-empty).
+/// Computes [`Speedup`] at 3 cm / 30 degrees (unsigned) from time-ordered scored snapshots of
+/// both methods (each non-empty).
 pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Speedup> {
+    speedup_at(codec, dense, &ScoredSnapshot::f3, "3cm/30deg")
+}
+
+/// [`speedup`] with the F-score `f` of each snapshot (named `label` in the notes).
+pub fn speedup_at(
+    codec: &[ScoredSnapshot],
+    dense: &[ScoredSnapshot],
+    f: &dyn Fn(&ScoredSnapshot) -> f64,
+    label: &str,
+) -> Option<Speedup> {
     let dl = dense.last()?;
     let cl = codec.last()?;
-    let target = dl.f3();
+    let target = f(dl);
     let t_dense = dense
         .iter()
-        .find(|s| s.f3() >= target)
+        .find(|s| f(s) >= target)
         .map(|s| s.seconds)
         .unwrap_or(dl.seconds);
-    let i_dense = dense.iter().position(|s| s.f3() >= target);
-    let i_codec = codec.iter().position(|s| s.f3() >= target);
+    let i_dense = dense.iter().position(|s| f(s) >= target);
+    let i_codec = codec.iter().position(|s| f(s) >= target);
     let t_codec = i_codec.map(|i| codec[i].seconds);
     let before = |snaps: &[ScoredSnapshot], i: Option<usize>| {
         i.and_then(|i| i.checked_sub(1)).map(|j| snaps[j].seconds)
@@ -145,7 +171,7 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
     };
     let untrained_reaches = |s: &[ScoredSnapshot]| {
         s.first()
-            .is_some_and(|f| f.iteration == 0 && f.f3() >= target)
+            .is_some_and(|x| x.iteration == 0 && f(x) >= target)
     };
     let codec_at_start = untrained_reaches(codec);
     let dense_start_reaches_final = untrained_reaches(dense);
@@ -154,14 +180,14 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
             None,
             format!(
                 "dense's untrained start already reaches its final F-score {target:.2} at \
-                 3cm/30deg (its training did not improve on it): no training time to compare, \
+                 {label} (its training did not improve on it): no training time to compare, \
                  ratio undefined"
             ),
         ),
         Some(tc) if tc > 0.0 => (
             Some(t_dense / tc),
             format!(
-                "dense reaches its final F-score {target:.2} at 3cm/30deg after {t_dense:.1} s; \
+                "dense reaches its final F-score {target:.2} at {label} after {t_dense:.1} s; \
                  codec reaches it after {tc:.1} s{}",
                 if codec_at_start {
                     " (at its untrained start: the time of its colour fit)"
@@ -177,8 +203,8 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         None => (
             None,
             format!(
-                "codec never reached the dense final F-score {target:.2} at 3cm/30deg (its best: {:.2})",
-                codec.iter().map(|s| s.f3()).fold(0.0, f64::max)
+                "codec never reached the dense final F-score {target:.2} at {label} (its best: {:.2})",
+                codec.iter().map(f).fold(0.0, f64::max)
             ),
         ),
     };
@@ -187,14 +213,14 @@ pub fn speedup(codec: &[ScoredSnapshot], dense: &[ScoredSnapshot]) -> Option<Spe
         dense_seconds_to_final: t_dense,
         dense_seconds_total: dl.seconds,
         codec_seconds_to_dense_final: t_codec,
-        codec_final_fscore: cl.f3(),
+        codec_final_fscore: f(cl),
         codec_seconds_total: cl.seconds,
         speedup_to_dense_final_fscore: ratio,
         speedup_bracket: bracket.filter(|_| !dense_start_reaches_final),
         speedup_note: note,
         codec_at_start,
         dense_start_reaches_final,
-        dense_seconds_to_codec_final: dense.iter().find(|s| s.f3() >= cl.f3()).map(|s| s.seconds),
+        dense_seconds_to_codec_final: dense.iter().find(|s| f(s) >= f(cl)).map(|s| s.seconds),
     })
 }
 
@@ -441,8 +467,8 @@ impl Stage for SpeedAccuracyStage {
         "speed_accuracy"
     }
     fn version(&self) -> u32 {
-        // 7: dense's time to the codec's final F-score.
-        7
+        // 8: the speed-up at the strict threshold too (signed).
+        8
     }
     fn doc(&self) -> &'static str {
         "Scores the codec and dense learners' strand snapshots against GT strands and charts F-score at \
@@ -483,7 +509,7 @@ impl Stage for SpeedAccuracyStage {
         let s_cm = read_scene_scale(ctx)?;
         let gt = read_gt_strands(ctx)?;
         // The ground truth's oriented points and grid, built once for every snapshot.
-        let cell = match_cell(&PAPER_THRESHOLDS);
+        let cell = match_cell(&SCORED);
         let scoring = Scoring {
             gt_set: OrientedSet::new(&gt, s_cm, spacing, cell),
             s_cm,
@@ -496,6 +522,9 @@ impl Stage for SpeedAccuracyStage {
         let sp =
             speedup(codec, dense).ok_or_else(|| StageError::failed("no snapshots to compare"))?;
         ctx.progress.note(&sp.speedup_note);
+        // The same at the strict threshold, signed: where 3 cm saturates (both learners at 99.9
+        // from the start) it still separates them.
+        let strict = speedup_at(codec, dense, &ScoredSnapshot::f_strict, "1cm/10deg signed");
 
         ctx.progress.message("drawing charts");
         write_charts(ctx, size, codec, dense, sp.dense_final_fscore)?;
@@ -523,6 +552,18 @@ impl Stage for SpeedAccuracyStage {
             "codec_reached_dense_final": u8::from(sp.codec_seconds_to_dense_final.is_some()),
             "codec_reached_dense_final_at_start": u8::from(sp.codec_at_start),
             "dense_start_reaches_final": u8::from(sp.dense_start_reaches_final),
+            "strict": strict.as_ref().map(|st| serde_json::json!({
+                "speedup_to_dense_final_fscore": st.speedup_to_dense_final_fscore,
+                "speedup_note": st.speedup_note,
+                "dense_final_fscore": st.dense_final_fscore,
+                "codec_final_fscore": st.codec_final_fscore,
+                "codec_start_fscore": codec.first().map(|s| s.f_strict()),
+                "dense_start_fscore": dense.first().map(|s| s.f_strict()),
+                "codec_reached_dense_final": u8::from(st.codec_seconds_to_dense_final.is_some()),
+                "codec_reached_dense_final_at_start": u8::from(st.codec_at_start),
+                "dense_start_reaches_final": u8::from(st.dense_start_reaches_final),
+                "dense_reached_codec_final": u8::from(st.dense_seconds_to_codec_final.is_some()),
+            })),
             "spacing_cm": spacing,
             "max_queries": max_q,
             "gt_oriented_points": scoring.gt_set.len(),
@@ -563,7 +604,16 @@ fn read_gt_strands(ctx: &StageContext<'_>) -> Result<Strands, StageError> {
     Ok(gt)
 }
 
-/// Scores snapshots against the ground truth's oriented points at the paper's thresholds.
+/// The thresholds every snapshot is scored at: the strict one (its signed F-score is kept), then
+/// the paper's three (unsigned, the charts' and tables').
+const SCORED: [(f32, f32); 4] = [
+    STRICT_THRESHOLD,
+    PAPER_THRESHOLDS[0],
+    PAPER_THRESHOLDS[1],
+    PAPER_THRESHOLDS[2],
+];
+
+/// Scores snapshots against the ground truth's oriented points at [`SCORED`].
 struct Scoring {
     gt_set: OrientedSet,
     s_cm: f32,
@@ -602,10 +652,14 @@ impl Scoring {
     fn score(&self, method: &str, dir: &Path, s: &Snapshot) -> Result<ScoredSnapshot, StageError> {
         let strands: Strands = crate::evaluation::evaluate::read_strands_any(&dir.join(&s.file))?;
         let pred = OrientedSet::new(&strands, self.s_cm, self.spacing, self.cell);
-        let (prf, _) = strand_prf_sets(&pred, &self.gt_set, &PAPER_THRESHOLDS, self.max_q);
+        let (mut prf, signed) = strand_prf_sets(&pred, &self.gt_set, &SCORED, self.max_q);
+        let strict = signed[0].fscore;
+        prf.remove(0);
         fure_stage_api::ensure_finite(
             "snapshot scores",
-            prf.iter().flat_map(|x| [x.precision, x.recall, x.fscore]),
+            prf.iter()
+                .flat_map(|x| [x.precision, x.recall, x.fscore])
+                .chain([strict]),
         )?;
         Ok(ScoredSnapshot {
             method: method.to_string(),
@@ -614,6 +668,7 @@ impl Scoring {
             iteration: s.iteration,
             optimised_parameters: s.optimised_parameters,
             prf,
+            strict_signed: Some(strict),
         })
     }
 }
@@ -694,7 +749,52 @@ mod tests {
                     fscore: f,
                 })
                 .collect(),
+            strict_signed: Some(f / 2.0),
         }
+    }
+
+    #[test]
+    fn the_strict_speedup_separates_learners_where_3_cm_saturates() {
+        let at =
+            |method: &str, seconds: f64, iteration: usize, f3: f32, strict: f32| ScoredSnapshot {
+                iteration,
+                strict_signed: Some(strict),
+                ..snap(method, seconds, f3, 100)
+            };
+        // Both learners sit at 99.9 at 3 cm from the start; at 1 cm dense climbs 80 -> 85
+        // in 40 s, the codec starts at 86 after a 2 s colour fit.
+        let dense = vec![
+            at("dense", 1.0, 0, 99.9, 80.0),
+            at("dense", 40.0, 900, 99.9, 85.0),
+        ];
+        let codec = vec![
+            at("codec", 2.0, 0, 99.9, 86.0),
+            at("codec", 5.0, 100, 99.9, 87.0),
+        ];
+        let s3 = speedup(&codec, &dense).unwrap();
+        assert!(s3.dense_start_reaches_final);
+        assert_eq!(s3.speedup_to_dense_final_fscore, None);
+        let st = speedup_at(
+            &codec,
+            &dense,
+            &ScoredSnapshot::f_strict,
+            "1cm/10deg signed",
+        )
+        .unwrap();
+        assert!(!st.dense_start_reaches_final && st.codec_at_start);
+        assert_eq!(st.speedup_to_dense_final_fscore, Some(20.0));
+        assert_eq!(st.codec_final_fscore, 87.0);
+        assert!(
+            st.speedup_note.contains("1cm/10deg signed"),
+            "{}",
+            st.speedup_note
+        );
+        // A record written before the strict score: 0, never a reached target.
+        let old = ScoredSnapshot {
+            strict_signed: None,
+            ..snap("codec", 1.0, 50.0, 1)
+        };
+        assert_eq!(old.f_strict(), 0.0);
     }
 
     #[test]
