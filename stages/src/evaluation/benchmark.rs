@@ -499,8 +499,8 @@ fn write_comparisons(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) -> Opt
 /// One scene's section: every method in full, the fur-thickness and speed figures; its JSON.
 fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
     let mut sj = Map::new();
-    write_method_table(md, sc, cfg, &mut sj);
-    write_seams(md, sc, cfg);
+    let worst_seams = write_method_table(md, sc, cfg, &mut sj);
+    write_seams(md, &worst_seams);
     write_thickness_and_speed(md, sc, cfg, &mut sj);
     sj.insert("split".into(), sc.split.into());
     let _ = writeln!(
@@ -514,7 +514,14 @@ fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
 }
 
 /// The scene's table: F-scores, direction and shape errors, PSNR/SSIM, time and size per method.
-fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Map<String, Json>) {
+/// Returns each row's worst part seam (name, boundary, excess), for [`write_seams`].
+fn write_method_table(
+    md: &mut String,
+    sc: &Scene<'_>,
+    cfg: &Config,
+    sj: &mut Map<String, Json>,
+) -> Vec<(String, String, Stat)> {
+    let mut worst_seams = Vec::new();
     let _ = writeln!(
         md,
         "### {} ({} split, {} seeds)\n",
@@ -592,6 +599,7 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
                 "worst_part_seam".into(),
                 json!({"boundary": parts, "excess_deg": stat_json(Some(worst))}),
             );
+            worst_seams.push((name.clone(), parts, worst));
         }
         mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
         mj.insert("psnr".into(), stat_json(psnr));
@@ -601,6 +609,7 @@ fn write_method_table(md: &mut String, sc: &Scene<'_>, cfg: &Config, sj: &mut Ma
         sj.insert(name, mj.into());
     }
     let _ = writeln!(md);
+    worst_seams
 }
 
 /// The key of a method's mean seam excess at part boundaries, after its evaluation prefix.
@@ -626,16 +635,10 @@ fn worst_seam(sc: &Scene<'_>, eval: &str) -> Option<(String, Stat)> {
 }
 
 /// One line naming each method's worst part boundary (evaluation::seams).
-fn write_seams(md: &mut String, sc: &Scene<'_>, cfg: &Config) {
-    let worst: Vec<String> = cfg
-        .methods
+fn write_seams(md: &mut String, worst_seams: &[(String, String, Stat)]) {
+    let worst: Vec<String> = worst_seams
         .iter()
-        .map(|m| (m.name.as_str(), m.eval.as_str()))
-        .chain(std::iter::once(("ceiling", cfg.ceiling.as_str())))
-        .filter_map(|(name, eval)| {
-            worst_seam(sc, eval)
-                .map(|(parts, s)| format!("{name} {parts} {}", fmt_stat(Some(s), 1)))
-        })
+        .map(|(name, parts, s)| format!("{name} {parts} {}", fmt_stat(Some(*s), 1)))
         .collect();
     if worst.is_empty() {
         return;
@@ -649,6 +652,22 @@ fn write_seams(md: &mut String, sc: &Scene<'_>, cfg: &Config) {
          boundary, mean over seeds (°): {}.\n",
         worst.join("; ")
     );
+}
+
+/// A learner's final F against its untrained start: the protocol's verdict (`None` without
+/// both figures) and the report's text, `FINAL against START (verdict)`.
+fn against_start(fin: Option<Stat>, start: Option<Stat>) -> (Option<&'static str>, String) {
+    let v = match (fin, start) {
+        (Some(f), Some(s)) => Some(verdict(&f, &s).label()),
+        _ => None,
+    };
+    let text = format!(
+        "{} against {} ({})",
+        fmt_stat(fin, 1),
+        fmt_stat(start, 1),
+        v.unwrap_or("-")
+    );
+    (v, text)
 }
 
 /// Fur thickness, lengths and preprocessing (shared by every method of the scene), and the
@@ -724,12 +743,9 @@ fn write_thickness_and_speed(
     let hi = values(sc, &format!("{}.speedup_high", cfg.speedup))
         .into_iter()
         .reduce(f64::max);
-    let count = |k: &str| {
-        values(sc, &format!("{}.{k}", cfg.speedup))
-            .iter()
-            .filter(|&&x| x > 0.0)
-            .count()
-    };
+    // Seeds whose flag under `key` is set.
+    let count_key = |key: &str| values(sc, key).iter().filter(|&&x| x > 0.0).count();
+    let count = |k: &str| count_key(&format!("{}.{k}", cfg.speedup));
     let reached = count("codec_reached_dense_final");
     let at_start = count("codec_reached_dense_final_at_start");
     let dense_flat = count("dense_start_reaches_final");
@@ -739,37 +755,33 @@ fn write_thickness_and_speed(
     let final_codec = g(&format!("{}.codec_final_fscore_3cm_30deg", cfg.speedup));
     let final_dense = g(&format!("{}.dense_final_fscore_3cm_30deg", cfg.speedup));
     // Issue 15's "both >= their own untrained start", by the protocol's rule.
-    let against_start = |fin: Option<Stat>, start: Option<Stat>| match (fin, start) {
-        (Some(f), Some(s)) => Some(verdict(&f, &s).label()),
-        _ => None,
-    };
-    let codec_vs_start = against_start(final_codec, start_codec);
-    let dense_vs_start = against_start(final_dense, start_dense);
+    let (codec_vs_start, codec_vs_start_md) = against_start(final_codec, start_codec);
+    let (dense_vs_start, dense_vs_start_md) = against_start(final_dense, start_dense);
     // The strict threshold's speed-up (speed_accuracy's `strict`), where 3 cm saturates.
     let strict = |k: &str| format!("{}.strict.{k}", cfg.speedup);
     let sp_strict = g(&strict("speedup_to_dense_final_fscore"));
-    let count_strict = |k: &str| values(sc, &strict(k)).iter().filter(|&&x| x > 0.0).count();
     let strict_seeds = values(sc, &strict("dense_final_fscore")).len();
     let strict_line = if strict_seeds == 0 {
         String::new()
     } else {
+        let learner = |l: &str| {
+            against_start(
+                g(&strict(&format!("{l}_final_fscore"))),
+                g(&strict(&format!("{l}_start_fscore"))),
+            )
+            .1
+        };
         format!(
             " At the strict 1 cm / 10° (signed, the same snapshots): speed-up {} (the codec reached \
              dense's final F in {} of {strict_seeds} seeds, {} of them at its untrained start; \
              undefined in {} seeds where dense's untrained start already reaches it); final against \
-             start: codec {} against {} ({}), dense {} against {} ({}).",
+             start: codec {}, dense {}.",
             fmt_stat(sp_strict, 1),
-            count_strict("codec_reached_dense_final"),
-            count_strict("codec_reached_dense_final_at_start"),
-            count_strict("dense_start_reaches_final"),
-            fmt_stat(g(&strict("codec_final_fscore")), 1),
-            fmt_stat(g(&strict("codec_start_fscore")), 1),
-            against_start(g(&strict("codec_final_fscore")), g(&strict("codec_start_fscore")))
-                .unwrap_or("-"),
-            fmt_stat(g(&strict("dense_final_fscore")), 1),
-            fmt_stat(g(&strict("dense_start_fscore")), 1),
-            against_start(g(&strict("dense_final_fscore")), g(&strict("dense_start_fscore")))
-                .unwrap_or("-"),
+            count_key(&strict("codec_reached_dense_final")),
+            count_key(&strict("codec_reached_dense_final_at_start")),
+            count_key(&strict("dense_start_reaches_final")),
+            learner("codec"),
+            learner("dense"),
         )
     };
     let _ = writeln!(
@@ -779,19 +791,13 @@ fn write_thickness_and_speed(
          untrained start, where its time is its colour fit's; undefined in {dense_flat} seeds \
          where dense's own untrained start already reaches its final F; snapshot bracket {}–{}). \
          Dense reached the codec's final F in {dense_caught_up} of {} seeds. Final against \
-         untrained start, F at 3 cm unsigned (the snapshots' scoring): codec {} against {} ({}), \
-         dense {} against {} ({}).{strict_line}\n",
+         untrained start, F at 3 cm unsigned (the snapshots' scoring): codec {codec_vs_start_md}, \
+         dense {dense_vs_start_md}.{strict_line}\n",
         fmt_stat(sp, 1),
         sc.runs.len(),
         lo.map_or("-".into(), |x| format!("{x:.1}")),
         hi.map_or("-".into(), |x| format!("{x:.1}")),
         sc.runs.len(),
-        fmt_stat(final_codec, 1),
-        fmt_stat(start_codec, 1),
-        codec_vs_start.unwrap_or("-"),
-        fmt_stat(final_dense, 1),
-        fmt_stat(start_dense, 1),
-        dense_vs_start.unwrap_or("-"),
     );
     sj.insert(
         "preprocessing".into(),
