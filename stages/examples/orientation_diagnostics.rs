@@ -8,7 +8,7 @@
 //! cargo run -p fure-stages --release --example orientation_diagnostics -- CAPTURE_DIR [KEY=VALUE ...]
 //! ```
 //!
-//! `CAPTURE_DIR` is a capture written by `tests/data/blender/fur_capture.py` (`views/`, and the
+//! `CAPTURE_DIR` is a capture written by `stages/src/scenes/synthetic/fur_capture.py` (`views/`, and the
 //! hair Blender rendered in `gt/`): it has no depth map or fur mask, so the nearest GT segment
 //! per pixel stands for the visible surface and the silhouette for the fur mask.
 //!
@@ -197,7 +197,7 @@ fn run() -> Res<()> {
     );
     let (gp, factor, min_confidence) = params(&args[1..])?;
     // A pipeline run (`scene/` holds the synthetic scene) or a capture written by
-    // tests/data/blender/fur_capture.py (`views/`, and the hair it rendered in `gt/`).
+    // stages/src/scenes/synthetic/fur_capture.py (`views/`, and the hair it rendered in `gt/`).
     let (views, gt_dir) = if dir.join("scene/views").is_dir() {
         (dir.join("scene/views"), dir.join("scene"))
     } else {

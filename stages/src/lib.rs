@@ -49,6 +49,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(growth::strand_basis::StrandBasisStage),
         Box::new(scenes::corrupt::CorruptViewsStage),
         Box::new(scenes::synthetic::SyntheticSceneStage),
+        Box::new(scenes::synthetic::blender::BlenderSceneStage),
         Box::new(surface::fit_template::FitTemplateStage),
         Box::new(surface::outer_surface::OuterSurfaceStage),
         Box::new(surface::parts::PartsStage),

@@ -12,6 +12,9 @@
 //! 4. [`bvh`] + [`trace`]: a ray tracer of skin triangles and strand tubes with Kajiya-Kay
 //!    shading, written for this stage only (it shares no code with `crate::render`).
 //!
+//! [`blender`] is the stage `blender_scene`: steps 1-2 as here, then Blender's own hair and
+//! Cycles' views in place of steps 3-4 (the same parameters and outputs).
+//!
 //! What the stage chooses and why (written to `report.json` and the run log):
 //! - Framing: cameras on a sphere around the centre of the skin's bounding box, at the distance
 //!   where the skin's bounding sphere about that centre, grown by the longest fur, fills a 40
@@ -63,6 +66,7 @@
 //!   per-pixel jitter); parallel loops collect in index order. The only non-deterministic bytes
 //!   are the timings under `seconds` in `report.json`.
 
+pub mod blender;
 pub mod body;
 pub mod bvh;
 pub mod fur;
@@ -141,6 +145,8 @@ pub struct Settings {
     pub jitter_cm: f32,
     pub mask_dilate_px: i64,
     pub parts: std::collections::BTreeMap<String, fure_stage_api::Value>,
+    /// `Some` when Blender grows and renders the fur ([`blender`]).
+    pub blender: Option<blender::BlenderSettings>,
 }
 
 fure_stage_api::stage_params! {
@@ -158,7 +164,7 @@ fure_stage_api::stage_params! {
         test_views: Option<usize> = optional(ParamType::Int).range(0.0, 1000.0),
         /// square image size in pixels (quick 96, default 256)
         resolution: Option<usize> = optional(ParamType::Int).range(16.0, 4096.0),
-        /// samples per pixel side (quick 2, default 3)
+        /// samples per pixel side (quick 2, default 3; kind blender_scene takes blender_samples instead)
         supersample: Option<usize> = optional(ParamType::Int).range(1.0, 8.0),
         /// GT roots per pixel-footprint area of skin (base density)
         strands_per_px2: f32 = float(1.5).range(0.01, 50.0),
@@ -176,13 +182,25 @@ fure_stage_api::stage_params! {
         mask_dilate_px: i64 = int(0).range(-50.0, 50.0),
         /// per-part overrides: parts.<part> = { length_cm, length_jitter, density, density_per_cm2, direction, lift_deg, curl, clump, gravity, color }
         parts: std::collections::BTreeMap<String, fure_stage_api::Value> = table(),
+        /// kind blender_scene: how far the hair rises along the normal against lying toward the tail and the ground (0.15 flat, about 11 degrees; 0.6 about 40; default 0.3)
+        blender_rise: Option<f32> = optional(ParamType::Float).range(0.0, 4.0),
+        /// kind blender_scene: hair length in cm (default: the mean length of the preset's own fur)
+        blender_length_cm: Option<f32> = optional(ParamType::Float).range(0.01, 1000.0),
+        /// kind blender_scene: Cycles samples per pixel (default 16)
+        blender_samples: Option<usize> = optional(ParamType::Int).range(1.0, 4096.0),
     }
 }
 
 impl Settings {
     pub fn from_params(p: &Params) -> Result<Settings, StageError> {
+        Settings::from_params_of(p, false)
+    }
+
+    /// The settings of kind `synthetic_scene` (`blender` false) or `blender_scene` (true).
+    pub fn from_params_of(p: &Params, blender: bool) -> Result<Settings, StageError> {
         let p = SyntheticSceneParams::from_params(p)?;
         let (v, tv, res, ss) = size_defaults(&p.size);
+        let blender = blender_settings(&p, blender)?;
         Ok(Settings {
             preset: p.preset,
             seed: p.seed,
@@ -199,6 +217,7 @@ impl Settings {
             mask_dilate_px: p.mask_dilate_px,
             parts: p.parts,
             size: p.size,
+            blender,
         })
     }
 
@@ -221,8 +240,61 @@ impl Settings {
             jitter_cm: 0.0,
             mask_dilate_px: 0,
             parts: Default::default(),
+            blender: None,
         }
     }
+}
+
+/// The Blender renderer's settings for kind `blender_scene` (`blender`), `None` for
+/// `synthetic_scene`; the options that only one kind reads fail on the other.
+fn blender_settings(
+    p: &SyntheticSceneParams,
+    blender: bool,
+) -> Result<Option<blender::BlenderSettings>, StageError> {
+    if !blender {
+        for (name, set) in [
+            ("blender_rise", p.blender_rise.is_some()),
+            ("blender_length_cm", p.blender_length_cm.is_some()),
+            ("blender_samples", p.blender_samples.is_some()),
+        ] {
+            if set {
+                return Err(StageError::param(
+                    name,
+                    "is read only by kind `blender_scene`",
+                ));
+            }
+        }
+        return Ok(None);
+    }
+    for (name, set) in [
+        ("seg_px", p.seg_px != 1.0),
+        ("noise_sigma", p.noise_sigma != 0.0),
+        ("jitter_deg", p.jitter_deg != 0.0),
+        ("jitter_cm", p.jitter_cm != 0.0),
+        ("mask_dilate_px", p.mask_dilate_px != 0),
+    ] {
+        if set {
+            return Err(StageError::param(
+                name,
+                "is not read by kind `blender_scene` (Blender grows the hair and Cycles renders the views); remove it",
+            ));
+        }
+    }
+    if p.seed >= blender::MAX_SEED {
+        return Err(StageError::param(
+            "seed",
+            format!(
+                "must be below {} for kind `blender_scene` (Blender's particle seed is a 32-bit int), found {}",
+                blender::MAX_SEED,
+                p.seed
+            ),
+        ));
+    }
+    Ok(Some(blender::BlenderSettings {
+        rise: p.blender_rise.unwrap_or(blender::DEFAULT_RISE),
+        length_cm: p.blender_length_cm,
+        samples: p.blender_samples.unwrap_or(blender::DEFAULT_SAMPLES),
+    }))
 }
 
 /// Tight axis-aligned bounds of the preset's primitives (scene units).
@@ -772,6 +844,55 @@ mod tests {
             p.0.insert(k.to_string(), v.clone());
         }
         p
+    }
+
+    #[test]
+    fn each_renderer_refuses_the_options_only_the_other_reads() {
+        use blender::BlenderSceneStage;
+        let err = |stage: &dyn Stage, extra: &[(&str, Value)]| {
+            stage
+                .validate(&params_with(extra))
+                .err()
+                .map(|e| e.to_string())
+        };
+        let ours = err(&SyntheticSceneStage, &[("blender_rise", Value::Float(0.6))]).unwrap();
+        assert!(
+            ours.contains("blender_rise") && ours.contains("blender_scene"),
+            "{ours}"
+        );
+        let theirs = err(&BlenderSceneStage, &[("noise_sigma", Value::Float(0.1))]).unwrap();
+        assert!(
+            theirs.contains("noise_sigma") && theirs.contains("remove it"),
+            "{theirs}"
+        );
+        let seed = err(&BlenderSceneStage, &[("seed", Value::Int(1 << 40))]).unwrap();
+        assert!(seed.contains("32-bit"), "{seed}");
+        // The shared parameters, `supersample` included (unused by Blender), and Blender's own.
+        assert_eq!(
+            err(
+                &BlenderSceneStage,
+                &[
+                    ("supersample", Value::Int(3)),
+                    ("blender_rise", Value::Float(0.6))
+                ]
+            ),
+            None
+        );
+        let st =
+            Settings::from_params_of(&params_with(&[("blender_samples", Value::Int(4))]), true)
+                .unwrap();
+        assert_eq!(
+            st.blender,
+            Some(blender::BlenderSettings {
+                rise: blender::DEFAULT_RISE,
+                length_cm: None,
+                samples: 4
+            })
+        );
+        assert_eq!(
+            Settings::from_params(&params_with(&[])).unwrap().blender,
+            None
+        );
     }
 
     /// All files under `dir` (relative path -> bytes), sorted.

@@ -9,6 +9,9 @@ it with Cycles, and writes, in the mesh's own frame and units:
     OUT_DIR/views/transforms.json, transforms_test.json, train/NNN.png, test/NNN.png
     OUT_DIR/gt/strands.hair        the hair as rendered (Cem Yuksel's .hair: segments + points)
 
+(`--hair-only`: the hair alone, no views.) The `synthetic_scene` stage runs this script for
+`renderer = "blender"` (scenes::synthetic::blender).
+
 The hair model (Blender's particle hair, Cycles' Principled Hair BSDF), the renderer (Cycles,
 Filmic view transform) and the camera convention are Blender's, not fure's: a capture made by
 other software. Blender 3.4's Python has no numpy; only the standard library is used.
@@ -38,6 +41,7 @@ ap.add_argument("--rise", type=float, default=0.6,
 ap.add_argument("--samples", type=int, default=16)
 ap.add_argument("--seed", type=int, default=0)
 ap.add_argument("--bare", default="eyes,nose,pads")
+ap.add_argument("--hair-only", action="store_true", help="write gt/strands.hair, render nothing")
 args = ap.parse_args(argv)
 
 bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -65,7 +69,11 @@ bpy.context.scene.collection.objects.link(ob)
 bpy.context.view_layer.objects.active = ob
 bare = {b.strip() for b in args.bare.split(",") if b.strip()}
 fur = ob.vertex_groups.new(name="fur")
-fur.add(sorted({i for face, g in zip(faces, face_group) if g not in bare for i in face}), 1.0, "REPLACE")
+# Weight 1 on the vertices no bare face touches: Blender interpolates the density over a face,
+# so a bare face whose corners all border fur would otherwise grow hair.
+bare_verts = {i for face, g in zip(faces, face_group) if g in bare for i in face}
+fur.add(sorted({i for face, g in zip(faces, face_group) if g not in bare for i in face} - bare_verts),
+        1.0, "REPLACE")
 
 skin = bpy.data.materials.new("skin")
 skin.use_nodes = True
@@ -95,12 +103,15 @@ ps.emit_from = "FACE"
 ps.distribution = "RAND"
 ps.use_even_distribution = True
 # Advanced hair: each strand leaves along its emission velocity, four times as long as the
-# velocity, so fur that lies down toward the tail (-x) and the ground (-y) is a velocity of
-# rise n + (-0.5, -0.4, 0), scaled to the length (rise 0.6: about 40 degrees over the skin).
+# velocity, so fur that lies down toward the tail (-x) and the ground (-y) is a velocity along
+# rise n + (-0.5, -0.4, 0) (rise 0.6: about 40 degrees over the skin).
+# The velocity is divided by its length where the skin's normal is square to the combing
+# direction, so the hair there is `--length` long.
 ps.use_advanced_hair = True
-ps.normal_factor = args.rise * args.length / 4
-ps.object_align_factor = (-0.5 * args.length / 4, -0.4 * args.length / 4, 0.0)
-ps.factor_random = 0.1 * args.length / 4
+v = args.length / 4 / math.sqrt(args.rise ** 2 + 0.5 ** 2 + 0.4 ** 2)
+ps.normal_factor = args.rise * v
+ps.object_align_factor = (-0.5 * v, -0.4 * v, 0.0)
+ps.factor_random = 0.1 * v
 ps.child_type = "NONE"
 ps.display_step = 3
 ps.render_step = 3
@@ -176,8 +187,9 @@ train = [direction(math.asin(lo_s + (hi_s - lo_s) * (i + 0.5) / args.views), gol
          for i in range(args.views)]
 test = [direction(math.radians(10), 2 * math.pi * (k + 0.5) / max(args.test_views, 1))
         for k in range(args.test_views)]
-render("train", train, "transforms.json")
-render("test", test, "transforms_test.json")
+if not args.hair_only:
+    render("train", train, "transforms.json")
+    render("test", test, "transforms_test.json")
 
 # The hair as rendered: `co_hair` gives each strand's world-space points at the render steps.
 ev = ob.evaluated_get(bpy.context.evaluated_depsgraph_get())
@@ -197,4 +209,5 @@ with open(os.path.join(args.out, "gt", "strands.hair"), "wb") as f:
     for s in strands:
         for p in s:
             f.write(struct.pack("<3f", p.x, p.y, p.z))
-print(f"fur_capture: {len(strands)} strands, {npts} points, {len(train)} + {len(test)} views")
+views = 0 if args.hair_only else len(train) + len(test)
+print(f"fur_capture: Blender {bpy.app.version_string}, {len(strands)} strands, {npts} points, {views} views")
