@@ -145,8 +145,9 @@ fure_stage_api::stage_params! {
         view_axes_min_coherence: f32 = float(0.2).range(0.0, 1.0),
         /// Frames whose excess coherence (the pooled lines' agreement beyond the expectation
         /// under random map angles, growth::view_axes) is below this also keep their start
-        /// (unset = no such test).
-        view_axes_min_excess: Option<f64> = optional(ParamType::Float).range(0.0, 1.0),
+        /// (0 = no such test; 0.1 chosen on the dev split with a Blender-rendered scene,
+        /// learn module doc).
+        view_axes_min_excess: f64 = float(0.1).range(0.0, 1.0),
         /// Tilt every frame about its bitangent so that the basis' mean strand rises off the
         /// surface as steeply as the fur does in the views (the median over the roots of
         /// growth::view_axes::view_elevations; needs the `views` and `orientation` inputs;
@@ -770,9 +771,7 @@ fn turn_onto_view_axes(
         if a.views == 0 {
             unseen += 1;
         }
-        let excess_ok = p
-            .view_axes_min_excess
-            .is_none_or(|m| a.excess_coherence as f64 >= m);
+        let excess_ok = a.excess_coherence as f64 >= p.view_axes_min_excess;
         if a.coherence >= p.view_axes_min_coherence && excess_ok && a.coherence > 0.0 {
             *f *= Mat3::from_rotation_z(a.turn);
             turned += 1;
@@ -790,12 +789,13 @@ fn turn_onto_view_axes(
     let mean_coherence = (axes.iter().map(|a| a.coherence as f64).sum::<f64>() / n as f64) as f32;
     let mean_excess_coherence =
         (axes.iter().map(|a| a.excess_coherence as f64).sum::<f64>() / n as f64) as f32;
-    if p.view_axes_min_excess.is_none() && mean_excess_coherence < MIN_EXCESS_RATIO * mean_coherence
-    {
+    if mean_excess_coherence < MIN_EXCESS_RATIO * mean_coherence {
         ctx.progress.note(&format!(
             "the orientation maps agree little beyond what the views' geometry gives random maps \
              (excess coherence {mean_excess_coherence:.2} of {mean_coherence:.2}): they may not show \
-             the fur's direction; consider view_axes_min_excess (docs/guide.md)"
+             the fur's direction, and the frames whose excess is under view_axes_min_excess ({}) \
+             keep the roots' (docs/guide.md)",
+            p.view_axes_min_excess
         ));
     }
     Ok(Some(ViewAxesReport {
