@@ -382,7 +382,8 @@ fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
          regrown with another seed, scored against the GT. The curvature variance over the GT's \
          is `-` where fewer than half of the method's or the GT's strands are long enough to carry \
          it (three resampled segments, about 1.5 cm): a short groom is not judged by its few \
-         longest strands.\n"
+         longest strands; and where the GT's strands are straight (Blender's hair): a ratio over \
+         rounding noise says nothing.\n"
     );
     // Seconds come from the cache entries, whose pools may differ in size
     // (a study at `--jobs 2` leaves entries a later `--jobs 1` suite reuses).
@@ -1144,8 +1145,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 12: the speed-up and final-against-start at the strict threshold.
-        12
+        // 13: the curvature ratio's straight-GT rule in the preamble.
+        13
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \

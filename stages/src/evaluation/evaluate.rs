@@ -60,7 +60,8 @@
 //! - `local_curvature_variance_vs_gt`: the predicted `local_curvature_variance` over the GT's
 //!   (1 = as kinky as the truth); `null` where fewer than half of either side's strands enter it
 //!   ([`curvature_variance_ratio`]): short fur, or a groom shorter than the truth, is not measured
-//!   by its few longest strands.
+//!   by its few longest strands; `null` too where the GT's strands are straight (Blender's hair),
+//!   since a ratio over rounding noise says nothing.
 //! - The default thresholds add the strict 1 cm / 10 deg ([`STRICT_THRESHOLD`]) to the paper's three.
 //!
 //! # Image metrics
@@ -651,15 +652,22 @@ pub struct GeometryMetrics {
 /// for [`curvature_variance_ratio`] to compare them.
 pub const MIN_CURVATURE_STRANDS_FRAC: f32 = 0.5;
 
+/// Below this local curvature variance (rad^2/cm^2) the GT's strands are straight: the
+/// turning rate along them varies by less than 0.003 rad/cm (about 0.2 degrees per cm), the
+/// order of the rounding of their points at the 0.5 cm resampling. Blender's particle hair
+/// reads about 1e-7; the straightest synthetic coat (the lynx's standing arcs) 6e-4.
+pub const MIN_GT_LOCAL_CURVATURE_VARIANCE: f32 = 1e-5;
+
 /// `local_curvature_variance_vs_gt`: the predicted local curvature variance over the GT's, or
-/// `None` where it cannot be compared: the GT's is 0, or fewer than
+/// `None` where it cannot be compared: the GT's strands are straight (below
+/// [`MIN_GT_LOCAL_CURVATURE_VARIANCE`]: a ratio over rounding noise reads 100,000), or fewer than
 /// [`MIN_CURVATURE_STRANDS_FRAC`] of either side's strands are long enough to enter it (three
 /// resampled segments). Short strands drop out of the mean, so otherwise a groom of short strands
 /// would be judged by its few longest ones against nearly all of the GT, and one with none would
 /// read 0 ("perfectly smooth") rather than "not measured".
 pub fn curvature_variance_ratio(pred: &GeometryMetrics, gt: &GeometryMetrics) -> Option<f64> {
     let enough = |g: &GeometryMetrics| g.local_curvature_strands_frac >= MIN_CURVATURE_STRANDS_FRAC;
-    (enough(pred) && enough(gt) && gt.local_curvature_variance > 0.0)
+    (enough(pred) && enough(gt) && gt.local_curvature_variance >= MIN_GT_LOCAL_CURVATURE_VARIANCE)
         .then(|| pred.local_curvature_variance as f64 / gt.local_curvature_variance as f64)
         .filter(|r| r.is_finite())
 }
@@ -1039,7 +1047,8 @@ impl Stage for EvaluateStage {
         "evaluate"
     }
     fn version(&self) -> u32 {
-        8
+        // 9: no curvature ratio against straight GT strands.
+        9
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \
@@ -1501,11 +1510,12 @@ pub(crate) mod tests {
 
     #[test]
     fn curvature_ratio_needs_most_strands_long_enough() {
-        // Zigzags of 0.5 cm steps: kinky, and long enough (6 segments) at 0.5 cm resampling. The
+        // Zigzags of 0.5 cm steps whose swing changes from step to step: kinky (the turning
+        // varies along the strand), and long enough (6 segments) at 0.5 cm resampling. The
         // strands are side by side along y, so every one has the same bits in x and z.
         let zigzag = |y: f32, steps: usize| -> Vec<Vec3> {
             (0..=steps)
-                .map(|i| Vec3::new(0.2 * (i % 2) as f32, y, 0.5 * i as f32))
+                .map(|i| Vec3::new(0.1 * ((i % 2) * (1 + i % 3)) as f32, y, 0.5 * i as f32))
                 .collect()
         };
         let groom = |long: usize, short: usize| {
@@ -1532,6 +1542,16 @@ pub(crate) mod tests {
         assert!((r - 1.0).abs() < 1e-4, "{r}");
         // A GT of short strands cannot be compared with either.
         assert_eq!(curvature_variance_ratio(&gt, &groom(2, 8)), None);
+        // Nor a GT of straight strands, whatever its rounding noise.
+        let mut straight = Strands::new();
+        for i in 0..10 {
+            let pts: Vec<Vec3> = (0..=6).map(|k| Vec3::new(0.0, i as f32, 0.5 * k as f32)).collect();
+            straight.push(&pts, 0, 0.01, [0.5; 3]);
+        }
+        let straight = geometry_metrics(&straight, 1.0, 0.5, 1.0);
+        assert_eq!(straight.local_curvature_strands_frac, 1.0);
+        assert!(straight.local_curvature_variance < MIN_GT_LOCAL_CURVATURE_VARIANCE);
+        assert_eq!(curvature_variance_ratio(&groom(10, 0), &straight), None);
     }
 
     #[test]
