@@ -1545,7 +1545,9 @@ pub(crate) mod tests {
         // Nor a GT of straight strands, whatever its rounding noise.
         let mut straight = Strands::new();
         for i in 0..10 {
-            let pts: Vec<Vec3> = (0..=6).map(|k| Vec3::new(0.0, i as f32, 0.5 * k as f32)).collect();
+            let pts: Vec<Vec3> = (0..=6)
+                .map(|k| Vec3::new(0.0, i as f32, 0.5 * k as f32))
+                .collect();
             straight.push(&pts, 0, 0.01, [0.5; 3]);
         }
         let straight = geometry_metrics(&straight, 1.0, 0.5, 1.0);
