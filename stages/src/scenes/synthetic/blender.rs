@@ -47,8 +47,10 @@ use std::time::{Duration, Instant};
 use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
 use serde_json::json;
 
-use super::{generate, Generated, Settings, SyntheticSceneParams, SyntheticSceneStage};
-use crate::data::scene::{PartInfo, SceneInfo};
+use super::fur::PartStats;
+use super::{
+    generate, scene_info_of, Generated, Settings, SyntheticSceneParams, SyntheticSceneStage,
+};
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::maths::geom::PointIndex;
@@ -141,14 +143,11 @@ pub fn run(st: &Settings, bl: &BlenderSettings, ctx: &StageContext<'_>) -> Resul
         .message("Blender: growing and rendering the hair");
     let capture = scratch.join("capture");
     let mut args = hair.args(st.seed, bl);
-    args.extend([
-        "--views".into(),
-        st.views.to_string(),
-        "--test-views".into(),
-        st.test_views.to_string(),
-        "--resolution".into(),
-        st.resolution.to_string(),
-    ]);
+    args.extend(flags(&[
+        ("--views", st.views.to_string()),
+        ("--test-views", st.test_views.to_string()),
+        ("--resolution", st.resolution.to_string()),
+    ]));
     let version = run_blender(&script, skin_path, &capture, &args, ctx)?;
     ctx.progress.message("Blender: the regrown hair");
     let regrown_dir = scratch.join("regrown");
@@ -163,20 +162,22 @@ pub fn run(st: &Settings, bl: &BlenderSettings, ctx: &StageContext<'_>) -> Resul
     }
     let labelled = Labelled::new(&g)?;
     let gt = labelled.read(&capture.join("gt/strands.hair"), hair.radius)?;
-    let regrown = labelled.read(&regrown_dir.join("gt/strands.hair"), hair.radius)?;
+    let regrown = labelled
+        .read(&regrown_dir.join("gt/strands.hair"), hair.radius)?
+        .strands;
     std::fs::remove_dir_all(&scratch).map_err(|e| StageError::io(&scratch, e))?;
 
-    formats::hair::write_hair(ctx.output("strands")?, &gt)?;
+    formats::hair::write_hair(ctx.output("strands")?, &gt.strands)?;
     formats::hair::write_hair(ctx.output("regrown")?, &regrown)?;
-    formats::ply::write_ply_strands(ctx.output("strands_ply")?, &gt)?;
-    formats::json::write_json(ctx.output("scene")?, &labelled.scene_info(&gt))?;
+    formats::ply::write_ply_strands(ctx.output("strands_ply")?, &gt.strands)?;
+    formats::json::write_json(ctx.output("scene")?, &scene_info_of(&g, &gt.stats))?;
 
     let pixel_cm = g.pixel_units * g.s_cm;
     let note = format!(
         "Blender {version}: {} strands, mean length {:.2} cm (asked {:.2}), rising {:.2}, {} + {} \
          views at {} px (pixel {pixel_cm:.3} cm), {} samples",
-        gt.len(),
-        mean_length_cm(&gt, g.s_cm),
+        gt.strands.len(),
+        gt.mean_length_cm(),
         hair.length * g.s_cm,
         bl.rise,
         st.views,
@@ -195,7 +196,7 @@ pub fn run(st: &Settings, bl: &BlenderSettings, ctx: &StageContext<'_>) -> Resul
         "views": st.views,
         "test_views": st.test_views,
         "pixel_cm": pixel_cm,
-        "strands": gt.len(),
+        "strands": gt.strands.len(),
         "hair": {
             "count": hair.count,
             "length_cm": hair.length * g.s_cm,
@@ -209,20 +210,6 @@ pub fn run(st: &Settings, bl: &BlenderSettings, ctx: &StageContext<'_>) -> Resul
     });
     formats::json::write_json(ctx.output("report")?, &report)?;
     Ok(())
-}
-
-/// Mean arc length of the strands, cm.
-fn mean_length_cm(s: &Strands, s_cm: f32) -> f32 {
-    let n = s.len().max(1) as f64;
-    let sum: f64 = (0..s.len())
-        .map(|i| {
-            s.strand(i)
-                .windows(2)
-                .map(|w| (w[1] - w[0]).length() as f64)
-                .sum::<f64>()
-        })
-        .sum();
-    (sum / n) as f32 * s_cm
 }
 
 /// What Blender is asked to grow, from the default renderer's rules (module doc).
@@ -276,28 +263,30 @@ impl HairChoice {
     }
 
     fn args(&self, seed: u64, bl: &BlenderSettings) -> Vec<String> {
-        vec![
-            "--hairs".into(),
-            self.count.to_string(),
-            "--length".into(),
-            self.length.to_string(),
-            "--radius".into(),
-            self.radius.to_string(),
-            "--rise".into(),
-            bl.rise.to_string(),
-            "--samples".into(),
-            bl.samples.to_string(),
-            "--seed".into(),
-            seed.to_string(),
-            "--bare".into(),
-            // An empty list would mean the script's own default; a name no mesh has means none.
-            if self.bare.is_empty() {
-                "-".into()
-            } else {
-                self.bare.join(",")
-            },
-        ]
+        // An empty `--bare` would mean the script's own default; a name no mesh has means none.
+        let bare = if self.bare.is_empty() {
+            "-".to_string()
+        } else {
+            self.bare.join(",")
+        };
+        flags(&[
+            ("--hairs", self.count.to_string()),
+            ("--length", self.length.to_string()),
+            ("--radius", self.radius.to_string()),
+            ("--rise", bl.rise.to_string()),
+            ("--samples", bl.samples.to_string()),
+            ("--seed", seed.to_string()),
+            ("--bare", bare),
+        ])
     }
+}
+
+/// Command-line flags with their values, in order.
+fn flags(pairs: &[(&str, String)]) -> Vec<String> {
+    pairs
+        .iter()
+        .flat_map(|(flag, value)| [flag.to_string(), value.clone()])
+        .collect()
 }
 
 /// The Blender executable: `$FURE_BLENDER`, else `blender`.
@@ -374,6 +363,23 @@ struct Labelled<'a> {
     index: PointIndex,
 }
 
+/// Blender's hair, labelled, with its per-part statistics.
+struct BlenderHair {
+    strands: Strands,
+    stats: BTreeMap<String, PartStats>,
+}
+
+impl BlenderHair {
+    /// Mean arc length over every strand, cm.
+    fn mean_length_cm(&self) -> f32 {
+        let (sum, n) = self
+            .stats
+            .values()
+            .fold((0.0, 0), |(s, n), p| (s + p.sum_length_cm, n + p.strands));
+        (sum / n.max(1) as f64) as f32
+    }
+}
+
 impl<'a> Labelled<'a> {
     fn new(g: &'a Generated) -> Result<Self, StageError> {
         let index = PointIndex::new(&g.mesh.positions)
@@ -381,11 +387,26 @@ impl<'a> Labelled<'a> {
         Ok(Labelled { g, index })
     }
 
-    /// Reads Blender's `.hair` and gives each strand its root's part, a width and a colour.
-    fn read(&self, path: &Path, radius: f32) -> Result<Strands, StageError> {
+    /// Reads Blender's `.hair`: each strand gets the part of the skin vertex nearest its root,
+    /// a width and a colour, and enters that part's statistics as the default renderer's
+    /// strands do (arc length; highest point above the root's tangent plane, the vertex normal).
+    fn read(&self, path: &Path, radius: f32) -> Result<BlenderHair, StageError> {
+        let g = self.g;
         let raw = formats::hair::read_hair(path)?;
-        let mut out = Strands::new();
-        out.part_names = self.g.mesh.part_names.clone();
+        let mut strands = Strands::new();
+        strands.part_names = g.mesh.part_names.clone();
+        let mut stats: BTreeMap<String, PartStats> = g
+            .fur
+            .stats
+            .iter()
+            .map(|(name, st)| {
+                let area = PartStats {
+                    area_cm2: st.area_cm2,
+                    ..Default::default()
+                };
+                (name.clone(), area)
+            })
+            .collect();
         for i in 0..raw.len() {
             let pts = raw.strand(i);
             let Some(&root) = pts.first() else { continue };
@@ -396,68 +417,18 @@ impl<'a> Labelled<'a> {
                 )));
             }
             let (v, _) = self.index.nearest(root);
-            // Blender's Principled Hair at melanin 0.55, redness 0.8: a mid brown.
-            out.push(pts, self.g.mesh.part[v], 2.0 * radius, [0.30, 0.16, 0.08]);
-        }
-        Ok(out)
-    }
-
-    /// `scene.json` with per-part statistics of the Blender hair (module doc).
-    fn scene_info(&self, strands: &Strands) -> SceneInfo {
-        let g = self.g;
-        let mut sums: BTreeMap<u16, (usize, f64, f64)> = BTreeMap::new();
-        for i in 0..strands.len() {
-            let pts = strands.strand(i);
-            let root = pts[0];
-            let (v, _) = self.index.nearest(root);
-            let n = g.mesh.normals[v];
-            let length: f32 = pts.windows(2).map(|w| (w[1] - w[0]).length()).sum();
+            let part = g.mesh.part[v];
             let height = pts
                 .iter()
-                .map(|p| (*p - root).dot(n))
+                .map(|p| (*p - root).dot(g.mesh.normals[v]))
                 .fold(0.0f32, f32::max);
-            let e = sums.entry(strands.part[i]).or_default();
-            e.0 += 1;
-            e.1 += (length * g.s_cm) as f64;
-            e.2 += (height * g.s_cm) as f64;
+            if let Some(st) = stats.get_mut(g.mesh.part_name(v)) {
+                st.add_strand((raw.length(i) * g.s_cm) as f64, (height * g.s_cm) as f64);
+            }
+            // Blender's Principled Hair at melanin 0.55, redness 0.8: a mid brown.
+            strands.push(pts, part, 2.0 * radius, [0.30, 0.16, 0.08]);
         }
-        let mut parts = BTreeMap::new();
-        for (label, name) in g.mesh.part_names.iter().enumerate() {
-            let fur = g
-                .preset
-                .parts
-                .iter()
-                .any(|(n, f)| *n == name.as_str() && f.fur);
-            let (count, len, height) = sums.get(&(label as u16)).copied().unwrap_or_default();
-            let area = g.fur.stats.get(name.as_str()).map_or(0.0, |s| s.area_cm2);
-            // As the default renderer's: a bare part's statistics are 0 (a strand whose root lies
-            // nearest one of its vertices belongs to the fur beside it).
-            let mean = |x: f64| {
-                if count > 0 && fur {
-                    (x / count as f64) as f32
-                } else {
-                    0.0
-                }
-            };
-            parts.insert(
-                name.clone(),
-                PartInfo {
-                    fur,
-                    mean_length_cm: Some(mean(len)),
-                    density_per_cm2: Some(if area > 0.0 {
-                        (count as f64 / area) as f32
-                    } else {
-                        0.0
-                    }),
-                    mean_thickness_cm: Some(mean(height)),
-                },
-            );
-        }
-        SceneInfo {
-            s_cm: g.s_cm,
-            eyes: [g.preset.eyes_cm[0] / g.s_cm, g.preset.eyes_cm[1] / g.s_cm],
-            eye_separation_cm: Some(g.preset.eye_separation_cm()),
-            parts,
-        }
+        stats.values_mut().for_each(PartStats::finish);
+        Ok(BlenderHair { strands, stats })
     }
 }

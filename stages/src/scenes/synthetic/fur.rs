@@ -68,6 +68,25 @@ pub struct PartStats {
     pub density_per_cm2: f32,
 }
 
+impl PartStats {
+    /// Counts one strand of the part (its arc length and its highest point above its root's
+    /// tangent plane, both in cm).
+    pub fn add_strand(&mut self, length_cm: f64, height_cm: f64) {
+        self.strands += 1;
+        self.sum_length_cm += length_cm;
+        self.sum_height_cm += height_cm;
+    }
+
+    /// Sets `density_per_cm2` from the strands counted and the part's skin area.
+    pub fn finish(&mut self) {
+        self.density_per_cm2 = if self.area_cm2 > 0.0 {
+            (self.strands as f64 / self.area_cm2) as f32
+        } else {
+            0.0
+        };
+    }
+}
+
 /// GT fur and what it was made of.
 #[derive(Debug, Clone)]
 pub struct Fur {
@@ -351,20 +370,12 @@ pub fn grow(preset: &Preset, body: &Body, mesh: &Mesh, cfg: &FurConfig) -> Fur {
     for (pts, root, part, color, height) in grown {
         let len: f32 = pts.windows(2).map(|w| (w[1] - w[0]).length()).sum();
         if let Some(st) = stats.get_mut(preset.parts[part as usize].0) {
-            st.strands += 1;
-            st.sum_length_cm += (len * cfg.s_cm) as f64;
-            st.sum_height_cm += (height * cfg.s_cm) as f64;
+            st.add_strand((len * cfg.s_cm) as f64, (height * cfg.s_cm) as f64);
         }
         strands.push(&pts, part, cfg.width, color);
         root_pos.push(root);
     }
-    for st in stats.values_mut() {
-        st.density_per_cm2 = if st.area_cm2 > 0.0 {
-            (st.strands as f64 / st.area_cm2) as f32
-        } else {
-            0.0
-        };
-    }
+    stats.values_mut().for_each(PartStats::finish);
     Fur {
         strands,
         roots: root_pos,

@@ -643,9 +643,18 @@ fn render_views(
 
 /// The GT scene description.
 pub fn scene_info(g: &Generated) -> SceneInfo {
+    scene_info_of(g, &g.fur.stats)
+}
+
+/// The scene description of `g`'s body with per-part fur statistics `stats` (this stage's fur,
+/// or the hair another renderer grew on the same skin); a bare part's length and thickness are 0.
+pub fn scene_info_of(
+    g: &Generated,
+    stats: &std::collections::BTreeMap<String, fur::PartStats>,
+) -> SceneInfo {
     let mut parts = std::collections::BTreeMap::new();
     for (name, fp) in &g.preset.parts {
-        let st = &g.fur.stats[*name];
+        let st = stats.get(*name).cloned().unwrap_or_default();
         let n = st.strands.max(1) as f64;
         parts.insert(
             name.to_string(),
