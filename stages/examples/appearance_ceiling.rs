@@ -23,7 +23,7 @@ use fure_stages::evaluation::evaluate::image_metrics;
 use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
-use fure_stages::growth::learn::image::{ColorFitPass, Coverage, ImageConfig, ImageLosses};
+use fure_stages::growth::learn::image::{ColorFitPass, Formation, ImageConfig, ImageLosses};
 use fure_stages::growth::learn::stage::LearnParams;
 use fure_stages::growth::strand_basis::resample_count;
 use fure_stages::render::device::Renderer;
@@ -84,8 +84,8 @@ fn run() -> Res<()> {
             points.extend(resample_count(gt.strand(s), l));
         }
         let mut img = ImageLosses::new(&views, None, &skin, vec![width; gt.len()], &cfg)?;
-        img.fit_colors(&points, l, Coverage::Opaque, ColorFitPass::Start)?;
-        let coloured = img.fit_colors(&points, l, img.held_out_coverage(), ColorFitPass::Final)?;
+        img.fit_colors(&points, l, Formation::Training, ColorFitPass::Start)?;
+        let coloured = img.fit_colors(&points, l, Formation::HeldOut, ColorFitPass::Final)?;
         let mut strands = Strands::new();
         for (s, c) in img.colors().iter().enumerate() {
             strands.push(&points[s * l..(s + 1) * l], gt.part[s], width, *c);

@@ -18,7 +18,7 @@ use fure_stages::data::strands::Strands;
 use fure_stages::evaluation::evaluate::image_metrics;
 use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::obj::read_obj;
-use fure_stages::growth::learn::image::{ColorFitPass, Coverage, ImageLosses};
+use fure_stages::growth::learn::image::{ColorFitPass, Formation, ImageLosses};
 use fure_stages::growth::learn::stage::LearnParams;
 use fure_stages::render::device::Renderer;
 
@@ -54,13 +54,8 @@ fn run() -> Res<()> {
     for k in ks {
         let widths: Vec<f32> = learned.width.iter().map(|w| w * k).collect();
         let mut img = ImageLosses::new(&views, None, &body, widths.clone(), &cfg)?;
-        img.fit_colors(&learned.points, l, Coverage::Opaque, ColorFitPass::Start)?;
-        img.fit_colors(
-            &learned.points,
-            l,
-            img.held_out_coverage(),
-            ColorFitPass::Final,
-        )?;
+        img.fit_colors(&learned.points, l, Formation::Training, ColorFitPass::Start)?;
+        img.fit_colors(&learned.points, l, Formation::HeldOut, ColorFitPass::Final)?;
         let mut strands = Strands::new();
         for (s, c) in img.colors().iter().enumerate() {
             strands.push(learned.strand(s), learned.part[s], widths[s], *c);

@@ -13,7 +13,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::geomloss::DistanceGrid;
-use super::image::{read_orientation, ColorFitPass, Coverage, ImageConfig, ImageLosses};
+use super::image::{read_orientation, ColorFitPass, Coverage, Formation, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
 use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
 use super::placement::{frame, Decoder};
@@ -161,6 +161,10 @@ fure_stage_api::stage_params! {
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
         held_out_coverage: HeldOutCoverage = string("width").choices(HeldOutCoverage::NAMES),
+        /// The renderer's screen-space low-pass in the held-out renders and the colour fit
+        /// made for them (pixels^2, added to every Gaussian's 2D covariance): a camera pixel's
+        /// filter, Mip-Splatting's 0.1, where training keeps 3DGS's 0.3 (learn::image).
+        held_out_low_pass: f32 = float(0.1).range(0.01, 4.0),
         /// Training views the final colour fit renders, evenly spaced in the views' order (0 =
         /// all; each costs one compositing pass over every strand, render::blend_sums).
         fit_color_views: usize = int(12).min(0.0),
@@ -373,7 +377,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        17
+        18
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -400,7 +404,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        12
+        13
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
@@ -1060,7 +1064,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             colors_fitted.push(img.fit_colors(
                 &model.all_points(&s.prep),
                 l,
-                Coverage::Opaque,
+                Formation::Training,
                 ColorFitPass::Start,
             )?);
             cfg.clock_start = t0.elapsed().as_secs_f64();
@@ -1083,16 +1087,16 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let pts = model.all_points(&s.prep);
     ensure_finite("final strands", pts.iter().flat_map(|v| v.to_array()))?;
     if let Some(img) = image.as_mut() {
-        let end_coverage = match fit_colors {
-            FitColors::StartEnd => Some(Coverage::Opaque),
-            FitColors::StartHeldOut => Some(img.held_out_coverage()),
+        let end_formation = match fit_colors {
+            FitColors::StartEnd => Some(Formation::Training),
+            FitColors::StartHeldOut => Some(Formation::HeldOut),
             _ => None,
         };
-        if let Some(coverage) = end_coverage {
+        if let Some(formation) = end_formation {
             ctx.progress
                 .message("colours from the views (final strands)");
             let t0 = std::time::Instant::now();
-            colors_fitted.push(img.fit_colors(&pts, l, coverage, ColorFitPass::Final)?);
+            colors_fitted.push(img.fit_colors(&pts, l, formation, ColorFitPass::Final)?);
             color_fit_seconds += t0.elapsed().as_secs_f64();
         }
     }
@@ -1234,6 +1238,7 @@ impl LearnParams {
                 HeldOutCoverage::Opaque => Coverage::Opaque,
                 HeldOutCoverage::Width => Coverage::Width,
             },
+            held_out_low_pass: self.held_out_low_pass,
             device,
             sh_degree: self.sh_degree.unwrap_or(0) as u32,
             color_ramp: self.color_ramp.unwrap_or(false),
