@@ -14,7 +14,8 @@
 //!
 //! Prints, per points-per-strand count (default 8, the learners'), the mean PSNR and SSIM over the
 //! held-out views with one colour per strand and with a colour ramp from root to tip
-//! (`color_ramp`), beside the learner's own from `evaluate/metrics.json`.
+//! (`color_ramp`), beside the learner's own from `evaluate/metrics.json`, and how much of the
+//! error lies just outside the photos' outline (`common::OutlineError`).
 
 mod common;
 
@@ -98,6 +99,10 @@ fn run() -> Res<()> {
             gt.len(),
             100.0 * coloured,
             if color_ramp { "colour ramps" } else { "one colour each" },
+        );
+        println!(
+            "  {}",
+            common::OutlineError::measure(tmp.path(), &views)?.describe()
         );
     }
     Ok(())

@@ -10,7 +10,8 @@
 //! cargo run -p fure-stages --release --example strand_coverage -- out/tiger [codec] [k ...]
 //! ```
 //!
-//! Prints the mean PSNR and SSIM over the held-out views for each `k` (default 1, 0.5, 0.001).
+//! Prints the mean PSNR and SSIM over the held-out views for each `k` (default 1, 0.5, 0.001),
+//! and how much of the error lies just outside the photos' outline (`common::OutlineError`).
 
 mod common;
 
@@ -65,6 +66,10 @@ fn run() -> Res<()> {
         let (psnr, ssim, n) = image_metrics(tmp.path(), &views, [0.0; 3])?;
         println!(
             "{learner} strands, widths x {k}: PSNR {psnr:.2} dB, SSIM {ssim:.3} over {n} held-out views"
+        );
+        println!(
+            "  {}",
+            common::OutlineError::measure(tmp.path(), &views)?.describe()
         );
     }
     Ok(())
