@@ -359,6 +359,10 @@ impl ImageLosses {
             .iter()
             .map(|v| cfg.device.resident_target(&v.targets()))
             .collect::<Result<Vec<_>, _>>()?;
+        let settings = RenderSettings {
+            sh_degree: cfg.sh_degree.min(1),
+            ..RenderSettings::default()
+        };
         Ok(ImageLosses {
             cfg: cfg.clone(),
             views,
@@ -377,15 +381,11 @@ impl ImageLosses {
             } else {
                 Vec::new()
             },
-            settings: RenderSettings {
-                sh_degree: cfg.sh_degree.min(1),
-                ..RenderSettings::default()
-            },
             held_out_settings: RenderSettings {
-                sh_degree: cfg.sh_degree.min(1),
                 low_pass: cfg.held_out_low_pass,
-                ..RenderSettings::default()
+                ..settings.clone()
             },
+            settings,
             timing: ImageTiming::default(),
         })
     }
@@ -408,10 +408,7 @@ impl ImageLosses {
         formation: Formation,
         pass: ColorFitPass,
     ) -> Result<f32, StageError> {
-        let (coverage, settings) = match formation {
-            Formation::Training => (Coverage::Opaque, self.settings.clone()),
-            Formation::HeldOut => (self.cfg.held_out_coverage, self.held_out_settings.clone()),
-        };
+        let (coverage, settings) = self.formation(formation);
         let n = self.colors.len();
         if n == 0 || l < 2 || points.len() != n * l {
             return Ok(0.0);
@@ -500,6 +497,14 @@ impl ImageLosses {
         Ok(coloured as f32 / n as f32)
     }
 
+    /// How `formation` covers pixels with strands, and its render settings.
+    fn formation(&self, formation: Formation) -> (Coverage, RenderSettings) {
+        match formation {
+            Formation::Training => (Coverage::Opaque, self.settings.clone()),
+            Formation::HeldOut => (self.cfg.held_out_coverage, self.held_out_settings.clone()),
+        }
+    }
+
     /// The learned strand colours (one per strand).
     pub fn colors(&self) -> &[[f32; 3]] {
         &self.colors
@@ -576,11 +581,9 @@ impl ImageLosses {
         let out_dir = dir.join("test");
         std::fs::create_dir_all(&out_dir).map_err(|e| StageError::io(&out_dir, e))?;
         for (i, cam) in self.test_cameras.iter().enumerate() {
-            let g =
-                self.cfg
-                    .held_out_coverage
-                    .apply(&g, segs, cam, self.held_out_settings.low_pass);
-            let (out, _) = self.cfg.device.render(&g, cam, &self.held_out_settings)?;
+            let (coverage, settings) = self.formation(Formation::HeldOut);
+            let g = coverage.apply(&g, segs, cam, settings.low_pass);
+            let (out, _) = self.cfg.device.render(&g, cam, &settings)?;
             let (w, h) = (cam.width, cam.height);
             let mut straight = ImageF32::new(w, h, 4);
             let mut pre = ImageF32::new(w, h, 4);
