@@ -74,7 +74,7 @@ fn run() -> Res<()> {
         );
     }
     // The learners' defaults, rendering on the CPU.
-    let base = LearnParams::defaults()?.image_config(Renderer::Cpu);
+    let base = LearnParams::defaults()?.image_config(Renderer::Cpu, false);
     for (l, color_ramp) in counts.into_iter().flat_map(|l| [(l, false), (l, true)]) {
         let cfg = ImageConfig {
             color_ramp,

@@ -2,8 +2,9 @@
 //! (`codec/strands.hair`, or another learner's), their widths scaled by `k`, rendered as the
 //! learners render their held-out views (over the defurred body's occluders, colours from the
 //! closed-form colour fit: the start fit under the training opacity, the final one under the
-//! width coverage, as `codec_strands` does). `k = 1` reproduces the learner's held-out PSNR;
-//! `k` near 0 leaves the body's occluders alone, coloured from the same views.
+//! width coverage, with colour ramps where the learner had them, as `codec_strands` does).
+//! `k = 1` reproduces the learner's held-out PSNR; `k` near 0 leaves the body's occluders
+//! alone, coloured from the same views.
 //!
 //! ```sh
 //! fure run pipelines/tiger.toml --until evaluate
@@ -20,7 +21,8 @@ use fure_stages::evaluation::evaluate::image_metrics;
 use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::obj::read_obj;
 use fure_stages::growth::learn::image::{ColorFitPass, Formation, ImageLosses};
-use fure_stages::growth::learn::stage::LearnParams;
+use fure_stages::formats::json::read_json;
+use fure_stages::growth::learn::stage::{LearnMetrics, LearnParams};
 use fure_stages::render::device::Renderer;
 
 use common::Res;
@@ -51,7 +53,9 @@ fn run() -> Res<()> {
         return Err(format!("{learner}/strands.hair has no strands").into());
     }
     let l = learned.strand(0).len();
-    let cfg = LearnParams::defaults()?.image_config(Renderer::Cpu);
+    // Colour ramps as the learner had them.
+    let trained: LearnMetrics = read_json(dir.join(format!("{learner}/metrics.json")))?;
+    let cfg = LearnParams::defaults()?.image_config(Renderer::Cpu, trained.color_ramp);
     for k in ks {
         let widths: Vec<f32> = learned.width.iter().map(|w| w * k).collect();
         let mut img = ImageLosses::new(&views, None, &body, widths.clone(), &cfg)?;
