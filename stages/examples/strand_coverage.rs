@@ -19,9 +19,9 @@ mod common;
 use fure_stages::data::strands::Strands;
 use fure_stages::evaluation::evaluate::image_metrics;
 use fure_stages::formats::hair::read_hair;
+use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
 use fure_stages::growth::learn::image::{ColorFitPass, Formation, ImageLosses};
-use fure_stages::formats::json::read_json;
 use fure_stages::growth::learn::stage::{LearnMetrics, LearnParams};
 use fure_stages::render::device::Renderer;
 
