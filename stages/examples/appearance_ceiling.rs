@@ -2,8 +2,9 @@
 //! ground-truth strands, resampled to the learners' points per strand and given the learner's
 //! strand width (the median of `codec/strands.hair`; the GT files' width is its own renderer's
 //! and several times larger), over the GT skin, coloured
-//! by the learners' own closed-form colour fit (the start fit under the training opacity, then the
-//! refit under the held-out renders' width coverage, as `codec_strands` does) and rendered into
+//! by the codec's own colour fit (the start fit under the training opacity, then the refit under
+//! the held-out renders' width coverage with its refinements, as `codec_strands` does; the codec's
+//! `metrics.json` says which) and rendered into
 //! the held-out views. What the learners' held-out PSNR can reach with per-strand colours; the
 //! gap to it is geometry, the gap above it is the appearance model. Needs a synthetic scene.
 //!
@@ -25,7 +26,7 @@ use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::json::read_json;
 use fure_stages::formats::obj::read_obj;
 use fure_stages::growth::learn::image::{ColorFitPass, Formation, ImageConfig, ImageLosses};
-use fure_stages::growth::learn::stage::LearnParams;
+use fure_stages::growth::learn::stage::{LearnMetrics, LearnParams};
 use fure_stages::growth::strand_basis::resample_count;
 use fure_stages::render::device::Renderer;
 
@@ -73,8 +74,9 @@ fn run() -> Res<()> {
             m["ssim"].as_f64().unwrap_or(f64::NAN)
         );
     }
-    // The learners' defaults, rendering on the CPU.
-    let base = LearnParams::defaults()?.image_config(Renderer::Cpu, false);
+    // The learners' shared defaults and the codec's own colour fit, rendering on the CPU.
+    let own = read_json::<LearnMetrics>(dir.join("codec/metrics.json"))?.colors;
+    let base = LearnParams::defaults()?.image_config(Renderer::Cpu, own);
     for (l, color_ramp) in counts.into_iter().flat_map(|l| [(l, false), (l, true)]) {
         let cfg = ImageConfig {
             color_ramp,

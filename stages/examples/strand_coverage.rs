@@ -2,7 +2,7 @@
 //! (`codec/strands.hair`, or another learner's), their widths scaled by `k`, rendered as the
 //! learners render their held-out views (over the defurred body's occluders, colours from the
 //! closed-form colour fit: the start fit under the training opacity, the final one under the
-//! width coverage, with colour ramps where the learner had them, as `codec_strands` does).
+//! width coverage, with the learner's own colour ramps and refinements, as `codec_strands` does).
 //! `k = 1` reproduces the learner's held-out PSNR; `k` near 0 leaves the body's occluders
 //! alone, coloured from the same views.
 //!
@@ -53,9 +53,9 @@ fn run() -> Res<()> {
         return Err(format!("{learner}/strands.hair has no strands").into());
     }
     let l = learned.strand(0).len();
-    // Colour ramps as the learner had them.
+    // Colours modelled and fitted as the learner did.
     let trained: LearnMetrics = read_json(dir.join(format!("{learner}/metrics.json")))?;
-    let cfg = LearnParams::defaults()?.image_config(Renderer::Cpu, trained.color_ramp);
+    let cfg = LearnParams::defaults()?.image_config(Renderer::Cpu, trained.colors);
     for k in ks {
         let widths: Vec<f32> = learned.width.iter().map(|w| w * k).collect();
         let mut img = ImageLosses::new(&views, None, &body, widths.clone(), &cfg)?;

@@ -134,6 +134,9 @@ pub struct ImageConfig {
     /// Give every strand a colour ramp from root to tip, fitted with its
     /// colour by [`ImageLosses::fit_colors`] (see `set_ramp`).
     pub color_ramp: bool,
+    /// Majorise-minimise steps toward the least-squares colours after the
+    /// final colour fit's weighted means (`refine_colors`).
+    pub fit_color_refinements: usize,
 }
 
 /// One training view's targets.
@@ -412,31 +415,15 @@ impl ImageLosses {
         formation: Formation,
         pass: ColorFitPass,
     ) -> Result<f32, StageError> {
-        let (coverage, settings) = self.formation(formation);
         let n = self.colors.len();
         if n == 0 || l < 2 || points.len() != n * l {
             return Ok(0.0);
         }
+        let views = self.fit_views(pass);
         // The blending weights do not depend on the colours.
         let grey = vec![[0.5f32; 3]; n];
         let (g, segs) = self.scene(points, l, &self.widths, &grey, None, None)?;
-        let nb = self.body.len();
-        // Per strand / occluder: weighted colour sum (3) and weight.
-        let mut strand_acc = vec![[0.0f64; 4]; n];
-        // With a ramp, per strand the weighted least-squares sums of `c + u r`
-        // against the segments' pixels (see `RampSums`).
-        let mut ramp_acc = vec![RampSums::default(); if self.ramp.is_empty() { 0 } else { n }];
-        let mut body_acc = vec![[0.0f64; 4]; nb];
-        let nv = self.views.len();
-        let views = match pass {
-            ColorFitPass::Start => self.cfg.fit_color_views_start,
-            ColorFitPass::Final => self.cfg.fit_color_views,
-        };
-        let used = match views {
-            0 => nv,
-            k => k.min(nv),
-        };
-        for view in (0..used).map(|j| &self.views[j * nv / used]) {
+        let sums = self.color_sums(&g, segs, l, formation, &views, |view, _| {
             let (w, h) = (view.camera.width, view.camera.height);
             let mut target = ImageF32::new(w, h, 3);
             let mut weight = ImageF32::new(w, h, 1);
@@ -450,48 +437,32 @@ impl ImageLosses {
                 }
                 weight.data[p] = 1.0;
             }
-            let g = coverage.apply(&g, segs, &view.camera, settings.low_pass);
-            let sums = self
-                .cfg
-                .device
-                .blend_sums(&g, &view.camera, &settings, &target, &weight)?;
-            let add = |acc: &mut [f64; 4], v: &[f32; 4]| {
-                for (a, &v) in acc.iter_mut().zip(v) {
-                    *a += v as f64;
-                }
-            };
-            for (seg, v) in sums[..segs].iter().enumerate() {
-                let (s, k) = (seg / (l - 1), seg % (l - 1));
-                add(&mut strand_acc[s], v);
-                if let Some(r) = ramp_acc.get_mut(s) {
-                    r.add(ramp_position(k, l), Vec3::new(v[0], v[1], v[2]), v[3]);
-                }
-            }
-            for (acc, v) in body_acc.iter_mut().zip(&sums[segs..]) {
-                add(acc, v);
-            }
-        }
-        // Below this many pixels of blending weight over all views a
-        // colour is noise: keep the previous one.
-        const MIN_WEIGHT: f64 = 0.05;
+            Ok((target, weight))
+        })?;
         let mean = |a: &[f64; 4]| -> Option<[f32; 3]> {
-            (a[3] > MIN_WEIGHT).then(|| [0, 1, 2].map(|k| ((a[k] / a[3]) as f32).clamp(0.0, 1.0)))
+            (a[3] > MIN_COLOR_WEIGHT)
+                .then(|| [0, 1, 2].map(|k| ((a[k] / a[3]) as f32).clamp(0.0, 1.0)))
         };
         let mut coloured = 0usize;
-        for (c, a) in self.colors.iter_mut().zip(&strand_acc) {
+        for (c, a) in self.colors.iter_mut().zip(&sums.strands) {
             if let Some(m) = mean(a) {
                 *c = m;
                 coloured += 1;
             }
         }
-        for ((c, r), a) in self.colors.iter_mut().zip(&mut self.ramp).zip(&ramp_acc) {
-            if a.weight > MIN_WEIGHT {
+        for ((c, r), a) in self.colors.iter_mut().zip(&mut self.ramp).zip(&sums.ramps) {
+            if a.weight > MIN_COLOR_WEIGHT {
                 (*c, *r) = a.solve();
             }
         }
-        for (sh, a) in self.body.sh.iter_mut().zip(&body_acc) {
+        for (sh, a) in self.body.sh.iter_mut().zip(&sums.body) {
             if let Some(m) = mean(a) {
                 sh[0] = render::gaussians::rgb_to_sh0(Vec3::from_array(m));
+            }
+        }
+        if pass == ColorFitPass::Final {
+            for _ in 0..self.cfg.fit_color_refinements {
+                self.refine_colors(points, l, formation, &views)?;
             }
         }
         fure_stage_api::ensure_finite(
@@ -499,6 +470,144 @@ impl ImageLosses {
             self.colors.iter().chain(&self.ramp).flat_map(|c| *c),
         )?;
         Ok(coloured as f32 / n as f32)
+    }
+
+    /// One majorise-minimise step of every strand's and body occluder's colour
+    /// toward the colours that best reproduce the fit's views in `formation`
+    /// (least squares over every pixel of the render over black against the
+    /// photo). The weighted means of [`Self::fit_colors`] match each Gaussian
+    /// to its pixels alone; where strands and the body share a pixel the
+    /// composite they make is not the photo. With `A` the blending weights
+    /// (pixels x Gaussians, each pixel's row summing to at most 1),
+    /// Cauchy-Schwarz gives `A^T A <= D = diag(column sums of A)`, so the
+    /// step `c += D^-1 A^T (photo - A c)` minimises a quadratic that lies
+    /// above the squared error and touches it at `c`: the error never grows,
+    /// and clamping to [0, 1] keeps that (D is diagonal). `D^-1 A^T r` is a
+    /// blend-sum pass with the residual as its target: a step costs a render
+    /// and a compositing pass per view. With ramps, each strand's step is the
+    /// weighted least-squares line through its segments' residual means.
+    fn refine_colors(
+        &mut self,
+        points: &[Vec3],
+        l: usize,
+        formation: Formation,
+        views: &[usize],
+    ) -> Result<(), StageError> {
+        let n = self.colors.len();
+        let sh1 = (self.sh1.len() == n * BAND1).then_some(self.sh1.as_slice());
+        let ramp = (self.ramp.len() == n).then_some(self.ramp.as_slice());
+        let (g, segs) = self.scene(points, l, &self.widths, &self.colors, sh1, ramp)?;
+        let (_, settings) = self.formation(formation);
+        let device = &self.cfg.device;
+        let sums = self.color_sums(&g, segs, l, formation, views, |view, g| {
+            let (out, _) = device.render(g, &view.camera, &settings)?;
+            let (w, h) = (view.camera.width, view.camera.height);
+            let mut residual = ImageF32::new(w, h, 3);
+            for (r, (photo, shown)) in residual
+                .data
+                .iter_mut()
+                .zip(view.rgb.data.iter().zip(&out.rgb.data))
+            {
+                *r = photo - shown;
+            }
+            let mut every_pixel = ImageF32::new(w, h, 1);
+            every_pixel.data.fill(1.0);
+            Ok((residual, every_pixel))
+        })?;
+        let step = |a: &[f64; 4]| -> Option<Vec3> {
+            (a[3] > MIN_COLOR_WEIGHT).then(|| {
+                Vec3::new(
+                    (a[0] / a[3]) as f32,
+                    (a[1] / a[3]) as f32,
+                    (a[2] / a[3]) as f32,
+                )
+            })
+        };
+        if self.ramp.is_empty() {
+            for (c, a) in self.colors.iter_mut().zip(&sums.strands) {
+                if let Some(d) = step(a) {
+                    *c = (Vec3::from_array(*c) + d)
+                        .clamp(Vec3::ZERO, Vec3::ONE)
+                        .to_array();
+                }
+            }
+        } else {
+            for ((c, r), a) in self.colors.iter_mut().zip(&mut self.ramp).zip(&sums.ramps) {
+                if a.weight > MIN_COLOR_WEIGHT {
+                    let (dc, dr) = a.solve_unclamped();
+                    (*c, *r) = clamp_ramp(
+                        [0, 1, 2].map(|k| c[k] as f64 + dc[k]),
+                        [0, 1, 2].map(|k| r[k] as f64 + dr[k]),
+                    );
+                }
+            }
+        }
+        for (sh, a) in self.body.sh.iter_mut().zip(&sums.body) {
+            if let Some(d) = step(a) {
+                let shown = sh[0] * render::SH_C0 + Vec3::splat(0.5);
+                sh[0] = render::gaussians::rgb_to_sh0((shown + d).clamp(Vec3::ZERO, Vec3::ONE));
+            }
+        }
+        Ok(())
+    }
+
+    /// The training views a colour fit renders: `fit_color_views` or
+    /// `fit_color_views_start` of them, evenly spaced (0 = all).
+    fn fit_views(&self, pass: ColorFitPass) -> Vec<usize> {
+        let nv = self.views.len();
+        let used = match pass {
+            ColorFitPass::Start => self.cfg.fit_color_views_start,
+            ColorFitPass::Final => self.cfg.fit_color_views,
+        };
+        let used = if used == 0 { nv } else { used.min(nv) };
+        (0..used).map(|j| j * nv / used).collect()
+    }
+
+    /// The blend sums ([`render::blend_sums`]) of `g` (`segs` strand segments,
+    /// `l - 1` per strand, then the body) in `formation` over `views`, per
+    /// strand, per strand with its ramp positions, and per body occluder;
+    /// `target` gives a view's target and pixel weight from the view and its
+    /// Gaussians under the formation's coverage.
+    fn color_sums(
+        &self,
+        g: &Gaussians,
+        segs: usize,
+        l: usize,
+        formation: Formation,
+        views: &[usize],
+        target: impl Fn(&ViewData, &Gaussians) -> Result<(ImageF32, ImageF32), StageError>,
+    ) -> Result<ColorSums, StageError> {
+        let (coverage, settings) = self.formation(formation);
+        let n = segs / (l - 1);
+        let mut sums = ColorSums {
+            strands: vec![[0.0; 4]; n],
+            ramps: vec![RampSums::default(); if self.ramp.is_empty() { 0 } else { n }],
+            body: vec![[0.0; 4]; g.len() - segs],
+        };
+        let add = |acc: &mut [f64; 4], v: &[f32; 4]| {
+            for (a, &v) in acc.iter_mut().zip(v) {
+                *a += v as f64;
+            }
+        };
+        for view in views.iter().map(|&j| &self.views[j]) {
+            let g = coverage.apply(g, segs, &view.camera, settings.low_pass);
+            let (t, w) = target(view, &g)?;
+            let per_gaussian = self
+                .cfg
+                .device
+                .blend_sums(&g, &view.camera, &settings, &t, &w)?;
+            for (seg, v) in per_gaussian[..segs].iter().enumerate() {
+                let (s, k) = (seg / (l - 1), seg % (l - 1));
+                add(&mut sums.strands[s], v);
+                if let Some(r) = sums.ramps.get_mut(s) {
+                    r.add(ramp_position(k, l), Vec3::new(v[0], v[1], v[2]), v[3]);
+                }
+            }
+            for (acc, v) in sums.body.iter_mut().zip(&per_gaussian[segs..]) {
+                add(acc, v);
+            }
+        }
+        Ok(sums)
     }
 
     /// How `formation` covers pixels with strands, and its render settings.
@@ -701,21 +810,52 @@ impl RampSums {
     /// The colour at the strand's middle and its ramp, in [0, 1] from root
     /// to tip (the ramp is cut where an end would leave it). Needs `weight > 0`.
     fn solve(&self) -> ([f32; 3], [f32; 3]) {
+        let (mid, ramp) = self.solve_unclamped();
+        clamp_ramp(mid, ramp)
+    }
+
+    /// The least-squares middle colour and ramp, unbounded. Needs `weight > 0`.
+    fn solve_unclamped(&self) -> ([f64; 3], [f64; 3]) {
         let (a, b) = (self.weight, self.wu);
         let c = self.wuu + RAMP_RIDGE * a;
         let det = a * c - b * b;
-        let mut colour = [0.0f32; 3];
-        let mut ramp = [0.0f32; 3];
+        let mut mid = [0.0; 3];
+        let mut ramp = [0.0; 3];
         for k in 0..3 {
             let (d, e) = (self.wt[k], self.uwt[k]);
-            let mid = ((c * d - b * e) / det).clamp(0.0, 1.0);
-            let lim = 2.0 * mid.min(1.0 - mid);
-            colour[k] = mid as f32;
-            ramp[k] = ((a * e - b * d) / det).clamp(-lim, lim) as f32;
+            mid[k] = (c * d - b * e) / det;
+            ramp[k] = (a * e - b * d) / det;
         }
-        (colour, ramp)
+        (mid, ramp)
     }
 }
+
+/// A middle colour in [0, 1] and a ramp cut where an end of the strand would
+/// leave [0, 1].
+fn clamp_ramp(mid: [f64; 3], ramp: [f64; 3]) -> ([f32; 3], [f32; 3]) {
+    let mut colour = [0.0f32; 3];
+    let mut cut = [0.0f32; 3];
+    for k in 0..3 {
+        let m = mid[k].clamp(0.0, 1.0);
+        let lim = 2.0 * m.min(1.0 - m);
+        colour[k] = m as f32;
+        cut[k] = ramp[k].clamp(-lim, lim) as f32;
+    }
+    (colour, cut)
+}
+
+/// A colour fit's blend sums over its views ([`ImageLosses::color_sums`]):
+/// per strand, per strand with its ramp positions (empty without ramps), and
+/// per body occluder, `[sum w t_r, sum w t_g, sum w t_b, sum w]`.
+struct ColorSums {
+    strands: Vec<[f64; 4]>,
+    ramps: Vec<RampSums>,
+    body: Vec<[f64; 4]>,
+}
+
+/// Below this many pixels of blending weight over all of a fit's views a
+/// colour is noise: the fit keeps the previous one.
+const MIN_COLOR_WEIGHT: f64 = 0.05;
 
 /// Which colour fit runs: its number of training views differs
 /// (`fit_color_views_start`, `fit_color_views`).
@@ -1169,6 +1309,67 @@ mod tests {
         }
     }
 
+    /// The squared error over every pixel of `views` between the held-out
+    /// image formation of `points` (with `img`'s colours) and the photos.
+    fn held_out_squared_error(img: &ImageLosses, points: &[Vec3], l: usize, views: &[usize]) -> f64 {
+        let ramp = (!img.ramp.is_empty()).then_some(img.ramp.as_slice());
+        let (g, segs) = img
+            .scene(points, l, &img.widths, &img.colors, None, ramp)
+            .unwrap();
+        let (coverage, settings) = img.formation(Formation::HeldOut);
+        views
+            .iter()
+            .map(|&j| {
+                let v = &img.views[j];
+                let g = coverage.apply(&g, segs, &v.camera, settings.low_pass);
+                let (out, _) = render::render(&g, &v.camera, &settings).unwrap();
+                out.rgb
+                    .data
+                    .iter()
+                    .zip(&v.rgb.data)
+                    .map(|(a, b)| ((a - b) as f64).powi(2))
+                    .sum::<f64>()
+            })
+            .sum()
+    }
+
+    #[test]
+    fn colour_refinements_lower_the_fit_views_error_at_every_step() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, body, points, l, widths) =
+            crate::growth::learn::stage::tests::rough_fit_scene(d.path());
+        for color_ramp in [false, true] {
+            let cfg = ImageConfig {
+                fit_color_views: 0,
+                body_gaussians: 2000,
+                ..crate::growth::learn::stage::LearnParams::defaults()
+                    .unwrap()
+                    .image_config(
+                        crate::render::device::Renderer::Cpu,
+                        crate::growth::learn::stage::OwnColors {
+                            color_ramp,
+                            fit_color_refinements: 0,
+                        },
+                    )
+            };
+            let mut img = ImageLosses::new(&views, None, &body, widths.clone(), &cfg).unwrap();
+            img.fit_colors(&points, l, Formation::HeldOut, ColorFitPass::Final)
+                .unwrap();
+            let all = img.fit_views(ColorFitPass::Final);
+            let mut errors = vec![held_out_squared_error(&img, &points, l, &all)];
+            for _ in 0..4 {
+                img.refine_colors(&points, l, Formation::HeldOut, &all)
+                    .unwrap();
+                errors.push(held_out_squared_error(&img, &points, l, &all));
+            }
+            eprintln!("ramp {color_ramp}: {errors:?}");
+            for step in errors.windows(2) {
+                assert!(step[1] <= step[0] * (1.0 + 1e-6), "ramp {color_ramp}: {errors:?}");
+            }
+            assert!(errors[4] < 0.9 * errors[0], "ramp {color_ramp}: {errors:?}");
+        }
+    }
+
     /// The alpha summed along the middle row of an opaque strip `w_px` wide,
     /// tiled with flat discs as the body occluders are (standard deviation 0.6
     /// of their spacing, `spacing_px`), minus `w_px`: how much wider than the
@@ -1209,7 +1410,7 @@ mod tests {
         // held-out renders' default about half that.
         let held_out = crate::growth::learn::stage::LearnParams::defaults()
             .unwrap()
-            .image_config(crate::render::device::Renderer::Cpu, false)
+            .image_config(crate::render::device::Renderer::Cpu, Default::default())
             .held_out_low_pass;
         for spacing in [0.5f32, 1.0] {
             let training = strip_excess_px(12.0, spacing, 0.3);
