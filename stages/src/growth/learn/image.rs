@@ -66,7 +66,8 @@
 //! colours whose renders best match the fit's views (`refine_colors`: each
 //! step a render and a blend-sum pass per view, the squared error never
 //! grows). Dev split, 4 steps against none: held-out PSNR tiger +0.5 dB, fox
-//! +0.6, lynx +0.6, sheepdog +1.0, every F-score a tie (docs/history.md). The dense
+//! +0.6, lynx +0.6, sheepdog +1.0, Blender fox +1.6, every F-score a tie
+//! (docs/history.md). The dense
 //! baseline's colours are Adam's over 1,800 iterations, which gets closer to
 //! the least-squares colours by itself; it keeps no final fit.
 //!
