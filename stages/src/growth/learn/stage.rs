@@ -278,7 +278,8 @@ fure_stage_api::stage_params! {
         /// Weight of L_chm (strand tips toward M_outer). Dense keeps 0.1: without it its
         /// strict 1 cm score falls on the tiger and the fox (dev split, learn module doc).
         l_chm: f32 = float(0.1).min(0.0),
-        /// As the codec's `color_ramp`; dense keeps it off (not measured on its strands; learn::image).
+        /// As the codec's `color_ramp`; dense keeps it off: on its strands it tied on every dev
+        /// scene (learn::image).
         color_ramp: bool = bool(false),
     }
 }
