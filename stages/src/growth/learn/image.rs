@@ -499,7 +499,10 @@ impl ImageLosses {
     /// and clamping to [0, 1] keeps that (D is diagonal). `D^-1 A^T r` is a
     /// blend-sum pass with the residual as its target: a step costs a render
     /// and a compositing pass per view. With ramps, each strand's step is the
-    /// weighted least-squares line through its segments' residual means.
+    /// weighted least-squares line through its segments' residual means (a
+    /// 2 x 2 block per strand and channel, so cutting the ramp at [0, 1] is
+    /// not that block's exact constrained minimum; the unit test checks the
+    /// error still falls at every step with ramps).
     fn refine_colors(
         &mut self,
         points: &[Vec3],
