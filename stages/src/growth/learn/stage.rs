@@ -480,8 +480,9 @@ pub struct LearnMetrics {
     pub optimised_parameters: usize,
     /// Appearance parameters optimised (strand and body colours, and ramps with `color_ramp`).
     pub appearance_parameters: usize,
-    /// The learner's own colour model (`color_ramp`, `fit_color_refinements`).
-    #[serde(default)]
+    /// The learner's own colour model (`color_ramp`, `fit_color_refinements`). Required: a
+    /// metrics.json from before it (which had `color_ramp` alone) fails to read, naming the
+    /// field, rather than refitting its colours without the learner's ramps and steps.
     pub colors: OwnColors,
     pub strands: usize,
     pub points_per_strand: usize,
@@ -1848,6 +1849,22 @@ pub(crate) mod tests {
         assert_eq!(
             std::fs::read(out1.join("strands.hair")).unwrap(),
             std::fs::read(out_default.join("strands.hair")).unwrap()
+        );
+        // A metrics.json from before `colors` (it had `color_ramp` alone) is refused, naming the
+        // field, rather than read as a learner without ramps or colour steps.
+        let mut old: serde_json::Value =
+            formats::json::read_json(out1.join("metrics.json")).unwrap();
+        let fields = old.as_object_mut().unwrap();
+        fields.remove("colors").unwrap();
+        fields.insert("color_ramp".into(), serde_json::Value::Bool(true));
+        let old_path = d.path().join("old_metrics.json");
+        std::fs::write(&old_path, serde_json::to_vec(&old).unwrap()).unwrap();
+        let err = formats::json::read_json::<LearnMetrics>(&old_path)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("old_metrics.json") && err.contains("colors"),
+            "{err}"
         );
         // The views show one orange (0.9, 0.6, 0.2) along the strands: with a ramp the strands'
         // middle colours stay that orange.
