@@ -162,8 +162,9 @@ pub struct SweepArgs {
 #[derive(clap::Args, Debug)]
 pub struct GcArgs {
     /// Keep only the entries these pipelines currently resolve to (repeatable).
-    /// A sweep keeps every variant, and its aggregate stages as they read the
-    /// sweep's last record (`<out>/<pipeline>/sweep.json`).
+    /// A sweep keeps every variant, those its last record (`<out>/<pipeline>/sweep.json`)
+    /// names included (a `--grid`/`--each` run's), and its aggregate stages as they read
+    /// that record.
     #[arg(long = "keep", value_name = "PIPELINE")]
     pub keep: Vec<PathBuf>,
     /// Where sweeps wrote their records (as `fure sweep --out`).
@@ -790,21 +791,32 @@ fn report_aggregates(
 }
 
 /// The plans `gc --keep PIPELINE` keeps: the pipeline itself, and for a
-/// sweep every variant (as `fure sweep` runs it with no `--grid`/`--each`) and
-/// the aggregate stages over the record the last sweep left under `out`.
+/// sweep every variant (as `fure sweep` runs it with no `--grid`/`--each`),
+/// every variant of the last sweep's record under `out` (so an ablation run
+/// with `--grid` keeps its extra points too), and the aggregate stages over
+/// that record.
 fn kept_plans(engine: &Engine, path: &Path, out: &Path) -> Result<Vec<Plan>, Failure> {
     let p = engine.load(path, &[])?;
     let mut plans = vec![engine.plan(&p)?];
     if p.sweep.is_empty() && p.sweep_each.is_empty() {
         return Ok(plans);
     }
-    for v in sweep::grid(&p, &[]) {
+    let mut variants = sweep::grid(&p, &[]);
+    let record = out.join(&p.name).join("sweep.json");
+    let recorded = if record.is_file() {
+        let bad = |e: String| Failure::Failed(format!("error: {}: {e}", record.display()));
+        let bytes = std::fs::read(&record).map_err(|e| bad(e.to_string()))?;
+        let json: serde_json::Value =
+            serde_json::from_slice(&bytes).map_err(|e| bad(e.to_string()))?;
+        variants.extend(sweep::Axes::from_record(&json).map_err(bad)?.variants());
+        Some(std::path::absolute(&record).map_err(|e| bad(e.to_string()))?)
+    } else {
+        None
+    };
+    for v in variants {
         plans.push(engine.plan(&sweep::variant_pipeline(&p, &v)?)?);
     }
-    let record = out.join(&p.name).join("sweep.json");
-    if record.is_file() {
-        let abs = std::path::absolute(&record)
-            .map_err(|e| Failure::Failed(format!("error: {}: {e}", record.display())))?;
+    if let Some(abs) = recorded {
         plans.extend(sweep::plan_aggregates(engine, &p, &abs)?);
     }
     Ok(plans)

@@ -185,6 +185,51 @@ impl Axes {
         a
     }
 
+    /// The axes a sweep record says it ran (its `crossed`, `each` and
+    /// `each_order`), so that what a command line's `--grid`/`--each` added
+    /// can be found again (`gc --keep`). The record is untrusted input: an
+    /// error names the field and what was expected.
+    pub fn from_record(record: &serde_json::Value) -> Result<Axes, String> {
+        let values = |field: &str, key: &str, v: &serde_json::Value| {
+            let list = v
+                .as_array()
+                .ok_or_else(|| format!("`{field}.{key}`: expected an array of values"))?;
+            list.iter()
+                .map(|x| {
+                    serde_json::from_value::<Value>(x.clone())
+                        .map_err(|e| format!("`{field}.{key}`: {e}"))
+                })
+                .collect::<Result<Vec<Value>, String>>()
+        };
+        let object = |field: &str| {
+            record
+                .get(field)
+                .and_then(|v| v.as_object())
+                .ok_or_else(|| format!("`{field}`: expected an object of axes"))
+        };
+        let crossed = object("crossed")?
+            .iter()
+            .map(|(k, v)| Ok((k.clone(), values("crossed", k, v)?)))
+            .collect::<Result<BTreeMap<_, _>, String>>()?;
+        let each_map = object("each")?;
+        let order = record
+            .get("each_order")
+            .and_then(|v| v.as_array())
+            .ok_or("`each_order`: expected an array of keys")?;
+        let mut each = Vec::with_capacity(order.len());
+        for k in order {
+            let k = k.as_str().ok_or("`each_order`: expected strings")?;
+            let v = each_map
+                .get(k)
+                .ok_or_else(|| format!("`each_order` names `{k}`, which `each` lacks"))?;
+            each.push((k.to_string(), values("each", k, v)?));
+        }
+        if each.len() != each_map.len() {
+            return Err("`each` has keys `each_order` does not list".into());
+        }
+        Ok(Axes { crossed, each })
+    }
+
     /// The variants, in the order described in the module docs.
     pub fn variants(&self) -> Vec<Variant> {
         let mut points: Vec<Vec<(String, Value)>> = vec![Vec::new()];

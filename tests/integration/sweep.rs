@@ -224,6 +224,30 @@ fn each_axes_statuses_record_and_aggregate() {
         "{}",
         s3.all()
     );
+
+    // gc --keep also keeps what the last sweep's command line added: the
+    // same grid afterwards runs nothing but the stage that always fails.
+    let g3 = p.fure(&["gc", "--keep", "sw.toml"]);
+    assert_eq!(g3.status.code(), Some(0), "{g3:?}");
+    let s4 = p.sweep(&[
+        "sweep",
+        "sw.toml",
+        "--grid",
+        "sq.power=1,2",
+        "--each",
+        "other.power=3,4",
+        "--table",
+        "t3",
+    ]);
+    assert_eq!(s4.code(), 0, "{}", s4.all());
+    for i in 0..10 {
+        assert!(s4.line(i).contains(": 0 ran, "), "{}", s4.all());
+    }
+    assert!(
+        s4.stdout().contains("aggregate summary: cached"),
+        "{}",
+        s4.all()
+    );
 }
 
 #[test]
