@@ -229,6 +229,10 @@ pub struct Codec {
     /// Fixed per-strand style codes added to the encoder's K coefficients
     /// (`n * K`, strand-major; empty = none): see [`style_codes`].
     pub style: Vec<f32>,
+    /// How many leading basis components the encoder outputs codes for
+    /// (at most the decoder's K): the ones the views resolve. The others
+    /// decode from the style codes alone ([`Codec::with_trained_components`]).
+    pub trained: usize,
     /// Learned length scales per part (`None` = lengths as given).
     pub part_lengths: Option<Box<PartLengths>>,
     adam_theta: Adam,
@@ -356,7 +360,10 @@ pub enum Cache {
 
 pub struct CodecChunk {
     tape: MlpTape,
+    /// The encoder's outputs (stride [`Codec::stride`]).
     z: Vec<f32>,
+    /// The decoder's coefficients (K per strand, style included).
+    codes: Vec<f32>,
     local: Vec<Vec3>,
 }
 
@@ -374,10 +381,13 @@ pub enum Grads {
 }
 
 impl Codec {
-    /// `mlp` must have `decoder.k` outputs, one more with `rotation`.
+    /// `mlp` must have `decoder.k` outputs (or as many as
+    /// [`Codec::with_trained_components`] sets), one more with `rotation`.
     pub fn new(mlp: Mlp, decoder: Decoder, finetune_decoder: bool, rotation: bool) -> Self {
         let (nt, np) = (mlp.param_count(), decoder.params.len());
+        let trained = decoder.k;
         Codec {
+            trained,
             mlp,
             decoder,
             finetune_decoder,
@@ -430,16 +440,43 @@ impl Codec {
         self
     }
 
-    /// Encoder outputs per strand: K coefficients, then the angle and the
-    /// tilt if any.
+    /// The same codec whose encoder outputs codes for the first `trained`
+    /// components only (clamped to the decoder's K; `mlp` must have that
+    /// many outputs before the angles): the trailing components decode from
+    /// the style codes alone, so training cannot put weight on shapes the
+    /// views do not resolve.
+    pub fn with_trained_components(mut self, trained: usize) -> Self {
+        self.trained = trained.min(self.decoder.k);
+        self
+    }
+
+    /// Encoder outputs per strand: the trained coefficients, then the angle
+    /// and the tilt if any.
     fn stride(&self) -> usize {
-        self.decoder.k + self.rotation as usize + self.tilt as usize
+        self.trained + self.rotation as usize + self.tilt as usize
+    }
+
+    /// Strand `j`'s K decoder coefficients: its encoder outputs on the
+    /// trained components, plus its style codes (a constant offset, so
+    /// d code / d encoder output is 1).
+    fn codes(&self, out: &[f32], j: usize, strand: usize, codes: &mut [f32]) {
+        let (k, t, st) = (self.decoder.k, self.trained, self.stride());
+        codes[..t].copy_from_slice(&out[j * st..j * st + t]);
+        codes[t..].fill(0.0);
+        if !self.style.is_empty() {
+            for (a, b) in codes
+                .iter_mut()
+                .zip(&self.style[strand * k..(strand + 1) * k])
+            {
+                *a += b;
+            }
+        }
     }
 
     /// Strand `j`'s in-plane turn `Rz(theta_j)` and tilt `Ry(beta_j)`
     /// (identities when not learned).
     fn turns(&self, out: &[f32], j: usize) -> (Mat3, Mat3) {
-        let row = &out[j * self.stride() + self.decoder.k..(j + 1) * self.stride()];
+        let row = &out[j * self.stride() + self.trained..(j + 1) * self.stride()];
         let turn = match self.rotation {
             true => Mat3::from_rotation_z(self.angle_scale * row[0]),
             false => Mat3::IDENTITY,
@@ -510,7 +547,7 @@ impl Model {
         match self {
             Model::Codec(c) => {
                 let dim = prep.feature_dim;
-                let (k, st) = (c.decoder.k, c.stride());
+                let k = c.decoder.k;
                 let parts: Vec<(Vec<Vec3>, CodecChunk)> = subset
                     .par_chunks(CHUNK)
                     .map(|ids| {
@@ -519,23 +556,16 @@ impl Model {
                             let i = i as usize;
                             x.extend_from_slice(&prep.features[i * dim..(i + 1) * dim]);
                         }
-                        let (mut z, tape) = c.mlp.forward(&x, ids.len());
-                        if !c.style.is_empty() {
-                            // A constant offset: d z / d encoder output stays 1.
-                            for (j, &i) in ids.iter().enumerate() {
-                                let i = i as usize;
-                                let row = &c.style[i * k..(i + 1) * k];
-                                for (a, b) in z[j * st..j * st + k].iter_mut().zip(row) {
-                                    *a += b;
-                                }
-                            }
-                        }
+                        let (z, tape) = c.mlp.forward(&x, ids.len());
+                        let mut codes = vec![0.0f32; ids.len() * k];
                         let mut local = vec![Vec3::ZERO; ids.len() * l];
                         let mut world = vec![Vec3::ZERO; ids.len() * l];
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
+                            let code = &mut codes[j * k..(j + 1) * k];
+                            c.codes(&z, j, i, code);
                             let loc = &mut local[j * l..(j + 1) * l];
-                            c.decoder.decode(&z[j * st..j * st + k], loc);
+                            c.decoder.decode(code, loc);
                             placement::place(
                                 loc,
                                 prep.roots[i],
@@ -544,7 +574,15 @@ impl Model {
                                 &mut world[j * l..(j + 1) * l],
                             );
                         }
-                        (world, CodecChunk { tape, z, local })
+                        (
+                            world,
+                            CodecChunk {
+                                tape,
+                                z,
+                                codes,
+                                local,
+                            },
+                        )
                     })
                     .collect();
                 let mut world = Vec::with_capacity(subset.len() * l);
@@ -579,7 +617,7 @@ impl Model {
         let l = prep.points;
         match (self, cache) {
             (Model::Codec(c), Cache::Codec(chunks)) => {
-                let (k, st) = (c.decoder.k, c.stride());
+                let (k, t, st) = (c.decoder.k, c.trained, c.stride());
                 let nt = c.mlp.param_count();
                 let np = c.decoder.params.len();
                 let nparts = c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len());
@@ -592,6 +630,7 @@ impl Model {
                         let mut gpsi = vec![0.0f32; np];
                         let mut glen = vec![0.0f32; nparts];
                         let mut gl = vec![Vec3::ZERO; l];
+                        let mut gcode = vec![0.0f32; k];
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
                             let loc = &ch.local[j * l..(j + 1) * l];
@@ -622,7 +661,7 @@ impl Model {
                                 if let Some(gp) = glen.get_mut(part) {
                                     *gp += dlen;
                                 }
-                                let at = j * st + k;
+                                let at = j * st + t;
                                 if c.rotation {
                                     gz[at] = c.angle_scale * dtheta;
                                 }
@@ -631,11 +670,12 @@ impl Model {
                                 }
                             }
                             c.decoder.backward(
-                                &ch.z[j * st..j * st + k],
+                                &ch.codes[j * k..(j + 1) * k],
                                 &gl,
-                                &mut gz[j * st..j * st + k],
+                                &mut gcode,
                                 c.finetune_decoder.then_some(&mut gpsi[..]),
                             );
+                            gz[j * st..j * st + t].copy_from_slice(&gcode[..t]);
                         }
                         let mut gt = vec![0.0f32; nt];
                         c.mlp.backward(&ch.tape, &gz, &mut gt);
@@ -821,8 +861,24 @@ mod tests {
         check_codec_gradients_with(true, false, 0.5, true);
     }
 
-    // Finite differences perturb parameter i and read gradient i.
+    #[test]
+    fn codec_backward_with_untrained_trailing_components_matches_finite_differences() {
+        check_codec_gradients_trained(true, true, 0.5, true, 1);
+    }
+
     fn check_codec_gradients_with(rotation: bool, tilt: bool, style: f32, lengths: bool) {
+        check_codec_gradients_trained(rotation, tilt, style, lengths, 2);
+    }
+
+    // Finite differences perturb parameter i and read gradient i. The codec's
+    // basis has two components, the encoder outputs codes for `trained` of them.
+    fn check_codec_gradients_trained(
+        rotation: bool,
+        tilt: bool,
+        style: f32,
+        lengths: bool,
+        trained: usize,
+    ) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
         let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32 / 3.0).collect();
@@ -857,7 +913,7 @@ mod tests {
             prep.feature_dim,
             6,
             2,
-            2 + rotation as usize + tilt as usize,
+            trained + rotation as usize + tilt as usize,
             9,
         );
         for (i, w) in mlp.params.iter_mut().enumerate().rev().take(21) {
@@ -865,7 +921,8 @@ mod tests {
         }
         let mut codec = Codec::new(mlp, Decoder::new(&mean, &comps), true, rotation)
             .with_tilt(tilt, 1.7)
-            .with_style(style_codes(3, 2, 0, 0, style, 4));
+            .with_style(style_codes(3, 2, 0, 0, style, 4))
+            .with_trained_components(trained);
         if lengths {
             codec = codec.with_part_lengths(&[1, 2]);
             codec.part_lengths.as_mut().unwrap().log_scale = vec![0.2, -0.3];

@@ -217,6 +217,12 @@ fure_stage_api::stage_params! {
         mlp_depth: usize = int(3).range(1.0, 16.0),
         /// Use the first K basis components (0 = all).
         components: usize = int(0).min(0.0),
+        /// The encoder outputs codes only for the leading basis components the views resolve:
+        /// those whose RMS displacement of a strand's points, at unit code and the coat's
+        /// mean strand length, is at least this many pixel footprints; the others decode from
+        /// the style codes alone, and components neither trained nor styled are dropped
+        /// (0 = every component trained; needs the `views` input; learn module doc).
+        min_component_px: f32 = float(0.1).min(0.0),
         /// Per-strand style codes: every strand's code gets a fixed seeded offset with this
         /// standard deviation per basis component, in units of the corpus' spread (the paper's
         /// optional style map: strand detail the views do not resolve; 0 = none; chosen on the
@@ -410,7 +416,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        19
+        20
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -513,6 +519,9 @@ pub struct LearnMetrics {
     /// over the length they were given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub part_length_scale: Option<std::collections::BTreeMap<String, f32>>,
+    /// The basis components the codec trains (min_component_px).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub components: Option<ComponentsReport>,
 }
 
 /// Checks the roots' arrays agree and are finite.
@@ -658,6 +667,48 @@ struct Setup {
     view_axes: Option<ViewAxesReport>,
     /// What tilting the frames to the views' elevation did (view_elevation).
     view_elevation: Option<ViewElevationReport>,
+    /// Which basis components the codec trains (min_component_px > 0 with views).
+    components: Option<ComponentsReport>,
+}
+
+/// `metrics.json`'s record of the basis components the codec trains
+/// ([`resolved_components`]).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ComponentsReport {
+    /// The rule's threshold, pixel footprints.
+    pub min_component_px: f32,
+    /// Scene units per pixel at the subject (`data::camera::pixel_footprint`).
+    pub pixel_footprint: f32,
+    /// Per basis component, the RMS displacement of a strand's points at unit code and the
+    /// coat's mean strand length, in pixel footprints.
+    pub component_px: Vec<f32>,
+    /// Leading components the encoder outputs codes for.
+    pub trained: usize,
+    /// Components the decoder keeps (the trained ones and the styled ones).
+    pub decoded: usize,
+}
+
+/// How many leading components of `basis` the views resolve: the run of
+/// components whose RMS point displacement at unit code, on a strand
+/// `mean_length` long, is at least `min_px` pixel footprints `footprint`
+/// (the basis has unit arc length, so a component scales with the strand).
+/// Returns the count and every component's displacement in pixels.
+pub fn resolved_components(
+    basis: &StrandBasis,
+    mean_length: f32,
+    footprint: f32,
+    min_px: f32,
+) -> (usize, Vec<f32>) {
+    let px: Vec<f32> = basis
+        .components
+        .iter()
+        .map(|c| {
+            let sq: f64 = c.iter().map(|q| q.length_squared() as f64).sum();
+            ((sq / c.len().max(1) as f64).sqrt() * mean_length as f64 / footprint as f64) as f32
+        })
+        .collect();
+    let n = px.iter().take_while(|&&a| a >= min_px).count();
+    (n, px)
 }
 
 /// `metrics.json`'s record of the frames turned onto the views' axes.
@@ -697,7 +748,7 @@ fn setup(
     ctx: &StageContext<'_>,
     p: &LearnParams,
     pe_frequencies: usize,
-    components: usize,
+    codec: Option<&CodecParams>,
     chamfer: bool,
 ) -> Result<Setup, StageError> {
     let roots_path = ctx.input("roots")?;
@@ -763,10 +814,19 @@ fn setup(
         rho: keep.iter().map(|&i| roots.rho[i]).collect(),
     };
     let prep = Prepared::new(basis.points, inputs, part_count, &pe);
-    let k = if components == 0 {
-        basis.k()
-    } else {
-        components.min(basis.k())
+    let mut k = match codec.map_or(0, |c| c.components) {
+        0 => basis.k(),
+        n => n.min(basis.k()),
+    };
+    let components = match codec {
+        Some(c) if c.min_component_px > 0.0 => {
+            let report = components_to_train(ctx, c, &basis, prep.mean_length(), &outer, k)?;
+            if let Some(r) = &report {
+                k = r.decoded;
+            }
+            report
+        }
+        _ => None,
     };
     let decoder = Decoder::new(&basis.mean, &basis.components[..k]);
 
@@ -783,7 +843,45 @@ fn setup(
         outer,
         view_axes,
         view_elevation,
+        components,
     })
+}
+
+/// The codec's trained and decoded components under `min_component_px`
+/// ([`resolved_components`]), of the first `k` of the basis: the encoder
+/// trains the resolved ones, the decoder keeps those and the styled ones.
+/// `None` without the `views` input (every component is then trained).
+fn components_to_train(
+    ctx: &StageContext<'_>,
+    c: &CodecParams,
+    basis: &StrandBasis,
+    mean_length: f32,
+    outer: &Mesh,
+    k: usize,
+) -> Result<Option<ComponentsReport>, StageError> {
+    let Some(views_dir) = ctx.input_opt("views") else {
+        ctx.progress
+            .note("min_component_px: no views connected, every basis component is trained");
+        return Ok(None);
+    };
+    let cams = formats::cameras::read_views(views_dir)?.train;
+    let footprint = pixel_footprint(&cams, outer);
+    let (resolved, component_px) =
+        resolved_components(basis, mean_length, footprint, c.min_component_px);
+    // At least the leading component (the strands' lean), whatever the views show.
+    let trained = resolved.clamp(1, k.max(1));
+    let styled = match (c.style > 0.0, c.style_to) {
+        (false, _) => 0,
+        (true, 0) => k,
+        (true, to) => to.min(k),
+    };
+    Ok(Some(ComponentsReport {
+        min_component_px: c.min_component_px,
+        pixel_footprint: footprint,
+        component_px,
+        trained,
+        decoded: trained.max(styled),
+    }))
 }
 
 /// Turns `frames` about their normals onto the fur's axis read from the
@@ -1064,12 +1162,12 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
     let p = LearnParams::from_params(ctx.params)?;
     let learner = Learner::from_params(ctx.params, dense)?;
     let seed = p.seed;
-    let (pe_f, comps) = match &learner {
-        Learner::Codec(c) => (c.pe_frequencies, c.components),
-        Learner::Dense(_) => (0, 0),
+    let (pe_f, codec) = match &learner {
+        Learner::Codec(c) => (c.pe_frequencies, Some(c)),
+        Learner::Dense(_) => (0, None),
     };
     ctx.progress.message("reading inputs");
-    let s = setup(ctx, &p, pe_f, comps, learner.l_chm() > 0.0)?;
+    let s = setup(ctx, &p, pe_f, codec, learner.l_chm() > 0.0)?;
     let l = s.prep.points;
 
     let (mut model, rates) = initial_model(&learner, &s, seed);
@@ -1176,6 +1274,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         view_axes: s.view_axes.clone(),
         view_elevation: s.view_elevation.clone(),
         part_length_scale: learned_length_scales(&model, &s),
+        components: s.components.clone(),
     };
     let _ = (&s.lengths, &s.outer);
     formats::json::write_json(ctx.output("metrics")?, &metrics)?;
@@ -1213,11 +1312,12 @@ const STYLE_STREAM: u64 = 0x5354_594c_4553;
 fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
     match learner {
         Learner::Codec(c) => {
+            let trained = s.components.as_ref().map_or(s.decoder.k, |r| r.trained);
             let mlp = Mlp::new(
                 s.prep.feature_dim,
                 c.mlp_width,
                 c.mlp_depth,
-                s.decoder.k + c.learn_rotation as usize + c.learn_tilt as usize,
+                trained + c.learn_rotation as usize + c.learn_tilt as usize,
                 seed,
             );
             let mut codec =
@@ -1231,7 +1331,8 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                         c.style,
                         seed ^ STYLE_STREAM,
                     ))
-                    .with_angle_scale(c.angle_scale);
+                    .with_angle_scale(c.angle_scale)
+                    .with_trained_components(trained);
             if c.learn_length {
                 codec = codec.with_part_lengths(&s.prep.strands_per_part());
             }
@@ -1772,6 +1873,71 @@ pub(crate) mod tests {
         };
         stage.run(&ctx).unwrap();
         out
+    }
+
+    #[test]
+    fn resolved_components_count_what_a_pixel_shows_whatever_the_unit() {
+        // The toy basis' components move a unit strand's points by RMS
+        // 0.493 (t^2 along x), 0.598 (t along y) and 0.493 (t^2 along z).
+        let b = basis();
+        let (n, px) = resolved_components(&b, 2.0, 1.0, 0.5);
+        assert_eq!(px.len(), 3);
+        assert!((px[1] - 2.0 * 0.5976).abs() < 1e-3, "{px:?}");
+        assert_eq!(n, 3);
+        // The run stops at the first component under the threshold.
+        assert_eq!(resolved_components(&b, 2.0, 1.0, 1.0).0, 0);
+        assert_eq!(resolved_components(&b, 1.0, 1.0, 0.5).0, 0);
+        assert_eq!(resolved_components(&b, 1.0, 0.5, 1.0).0, 0);
+        assert_eq!(resolved_components(&b, 1.0, 0.5, 0.8).0, 3);
+        // The same strands and views in centimetres.
+        let (n_cm, px_cm) = resolved_components(&b, 200.0, 100.0, 0.5);
+        assert_eq!(n_cm, n);
+        for (a, c) in px.iter().zip(&px_cm) {
+            assert!((a - c).abs() < 1e-5 * a, "{px:?} {px_cm:?}");
+        }
+    }
+
+    #[test]
+    fn the_codec_trains_only_the_components_the_views_resolve() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, _) = write_views(d.path());
+        let run = |min_px: f32, style: f32| -> LearnMetrics {
+            let dir = d.path().join(format!("{min_px}-{style}"));
+            let out = run_with_views(
+                &dir,
+                views.clone(),
+                &[
+                    ("iterations", Value::Int(2)),
+                    ("min_component_px", Value::Float(min_px as f64)),
+                    ("style", Value::Float(style as f64)),
+                    ("style_from", Value::Int(1)),
+                    ("style_to", Value::Int(2)),
+                    ("fit_colors", Value::Str("none".into())),
+                ],
+            )
+            .join("metrics.json");
+            formats::json::read_json(out).unwrap()
+        };
+        let all = run(0.0, 0.0);
+        assert!(all.components.is_none());
+        let fine = run(1e-6, 0.0);
+        let r = fine.components.clone().expect("views connected: a report");
+        assert_eq!((r.trained, r.decoded, r.component_px.len()), (3, 3, 3));
+        assert_eq!(fine.optimised_parameters, all.optimised_parameters);
+        // Nothing resolved: the leading component is still trained (the encoder always has
+        // the strands' lean); the styled component 1 stays in the decoder (its style codes
+        // still shape the strands), component 2 goes.
+        let coarse = run(1e6, 0.5);
+        let r = coarse.components.expect("a report");
+        assert_eq!((r.trained, r.decoded), (1, 2));
+        assert!(r.pixel_footprint > 0.0 && r.component_px.iter().all(|&a| a < 1e6));
+        // Two encoder outputs fewer (16 weights and a bias each), one decoder component
+        // fewer (8 points of 3 coordinates).
+        let mlp_width = 16;
+        assert_eq!(
+            all.optimised_parameters - coarse.optimised_parameters,
+            2 * (mlp_width + 1) + 8 * 3
+        );
     }
 
     #[test]
