@@ -62,12 +62,13 @@
 //! strands and the body share a pixel, the composite they make is not the
 //! photo (a thin strand over the body takes the body's colour into its own,
 //! and the body then adds its colour again beneath it). The codec's final
-//! fit therefore takes 4 majorise-minimise steps from the means toward the
+//! fit therefore takes 2 majorise-minimise steps from the means toward the
 //! colours whose renders best match the fit's views (`refine_colors`: each
 //! step a render and a blend-sum pass per view, the squared error never
 //! grows). Dev split, 4 steps against none: held-out PSNR tiger +0.5 dB, fox
-//! +0.6, lynx +0.6, sheepdog +1.0, Blender fox +1.6, every F-score a tie
-//! (docs/history.md). The dense
+//! +0.6, lynx +0.6, sheepdog +1.0, Blender fox +1.6, every F-score a tie;
+//! 2 steps tie 4 on every dev scene (the Blender fox included) at 40-45 %
+//! less fit time, 1 step loses the tiger (docs/history.md). The dense
 //! baseline's colours are Adam's over 1,800 iterations, which gets closer to
 //! the least-squares colours by itself; it keeps no final fit.
 //!
