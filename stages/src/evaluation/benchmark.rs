@@ -976,8 +976,9 @@ fn draw_scatter<DB: DrawingBackend>(
 
 /// The size a learner chose from the views, over a scene's runs: strand count (mean over
 /// seeds), points per strand and, where the record has the `basis` stage's rank, the basis
-/// rank (`roots_per_pixel`, `strand_basis`'s automatic points and rank). None without the
-/// learner's strand count.
+/// rank (`roots_per_pixel`, `strand_basis`'s automatic points and rank), and the components
+/// the codec trains (`min_component_px`, mean over seeds). None without the learner's strand
+/// count.
 fn chosen_size(runs: &[&VariantRecord], learner: &str, method: &str) -> Option<String> {
     let mean = |key: String| -> Option<f64> {
         let v: Vec<f64> = runs
@@ -996,6 +997,10 @@ fn chosen_size(runs: &[&VariantRecord], learner: &str, method: &str) -> Option<S
     }
     if let Some(k) = mean("basis.k".to_string()) {
         let _ = write!(text, ", basis rank {k:.0}");
+    }
+    if let Some(t) = mean(format!("{learner}.components.trained")) {
+        let digits = if t.fract() == 0.0 { 0 } else { 1 };
+        let _ = write!(text, ", {t:.digits$} components trained");
     }
     Some(text)
 }
@@ -1145,8 +1150,8 @@ impl Stage for BenchmarkReportStage {
         "benchmark_report"
     }
     fn version(&self) -> u32 {
-        // 13: the curvature ratio's straight-GT rule in the preamble.
-        13
+        // 14: the size chart names the components the codec trains.
+        14
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1232,7 +1237,7 @@ mod tests {
                     "metrics": {
                         "evaluate": {"prf_signed": {"3cm_30deg": {"fscore": fc}}},
                         "evaluate_dense": {"prf_signed": {"3cm_30deg": {"fscore": fd}}},
-                        "codec": {"optimised_parameters": 1000, "strands": 40000 + 2000 * i, "points_per_strand": 8},
+                        "codec": {"optimised_parameters": 1000, "strands": 40000 + 2000 * i, "points_per_strand": 8, "components": {"trained": 3 + i % 2}},
                         "basis": {"k": 14},
                     },
                     "costs": {"codec": {"seconds": 10.0, "peak_rss_bytes": 1048576, "threads": threads(i)}, "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
@@ -1494,7 +1499,8 @@ mod tests {
         let svg = std::fs::read_to_string(dir.path().join("f_vs_size_tiger.svg")).unwrap();
         assert!(
             svg.contains(
-                "ringed: FurE as chosen from the views, 41000 strands x 8 points, basis rank 14"
+                "ringed: FurE as chosen from the views, 41000 strands x 8 points, basis rank 14, \
+                 3.5 components trained"
             ),
             "{svg}"
         );
