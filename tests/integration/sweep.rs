@@ -202,7 +202,7 @@ fn each_axes_statuses_record_and_aggregate() {
     );
 
     // --grid replaces an each axis's values; --each adds one.
-    let s3 = p.sweep(&[
+    let grid = [
         "sweep",
         "sw.toml",
         "--grid",
@@ -211,7 +211,8 @@ fn each_axes_statuses_record_and_aggregate() {
         "other.power=3,4",
         "--table",
         "t3",
-    ]);
+    ];
+    let s3 = p.sweep(&grid);
     assert_eq!(s3.code(), 0, "{}", s3.all());
     assert!(
         s3.stdout().contains("sweep sw: 10 variants"),
@@ -229,16 +230,7 @@ fn each_axes_statuses_record_and_aggregate() {
     // same grid afterwards runs nothing but the stage that always fails.
     let g3 = p.fure(&["gc", "--keep", "sw.toml"]);
     assert_eq!(g3.status.code(), Some(0), "{g3:?}");
-    let s4 = p.sweep(&[
-        "sweep",
-        "sw.toml",
-        "--grid",
-        "sq.power=1,2",
-        "--each",
-        "other.power=3,4",
-        "--table",
-        "t3",
-    ]);
+    let s4 = p.sweep(&grid);
     assert_eq!(s4.code(), 0, "{}", s4.all());
     for i in 0..10 {
         assert!(s4.line(i).contains(": 0 ran, "), "{}", s4.all());
