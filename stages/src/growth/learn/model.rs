@@ -308,8 +308,8 @@ impl PartLengths {
 /// components of a corpus basis are its vertex-scale wiggles, which no pixel shows, and an
 /// offset there kinks every strand.
 pub fn style_codes(n: usize, k: usize, from: usize, to: usize, scale: f32, seed: u64) -> Vec<f32> {
-    let to = if to == 0 { k } else { to.min(k) };
-    if scale == 0.0 || to <= from {
+    let styled = styled_components(k, from, to, scale);
+    if styled.is_empty() {
         return Vec::new();
     }
     let mut out = Vec::with_capacity(n * k);
@@ -318,7 +318,7 @@ pub fn style_codes(n: usize, k: usize, from: usize, to: usize, scale: f32, seed:
         rng.set_stream(i as u64);
         out.extend((0..k).map(|j| {
             let e = standard_normal(&mut rng);
-            if (from..to).contains(&j) {
+            if styled.contains(&j) {
                 scale * e
             } else {
                 0.0
@@ -326,6 +326,16 @@ pub fn style_codes(n: usize, k: usize, from: usize, to: usize, scale: f32, seed:
         }));
     }
     out
+}
+
+/// The components [`style_codes`] offsets among `k`: `from..to` (`to` 0 or above `k` means
+/// `k`), none when `scale` is 0.
+pub fn styled_components(k: usize, from: usize, to: usize, scale: f32) -> std::ops::Range<usize> {
+    let to = if to == 0 { k } else { to.min(k) };
+    if scale == 0.0 || to <= from {
+        return 0..0;
+    }
+    from..to
 }
 
 /// Radians per unit of the encoder's rotation output of a new [`Codec`] (the stage sets its own).

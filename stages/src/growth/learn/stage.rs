@@ -15,7 +15,9 @@ use serde::{Deserialize, Serialize};
 use super::geomloss::DistanceGrid;
 use super::image::{read_orientation, ColorFitPass, Coverage, Formation, ImageConfig, ImageLosses};
 use super::mlp::{Mlp, PositionalEncoding};
-use super::model::{style_codes, Codec, Dense, Model, Prepared, Rates, RootInputs};
+use super::model::{
+    style_codes, styled_components, Codec, Dense, Model, Prepared, Rates, RootInputs,
+};
 use super::placement::{frame, Decoder};
 use super::train::{self, Geometry, ImageTerm, TrainConfig, TrainReport};
 use crate::data::camera::{pixel_footprint, Camera};
@@ -417,7 +419,7 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        20
+        21
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -867,15 +869,18 @@ fn components_to_train(
     };
     let cams = formats::cameras::read_views(views_dir)?.train;
     let footprint = pixel_footprint(&cams, outer);
+    if !(footprint.is_finite() && footprint > 0.0) {
+        ctx.progress.note(
+            "min_component_px: the training cameras give no pixel footprint at the subject, \
+             every basis component is trained",
+        );
+        return Ok(None);
+    }
     let (resolved, component_px) =
         resolved_components(basis, mean_length, footprint, c.min_component_px);
     // At least the leading component (the strands' lean), whatever the views show.
     let trained = resolved.clamp(1, k.max(1));
-    let styled = match (c.style > 0.0, c.style_to) {
-        (false, _) => 0,
-        (true, 0) => k,
-        (true, to) => to.min(k),
-    };
+    let styled = styled_components(k, c.style_from, c.style_to, c.style).end;
     Ok(Some(ComponentsReport {
         min_component_px: c.min_component_px,
         pixel_footprint: footprint,
