@@ -241,6 +241,11 @@ pub struct Manifest {
     /// outside the seal.
     #[serde(default)]
     pub threads: u32,
+    /// Cores other work kept busy on average while the stage ran
+    /// ([`crate::load`]; None: not measured). With `threads` it tells whether
+    /// `seconds` were the stage's own. Informative only, outside the seal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub other_load: Option<f32>,
     pub fure_version: String,
     pub created_unix: u64,
     /// The stage's notes (what it chose, which device rendered), in order;

@@ -1018,6 +1018,7 @@ fn execute(
         progress,
     };
     let t = Instant::now();
+    let load = crate::load::Sampler::start();
     let (result, peak) = if st.kind == command::KIND {
         match command::run_command(&ctx) {
             Ok(peak) => (Ok(()), peak),
@@ -1027,6 +1028,7 @@ fn execute(
         run_in_process(st, &ctx, work.threads, inproc)?
     };
     let seconds = t.elapsed().as_secs_f64();
+    let other_load = load.finish();
     result?;
     let outputs = store_outputs(cache, st, &ctx.outputs)?;
     let m = Manifest {
@@ -1040,6 +1042,7 @@ fn execute(
         seconds,
         peak_rss_bytes: peak,
         threads: work.threads as u32,
+        other_load,
         fure_version: FURE_VERSION.to_string(),
         created_unix: cache::created_now(),
         notes: progress.notes(),

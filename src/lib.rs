@@ -24,6 +24,7 @@ pub mod cli;
 pub mod command;
 pub mod exec;
 pub mod key;
+pub mod load;
 pub mod pipeline;
 pub mod plan;
 pub mod publish;

@@ -74,7 +74,8 @@
 //!  "variants": [{"index": 0, "name": "p@v0", "settings": {"KEY": value},
 //!                "varied": null, "status": "ok", "reason": "", "failed_stage": null,
 //!                "warnings": ["stage: text"], "metrics": {"stage.key": 1.5},
-//!                "costs": {"stage": {"seconds": 2.5, "peak_rss_bytes": 1048576, "threads": 2}}}]}
+//!                "costs": {"stage": {"seconds": 2.5, "peak_rss_bytes": 1048576, "threads": 2,
+//!                                    "other_load": 0.0}}}]}
 //! ```
 //!
 //! Object keys are sorted (so `each_order` keeps the declaration order of
@@ -83,9 +84,10 @@
 //! record of an unchanged, cached sweep is byte-identical from run to run
 //! and the aggregate stages keyed on it stay cached. What the stages cost is
 //! kept apart, in `costs` (`{"STAGE": {"seconds", "peak_rss_bytes",
-//! "threads"}}` of each stage's cache entry, the figures of the run that
-//! computed it and the size of its thread pool), which a cached sweep reads
-//! back unchanged too. The file is replaced
+//! "threads", "other_load"}}` of each stage's cache entry, the figures of the
+//! run that computed it, the size of its thread pool and the cores other work
+//! kept busy meanwhile, [`crate::load`]; a figure an entry lacks is left out),
+//! which a cached sweep reads back unchanged too. The file is replaced
 //! atomically, and only when its bytes change.
 //!
 //! # Aggregate stages
@@ -299,6 +301,17 @@ impl VariantStatus {
     }
 }
 
+/// A stage's cost, from its cache entry (the run that computed it).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cost {
+    pub seconds: f64,
+    pub peak_rss_bytes: u64,
+    /// Its pool's threads; 0: not recorded.
+    pub threads: u32,
+    /// Cores other work kept busy meanwhile ([`crate::load`]).
+    pub other_load: Option<f32>,
+}
+
 /// One row of the sweep table.
 #[derive(Debug, Clone)]
 pub struct Row {
@@ -307,8 +320,8 @@ pub struct Row {
     pub report: RunReport,
     /// stage -> compute seconds (of the entry), cached?
     pub stage_seconds: BTreeMap<String, (f64, bool)>,
-    /// stage -> (compute seconds, peak RSS bytes, threads; 0 unknown) of its cache entry.
-    pub costs: BTreeMap<String, (f64, u64, u32)>,
+    /// stage -> what its cache entry says it cost.
+    pub costs: BTreeMap<String, Cost>,
     /// Every number of every stage's `metrics.json`, flattened.
     pub metrics: BTreeMap<String, f64>,
     pub status: VariantStatus,
@@ -463,7 +476,15 @@ fn make_row(v: &Variant, plan: &Plan, report: RunReport, cache: &Cache) -> Row {
             let secs = entry.as_ref().map(|m| m.seconds).unwrap_or(s.seconds);
             stage_seconds.insert(s.name.clone(), (secs, s.status == Status::Cached));
             if let Some(m) = entry {
-                costs.insert(s.name.clone(), (m.seconds, m.peak_rss_bytes, m.threads));
+                costs.insert(
+                    s.name.clone(),
+                    Cost {
+                        seconds: m.seconds,
+                        peak_rss_bytes: m.peak_rss_bytes,
+                        threads: m.threads,
+                        other_load: m.other_load,
+                    },
+                );
             }
         }
     }
@@ -666,10 +687,14 @@ pub fn record(pipeline: &str, axes: &Axes, rows: &[Row]) -> serde_json::Value {
             let costs: serde_json::Map<String, serde_json::Value> = r
                 .costs
                 .iter()
-                .map(|(k, (secs, rss, threads))| {
-                    let mut c = json!({"seconds": secs, "peak_rss_bytes": rss});
-                    if *threads > 0 {
-                        c["threads"] = json!(threads);
+                .map(|(k, cost)| {
+                    let mut c =
+                        json!({"seconds": cost.seconds, "peak_rss_bytes": cost.peak_rss_bytes});
+                    if cost.threads > 0 {
+                        c["threads"] = json!(cost.threads);
+                    }
+                    if let Some(load) = cost.other_load {
+                        c["other_load"] = json!(load);
                     }
                     (k.clone(), c)
                 })

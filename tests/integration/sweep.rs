@@ -578,6 +578,51 @@ outs = ["out.txt"]
     assert!(!p.path("out/bad").exists(), "{}", s.all());
 }
 
+/// Two busy processes beside a sweep (not its children): every stage run records that other
+/// work kept cores busy, in its cache entry and in the sweep record the report reads.
+#[test]
+fn other_work_beside_a_stage_is_recorded_with_its_cost() {
+    if std::fs::metadata("/proc/stat").is_err() {
+        return; // only Linux says how busy the machine is
+    }
+    let p = Project::new();
+    p.write(
+        "busy.toml",
+        r#"[pipeline]
+name = "busy"
+
+[stages.wait]
+kind = "command"
+cmd = ["sh", "-c", "sleep 1.2; echo $N > w.txt"]
+outs = ["w.txt"]
+
+[sweep]
+"wait.env" = [{ N = "1" }, { N = "2" }]
+"#,
+    );
+    let spinners: Vec<std::process::Child> = (0..2)
+        .map(|_| {
+            std::process::Command::new("sh")
+                .args(["-c", "while :; do :; done"])
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    let s = p.sweep(&["sweep", "busy.toml", "--jobs", "1"]);
+    for mut c in spinners {
+        let _ = c.kill();
+        let _ = c.wait();
+    }
+    assert_eq!(s.code(), 0, "{}", s.all());
+    let r = json(&p.read("out/busy/sweep.json"));
+    for v in r["variants"].as_array().unwrap() {
+        // The two spinners are runnable all along (running or waiting for a core); the stage's
+        // own shell and sleep are not counted (they are the stage's).
+        let load = v["costs"]["wait"]["other_load"].as_f64().unwrap_or(-1.0);
+        assert!(load >= 1.0, "{load} in {r}");
+    }
+}
+
 /// SIGTERM during a sweep: the running in-process stage stops between two of its steps, no
 /// later variant starts, nothing is cached or left in staging, and the last complete sweep's
 /// record stays as it was.

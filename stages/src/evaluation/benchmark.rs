@@ -318,6 +318,10 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> Report {
     out.insert("scenes".into(), per_scene.into());
     out.insert("runs".into(), rec.variants.len().into());
     out.insert("stage_threads".into(), thread_counts(rec).into());
+    let load = other_load(rec);
+    if let Some(max) = load.max {
+        out.insert("stage_other_load_max".into(), max.into());
+    }
     Report {
         results: md,
         headline: format!(
@@ -342,6 +346,74 @@ fn thread_counts(rec: &SweepRecord) -> Vec<u64> {
     t.sort_unstable();
     t.dedup();
     t
+}
+
+/// Above this many cores kept busy by other work on average, a stage's seconds are flagged.
+pub const OTHER_LOAD_WARN: f64 = 0.5;
+
+/// What the record says of other work while its stages ran (`costs.S.other_load`).
+#[derive(Debug, Default, PartialEq)]
+struct OtherLoad {
+    /// Stage runs in the record, and those that recorded the figure.
+    stages: usize,
+    measured: usize,
+    /// The largest figure.
+    max: Option<f64>,
+    /// (variant, stage, cores) above [`OTHER_LOAD_WARN`], worst first.
+    above: Vec<(String, String, f64)>,
+}
+
+fn other_load(rec: &SweepRecord) -> OtherLoad {
+    let mut o = OtherLoad::default();
+    for v in &rec.variants {
+        for (k, _) in v.costs.iter().filter(|(k, _)| k.ends_with(".seconds")) {
+            let stage = &k[..k.len() - ".seconds".len()];
+            o.stages += 1;
+            let Some(&load) = v.costs.get(&format!("{stage}.other_load")) else {
+                continue;
+            };
+            o.measured += 1;
+            o.max = Some(o.max.map_or(load, |m: f64| m.max(load)));
+            if load > OTHER_LOAD_WARN {
+                o.above.push((v.name.clone(), stage.to_string(), load));
+            }
+        }
+    }
+    o.above.sort_by(|a, b| {
+        b.2.total_cmp(&a.2)
+            .then_with(|| (&a.0, &a.1).cmp(&(&b.0, &b.1)))
+    });
+    o
+}
+
+/// The sentence on other work beside the stages, if the record measured any.
+fn other_load_note(rec: &SweepRecord) -> Option<String> {
+    let o = other_load(rec);
+    let max = o.max?;
+    let unmeasured = if o.measured < o.stages {
+        format!(
+            " ({} of {} stage runs not measured: entries made before fure recorded it)",
+            o.stages - o.measured,
+            o.stages
+        )
+    } else {
+        String::new()
+    };
+    Some(match o.above.first() {
+        None => format!(
+            "Other work on the machine kept at most {max:.2} cores busy while a stage ran{unmeasured}.\n"
+        ),
+        Some((name, stage, worst)) => format!(
+            "**Some stage seconds were measured beside other work**: in {} of {} measured stage \
+             runs, other processes kept more than {OTHER_LOAD_WARN} cores busy on average (the \
+             worst: `{stage}` of {name}, {worst:.2} cores){unmeasured}. Those seconds, and the \
+             speed-ups and charts made from them, are longer than the machine alone gives: \
+             rerun on a quiet machine with a cache of the suite's own \
+             (`costs.STAGE.other_load` in the sweep record).\n",
+            o.above.len(),
+            o.measured
+        ),
+    })
 }
 
 /// Title, provenance mark, splits, seeds and the rules the tables follow.
@@ -406,6 +478,9 @@ fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
                 list.join(", ")
             );
         }
+    }
+    if let Some(note) = other_load_note(rec) {
+        let _ = writeln!(md, "{note}");
     }
 }
 
@@ -1226,6 +1301,17 @@ mod tests {
 
     /// [`record`] with variant `i`'s codec run on `threads(i)` threads.
     fn record_on(runs: &[(&str, u64, f64, f64)], threads: &dyn Fn(usize) -> u64) -> SweepRecord {
+        record_costing(
+            runs,
+            &|i| json!({"seconds": 10.0, "peak_rss_bytes": 1048576, "threads": threads(i)}),
+        )
+    }
+
+    /// [`record`] with variant `i`'s codec cost `codec_cost(i)`.
+    fn record_costing(
+        runs: &[(&str, u64, f64, f64)],
+        codec_cost: &dyn Fn(usize) -> Json,
+    ) -> SweepRecord {
         // (scene, seed, codec F3, dense F3)
         let variants: Vec<Json> = runs
             .iter()
@@ -1240,7 +1326,7 @@ mod tests {
                         "codec": {"optimised_parameters": 1000, "strands": 40000 + 2000 * i, "points_per_strand": 8, "components": {"trained": 3 + i % 2}},
                         "basis": {"k": 14},
                     },
-                    "costs": {"codec": {"seconds": 10.0, "peak_rss_bytes": 1048576, "threads": threads(i)}, "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
+                    "costs": {"codec": codec_cost(i), "frosting": {"seconds": 5.0, "peak_rss_bytes": 2097152}},
                 })
             })
             .collect();
@@ -1283,6 +1369,39 @@ mod tests {
             .results
             .contains("**Stage seconds mix thread counts** (1, 2 threads)"));
         assert_eq!(mixed.metrics["stage_threads"], json!([1, 2]));
+    }
+
+    #[test]
+    fn the_report_says_when_other_work_ran_beside_the_stages() {
+        let runs = [("tiger", 0, 60.0, 50.0), ("tiger", 1, 62.0, 51.0)];
+        let cost = |load: f64| json!({"seconds": 10.0, "peak_rss_bytes": 1, "threads": 2, "other_load": load});
+        // Entries from before the figure was recorded: nothing is said.
+        let old = report(&record(&runs), &cfg());
+        assert!(!old.results.contains("other work"), "{}", old.results);
+        assert!(old.metrics.get("stage_other_load_max").is_none());
+        // A quiet machine: the largest figure, and which entries did not record one.
+        let quiet = report(&record_costing(&runs, &|i| cost(0.1 * i as f64)), &cfg());
+        assert!(
+            quiet.results.contains(
+                "Other work on the machine kept at most 0.10 cores busy while a stage ran \
+                 (2 of 4 stage runs not measured"
+            ),
+            "{}",
+            quiet.results
+        );
+        assert!(!quiet.results.contains("beside other work"));
+        assert_eq!(quiet.metrics["stage_other_load_max"], json!(0.1));
+        // One codec run shared the machine: flagged, naming the worst run.
+        let busy = report(&record_costing(&runs, &|i| cost([0.0, 1.9][i])), &cfg());
+        assert!(
+            busy.results.contains(
+                "**Some stage seconds were measured beside other work**: in 1 of 2 measured \
+                 stage runs, other processes kept more than 0.5 cores busy on average (the \
+                 worst: `codec` of b@v1, 1.90 cores)"
+            ),
+            "{}",
+            busy.results
+        );
     }
 
     #[test]

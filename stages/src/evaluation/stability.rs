@@ -82,7 +82,8 @@ pub struct VariantRecord {
     pub failed_stage: Option<String>,
     pub warnings: Vec<String>,
     pub metrics: BTreeMap<String, f64>,
-    /// The record's optional `costs`, flattened: `STAGE.seconds`, `STAGE.peak_rss_bytes`.
+    /// The record's optional `costs`, flattened: `STAGE.seconds`, `STAGE.peak_rss_bytes`,
+    /// `STAGE.threads`, `STAGE.other_load`.
     pub costs: BTreeMap<String, f64>,
 }
 
