@@ -1226,7 +1226,8 @@ impl Stage for BenchmarkReportStage {
     }
     fn version(&self) -> u32 {
         // 14: the size chart names the components the codec trains.
-        14
+        // 15: the other work beside the stages (`costs.S.other_load`).
+        15
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
