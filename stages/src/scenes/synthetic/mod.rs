@@ -690,7 +690,7 @@ impl Stage for SyntheticSceneStage {
         3
     }
     fn doc(&self) -> &'static str {
-        "A synthetic furry animal (tiger, fox, lynx, sheepdog, cat, panda, bison, wolf): implicit body -> labelled skin \
+        "A synthetic furry animal (tiger, fox, lynx, sheepdog, poodle, cat, panda, bison, wolf): implicit body -> labelled skin \
          mesh, ground-truth strands, and ray-traced RGBA / mask / fur-mask / depth views on a sphere \
          (training and held-out) with transforms.json; scene.json holds s_cm, the eyes and per-part \
          GT fur statistics. Per-part overrides in `parts.<name>`."

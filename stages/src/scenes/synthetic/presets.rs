@@ -9,7 +9,9 @@
 //! preset has. The lynx is the coat that stands up: its fur leaves the skin at 40-50 degrees
 //! (every other preset's at 8-35), with almost no gravity, on a short-tailed cat body. The
 //! sheepdog is the coat that hides its body: 5-12 cm of wavy, clumped hair on every part, head
-//! and legs included, hanging under its own weight (sheepdog 105 cm).
+//! and legs included, hanging under its own weight (sheepdog 105 cm). The poodle is the coat
+//! that curls: 4-7 cm of tightly curled hair standing off a long-legged dog (curl 0.7-0.8, where
+//! the sheepdog's waves are 0.15 and the bison's mane 0.5; poodle 90 cm).
 //!
 //! Fur lengths per part are chosen so that the mean GT strand length is near the paper's table
 //! (Artemis: panda 5.22 cm, fox 3.80 cm, cat 1.60 cm, white tiger 3.70 cm); the bison gets long
@@ -24,7 +26,7 @@ use glam::{Quat, Vec3};
 
 /// The presets the stage offers.
 pub const PRESETS: &[&str] = &[
-    "tiger", "fox", "cat", "panda", "bison", "wolf", "lynx", "sheepdog",
+    "tiger", "fox", "cat", "panda", "bison", "wolf", "lynx", "sheepdog", "poodle",
 ];
 
 /// Keys a `parts.<name>` override table may hold.
@@ -603,7 +605,9 @@ struct PresetData {
 }
 
 /// Every preset's data, in [`PRESETS`] order.
-const PRESET_DATA: [&PresetData; 8] = [&TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF, &LYNX, &SHEEPDOG];
+const PRESET_DATA: [&PresetData; 9] = [
+    &TIGER, &FOX, &CAT, &PANDA, &BISON, &WOLF, &LYNX, &SHEEPDOG, &POODLE,
+];
 
 const TIGER: PresetData = {
     const O: [f32; 3] = [0.85, 0.42, 0.12];
@@ -1028,6 +1032,62 @@ const SHEEPDOG: PresetData = {
             ("tail", FurParams::fur(7.0, 35.0, 0.15, 0.5, 0.6, G)),
             ("nose", FurParams::bare(NOSE_COLOR)),
             ("eyes", FurParams::bare([0.3, 0.25, 0.2])),
+        ],
+        pattern: Pattern::Tabby,
+    }
+};
+
+/// The coat that curls: every long-haired part is tight curls (a cone of 35-39 degrees
+/// around the growth direction, 1.25 turns per strand) standing off the skin, little
+/// gravity, light clumping; a short, straight muzzle. Its strands bend at the scale of a
+/// pixel or below, where every other dev coat is straight or gently waved.
+const POODLE: PresetData = {
+    const A: [f32; 3] = [0.78, 0.52, 0.32];
+    const L: [f32; 3] = [0.86, 0.66, 0.45];
+    PresetData {
+        name: "poodle",
+        dims: Dims {
+            body_length: 90.0,
+            torso_y: 52.0,
+            torso_len: 38.0,
+            chest_r: 12.0,
+            hip_r: 10.0,
+            torso_squash: 0.85,
+            neck_len: 14.0,
+            neck_r: 7.0,
+            neck_rise: 0.7,
+            head_r: 7.0,
+            muzzle_len: 9.0,
+            muzzle_r: 3.0,
+            ear_len: 9.0,
+            ear_r: 3.5,
+            ear_taper: 0.6,
+            eye_r: 1.0,
+            eye_sep: 5.0,
+            leg_r: 3.2,
+            paw_r: 3.5,
+            tail_len: 15.0,
+            tail_r: 2.5,
+            tail_droop: 0.2,
+            tail_curve: -0.3,
+            hooves: false,
+            hump: false,
+            horns: false,
+        },
+        parts: &[
+            ("torso", FurParams::fur(5.0, 55.0, 0.8, 0.3, 0.1, A)),
+            ("belly", FurParams::fur(4.5, 50.0, 0.8, 0.3, 0.15, L)),
+            ("neck", FurParams::fur(5.5, 55.0, 0.8, 0.3, 0.1, A)),
+            ("head", FurParams::fur(6.0, 60.0, 0.8, 0.3, 0.1, L)),
+            ("muzzle", FurParams::fur(1.0, 15.0, 0.0, 0.0, 0.0, A)),
+            ("ears", FurParams::fur(7.0, 45.0, 0.7, 0.4, 0.5, A)),
+            ("front_legs", FurParams::fur(4.0, 50.0, 0.7, 0.3, 0.1, L)),
+            ("hind_legs", FurParams::fur(4.0, 50.0, 0.7, 0.3, 0.1, A)),
+            ("paws", FurParams::fur(2.0, 40.0, 0.5, 0.2, 0.0, L)),
+            ("pads", FurParams::bare(PAD_COLOR)),
+            ("tail", FurParams::fur(5.0, 55.0, 0.8, 0.3, 0.1, L)),
+            ("nose", FurParams::bare(NOSE_COLOR)),
+            ("eyes", FurParams::bare([0.2, 0.14, 0.1])),
         ],
         pattern: Pattern::Tabby,
     }

@@ -17,7 +17,8 @@
 //!   winter coat with a thick neck ruff and brush, a bison's shaggy mane over
 //!   short-haired hindquarters, a short-haired house cat, a lynx's dense
 //!   winter coat, an Old English sheepdog's long shaggy coat over the whole
-//!   body, face and legs included), taken as about half
+//!   body, face and legs included, a poodle's dense curly coat left long over
+//!   body, head, ears and legs with a shaved muzzle), taken as about half
 //!   the hair length since fur lies at a shallow angle, rounded to 0.5 cm
 //!   (0.3 for the cat's face). They are coarse on purpose, never read from a
 //!   scene, and written without looking at `scene.json`; but they were written
@@ -65,7 +66,7 @@ pub const DEFAULT_THICKNESS_CM: &[(&str, f32)] = &[
 
 /// The species `defur_baseline.species` accepts.
 pub const SPECIES: &[&str] = &[
-    "panda", "tiger", "fox", "cat", "bison", "wolf", "lynx", "sheepdog",
+    "panda", "tiger", "fox", "cat", "bison", "wolf", "lynx", "sheepdog", "poodle",
 ];
 
 /// Coarse per-part effective fur thickness (cm) of a species (module doc); `None` for an
@@ -164,6 +165,19 @@ pub fn species_thickness_cm(species: &str) -> Option<&'static [(&'static str, f3
             ("hind_legs", 3.5),
             ("legs", 3.0),
             ("paws", 2.0),
+        ],
+        "poodle" => &[
+            ("torso", 2.5),
+            ("belly", 2.5),
+            ("neck", 2.5),
+            ("tail", 2.5),
+            ("head", 3.0),
+            ("muzzle", 0.5),
+            ("ears", 3.0),
+            ("front_legs", 2.0),
+            ("hind_legs", 2.0),
+            ("legs", 2.0),
+            ("paws", 1.0),
         ],
         _ => return None,
     })
