@@ -219,12 +219,14 @@ fure_stage_api::stage_params! {
         mlp_depth: usize = int(3).range(1.0, 16.0),
         /// Use the first K basis components (0 = all).
         components: usize = int(0).min(0.0),
-        /// The encoder outputs codes only for the leading basis components the views resolve:
-        /// those whose RMS displacement of a strand's points, at unit code and the coat's
-        /// mean strand length, is at least this many pixel footprints; the others decode from
-        /// the style codes alone, and components neither trained nor styled are dropped
-        /// (0 = every component trained; needs the `views` input; learn module doc).
-        min_component_px: f32 = float(0.1).min(0.0),
+        /// The encoder outputs codes only for the leading basis components that move a
+        /// strand's points, at unit code and the coat's mean strand length, by at least this
+        /// many pixel footprints (RMS); the others decode from the style codes alone, and
+        /// components neither trained nor styled are dropped. 0 (the default, chosen on the
+        /// dev split once it held a curling coat) trains every component; metrics.json
+        /// reports every component's reach either way (needs the `views` input; learn module
+        /// doc).
+        min_component_px: f32 = float(0.0).min(0.0),
         /// Per-strand style codes: every strand's code gets a fixed seeded offset with this
         /// standard deviation per basis component, in units of the corpus' spread (the paper's
         /// optional style map: strand detail the views do not resolve; 0 = none; chosen on the
@@ -419,7 +421,8 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        21
+        // 22: metrics.json reports the components' reach at min_component_px 0 too.
+        22
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -670,7 +673,7 @@ struct Setup {
     view_axes: Option<ViewAxesReport>,
     /// What tilting the frames to the views' elevation did (view_elevation).
     view_elevation: Option<ViewElevationReport>,
-    /// Which basis components the codec trains (min_component_px > 0 with views).
+    /// Which basis components the codec trains (with views).
     components: Option<ComponentsReport>,
 }
 
@@ -822,7 +825,7 @@ fn setup(
         n => n.min(basis.k()),
     };
     let components = match codec {
-        Some(c) if c.min_component_px > 0.0 => {
+        Some(c) => {
             let report = components_to_train(ctx, c, &basis, prep.mean_length(), &outer, k)?;
             if let Some(r) = &report {
                 k = r.decoded;
@@ -1924,11 +1927,13 @@ pub(crate) mod tests {
             .join("metrics.json");
             formats::json::read_json(out).unwrap()
         };
+        // 0 trains every component and still reports each one's reach.
         let all = run(0.0, 0.0);
-        assert!(all.components.is_none());
-        let fine = run(1e-6, 0.0);
-        let r = fine.components.clone().expect("views connected: a report");
+        let r = all.components.clone().expect("views connected: a report");
         assert_eq!((r.trained, r.decoded, r.component_px.len()), (3, 3, 3));
+        assert!(r.component_px.iter().all(|&a| a > 0.0), "{r:?}");
+        let fine = run(1e-6, 0.0);
+        assert_eq!(fine.components.as_ref().map(|r| r.trained), Some(3));
         assert_eq!(fine.optimised_parameters, all.optimised_parameters);
         // Nothing resolved: the leading component is still trained (the encoder always has
         // the strands' lean); the styled component 1 stays in the decoder (its style codes
