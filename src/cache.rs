@@ -241,7 +241,7 @@ pub struct Manifest {
     /// outside the seal.
     #[serde(default)]
     pub threads: u32,
-    /// Cores other work kept busy on average while the stage ran
+    /// Cores other work used on average while the stage ran
     /// ([`crate::load`]; None: not measured). With `threads` it tells whether
     /// `seconds` were the stage's own. Informative only, outside the seal.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -723,6 +723,14 @@ fn write_sweep_results(
     if let Some(hint) = disk_full_hint(rows.iter().map(|r| r.reason.as_str())) {
         eprintln!("{hint}");
     }
+    let (busy, max) = sweep::busy_stage_runs(rows);
+    if busy > 0 {
+        println!(
+            "note: {busy} stage run(s) were measured beside other work (up to {max:.1} cores used \
+             by others on average; `costs.STAGE.other_load` in the record): their seconds are longer than \
+             the machine alone gives"
+        );
+    }
     Ok(record_path)
 }
 

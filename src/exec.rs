@@ -1018,7 +1018,7 @@ fn execute(
         progress,
     };
     let t = Instant::now();
-    let load = crate::load::Sampler::start();
+    let load = crate::load::Meter::start();
     let (result, peak) = if st.kind == command::KIND {
         match command::run_command(&ctx) {
             Ok(peak) => (Ok(()), peak),

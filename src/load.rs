@@ -5,144 +5,115 @@
 //! beside them) says what the stage was given, not what it got: a second
 //! `fure` process, a build or anything else competing for the cores
 //! stretches the seconds, and a cached entry keeps them for every later run
-//! that reuses it. So while a stage runs, a sampler thread reads how many
-//! tasks the kernel has runnable (`procs_running` in `/proc/stat`) and
-//! subtracts those of this process and its descendants (each task's state
-//! in `/proc/<pid>/task/<tid>/stat`; descendants through
-//! `/proc/<pid>/task/<tid>/children`, which reach a command stage's child).
-//! The mean over the samples, [`Sampler::finish`], is the cores other work
-//! kept busy on average: about 0 on a quiet machine, about 2 beside another
-//! two-thread stage. It is recorded in the cache entry (informative, outside
-//! the key and the seal) and the report warns when it is above a threshold.
+//! that reuses it. So [`Meter`] reads, when a stage starts and when it ends,
+//! the CPU time the whole machine spent busy (the `cpu` line of
+//! `/proc/stat`) and the CPU time of this process and the children it
+//! reaped (`/proc/self/stat`: a command stage's child is reaped before the
+//! stage ends). Their difference over the wall time is the cores other work
+//! used on average: about 0 on a quiet machine, about 1 beside another stage
+//! sharing two cores. It is CPU used, not CPU wanted: a build at `nice 19`
+//! beside a stage takes little and reads little. It is recorded in the cache
+//! entry (informative, outside the key and the seal), and the report and
+//! `fure sweep` say when it is above [`BUSY_CORES`].
 //!
-//! Only Linux has these files; elsewhere, or when they cannot be read, the
-//! figure is absent rather than guessed. A sample is two small reads per
-//! task, taken every [`SAMPLE_PERIOD`]: negligible beside a stage.
+//! Only Linux has these files; elsewhere, or when they cannot be read, or
+//! for a stage shorter than [`MIN_SECONDS`] (a few clock ticks), the figure
+//! is absent rather than guessed.
 
 use std::fs;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
-use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-/// Time between samples.
-pub const SAMPLE_PERIOD: Duration = Duration::from_millis(200);
+/// Above this many cores used by other work, on average, a stage's seconds
+/// are said to be measured beside other work.
+pub const BUSY_CORES: f32 = 0.5;
 
-/// Samples other work in the background until [`Sampler::finish`].
-pub struct Sampler {
-    stop: Arc<AtomicBool>,
-    handle: Option<JoinHandle<Option<f32>>>,
+/// Stages shorter than this get no figure: the kernel counts CPU time in
+/// ticks of 10 ms, too coarse for them.
+pub const MIN_SECONDS: f64 = 0.5;
+
+/// The kernel's clock ticks per second for `/proc` CPU times (`USER_HZ`,
+/// 100 on every Linux architecture fure builds on).
+const TICKS_PER_SECOND: f64 = 100.0;
+
+/// CPU-time readings at a stage's start.
+pub struct Meter {
+    start: Instant,
+    machine_busy: Option<u64>,
+    own: Option<u64>,
 }
 
-impl Sampler {
-    /// Starts sampling (the first sample at once). A machine without
-    /// `/proc/stat` gets a sampler that reports nothing.
-    pub fn start() -> Sampler {
-        let stop = Arc::new(AtomicBool::new(false));
-        let flag = Arc::clone(&stop);
-        let handle = std::thread::Builder::new()
-            .name("fure-load-sampler".into())
-            .spawn(move || {
-                let (mut sum, mut n) = (0u64, 0u64);
-                loop {
-                    match other_runnable() {
-                        Some(x) => {
-                            sum += x as u64;
-                            n += 1;
-                        }
-                        None => return None,
-                    }
-                    if flag.load(Ordering::SeqCst) {
-                        break;
-                    }
-                    std::thread::park_timeout(SAMPLE_PERIOD);
-                    if flag.load(Ordering::SeqCst) {
-                        break;
-                    }
-                }
-                // Hundredths: the record holds a figure, not float noise.
-                (n > 0).then(|| (sum as f32 / n as f32 * 100.0).round() / 100.0)
-            })
-            .ok();
-        Sampler { stop, handle }
-    }
-
-    /// Stops sampling: the mean number of runnable tasks of other
-    /// processes over the samples (cores kept busy by other work), or None
-    /// where it could not be read.
-    pub fn finish(mut self) -> Option<f32> {
-        self.stop.store(true, Ordering::SeqCst);
-        let h = self.handle.take()?;
-        h.thread().unpark();
-        h.join().ok().flatten()
-    }
-}
-
-impl Drop for Sampler {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::SeqCst);
-        if let Some(h) = self.handle.take() {
-            h.thread().unpark();
-            let _ = h.join();
+impl Meter {
+    /// Takes the start readings.
+    pub fn start() -> Meter {
+        Meter {
+            start: Instant::now(),
+            machine_busy: machine_busy_ticks(),
+            own: own_ticks(),
         }
     }
-}
 
-/// Runnable tasks on the machine that are neither this process's threads
-/// nor its descendants' (the sampler's own thread is among this process's,
-/// so it cancels out). None where `/proc` cannot be read.
-pub fn other_runnable() -> Option<u32> {
-    let all = procs_running(&fs::read_to_string("/proc/stat").ok()?)?;
-    let own = own_runnable(std::process::id())?;
-    Some(all.saturating_sub(own))
-}
-
-/// `procs_running` of a `/proc/stat` text.
-fn procs_running(stat: &str) -> Option<u32> {
-    stat.lines()
-        .find_map(|l| l.strip_prefix("procs_running"))
-        .and_then(|v| v.trim().parse().ok())
-}
-
-/// Runnable threads of `pid` and its descendants.
-fn own_runnable(pid: u32) -> Option<u32> {
-    let mut stack = vec![pid];
-    let mut running = 0u32;
-    let mut seen = 0usize;
-    while let Some(p) = stack.pop() {
-        // A process tree deeper or wider than this is not a stage's.
-        seen += 1;
-        if seen > 4096 {
-            break;
-        }
-        let Ok(tasks) = fs::read_dir(format!("/proc/{p}/task")) else {
-            // The root must be readable; a child may have exited meanwhile.
-            if p == pid {
-                return None;
-            }
-            continue;
-        };
-        for t in tasks.flatten() {
-            let dir = t.path();
-            if let Ok(s) = fs::read_to_string(dir.join("stat")) {
-                if task_state(&s) == Some('R') {
-                    running += 1;
-                }
-            }
-            if let Ok(c) = fs::read_to_string(dir.join("children")) {
-                stack.extend(c.split_whitespace().filter_map(|x| x.parse::<u32>().ok()));
-            }
-        }
+    /// The cores other work used on average since [`Meter::start`],
+    /// rounded to hundredths; None where it cannot be read or the stage was
+    /// shorter than [`MIN_SECONDS`].
+    pub fn finish(self) -> Option<f32> {
+        let wall = self.start.elapsed();
+        other_cores(
+            (self.machine_busy?, machine_busy_ticks()?),
+            (self.own?, own_ticks()?),
+            wall,
+        )
     }
-    Some(running)
 }
 
-/// The state letter of a `/proc/.../stat` line: the field after the
-/// command name, which is in parentheses and may itself hold spaces and
-/// parentheses (so the last `)` ends it).
-fn task_state(stat: &str) -> Option<char> {
+/// Other work's cores from the machine's and this process's busy ticks at
+/// the start and the end of `wall`.
+fn other_cores(machine: (u64, u64), own: (u64, u64), wall: Duration) -> Option<f32> {
+    let secs = wall.as_secs_f64();
+    if secs < MIN_SECONDS {
+        return None;
+    }
+    let machine = machine.1.saturating_sub(machine.0) as f64;
+    let own = own.1.saturating_sub(own.0) as f64;
+    let cores = ((machine - own).max(0.0) / TICKS_PER_SECOND / secs) as f32;
+    // Hundredths: the record holds a figure, not float noise.
+    Some((cores * 100.0).round() / 100.0)
+}
+
+/// Busy ticks of the whole machine (every field of `/proc/stat`'s `cpu`
+/// line but idle and iowait; guest time is already inside user).
+fn machine_busy_ticks() -> Option<u64> {
+    busy_ticks(&fs::read_to_string("/proc/stat").ok()?)
+}
+
+fn busy_ticks(stat: &str) -> Option<u64> {
+    let line = stat.lines().find(|l| l.starts_with("cpu "))?;
+    let f: Vec<u64> = line
+        .split_whitespace()
+        .skip(1)
+        .map(|x| x.parse().ok())
+        .collect::<Option<_>>()?;
+    // user nice system idle iowait irq softirq steal [guest guest_nice]
+    if f.len() < 8 {
+        return None;
+    }
+    Some(f[0] + f[1] + f[2] + f[5] + f[6] + f[7])
+}
+
+/// This process's CPU ticks and those of its reaped children.
+fn own_ticks() -> Option<u64> {
+    process_ticks(&fs::read_to_string("/proc/self/stat").ok()?)
+}
+
+/// utime + stime + cutime + cstime of a `/proc/<pid>/stat` line. The
+/// command name (field 2) is in parentheses and may hold spaces and
+/// parentheses, so fields are counted after the last `)`.
+fn process_ticks(stat: &str) -> Option<u64> {
     let rest = &stat[stat.rfind(')')? + 1..];
-    rest.split_whitespace().next()?.chars().next()
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // After the name: state (3), ..., utime (14), stime (15), cutime (16), cstime (17).
+    let field =
+        |n: usize| -> Option<u64> { f.get(n - 3)?.parse::<i64>().ok().map(|x| x.max(0) as u64) };
+    Some(field(14)? + field(15)? + field(16)? + field(17)?)
 }
 
 #[cfg(test)]
@@ -151,39 +122,42 @@ mod tests {
 
     #[test]
     fn reads_the_fields_it_needs_from_proc_texts() {
-        let stat = "cpu  1 2 3\nctxt 5\nprocs_running 7\nprocs_blocked 0\n";
-        assert_eq!(procs_running(stat), Some(7));
-        assert_eq!(procs_running("cpu 1\n"), None);
-        assert_eq!(task_state("123 (a) b) c) S 1 2 3"), Some('S'));
-        assert_eq!(task_state("9 (fure-stage-pool-0) R 1"), Some('R'));
-        assert_eq!(task_state("garbled"), None);
+        let stat = "cpu  10 1 5 1000 7 2 3 4 0 0\ncpu0 5 0 2 500 3 1 1 2 0 0\nprocs_running 7\n";
+        assert_eq!(busy_ticks(stat), Some(10 + 1 + 5 + 2 + 3 + 4));
+        assert_eq!(busy_ticks("cpu0 1 2 3\n"), None);
+        assert_eq!(busy_ticks("cpu  1 2 3\n"), None);
+        let own = "4242 (a (b) c) S 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 20";
+        // utime 11, stime 12, cutime 13, cstime 14.
+        assert_eq!(process_ticks(own), Some(11 + 12 + 13 + 14));
+        assert_eq!(process_ticks("garbled"), None);
     }
 
     #[test]
-    fn this_process_and_its_children_are_not_other_work() {
-        let me = std::process::id();
-        if fs::metadata(format!("/proc/{me}/task/{me}/children")).is_err() {
-            return; // a kernel without the children files (or no /proc)
-        }
-        let stop = Arc::new(AtomicBool::new(false));
-        let s = Arc::clone(&stop);
-        let thread = std::thread::spawn(move || {
-            while !s.load(Ordering::Relaxed) {
-                std::hint::spin_loop();
-            }
-        });
-        let mut child = std::process::Command::new("sh")
-            .args(["-c", "while :; do :; done"])
-            .spawn()
+    fn other_work_is_the_machine_less_this_process_per_second() {
+        let s = Duration::from_secs(2);
+        // The machine busy 400 ticks in 2 s, this process 150 of them: 1.25 other cores.
+        assert_eq!(other_cores((1000, 1400), (50, 200), s), Some(1.25));
+        // Never negative (the counters are read a moment apart).
+        assert_eq!(other_cores((0, 100), (0, 120), s), Some(0.0));
+        // Too short to say.
+        assert_eq!(
+            other_cores((0, 10), (0, 0), Duration::from_millis(100)),
+            None
+        );
+    }
+
+    #[test]
+    fn a_reaped_childs_cpu_time_is_this_processs() {
+        let Some(before) = own_ticks() else {
+            return; // no /proc
+        };
+        let status = std::process::Command::new("sh")
+            .args(["-c", "i=0; while [ $i -lt 300000 ]; do i=$((i+1)); done"])
+            .status()
             .unwrap();
-        std::thread::sleep(Duration::from_millis(200));
-        // Runnable means running or waiting for a core, so on a loaded
-        // machine too: the reading thread, the spinning thread, the child.
-        let own = own_runnable(me);
-        let _ = child.kill();
-        let _ = child.wait();
-        stop.store(true, Ordering::Relaxed);
-        thread.join().unwrap();
-        assert!(own.unwrap() >= 3, "{own:?}");
+        assert!(status.success());
+        let after = own_ticks().unwrap();
+        // The child's loop takes tenths of a second of CPU; none of it is this thread's.
+        assert!(after >= before + 5, "{before} -> {after}");
     }
 }

@@ -86,7 +86,7 @@
 //! kept apart, in `costs` (`{"STAGE": {"seconds", "peak_rss_bytes",
 //! "threads", "other_load"}}` of each stage's cache entry, the figures of the
 //! run that computed it, the size of its thread pool and the cores other work
-//! kept busy meanwhile, [`crate::load`]; a figure an entry lacks is left out),
+//! used meanwhile, [`crate::load`]; a figure an entry lacks is left out),
 //! which a cached sweep reads back unchanged too. The file is replaced
 //! atomically, and only when its bytes change.
 //!
@@ -308,8 +308,18 @@ pub struct Cost {
     pub peak_rss_bytes: u64,
     /// Its pool's threads; 0: not recorded.
     pub threads: u32,
-    /// Cores other work kept busy meanwhile ([`crate::load`]).
+    /// Cores other work used meanwhile ([`crate::load`]).
     pub other_load: Option<f32>,
+}
+
+/// The stage runs of `rows` whose cache entries say other work used more than
+/// [`crate::load::BUSY_CORES`] cores meanwhile, and the largest such figure.
+pub fn busy_stage_runs(rows: &[Row]) -> (usize, f32) {
+    rows.iter()
+        .flat_map(|r| r.costs.values())
+        .filter_map(|c| c.other_load)
+        .filter(|&l| l > crate::load::BUSY_CORES)
+        .fold((0, 0.0), |(n, max), l| (n + 1, max.max(l)))
 }
 
 /// One row of the sweep table.

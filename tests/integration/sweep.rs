@@ -578,8 +578,9 @@ outs = ["out.txt"]
     assert!(!p.path("out/bad").exists(), "{}", s.all());
 }
 
-/// Two busy processes beside a sweep (not its children): every stage run records that other
-/// work kept cores busy, in its cache entry and in the sweep record the report reads.
+/// Two busy processes beside a sweep (not its children): every stage run records the cores
+/// other work used, in its cache entry and in the sweep record the report reads, and the sweep
+/// says so.
 #[test]
 fn other_work_beside_a_stage_is_recorded_with_its_cost() {
     if std::fs::metadata("/proc/stat").is_err() {
@@ -616,11 +617,17 @@ outs = ["w.txt"]
     assert_eq!(s.code(), 0, "{}", s.all());
     let r = json(&p.read("out/busy/sweep.json"));
     for v in r["variants"].as_array().unwrap() {
-        // The two spinners are runnable all along (running or waiting for a core); the stage's
-        // own shell and sleep are not counted (they are the stage's).
+        // The two spinners use the cores the sleeping stage leaves (two on CI, at least one
+        // anywhere); the stage's own shell and sleep are not counted (they are the stage's).
         let load = v["costs"]["wait"]["other_load"].as_f64().unwrap_or(-1.0);
-        assert!(load >= 1.0, "{load} in {r}");
+        assert!(load >= 0.8, "{load} in {r}");
     }
+    assert!(
+        s.stdout()
+            .contains("note: 2 stage run(s) were measured beside other work"),
+        "{}",
+        s.all()
+    );
 }
 
 /// SIGTERM during a sweep: the running in-process stage stops between two of its steps, no

@@ -348,7 +348,8 @@ fn thread_counts(rec: &SweepRecord) -> Vec<u64> {
     t
 }
 
-/// Above this many cores kept busy by other work on average, a stage's seconds are flagged.
+/// Above this many cores used by other work on average, a stage's seconds are flagged (the
+/// engine's `load::BUSY_CORES`; this crate does not depend on the engine).
 pub const OTHER_LOAD_WARN: f64 = 0.5;
 
 /// What the record says of other work while its stages ran (`costs.S.other_load`).
@@ -401,11 +402,11 @@ fn other_load_note(rec: &SweepRecord) -> Option<String> {
     };
     Some(match o.above.first() {
         None => format!(
-            "Other work on the machine kept at most {max:.2} cores busy while a stage ran{unmeasured}.\n"
+            "Other work on the machine used at most {max:.2} cores while a stage ran{unmeasured}.\n"
         ),
         Some((name, stage, worst)) => format!(
             "**Some stage seconds were measured beside other work**: in {} of {} measured stage \
-             runs, other processes kept more than {OTHER_LOAD_WARN} cores busy on average (the \
+             runs, other processes used more than {OTHER_LOAD_WARN} cores on average (the \
              worst: `{stage}` of {name}, {worst:.2} cores){unmeasured}. Those seconds, and the \
              speed-ups and charts made from them, are longer than the machine alone gives: \
              rerun on a quiet machine with a cache of the suite's own \
@@ -1384,7 +1385,7 @@ mod tests {
         let quiet = report(&record_costing(&runs, &|i| cost(0.1 * i as f64)), &cfg());
         assert!(
             quiet.results.contains(
-                "Other work on the machine kept at most 0.10 cores busy while a stage ran \
+                "Other work on the machine used at most 0.10 cores while a stage ran \
                  (2 of 4 stage runs not measured"
             ),
             "{}",
@@ -1397,7 +1398,7 @@ mod tests {
         assert!(
             busy.results.contains(
                 "**Some stage seconds were measured beside other work**: in 1 of 2 measured \
-                 stage runs, other processes kept more than 0.5 cores busy on average (the \
+                 stage runs, other processes used more than 0.5 cores on average (the \
                  worst: `codec` of b@v1, 1.90 cores)"
             ),
             "{}",
