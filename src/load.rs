@@ -11,8 +11,11 @@
 //! reaped (`/proc/self/stat`: a command stage's child is reaped before the
 //! stage ends). Their difference over the wall time is the cores other work
 //! used on average: about 0 on a quiet machine, about 1 beside another stage
-//! sharing two cores. It is CPU used, not CPU wanted: a build at `nice 19`
-//! beside a stage takes little and reads little. It is recorded in the cache
+//! sharing two cores. It is CPU used, not CPU wanted: a process that only
+//! waits for a core reads nothing, and one that takes the cores a stage
+//! leaves idle (a build at `nice 19` beside its serial stretches) reads what
+//! it took, which also slows the stage through the shared caches and memory
+//! bus. It is recorded in the cache
 //! entry (informative, outside the key and the seal), and the report and
 //! `fure sweep` say when it is above [`BUSY_CORES`].
 //!
