@@ -10,8 +10,8 @@
 //! `/proc/stat`) and the CPU time of this process and the children it
 //! reaped (`/proc/self/stat`: a command stage's child is reaped before the
 //! stage ends). Their difference over the wall time is the cores other work
-//! used on average: about 0 on a quiet machine, about 1 beside another stage
-//! sharing two cores. It is CPU used, not CPU wanted: a process that only
+//! used on average: about 0 on a quiet machine; two busy processes beside a
+//! sleeping stage read 2 on two cores (the integration test). It is CPU used, not CPU wanted: a process that only
 //! waits for a core reads nothing, and one that takes the cores a stage
 //! leaves idle (a build at `nice 19` beside its serial stretches) reads what
 //! it took, which also slows the stage through the shared caches and memory
