@@ -1785,7 +1785,10 @@ mod tests {
                 // Sampled directly, the chords cut the coils short; low-passed, the envelope is
                 // resampled at unit arc length.
                 let len: f32 = s.windows(2).map(|w| (w[1] - w[0]).length()).sum();
-                assert!(len <= 1.0 + 1e-4 && (!low_pass || len > 0.9), "length {len}");
+                assert!(
+                    len <= 1.0 + 1e-4 && (!low_pass || len > 0.9),
+                    "length {len}"
+                );
                 for w in s.windows(3) {
                     let (d0, d1) = ((w[1] - w[0]).normalize(), (w[2] - w[1]).normalize());
                     sum += d0.dot(d1).clamp(-1.0, 1.0).acos();
