@@ -669,12 +669,12 @@ fn human_strand(
     low_passed(&local, points)
 }
 
-/// What `points` samples can hold of the polyline `fine` (module doc, "Sampling"): resampled to
+/// What `points` samples can hold of `polyline` (module doc, the human corpus' "Sampling"): resampled to
 /// [`FINE_PER_SEGMENT`] points per output segment, low-passed (two box passes of half-width
 /// [`BOX_HALF_WIDTH`]), shifted to a root at the origin, scaled to unit arc length (of the filtered
 /// curve) and resampled to `points` (at least 2) points.
-fn low_passed(fine: &[Vec3], points: usize) -> Vec<Vec3> {
-    let fine = resample_count(fine, FINE_PER_SEGMENT * (points.max(2) - 1) + 1);
+fn low_passed(polyline: &[Vec3], points: usize) -> Vec<Vec3> {
+    let fine = resample_count(polyline, FINE_PER_SEGMENT * (points.max(2) - 1) + 1);
     let smooth = box_filter(&fine, BOX_HALF_WIDTH);
     let arc = arc_lengths(&smooth);
     let total = arc[arc.len() - 1].max(1e-12);
@@ -1558,7 +1558,7 @@ impl Stage for StrandBasisStage {
         "strand_basis"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "PCA strand basis (mean + K components) in the root-local canonical frame (x tangent, y \
@@ -1742,6 +1742,9 @@ impl Stage for StrandBasisStage {
             "cumulative_variance": cumulative,
             "heldout_rms_error_unit_length": heldout_rms,
         });
+        if source == "corpus" {
+            metrics["low_pass"] = serde_json::json!(p.low_pass);
+        }
         if source == "human_corpus" {
             metrics["human_mix"] = serde_json::json!(p.human_mix);
             metrics["human_length_cm"] = serde_json::json!(p.human_length_cm);
