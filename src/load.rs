@@ -11,13 +11,18 @@
 //! reaped (`/proc/self/stat`: a command stage's child is reaped before the
 //! stage ends). Their difference over the wall time is the cores other work
 //! used on average: about 0 on a quiet machine; two busy processes beside a
-//! sleeping stage read 2 on two cores (the integration test). It is CPU used, not CPU wanted: a process that only
-//! waits for a core reads nothing, and one that takes the cores a stage
-//! leaves idle (a build at `nice 19` beside its serial stretches) reads what
-//! it took, which also slows the stage through the shared caches and memory
-//! bus. It is recorded in the cache
-//! entry (informative, outside the key and the seal), and the report and
-//! `fure sweep` say when it is above [`BUSY_CORES`].
+//! sleeping stage read 2 on two cores (the integration test). It is CPU
+//! used, not CPU wanted: a process that only waits for a core reads nothing,
+//! and one that takes the cores a stage leaves idle (a build at `nice 19`
+//! beside its serial stretches) reads what it took, which also slows the
+//! stage through the shared caches and memory bus. It is recorded in the
+//! cache entry (informative, outside the key and the seal), and the report
+//! and `fure sweep` say when it is above [`BUSY_CORES`].
+//!
+//! Stages that run beside each other in this process (`--jobs` above 1) are
+//! this process's CPU time, so they do not read as other work: the figure
+//! speaks for what ran outside fure, and a timing meant to be the stage's
+//! own wants `--jobs 1` as well (the benchmark suites run so).
 //!
 //! Only Linux has these files; elsewhere, or when they cannot be read, or
 //! for a stage shorter than [`MIN_SECONDS`] (a few clock ticks), the figure
