@@ -144,11 +144,11 @@
 //! The two renderers of the benchmark disagree on how much: the synthetic
 //! presets' torso and belly flow along the body axis (gravity bends the
 //! strands down toward their tips only), the Blender captures' hair is
-//! combed about 39 degrees down. Chosen on the dev split (docs/history.md, "Fur that lies
-//! back and down"): 0.15 gains 3.5 points of the strict 1 cm F-score on
-//! the Blender fox and ties every synthetic dev scene; 0.3 and 0.8 lose
-//! the synthetic tiger's and lynx's 3 cm score. Limbs, extremities and
-//! ears keep their own references.
+//! combed about 39 degrees down. Chosen on the dev split (docs/history.md,
+//! "Fur that lies back and down"): 0.15 gains 3.5 points of the strict
+//! 1 cm F-score on the Blender fox and ties every synthetic dev scene; 0.3
+//! and 0.8 lose the synthetic tiger's and lynx's 3 cm score. Limbs,
+//! extremities and ears keep their own references.
 //!
 //! **Extremities** (`limb_direction = "distal"`, the default). On a paw,
 //! foot, hoof or hand (names containing paw, foot, feet, hoof, hand) the
