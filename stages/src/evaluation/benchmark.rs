@@ -20,7 +20,8 @@
 //!
 //! # Keys read from the record
 //! A method is `NAME=EVAL[:LEARNER]`: `EVAL` the prefix of its `evaluate` stage
-//! (`EVAL.prf_signed.<d>cm_<a>deg.fscore`, `EVAL.direction_error_deg`,
+//! (`EVAL.prf_signed.<d>cm_<a>deg.fscore`, `EVAL.direction_error_deg`, the worst part of
+//! `EVAL.direction_error_by_part.PART.deg` and boundary of `EVAL.seams.excess.by_boundary.A|B`,
 //! `EVAL.local_curvature_variance_vs_gt`, `EVAL.psnr`, `EVAL.ssim`), `LEARNER` its learning stage
 //! (`LEARNER.optimised_parameters`, and the compute seconds `costs.LEARNER.seconds`). Preprocessing
 //! time is the sum of `costs.S.seconds` over the `preprocessing` stages; peak memory the largest
@@ -576,8 +577,9 @@ fn write_comparisons(md: &mut String, scenes: &[Scene<'_>], cfg: &Config) -> Opt
 /// One scene's section: every method in full, the fur-thickness and speed figures; its JSON.
 fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
     let mut sj = Map::new();
-    let worst_seams = write_method_table(md, sc, cfg, &mut sj);
-    write_seams(md, &worst_seams);
+    let worst = write_method_table(md, sc, cfg, &mut sj);
+    write_seams(md, &worst.seams);
+    write_direction_parts(md, &worst.direction_parts);
     write_thickness_and_speed(md, sc, cfg, &mut sj);
     sj.insert("split".into(), sc.split.into());
     let _ = writeln!(
@@ -590,15 +592,24 @@ fn write_scene(md: &mut String, sc: &Scene<'_>, cfg: &Config) -> Json {
     sj.into()
 }
 
+/// Each row's worst part seam and worst part for the direction error: (method, where, mean
+/// over seeds).
+#[derive(Default)]
+struct WorstParts {
+    seams: Vec<(String, String, Stat)>,
+    direction_parts: Vec<(String, String, Stat)>,
+}
+
 /// The scene's table: F-scores, direction and shape errors, PSNR/SSIM, time and size per method.
-/// Returns each row's worst part seam (name, boundary, excess), for [`write_seams`].
+/// Returns each row's worst part seam and direction part, for [`write_seams`] and
+/// [`write_direction_parts`].
 fn write_method_table(
     md: &mut String,
     sc: &Scene<'_>,
     cfg: &Config,
     sj: &mut Map<String, Json>,
-) -> Vec<(String, String, Stat)> {
-    let mut worst_seams = Vec::new();
+) -> WorstParts {
+    let mut worst_parts = WorstParts::default();
     let _ = writeln!(
         md,
         "### {} ({} split, {} seeds)\n",
@@ -671,12 +682,24 @@ fn write_method_table(
         }
         mj.insert("direction_error_deg".into(), stat_json(dir));
         mj.insert("part_seam_excess_deg".into(), stat_json(seam));
-        if let Some((parts, worst)) = worst_seam(sc, &eval) {
+        if let Some((parts, worst)) = worst_entry(sc, &format!("{eval}.{SEAM_BOUNDARY_PREFIX}"), "")
+        {
             mj.insert(
                 "worst_part_seam".into(),
                 json!({"boundary": parts, "excess_deg": stat_json(Some(worst))}),
             );
-            worst_seams.push((name.clone(), parts, worst));
+            worst_parts.seams.push((name.clone(), parts, worst));
+        }
+        if let Some((part, worst)) =
+            worst_entry(sc, &format!("{eval}.{DIRECTION_PART_PREFIX}"), ".deg")
+        {
+            mj.insert(
+                "worst_direction_part".into(),
+                json!({"part": part, "direction_error_deg": stat_json(Some(worst))}),
+            );
+            worst_parts
+                .direction_parts
+                .push((name.clone(), part, worst));
         }
         mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
         mj.insert("psnr".into(), stat_json(psnr));
@@ -686,28 +709,31 @@ fn write_method_table(
         sj.insert(name, mj.into());
     }
     let _ = writeln!(md);
-    worst_seams
+    worst_parts
 }
 
 /// The key of a method's mean seam excess at part boundaries, after its evaluation prefix.
 const SEAM_EXCESS_KEY: &str = "seams.excess.mean_excess_deg";
+/// Each boundary's seam excess is `EVAL.` this `A|B`.
+const SEAM_BOUNDARY_PREFIX: &str = "seams.excess.by_boundary.";
+/// Each part's direction error is `EVAL.` this `PART.deg`.
+const DIRECTION_PART_PREFIX: &str = "direction_error_by_part.";
 
-/// The boundary whose seam excess is largest in the mean over seeds (from
-/// `EVAL.seams.excess.by_boundary.A|B`), with that mean; boundaries judged in fewer than half
-/// of the seeds are left out.
-fn worst_seam(sc: &Scene<'_>, eval: &str) -> Option<(String, Stat)> {
-    let prefix = format!("{eval}.seams.excess.by_boundary.");
+/// Among the metrics `PREFIX NAME SUFFIX`, the name whose value is largest in the mean over
+/// seeds, with that mean; names present in fewer than half of the seeds are left out (a part
+/// boundary or a part some seeds do not judge).
+fn worst_entry(sc: &Scene<'_>, prefix: &str, suffix: &str) -> Option<(String, Stat)> {
     let mut by: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
     for v in &sc.runs {
         for (k, x) in &v.metrics {
-            if let Some(parts) = k.strip_prefix(&prefix) {
-                by.entry(parts).or_default().push(*x);
+            if let Some(name) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix(suffix)) {
+                by.entry(name).or_default().push(*x);
             }
         }
     }
     by.into_iter()
         .filter(|(_, xs)| 2 * xs.len() >= sc.runs.len())
-        .filter_map(|(parts, xs)| stat(&xs).map(|s| (parts.to_string(), s)))
+        .filter_map(|(name, xs)| stat(&xs).map(|s| (name.to_string(), s)))
         .max_by(|a, b| a.1.mean.total_cmp(&b.1.mean))
 }
 
@@ -727,6 +753,25 @@ fn write_seams(md: &mut String, worst_seams: &[(String, String, Stat)]) {
          side, minus the same for the GT there (0: the boundary turns the fur as much as the GT's \
          does; positive: a seam). The column is the mean over boundaries; here the worst \
          boundary, mean over seeds (°): {}.\n",
+        worst.join("; ")
+    );
+}
+
+/// One line naming each method's part with the largest direction error (evaluation::evaluate,
+/// `direction_error_by_part`).
+fn write_direction_parts(md: &mut String, worst: &[(String, String, Stat)]) {
+    let worst: Vec<String> = worst
+        .iter()
+        .map(|(name, part, s)| format!("{name} {part} {}", fmt_stat(Some(*s), 1)))
+        .collect();
+    if worst.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        md,
+        "Direction error by part (evaluate's `direction_error_by_part`: the in-plane direction \
+         error of the strands rooted on each part of the GT skin): each method's worst part, mean \
+         over seeds (°): {}.\n",
         worst.join("; ")
     );
 }
@@ -1228,7 +1273,8 @@ impl Stage for BenchmarkReportStage {
     fn version(&self) -> u32 {
         // 14: the size chart names the components the codec trains.
         // 15: the other work beside the stages (`costs.S.other_load`).
-        15
+        // 16: each method's worst part for the direction error.
+        16
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1533,6 +1579,42 @@ mod tests {
         // Dense has no seam figures: its column is missing, not zero, and the line skips it.
         assert!(m["scenes"]["tiger"]["dense"]["part_seam_excess_deg"].is_null());
         assert!(!md.contains("dense hind_legs"));
+    }
+
+    #[test]
+    fn the_worst_direction_part_is_the_worst_in_the_mean_over_seeds() {
+        let mut rec = record(&[
+            ("tiger", 0, 60.0, 50.0),
+            ("tiger", 1, 62.0, 51.0),
+            ("tiger", 2, 61.0, 50.0),
+        ]);
+        // Seed 0's worst part is the head, but over the seeds the legs are; the tail is judged
+        // in one seed of three only, so its 90 degrees do not count.
+        for (i, (v, (head, legs))) in rec
+            .variants
+            .iter_mut()
+            .zip([(30.0, 20.0), (5.0, 22.0), (7.0, 24.0)])
+            .enumerate()
+        {
+            let by = format!("evaluate.{DIRECTION_PART_PREFIX}");
+            v.metrics.insert(format!("{by}head.deg"), head);
+            v.metrics.insert(format!("{by}head.strands"), 100.0);
+            v.metrics.insert(format!("{by}legs.deg"), legs);
+            if i == 0 {
+                v.metrics.insert(format!("{by}tail.deg"), 90.0);
+            }
+        }
+        let Report {
+            results: md,
+            metrics: m,
+            ..
+        } = report(&rec, &cfg());
+        let worst = &m["scenes"]["tiger"]["FurE"]["worst_direction_part"];
+        assert_eq!(worst["part"], "legs", "{m}");
+        assert_eq!(worst["direction_error_deg"]["mean"], 22.0);
+        assert!(md.contains("Direction error by part"), "{md}");
+        assert!(md.contains("FurE legs 22.0 ± 2.0"), "{md}");
+        assert!(m["scenes"]["tiger"]["dense"]["worst_direction_part"].is_null());
     }
 
     #[test]

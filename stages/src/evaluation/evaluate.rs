@@ -53,6 +53,11 @@
 //!   20,000), the angle between its root-to-tip chord and the chord of the GT strand whose root is
 //!   nearest, growth sign counted (0-180 deg), both projected onto the GT skin's tangent plane at the
 //!   predicted root when `gt_skin` is connected (`direction_error_mode` says which); the mean.
+//!   `direction_error_by_part` splits the same angles by the GT skin's part at the predicted root
+//!   (the label of the closest triangle's nearest vertex, as the seams take it): per part name,
+//!   `{deg, strands}` (the mean and how many strands entered it); `null` without a labelled skin.
+//!   A mean over the whole coat hides where the direction goes wrong (a leg that grows up, a
+//!   head combed backwards); the benchmark report names each method's worst part.
 //! - `seams`: direction seams at part boundaries ([`super::seams`]), with `gt_skin` (its part
 //!   labels and tangent planes): per boundary, how far the mean growth directions on either side
 //!   of it differ around each root near it, for the method and for the GT (`pred`, `gt`), and the
@@ -126,6 +131,22 @@ pub const STRICT_THRESHOLD: (f32, f32) = (1.0, 10.0);
 /// Most predicted strands the direction error looks at (an even stride over the rest).
 const DIRECTION_SAMPLE: usize = 20_000;
 
+/// One part's share of the direction error: the mean angle (degrees) and how many strands
+/// entered it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PartDirectionError {
+    pub deg: f64,
+    pub strands: usize,
+}
+
+/// The direction error over the compared strands and, on a labelled skin, per part.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirectionError {
+    pub mean_deg: f64,
+    /// By the skin's part name at the predicted root; `None` without a skin or its labels.
+    pub by_part: Option<BTreeMap<String, PartDirectionError>>,
+}
+
 /// Mean angle (degrees, 0..180, growth sign counted) between each predicted strand's root-to-tip
 /// chord and that of the GT strand whose root is nearest its root; with `skin`, both chords are
 /// first projected onto the skin's tangent plane at the predicted root ("in-plane": the direction
@@ -136,6 +157,17 @@ pub fn direction_error_deg(
     gt: &Strands,
     skin: Option<&crate::data::mesh::Mesh>,
 ) -> Result<Option<f64>, StageError> {
+    Ok(direction_error(pred, gt, skin)?.map(|e| e.mean_deg))
+}
+
+/// [`direction_error_deg`] with its split by the skin's parts (where the skin is labelled: as
+/// many labels as vertices and at least one name). Angles are summed in strand order, within
+/// each part too, so the figures do not depend on the thread count.
+pub fn direction_error(
+    pred: &Strands,
+    gt: &Strands,
+    skin: Option<&crate::data::mesh::Mesh>,
+) -> Result<Option<DirectionError>, StageError> {
     let chord = |s: &Strands, i: usize| -> Option<(Vec3, Vec3)> {
         let p = s.strand(i);
         let (a, b) = (*p.first()?, *p.last()?);
@@ -151,21 +183,24 @@ pub fn direction_error_deg(
         Some(m) => Some(crate::maths::geom::MeshQuery::new(m).map_err(StageError::failed)?),
         None => None,
     };
+    let labelled = skin.filter(|m| m.part.len() == m.positions.len() && !m.part_names.is_empty());
     let stride = pred.len().div_ceil(DIRECTION_SAMPLE).max(1);
     let picks: Vec<usize> = (0..pred.len()).step_by(stride).collect();
-    let angles: Vec<Option<f64>> = picks
+    // Per picked strand: its angle and, on a labelled skin, its part.
+    let angles: Vec<Option<(f64, Option<u16>)>> = picks
         .par_iter()
         .map(|&i| {
             let (root, dp) = chord(pred, i)?;
             let (j, _) = index.nearest(root);
             let dg = gt_chords[j].1;
             let (full_p, full_g) = (dp.length(), dg.length());
-            let (dp, dg) = match (&query, skin) {
+            let (dp, dg, part) = match (&query, skin) {
                 (Some(q), Some(m)) => {
-                    let (n, _, _) = super::seams::skin_plane_at(q, m, root);
-                    (dp - n * dp.dot(n), dg - n * dg.dot(n))
+                    let (n, closest, tri) = super::seams::skin_plane_at(q, m, root);
+                    let part = labelled.map(|m| super::seams::skin_part_at(m, closest, tri));
+                    (dp - n * dp.dot(n), dg - n * dg.dot(n), part)
                 }
-                _ => (dp, dg),
+                _ => (dp, dg, None),
             };
             // A chord whose in-plane part is under 1e-3 of its length stands straight up: its
             // in-plane direction is noise, so it is skipped (module doc).
@@ -174,11 +209,37 @@ pub fn direction_error_deg(
                 return None;
             }
             let cos = (dp.dot(dg) / (lp * lg)).clamp(-1.0, 1.0) as f64;
-            Some(cos.acos().to_degrees())
+            Some((cos.acos().to_degrees(), part))
         })
         .collect();
-    let used: Vec<f64> = angles.into_iter().flatten().collect();
-    Ok((!used.is_empty()).then(|| used.iter().sum::<f64>() / used.len() as f64))
+    let used: Vec<(f64, Option<u16>)> = angles.into_iter().flatten().collect();
+    if used.is_empty() {
+        return Ok(None);
+    }
+    let mean_deg = used.iter().map(|u| u.0).sum::<f64>() / used.len() as f64;
+    let by_part = labelled.map(|m| {
+        let mut sums: BTreeMap<u16, (f64, usize)> = BTreeMap::new();
+        for &(angle, part) in &used {
+            let e = sums.entry(part.unwrap_or(0)).or_default();
+            e.0 += angle;
+            e.1 += 1;
+        }
+        sums.into_iter()
+            .map(|(p, (sum, n))| {
+                let name = m
+                    .part_names
+                    .get(p as usize)
+                    .cloned()
+                    .unwrap_or_else(|| format!("part{p}"));
+                let e = PartDirectionError {
+                    deg: sum / n as f64,
+                    strands: n,
+                };
+                (name, e)
+            })
+            .collect()
+    });
+    Ok(Some(DirectionError { mean_deg, by_part }))
 }
 
 /// The metrics.json key of a threshold, e.g. `3cm_30deg`.
@@ -1048,11 +1109,12 @@ impl Stage for EvaluateStage {
     }
     fn version(&self) -> u32 {
         // 9: no curvature ratio against straight GT strands.
-        9
+        // 10: the direction error by part.
+        10
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \
-         unsigned and signed), in-plane direction error, direction seams at part boundaries, unsupervised strand-geometry metrics (and the \
+         unsigned and signed), in-plane direction error (overall and per skin part), direction seams at part boundaries, unsupervised strand-geometry metrics (and the \
          local curvature variance relative to the GT's), PSNR/SSIM on held-out views, training time."
     }
     fn params(&self) -> Vec<ParamSpec> {
@@ -1140,7 +1202,7 @@ impl Stage for EvaluateStage {
         let geo = geometry_metrics(&pred, s_cm, spacing, neighbour);
         let geo_gt = geometry_metrics(&gt, s_cm, spacing, neighbour);
         let skin = read_skin(ctx)?;
-        let direction_error = direction_error_deg(&pred, &gt, skin.as_ref())?;
+        let direction = direction_error(&pred, &gt, skin.as_ref())?;
         let seams = match skin.as_ref() {
             Some(m) => {
                 let pred_seams = super::seams::seam_stats(&pred, m, s_cm, p.seam_radius_cm)?;
@@ -1174,7 +1236,8 @@ impl Stage for EvaluateStage {
             "local_direction_variance": geo.local_direction_variance,
             "first_segment_direction_variance": geo.first_segment_direction_variance,
             "local_curvature_variance_vs_gt": curvature_ratio,
-            "direction_error_deg": direction_error,
+            "direction_error_deg": direction.as_ref().map(|d| d.mean_deg),
+            "direction_error_by_part": direction.as_ref().and_then(|d| d.by_part.as_ref()),
             "seams": seams,
             "direction_error_mode": if skin.is_some() { "in-plane (GT skin tangent plane)" } else { "3d" },
             "gt_geometry": geo_gt,
@@ -1888,5 +1951,69 @@ pub(crate) mod tests {
             direction_error_deg(&upright, &gt, Some(&skin)).unwrap(),
             None
         );
+    }
+
+    #[test]
+    fn direction_error_splits_by_the_skins_parts() {
+        // The plane z = 0 in two labelled halves: x < 0 "torso" (vertices 0, 3, 4, 5 side), x > 0
+        // "legs"; the GT grows along +x everywhere.
+        let skin = crate::data::mesh::Mesh {
+            positions: vec![
+                Vec3::new(-10.0, -10.0, 0.0),
+                Vec3::new(0.0, -10.0, 0.0),
+                Vec3::new(0.0, 10.0, 0.0),
+                Vec3::new(-10.0, 10.0, 0.0),
+                Vec3::new(10.0, -10.0, 0.0),
+                Vec3::new(10.0, 10.0, 0.0),
+            ],
+            normals: vec![Vec3::Z; 6],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]],
+            part: vec![0, 0, 0, 0, 1, 1],
+            part_names: vec!["torso".into(), "legs".into()],
+        };
+        let strands = |chords: &[(Vec3, Vec3)]| {
+            let mut s = Strands::new();
+            for &(root, d) in chords {
+                s.push(&[root, root + d], 0, 0.01, [0.5; 3]);
+            }
+            s
+        };
+        let gt = strands(&[
+            (Vec3::new(-6.0, 0.0, 0.0), Vec3::X),
+            (Vec3::new(-5.0, 2.0, 0.0), Vec3::X),
+            (Vec3::new(7.0, 0.0, 0.0), Vec3::X),
+        ]);
+        // Two torso strands right (0 deg), one leg strand at 90 and one reversed (180).
+        let pred = strands(&[
+            (Vec3::new(-6.0, 0.1, 0.0), Vec3::X),
+            (Vec3::new(-5.0, 2.1, 0.0), Vec3::X),
+            (Vec3::new(7.0, 0.1, 0.0), Vec3::Y),
+            (Vec3::new(8.0, 0.0, 0.0), -Vec3::X),
+        ]);
+        let e = direction_error(&pred, &gt, Some(&skin)).unwrap().unwrap();
+        assert!((e.mean_deg - 67.5).abs() < 1e-3, "{}", e.mean_deg);
+        let by = e.by_part.expect("a labelled skin gives parts");
+        assert_eq!(by.len(), 2, "{by:?}");
+        assert!(by["torso"].deg < 1e-3 && by["torso"].strands == 2, "{by:?}");
+        assert!(
+            (by["legs"].deg - 135.0).abs() < 1e-3 && by["legs"].strands == 2,
+            "{by:?}"
+        );
+        // The split does not move the mean, and without labels (or a skin) there is none.
+        assert_eq!(
+            direction_error_deg(&pred, &gt, Some(&skin)).unwrap(),
+            Some(e.mean_deg)
+        );
+        let mut unlabelled = skin.clone();
+        unlabelled.part.clear();
+        let e = direction_error(&pred, &gt, Some(&unlabelled))
+            .unwrap()
+            .unwrap();
+        assert!(e.by_part.is_none() && (e.mean_deg - 67.5).abs() < 1e-3);
+        assert!(direction_error(&pred, &gt, None)
+            .unwrap()
+            .unwrap()
+            .by_part
+            .is_none());
     }
 }

@@ -122,18 +122,7 @@ fn sampled_directions(
             if !(in_plane.length() > 1e-3 * full) {
                 return None;
             }
-            let corners = skin.triangles[tri as usize];
-            let nearest = corners
-                .iter()
-                .copied()
-                .min_by(|&u, &v| {
-                    let du = (skin.positions[u as usize] - closest).length_squared();
-                    let dv = (skin.positions[v as usize] - closest).length_squared();
-                    du.total_cmp(&dv)
-                })
-                .unwrap_or(corners[0]);
-            let part = skin.part.get(nearest as usize).copied().unwrap_or(0);
-            Some((a, in_plane.normalize(), part))
+            Some((a, in_plane.normalize(), skin_part_at(skin, closest, tri)))
         })
         .collect()
 }
@@ -144,6 +133,22 @@ pub fn skin_plane_at(query: &MeshQuery, skin: &Mesh, p: Vec3) -> (Vec3, Vec3, u3
     let (closest, _, tri) = query.closest_point(p);
     let [a, b, c] = skin.triangles[tri as usize].map(|v| skin.positions[v as usize]);
     ((b - a).cross(c - a).normalize_or_zero(), closest, tri)
+}
+
+/// The part label of the skin at `closest`, a point of triangle `tri`: the label of the
+/// triangle's vertex nearest it (0 on an unlabelled skin).
+pub fn skin_part_at(skin: &Mesh, closest: Vec3, tri: u32) -> u16 {
+    let corners = skin.triangles[tri as usize];
+    let nearest = corners
+        .iter()
+        .copied()
+        .min_by(|&u, &v| {
+            let du = (skin.positions[u as usize] - closest).length_squared();
+            let dv = (skin.positions[v as usize] - closest).length_squared();
+            du.total_cmp(&dv)
+        })
+        .unwrap_or(corners[0]);
+    skin.part.get(nearest as usize).copied().unwrap_or(0)
 }
 
 /// The seam statistics of one strand set on a labelled skin (`s_cm` centimetres per scene unit,
