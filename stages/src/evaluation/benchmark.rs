@@ -682,7 +682,8 @@ fn write_method_table(
         }
         mj.insert("direction_error_deg".into(), stat_json(dir));
         mj.insert("part_seam_excess_deg".into(), stat_json(seam));
-        if let Some((parts, worst)) = worst_entry(sc, &format!("{eval}.{SEAM_BOUNDARY_PREFIX}"), "")
+        if let Some((parts, worst)) =
+            worst_entry(sc, &format!("{eval}.{SEAM_BOUNDARY_PREFIX}"), "", None)
         {
             mj.insert(
                 "worst_part_seam".into(),
@@ -690,9 +691,12 @@ fn write_method_table(
             );
             worst_parts.seams.push((name.clone(), parts, worst));
         }
-        if let Some((part, worst)) =
-            worst_entry(sc, &format!("{eval}.{DIRECTION_PART_PREFIX}"), ".deg")
-        {
+        if let Some((part, worst)) = worst_entry(
+            sc,
+            &format!("{eval}.{DIRECTION_PART_PREFIX}"),
+            ".deg",
+            Some((".strands", MIN_DIRECTION_PART_STRANDS)),
+        ) {
             mj.insert(
                 "worst_direction_part".into(),
                 json!({"part": part, "direction_error_deg": stat_json(Some(worst))}),
@@ -719,14 +723,33 @@ const SEAM_BOUNDARY_PREFIX: &str = "seams.excess.by_boundary.";
 /// Each part's direction error is `EVAL.` this `PART.deg`.
 const DIRECTION_PART_PREFIX: &str = "direction_error_by_part.";
 
+/// A part enters the worst direction part only in the seeds where at least this many strands
+/// are rooted on it: the few strands whose roots fall on a bare part (an eye, a nose, a pad)
+/// make a mean of a handful of angles, noise that would name the same bare part every time.
+const MIN_DIRECTION_PART_STRANDS: f64 = 50.0;
+
 /// Among the metrics `PREFIX NAME SUFFIX`, the name whose value is largest in the mean over
-/// seeds, with that mean; names present in fewer than half of the seeds are left out (a part
-/// boundary or a part some seeds do not judge).
-fn worst_entry(sc: &Scene<'_>, prefix: &str, suffix: &str) -> Option<(String, Stat)> {
+/// seeds, with that mean; with `count = (COUNT_SUFFIX, MIN)` a seed's value counts only where
+/// `PREFIX NAME COUNT_SUFFIX` is at least `MIN`. Names present in fewer than half of the seeds
+/// are left out (a part boundary or a part some seeds do not judge).
+fn worst_entry(
+    sc: &Scene<'_>,
+    prefix: &str,
+    suffix: &str,
+    count: Option<(&str, f64)>,
+) -> Option<(String, Stat)> {
     let mut by: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
     for v in &sc.runs {
         for (k, x) in &v.metrics {
-            if let Some(name) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix(suffix)) {
+            let Some(name) = k.strip_prefix(prefix).and_then(|r| r.strip_suffix(suffix)) else {
+                continue;
+            };
+            let counted = count.is_none_or(|(count_suffix, min)| {
+                v.metrics
+                    .get(&format!("{prefix}{name}{count_suffix}"))
+                    .is_some_and(|&n| n >= min)
+            });
+            if counted {
                 by.entry(name).or_default().push(*x);
             }
         }
@@ -770,8 +793,9 @@ fn write_direction_parts(md: &mut String, worst: &[(String, String, Stat)]) {
     let _ = writeln!(
         md,
         "Direction error by part (evaluate's `direction_error_by_part`: the in-plane direction \
-         error of the strands rooted on each part of the GT skin): each method's worst part, mean \
-         over seeds (°): {}.\n",
+         error of the strands rooted on each part of the GT skin, parts with at least {} strands \
+         in a seed): each method's worst part, mean over seeds (°): {}.\n",
+        MIN_DIRECTION_PART_STRANDS,
         worst.join("; ")
     );
 }
@@ -1274,7 +1298,8 @@ impl Stage for BenchmarkReportStage {
         // 14: the size chart names the components the codec trains.
         // 15: the other work beside the stages (`costs.S.other_load`).
         // 16: each method's worst part for the direction error.
-        16
+        // 17: only parts with enough strands.
+        17
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1589,7 +1614,8 @@ mod tests {
             ("tiger", 2, 61.0, 50.0),
         ]);
         // Seed 0's worst part is the head, but over the seeds the legs are; the tail is judged
-        // in one seed of three only, so its 90 degrees do not count.
+        // in one seed of three only, so its 90 degrees do not count, and the nose has too few
+        // strands in every seed.
         for (i, (v, (head, legs))) in rec
             .variants
             .iter_mut()
@@ -1600,9 +1626,14 @@ mod tests {
             v.metrics.insert(format!("{by}head.deg"), head);
             v.metrics.insert(format!("{by}head.strands"), 100.0);
             v.metrics.insert(format!("{by}legs.deg"), legs);
+            v.metrics.insert(format!("{by}legs.strands"), 400.0);
             if i == 0 {
                 v.metrics.insert(format!("{by}tail.deg"), 90.0);
+                v.metrics.insert(format!("{by}tail.strands"), 300.0);
             }
+            // A bare part a few strands fall on: never named, however large its angle.
+            v.metrics.insert(format!("{by}nose.deg"), 120.0);
+            v.metrics.insert(format!("{by}nose.strands"), 3.0);
         }
         let Report {
             results: md,
