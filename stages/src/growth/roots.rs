@@ -150,6 +150,13 @@
 //! and 0.8 lose the synthetic tiger's and lynx's 3 cm score. Limbs,
 //! extremities and ears keep their own references.
 //!
+//! **Legs that lie back** (`limb_back`, unset: 0). The same lean on the
+//! legs: their reference is `D + b A` (normalised), `b` the parameter, so
+//! leg fur falls down the leg and back toward the tail, as a coat combed
+//! "back and down" lies on the legs too (the Blender captures are groomed
+//! with one such comb everywhere). Extremities keep their distal reference.
+//! Unset it changes nothing, the stage's key included.
+//!
 //! **Extremities** (`limb_direction = "distal"`, the default). On a paw,
 //! foot, hoof or hand (names containing paw, foot, feet, hoof, hand) the
 //! limbs' "down" is about normal to the surface, so it says nothing there and
@@ -678,6 +685,8 @@ pub struct GrowthPrior {
     pub down: Option<Vec3>,
     /// How far the body's and the head's reference leans toward `down` (`direction_down`).
     pub lean_down: f32,
+    /// How far the legs' reference leans along the body axis, toward the tail (`limb_back`).
+    pub lean_back: f32,
 }
 
 impl GrowthPrior {
@@ -721,13 +730,20 @@ impl GrowthPrior {
             axis,
             down,
             lean_down: 0.0,
+            lean_back: 0.0,
         })
     }
 
     /// The direction a root's tangent should not point against.
     pub fn reference(&self, role: PartRole, p: Vec3) -> Vec3 {
         match role {
-            PartRole::Limb => self.down.unwrap_or(self.axis),
+            PartRole::Limb => match self.down {
+                Some(d) if self.lean_back > 0.0 => (d + self.axis * self.lean_back)
+                    .try_normalize()
+                    .unwrap_or(d),
+                Some(d) => d,
+                None => self.axis,
+            },
             PartRole::Ear => p - self.head,
             PartRole::Head | PartRole::Body => match self.down {
                 Some(d) if self.lean_down > 0.0 => (self.axis + d * self.lean_down)
@@ -759,6 +775,8 @@ pub struct RootSettings {
     pub limb_direction: LimbDirection,
     /// The weight of "down" added to the body's and the head's reference (module doc).
     pub direction_down: f32,
+    /// The weight of the body axis added to the legs' "down" (module doc).
+    pub limb_back: f32,
     /// How triangle counts are rounded ([`sample_triangles`]).
     pub placement: Placement,
 }
@@ -866,6 +884,7 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
     let prior = if s.direction_prior {
         GrowthPrior::from_mesh(mesh).map(|gp| GrowthPrior {
             lean_down: s.direction_down,
+            lean_back: s.limb_back,
             ..gp
         })
     } else {
@@ -1154,6 +1173,8 @@ fure_stage_api::stage_params! {
         limb_direction: LimbDirection = string("distal").choices(LimbDirection::NAMES),
         /// weight of "down" (the body's centroid toward the limbs') added to the unit body axis in the body's and the head's reference: fur that lies back and a little down the flanks (module doc); 0 = the body axis alone
         direction_down: f64 = float(0.15).range(0.0, 100.0),
+        /// weight of the body axis (toward the tail) added to "down" in the legs' reference: leg fur that lies down and back (module doc); unset = 0, down alone
+        limb_back: Option<f64> = optional(ParamType::Float).range(0.0, 100.0),
         /// rounding of each triangle's expected root count: systematic (one running sum, exact total) or local (per triangle: a triangle's count depends on it alone)
         placement: Placement = string("systematic").choices(Placement::NAMES),
     }
@@ -1408,6 +1429,7 @@ impl Stage for RootsStage {
                 direction_smoothing: Some(p.direction_smoothing).filter(|&x| x > 0.0),
                 limb_direction: p.limb_direction,
                 direction_down: p.direction_down as f32,
+                limb_back: p.limb_back.unwrap_or(0.0) as f32,
                 placement: p.placement,
             },
         );
@@ -1525,6 +1547,7 @@ mod tests {
             direction_smoothing: None,
             limb_direction: LimbDirection::Distal,
             direction_down: 0.0,
+            limb_back: 0.0,
             placement: Placement::Systematic,
         };
         let (roots, rep) = build_roots(&mesh, &rho, &s);
@@ -1571,6 +1594,7 @@ mod tests {
             direction_smoothing: None,
             limb_direction: LimbDirection::Down,
             direction_down: 0.0,
+            limb_back: 0.0,
             placement: Placement::Systematic,
         }
     }
@@ -1747,6 +1771,44 @@ mod tests {
             full > 0.5,
             "direction_down 1 leans {full} (body axis alone {none})"
         );
+    }
+
+    #[test]
+    fn limb_back_leans_the_leg_fur_toward_the_tail() {
+        // Head cap at +z (body axis -z, toward the tail) and a "legs" band below y = -5 ("down"
+        // -y). Around the band's sides "down" lies in the tangent plane and has no mean
+        // component along the body axis (the front and back halves cancel); `limb_back` 1 adds
+        // the axis, so the legs' fur leans toward the tail.
+        let mut mesh = icosphere(10.0, 3, 0.8);
+        mesh.part_names.push("legs".into());
+        for (i, p) in mesh.positions.iter().enumerate() {
+            if p.y < -5.0 {
+                mesh.part[i] = 2;
+            }
+        }
+        let rho = vec![0.5; mesh.positions.len()];
+        let leg_lean = |back: f32| {
+            let s = RootSettings {
+                density: vec![1.0, 0.0, 1.0],
+                length: vec![3.0, 0.0, 3.0],
+                width: vec![0.05, 0.0, 0.05],
+                direction_smoothing: Some(0.05),
+                limb_back: back,
+                ..head_cap_settings()
+            };
+            let (roots, rep) = build_roots(&mesh, &rho, &s);
+            let gp = rep.growth_prior.expect("head and limb parts");
+            assert_eq!(gp.lean_back, back);
+            let leans: Vec<f32> = (0..roots.len())
+                .filter(|&i| roots.part[i] == 2 && roots.normals[i].y > -0.7)
+                .map(|i| -roots.tangents[i].z)
+                .collect();
+            assert!(leans.len() > 20, "{} leg roots", leans.len());
+            leans.iter().sum::<f32>() / leans.len() as f32
+        };
+        let (none, full) = (leg_lean(0.0), leg_lean(1.0));
+        assert!(none.abs() < 0.2, "down alone leans {none}");
+        assert!(full > 0.4, "limb_back 1 leans {full} (down alone {none})");
     }
 
     #[test]
