@@ -95,8 +95,22 @@ fn run() -> Res<()> {
     println!("| radius (px) | min coherence | turned share | from the frames | from 45 deg |");
     println!("|---|---|---|---|---|");
     for r in radii {
-        let from_frames = view_axes(&roots.positions, &frames, &outer, &views, r * footprint)?;
-        let from_turned = view_axes(&roots.positions, &turned, &outer, &views, r * footprint)?;
+        let from_frames = view_axes(
+            &roots.positions,
+            &frames,
+            &outer,
+            &views,
+            r * footprint,
+            None,
+        )?;
+        let from_turned = view_axes(
+            &roots.positions,
+            &turned,
+            &outer,
+            &views,
+            r * footprint,
+            None,
+        )?;
         for c_min in [0.0f32, 0.2, 0.4, 0.6] {
             let snap =
                 |start: &[Mat3], axes: &[fure_stages::growth::view_axes::ViewAxis]| -> Vec<Mat3> {

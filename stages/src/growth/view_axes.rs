@@ -29,7 +29,7 @@
 //!   `w = c cos^2(view angle)`: at grazing views `J` is near singular and a
 //!   small image-angle error is a large tangent-plane one.
 //! - Pooling: every root sums the tensors of the roots within `radius` of it
-//!   (itself included), projects the sum onto its own tangent plane and takes
+//!   (itself included; optionally only those of its own part), projects the sum onto its own tangent plane and takes
 //!   the principal direction; the coherence `(l1 - l2) / (l1 + l2)` of the
 //!   2x2 tensor says how much the views agree (1: one line; 0: none).
 //!
@@ -106,13 +106,15 @@ pub struct ViewAxis {
 
 /// Lifts the maps onto every root's tangent plane (module doc). `frames`
 /// are the roots' `(T, B, N)` as columns; `outer` is the fur's envelope;
-/// `radius` is the pooling radius in scene units (0 = each root alone).
+/// `radius` is the pooling radius in scene units (0 = each root alone); with
+/// `parts` (one label per root) a root pools only the roots of its own part.
 pub fn view_axes(
     positions: &[Vec3],
     frames: &[Mat3],
     outer: &Mesh,
     views: &[ViewOrientation<'_>],
     radius: f32,
+    parts: Option<&[u16]>,
 ) -> Result<Vec<ViewAxis>, GeomError> {
     let query = MeshQuery::new(outer)?;
     let (lo, hi) = outer.bounds();
@@ -144,7 +146,9 @@ pub fn view_axes(
                 Some(ix) => {
                     // Ascending indices: a fixed summation order.
                     for j in ix.indices_within(p, radius) {
-                        add(&own[j as usize]);
+                        if same_part(parts, i, j as usize) {
+                            add(&own[j as usize]);
+                        }
                     }
                 }
                 None => add(&own[i]),
@@ -320,6 +324,7 @@ pub fn vote_signs(
     positions: &[Vec3],
     frames: &mut [Mat3],
     radius: f32,
+    parts: Option<&[u16]>,
 ) -> Result<usize, GeomError> {
     if radius <= 0.0 || positions.is_empty() {
         return Ok(0);
@@ -332,7 +337,7 @@ pub fn vote_signs(
             let sum: Vec3 = index
                 .indices_within(p, radius)
                 .into_iter()
-                .filter(|&j| j as usize != i)
+                .filter(|&j| j as usize != i && same_part(parts, i, j as usize))
                 .map(|j| frames[j as usize].x_axis)
                 .sum();
             sum.dot(frames[i].x_axis) < 0.0
@@ -347,6 +352,13 @@ pub fn vote_signs(
         }
     }
     Ok(flipped)
+}
+
+/// Whether roots `i` and `j` pool together: always without labels, else on
+/// one part (a small part such as an ear, whose fur runs across its
+/// neighbour's, then reads its own lines only).
+fn same_part(parts: Option<&[u16]>, i: usize, j: usize) -> bool {
+    parts.is_none_or(|p| p.get(i) == p.get(j))
 }
 
 /// One root's structure tensor over the views (`[xx, xy, xz, yy, yz, zz]`),
@@ -483,6 +495,11 @@ mod tests {
 
     /// The maps a line field along `axis` on the plane gives in `cam`.
     fn maps_of(cam: &Camera, axis: Vec3) -> (ImageF32, ImageF32) {
+        maps_of_field(cam, |_| axis)
+    }
+
+    /// The maps of a line field `axis(p)` on the plane.
+    fn maps_of_field(cam: &Camera, axis: impl Fn(Vec3) -> Vec3) -> (ImageF32, ImageF32) {
         let mut angle = ImageF32::new(cam.width, cam.height, 1);
         let mut conf = ImageF32::new(cam.width, cam.height, 1);
         for y in 0..cam.height {
@@ -493,7 +510,7 @@ mod tests {
                 }
                 let p = o + d * (-o.z / d.z);
                 let a = cam.project(p).0;
-                let b = cam.project(p + axis * 1e-3).0;
+                let b = cam.project(p + axis(p) * 1e-3).0;
                 let k = (y * cam.width + x) as usize;
                 angle.data[k] = crate::render::orientation_angle(b.x - a.x, b.y - a.y);
                 conf.data[k] = 1.0;
@@ -520,7 +537,7 @@ mod tests {
         let base = Mat3::from_cols(truth, Vec3::Z.cross(truth), Vec3::Z);
         let flipped = Mat3::from_cols(-truth, Vec3::Z.cross(-truth), Vec3::Z);
         let frames = vec![base * turn, flipped * turn];
-        let axes = view_axes(&positions, &frames, &mesh, &views, 0.0).unwrap();
+        let axes = view_axes(&positions, &frames, &mesh, &views, 0.0, None).unwrap();
         for (a, f) in axes.iter().zip(&frames) {
             assert_eq!(a.views, 3);
             assert!(a.coherence > 0.999, "{a:?}");
@@ -568,7 +585,7 @@ mod tests {
         let frames = vec![Mat3::IDENTITY; positions.len()];
         let mean = |maps: &[(ImageF32, ImageF32)]| {
             let views = ViewOrientation::pair(&cams, maps);
-            let axes = view_axes(&positions, &frames, &mesh, &views, 0.15).unwrap();
+            let axes = view_axes(&positions, &frames, &mesh, &views, 0.15, None).unwrap();
             let n = axes.len() as f32;
             (
                 axes.iter().map(|a| a.coherence).sum::<f32>() / n,
@@ -625,12 +642,62 @@ mod tests {
         let mut frames = vec![Mat3::IDENTITY; 5];
         let half = Mat3::from_rotation_z(std::f32::consts::PI);
         frames[2] = half;
-        assert_eq!(vote_signs(&positions, &mut frames, 0.25).unwrap(), 1);
+        assert_eq!(vote_signs(&positions, &mut frames, 0.25, None).unwrap(), 1);
         assert!(frames.iter().all(|f| f.x_axis.dot(Vec3::X) > 0.999));
         // Two halves that agree within themselves stay as they are.
         let mut split = vec![Mat3::IDENTITY, Mat3::IDENTITY, half, half];
         let pos = [0.0, 0.1, 1.0, 1.1].map(|x| Vec3::new(x, 0.0, 0.0));
-        assert_eq!(vote_signs(&pos, &mut split, 0.25).unwrap(), 0);
+        assert_eq!(vote_signs(&pos, &mut split, 0.25, None).unwrap(), 0);
+        // Two roots of another part among them (an ear on a head) are not outvoted by their
+        // neighbours when the vote keeps to each part; without that both flip, and the ear's
+        // two outvote the head roots on either side as well.
+        let parts = [0u16, 0, 1, 1, 0];
+        let mut frames = vec![Mat3::IDENTITY; 5];
+        frames[2] = half;
+        frames[3] = half;
+        let mut kept = frames.clone();
+        assert_eq!(
+            vote_signs(&positions, &mut kept, 0.25, Some(&parts)).unwrap(),
+            0
+        );
+        assert_eq!(vote_signs(&positions, &mut frames, 0.25, None).unwrap(), 4);
+    }
+
+    #[test]
+    fn pooling_within_a_part_reads_the_parts_own_lines() {
+        // Two parts side by side whose fur runs across each other's: along x where x < 0
+        // (part 0, three roots), along y where x > 0 (part 1, two roots). Pooled over a radius
+        // that spans both, part 1 reads a blend of the two; within its part, its own y.
+        let mesh = plane(2.0);
+        let field = |p: Vec3| if p.x < 0.0 { Vec3::X } else { Vec3::Y };
+        let cams = [
+            camera_at(Vec3::new(3.0, 1.0, 4.0)),
+            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
+            camera_at(Vec3::new(0.5, -3.0, 2.0)),
+        ];
+        let maps: Vec<_> = cams.iter().map(|c| maps_of_field(c, field)).collect();
+        let views = ViewOrientation::pair(&cams, &maps);
+        let positions: Vec<Vec3> = [-0.5, -0.4, -0.3, 0.3, 0.4]
+            .map(|x| Vec3::new(x, 0.0, -0.05))
+            .to_vec();
+        let parts = [0u16, 0, 0, 1, 1];
+        let frames = vec![Mat3::IDENTITY; 5];
+        let along_y = |axes: &[ViewAxis], i: usize| {
+            let t = frames[i] * Vec3::new(axes[i].turn.cos(), axes[i].turn.sin(), 0.0);
+            t.dot(Vec3::Y).abs()
+        };
+        let across = view_axes(&positions, &frames, &mesh, &views, 1.0, None).unwrap();
+        let within = view_axes(&positions, &frames, &mesh, &views, 1.0, Some(&parts)).unwrap();
+        for i in [3, 4] {
+            assert!(along_y(&within, i) > 0.999, "{:?}", within[i]);
+            assert!(within[i].coherence > 0.99, "{:?}", within[i]);
+            // Across parts the three x roots outweigh the two y ones.
+            assert!(along_y(&across, i) < 0.5, "{:?}", across[i]);
+            assert!(across[i].coherence < 0.5, "{:?}", across[i]);
+        }
+        for i in [0, 1, 2] {
+            assert!(along_y(&within, i) < 1e-3, "{:?}", within[i]);
+        }
     }
 
     #[test]
@@ -646,7 +713,15 @@ mod tests {
             confidence: &c,
         }];
         let frames = vec![Mat3::IDENTITY];
-        let axes = view_axes(&[Vec3::new(0.0, 0.0, -0.05)], &frames, &mesh, &views, 0.0).unwrap();
+        let axes = view_axes(
+            &[Vec3::new(0.0, 0.0, -0.05)],
+            &frames,
+            &mesh,
+            &views,
+            0.0,
+            None,
+        )
+        .unwrap();
         assert_eq!(axes[0].views, 0);
         assert_eq!(axes[0].coherence, 0.0);
         assert_eq!(axes[0].turn, 0.0);

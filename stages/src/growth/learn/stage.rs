@@ -155,6 +155,10 @@ fure_stage_api::stage_params! {
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
         view_axes_sign_vote: bool = bool(true),
+        /// Pool the views' lines (view_axes_radius_px) and the sign vote over the roots of the
+        /// root's own part only: a small part whose fur runs across its neighbour's (ears on
+        /// a head) then reads its own lines; unset = every root within the radius.
+        view_axes_within_part: Option<bool> = optional(ParamType::Bool),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -802,7 +806,8 @@ fn setup(
         .iter()
         .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
         .collect();
-    let view_axes = turn_onto_view_axes(ctx, p, &positions, &mut frames, &outer)?;
+    let parts: Vec<u16> = keep.iter().map(|&i| roots.part[i]).collect();
+    let view_axes = turn_onto_view_axes(ctx, p, &positions, &parts, &mut frames, &outer)?;
     let view_elevation = tilt_onto_view_elevation(
         ctx,
         p,
@@ -816,7 +821,7 @@ fn setup(
         positions,
         frames,
         lengths: lengths.clone(),
-        parts: keep.iter().map(|&i| roots.part[i]).collect(),
+        parts,
         rho: keep.iter().map(|&i| roots.rho[i]).collect(),
     };
     let prep = Prepared::new(basis.points, inputs, part_count, &pe);
@@ -900,6 +905,7 @@ fn turn_onto_view_axes(
     ctx: &StageContext<'_>,
     p: &LearnParams,
     positions: &[Vec3],
+    parts: &[u16],
     frames: &mut [Mat3],
     outer: &Mesh,
 ) -> Result<Option<ViewAxesReport>, StageError> {
@@ -912,7 +918,8 @@ fn turn_onto_view_axes(
     let views = ViewOrientation::pair(&cams, &maps);
     let radius = p.view_axes_radius_px * pixel_footprint(&cams, outer);
     let outer_path = ctx.input("outer")?;
-    let axes = view_axes(positions, frames, outer, &views, radius)
+    let pool_parts = p.view_axes_within_part.unwrap_or(false).then_some(parts);
+    let axes = view_axes(positions, frames, outer, &views, radius, pool_parts)
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
     let (mut turned, mut turn_sum, mut unseen) = (0usize, 0.0f64, 0usize);
     for (f, a) in frames.iter_mut().zip(&axes) {
@@ -928,7 +935,7 @@ fn turn_onto_view_axes(
     }
     let flipped = if p.view_axes_sign_vote {
         let roots_path = ctx.input("roots")?;
-        vote_signs(positions, frames, radius)
+        vote_signs(positions, frames, radius, pool_parts)
             .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
     } else {
         0
