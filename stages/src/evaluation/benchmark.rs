@@ -760,43 +760,42 @@ fn worst_entry(
         .max_by(|a, b| a.1.mean.total_cmp(&b.1.mean))
 }
 
+/// `method where mean ± sd; ...` for a report line, or `None` when no method has a figure.
+fn worst_list(worst: &[(String, String, Stat)]) -> Option<String> {
+    let items: Vec<String> = worst
+        .iter()
+        .map(|(name, at, s)| format!("{name} {at} {}", fmt_stat(Some(*s), 1)))
+        .collect();
+    (!items.is_empty()).then(|| items.join("; "))
+}
+
 /// One line naming each method's worst part boundary (evaluation::seams).
 fn write_seams(md: &mut String, worst_seams: &[(String, String, Stat)]) {
-    let worst: Vec<String> = worst_seams
-        .iter()
-        .map(|(name, parts, s)| format!("{name} {parts} {}", fmt_stat(Some(*s), 1)))
-        .collect();
-    if worst.is_empty() {
+    let Some(worst) = worst_list(worst_seams) else {
         return;
-    }
+    };
     let _ = writeln!(
         md,
         "Part seams (evaluation::seams): around each root near a part boundary, the angle \
          between the mean growth directions of its neighbours (in-plane, within the evaluation's `seam_radius_cm`, 3 cm by default) on either \
          side, minus the same for the GT there (0: the boundary turns the fur as much as the GT's \
          does; positive: a seam). The column is the mean over boundaries; here the worst \
-         boundary, mean over seeds (°): {}.\n",
-        worst.join("; ")
+         boundary, mean over seeds (°): {worst}.\n"
     );
 }
 
 /// One line naming each method's part with the largest direction error (evaluation::evaluate,
 /// `direction_error_by_part`).
 fn write_direction_parts(md: &mut String, worst: &[(String, String, Stat)]) {
-    let worst: Vec<String> = worst
-        .iter()
-        .map(|(name, part, s)| format!("{name} {part} {}", fmt_stat(Some(*s), 1)))
-        .collect();
-    if worst.is_empty() {
+    let Some(worst) = worst_list(worst) else {
         return;
-    }
+    };
     let _ = writeln!(
         md,
         "Direction error by part (evaluate's `direction_error_by_part`: the in-plane direction \
          error of the strands rooted on each part of the GT skin, parts with at least {} strands \
-         in a seed): each method's worst part, mean over seeds (°): {}.\n",
+         in a seed): each method's worst part, mean over seeds (°): {worst}.\n",
         MIN_DIRECTION_PART_STRANDS,
-        worst.join("; ")
     );
 }
 
