@@ -1736,39 +1736,53 @@ mod tests {
         }
     }
 
-    #[test]
-    fn direction_down_leans_the_body_fur_toward_the_limbs() {
-        // Head cap at +z (body axis -z) and a "legs" cap at -y ("down" -y). On the flanks (normal
-        // about +-x) both lie in the tangent plane: the body axis alone gives no vertical lean;
-        // `direction_down` 1 leans the fur about 45 degrees toward the legs.
+    /// An icosphere with the head cap at +z (body axis -z, toward the tail) and a "legs" part
+    /// below `legs_below` in y ("down" -y), and a function of the settings' leans giving the
+    /// roots of `part` whose normal passes `facing` and their mean tangent along `-axis`.
+    fn lean_on_a_sphere(
+        legs_below: f32,
+        part: u16,
+        facing: impl Fn(Vec3) -> bool,
+        axis: Vec3,
+    ) -> impl Fn(f32, f32) -> f32 {
         let mut mesh = icosphere(10.0, 3, 0.8);
         mesh.part_names.push("legs".into());
         for (i, p) in mesh.positions.iter().enumerate() {
-            if p.y < -8.0 {
+            if p.y < legs_below {
                 mesh.part[i] = 2;
             }
         }
         let rho = vec![0.5; mesh.positions.len()];
-        let flank_lean = |lean: f32| {
+        move |down: f32, back: f32| {
             let s = RootSettings {
                 density: vec![1.0, 0.0, 1.0],
                 length: vec![3.0, 0.0, 3.0],
                 width: vec![0.05, 0.0, 0.05],
                 direction_smoothing: Some(0.05),
-                direction_down: lean,
+                direction_down: down,
+                limb_back: back,
                 ..head_cap_settings()
             };
             let (roots, rep) = build_roots(&mesh, &rho, &s);
             let gp = rep.growth_prior.expect("head and limb parts");
             assert!(gp.down.is_some_and(|d| d.y < -0.9), "{gp:?}");
+            assert_eq!((gp.lean_down, gp.lean_back), (down, back));
             let leans: Vec<f32> = (0..roots.len())
-                .filter(|&i| roots.part[i] == 0 && roots.normals[i].x.abs() > 0.9)
-                .map(|i| -roots.tangents[i].y)
+                .filter(|&i| roots.part[i] == part && facing(roots.normals[i]))
+                .map(|i| -roots.tangents[i].dot(axis))
                 .collect();
-            assert!(leans.len() > 20, "{} flank roots", leans.len());
+            assert!(leans.len() > 20, "{} roots", leans.len());
             leans.iter().sum::<f32>() / leans.len() as f32
-        };
-        let (none, full) = (flank_lean(0.0), flank_lean(1.0));
+        }
+    }
+
+    #[test]
+    fn direction_down_leans_the_body_fur_toward_the_limbs() {
+        // On the flanks (normal about +-x) the body axis and "down" both lie in the tangent
+        // plane: the body axis alone gives no vertical lean; `direction_down` 1 leans the fur
+        // about 45 degrees toward the legs.
+        let flank_lean = lean_on_a_sphere(-8.0, 0, |n| n.x.abs() > 0.9, Vec3::Y);
+        let (none, full) = (flank_lean(0.0, 0.0), flank_lean(1.0, 0.0));
         assert!(none.abs() < 0.2, "body axis alone leans {none}");
         assert!(
             full > 0.5,
@@ -1778,38 +1792,11 @@ mod tests {
 
     #[test]
     fn limb_back_leans_the_leg_fur_toward_the_tail() {
-        // Head cap at +z (body axis -z, toward the tail) and a "legs" band below y = -5 ("down"
-        // -y). Around the band's sides "down" lies in the tangent plane and has no mean
-        // component along the body axis (the front and back halves cancel); `limb_back` 1 adds
-        // the axis, so the legs' fur leans toward the tail.
-        let mut mesh = icosphere(10.0, 3, 0.8);
-        mesh.part_names.push("legs".into());
-        for (i, p) in mesh.positions.iter().enumerate() {
-            if p.y < -5.0 {
-                mesh.part[i] = 2;
-            }
-        }
-        let rho = vec![0.5; mesh.positions.len()];
-        let leg_lean = |back: f32| {
-            let s = RootSettings {
-                density: vec![1.0, 0.0, 1.0],
-                length: vec![3.0, 0.0, 3.0],
-                width: vec![0.05, 0.0, 0.05],
-                direction_smoothing: Some(0.05),
-                limb_back: back,
-                ..head_cap_settings()
-            };
-            let (roots, rep) = build_roots(&mesh, &rho, &s);
-            let gp = rep.growth_prior.expect("head and limb parts");
-            assert_eq!(gp.lean_back, back);
-            let leans: Vec<f32> = (0..roots.len())
-                .filter(|&i| roots.part[i] == 2 && roots.normals[i].y > -0.7)
-                .map(|i| -roots.tangents[i].z)
-                .collect();
-            assert!(leans.len() > 20, "{} leg roots", leans.len());
-            leans.iter().sum::<f32>() / leans.len() as f32
-        };
-        let (none, full) = (leg_lean(0.0), leg_lean(1.0));
+        // Around a legs band's sides "down" lies in the tangent plane and has no mean component
+        // along the body axis (the front and back halves cancel); `limb_back` 1 adds the axis,
+        // so the legs' fur leans toward the tail.
+        let leg_lean = lean_on_a_sphere(-5.0, 2, |n| n.y > -0.7, Vec3::Z);
+        let (none, full) = (leg_lean(0.0, 0.0), leg_lean(0.0, 1.0));
         assert!(none.abs() < 0.2, "down alone leans {none}");
         assert!(full > 0.4, "limb_back 1 leans {full} (down alone {none})");
     }
