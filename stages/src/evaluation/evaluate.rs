@@ -1899,6 +1899,15 @@ pub(crate) mod tests {
         assert!(e.contains("bad.hair"), "{e}");
     }
 
+    /// One straight two-point strand per `(root, chord)`.
+    fn strands(chords: &[(Vec3, Vec3)]) -> Strands {
+        let mut s = Strands::new();
+        for &(root, d) in chords {
+            s.push(&[root, root + d], 0, 0.01, [0.5; 3]);
+        }
+        s
+    }
+
     #[test]
     fn direction_error_is_in_plane_signed_and_skips_upright_strands() {
         // The skin: the plane z = 0 (two triangles), normal +z.
@@ -1913,13 +1922,6 @@ pub(crate) mod tests {
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             part: vec![0; 4],
             part_names: vec!["torso".into()],
-        };
-        let strands = |chords: &[(Vec3, Vec3)]| {
-            let mut s = Strands::new();
-            for &(root, d) in chords {
-                s.push(&[root, root + d], 0, 0.01, [0.5; 3]);
-            }
-            s
         };
         let gt = strands(&[(Vec3::ZERO, Vec3::X), (Vec3::new(5.0, 0.0, 0.0), Vec3::X)]);
         // Same in-plane direction with a lift: 0 deg in-plane (45 deg in 3D).
@@ -1955,8 +1957,8 @@ pub(crate) mod tests {
 
     #[test]
     fn direction_error_splits_by_the_skins_parts() {
-        // The plane z = 0 in two labelled halves: x < 0 "torso" (vertices 0, 3, 4, 5 side), x > 0
-        // "legs"; the GT grows along +x everywhere.
+        // The plane z = 0 in two labelled halves: "torso" (vertices 0-3, x <= 0) and "legs"
+        // (vertices 4 and 5, x = 10); the GT grows along +x everywhere.
         let skin = crate::data::mesh::Mesh {
             positions: vec![
                 Vec3::new(-10.0, -10.0, 0.0),
@@ -1970,13 +1972,6 @@ pub(crate) mod tests {
             triangles: vec![[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]],
             part: vec![0, 0, 0, 0, 1, 1],
             part_names: vec!["torso".into(), "legs".into()],
-        };
-        let strands = |chords: &[(Vec3, Vec3)]| {
-            let mut s = Strands::new();
-            for &(root, d) in chords {
-                s.push(&[root, root + d], 0, 0.01, [0.5; 3]);
-            }
-            s
         };
         let gt = strands(&[
             (Vec3::new(-6.0, 0.0, 0.0), Vec3::X),

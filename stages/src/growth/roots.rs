@@ -689,7 +689,14 @@ pub struct GrowthPrior {
     /// How far the body's and the head's reference leans toward `down` (`direction_down`).
     pub lean_down: f32,
     /// How far the legs' reference leans along the body axis, toward the tail (`limb_back`).
+    /// Left out of metrics.json at 0, so that an unset `limb_back` writes what the stage wrote
+    /// before the parameter existed (its key is unchanged too).
+    #[serde(skip_serializing_if = "is_zero")]
     pub lean_back: f32,
+}
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
 }
 
 impl GrowthPrior {
@@ -739,22 +746,23 @@ impl GrowthPrior {
 
     /// The direction a root's tangent should not point against.
     pub fn reference(&self, role: PartRole, p: Vec3) -> Vec3 {
-        match role {
-            PartRole::Limb => match self.down {
-                Some(d) if self.lean_back > 0.0 => (d + self.axis * self.lean_back)
-                    .try_normalize()
-                    .unwrap_or(d),
-                Some(d) => d,
-                None => self.axis,
-            },
-            PartRole::Ear => p - self.head,
-            PartRole::Head | PartRole::Body => match self.down {
-                Some(d) if self.lean_down > 0.0 => (self.axis + d * self.lean_down)
-                    .try_normalize()
-                    .unwrap_or(self.axis),
-                _ => self.axis,
-            },
+        match (role, self.down) {
+            (PartRole::Limb, Some(d)) => leaned(d, self.axis, self.lean_back),
+            (PartRole::Limb, None) => self.axis,
+            (PartRole::Ear, _) => p - self.head,
+            (PartRole::Head | PartRole::Body, Some(d)) => leaned(self.axis, d, self.lean_down),
+            (PartRole::Head | PartRole::Body, None) => self.axis,
         }
+    }
+}
+
+/// `base` leaned toward `toward` by `weight` (normalised; `base` itself at weight 0): how the
+/// body's reference takes a little "down" and the legs' a little of the body axis.
+fn leaned(base: Vec3, toward: Vec3, weight: f32) -> Vec3 {
+    if weight > 0.0 {
+        (base + toward * weight).try_normalize().unwrap_or(base)
+    } else {
+        base
     }
 }
 

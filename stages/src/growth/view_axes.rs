@@ -493,6 +493,15 @@ mod tests {
         }
     }
 
+    /// Three cameras above the plane, each seeing it obliquely from another side.
+    fn oblique_cameras() -> [Camera; 3] {
+        [
+            camera_at(Vec3::new(3.0, 1.0, 4.0)),
+            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
+            camera_at(Vec3::new(0.5, -3.0, 2.0)),
+        ]
+    }
+
     /// The maps a line field along `axis` on the plane gives in `cam`.
     fn maps_of(cam: &Camera, axis: Vec3) -> (ImageF32, ImageF32) {
         maps_of_field(cam, |_| axis)
@@ -523,11 +532,7 @@ mod tests {
     fn oblique_views_recover_the_line_on_the_surface() {
         let mesh = plane(2.0);
         let truth = Vec3::new(1.0, 0.5, 0.0).normalize();
-        let cams = [
-            camera_at(Vec3::new(3.0, 1.0, 4.0)),
-            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
-            camera_at(Vec3::new(0.5, -3.0, 2.0)),
-        ];
+        let cams = oblique_cameras();
         let maps: Vec<_> = cams.iter().map(|c| maps_of(c, truth)).collect();
         let views = ViewOrientation::pair(&cams, &maps);
         // Roots just under the surface (the fur's envelope), frames turned
@@ -609,11 +614,7 @@ mod tests {
         let mesh = plane(2.0);
         let rise = 30f32.to_radians();
         let dir = Vec3::new(rise.cos(), 0.0, rise.sin());
-        let cams = [
-            camera_at(Vec3::new(3.0, 1.0, 4.0)),
-            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
-            camera_at(Vec3::new(0.5, -3.0, 2.0)),
-        ];
+        let cams = oblique_cameras();
         let maps: Vec<_> = cams.iter().map(|c| maps_of(c, dir)).collect();
         let views = ViewOrientation::pair(&cams, &maps);
         let positions: Vec<Vec3> = (0..25)
@@ -670,11 +671,7 @@ mod tests {
         // that spans both, part 1 reads a blend of the two; within its part, its own y.
         let mesh = plane(2.0);
         let field = |p: Vec3| if p.x < 0.0 { Vec3::X } else { Vec3::Y };
-        let cams = [
-            camera_at(Vec3::new(3.0, 1.0, 4.0)),
-            camera_at(Vec3::new(-2.0, 2.5, 3.0)),
-            camera_at(Vec3::new(0.5, -3.0, 2.0)),
-        ];
+        let cams = oblique_cameras();
         let maps: Vec<_> = cams.iter().map(|c| maps_of_field(c, field)).collect();
         let views = ViewOrientation::pair(&cams, &maps);
         let positions: Vec<Vec3> = [-0.5, -0.4, -0.3, 0.3, 0.4]
