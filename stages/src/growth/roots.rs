@@ -150,15 +150,14 @@
 //! and 0.8 lose the synthetic tiger's and lynx's 3 cm score. Limbs,
 //! extremities and ears keep their own references.
 //!
-//! **Legs that lie back** (`limb_back`, unset: 0). The same lean on the
+//! **Legs that lie back** (`limb_back`, 1.0). The same lean on the
 //! legs: their reference is `D + b A` (normalised), `b` the parameter, so
 //! leg fur falls down the leg and back toward the tail, as a coat combed
 //! "back and down" lies on the legs too (the Blender captures are groomed
-//! with one such comb everywhere). Extremities keep their distal reference.
-//! Unset it changes nothing, the stage's key included. On the dev split
-//! (docs/history.md, "The direction error by part") 1.0 wins the Blender
-//! fox at 2, 3 and 4 cm and ties every synthetic scene, whose views show the
-//! legs' axis; it stays unset until the benchmark suites are rerun at it.
+//! with one such comb everywhere). Extremities keep their distal reference;
+//! 0 gives the legs "down" alone. Chosen on the dev split (docs/history.md,
+//! "The direction error by part"): 1.0 wins the Blender fox at 2, 3 and 4
+//! cm and ties every synthetic scene, whose views show the legs' axis.
 //!
 //! **Extremities** (`limb_direction = "distal"`, the default). On a paw,
 //! foot, hoof or hand (names containing paw, foot, feet, hoof, hand) the
@@ -689,8 +688,7 @@ pub struct GrowthPrior {
     /// How far the body's and the head's reference leans toward `down` (`direction_down`).
     pub lean_down: f32,
     /// How far the legs' reference leans along the body axis, toward the tail (`limb_back`).
-    /// Left out of metrics.json at 0, so that an unset `limb_back` writes what the stage wrote
-    /// before the parameter existed (its key is unchanged too).
+    /// Left out of metrics.json at 0 (the legs' reference is "down" alone).
     #[serde(skip_serializing_if = "is_zero")]
     pub lean_back: f32,
 }
@@ -1184,8 +1182,8 @@ fure_stage_api::stage_params! {
         limb_direction: LimbDirection = string("distal").choices(LimbDirection::NAMES),
         /// weight of "down" (the body's centroid toward the limbs') added to the unit body axis in the body's and the head's reference: fur that lies back and a little down the flanks (module doc); 0 = the body axis alone
         direction_down: f64 = float(0.15).range(0.0, 100.0),
-        /// weight of the body axis (toward the tail) added to "down" in the legs' reference: leg fur that lies down and back (module doc); unset = 0, down alone
-        limb_back: Option<f64> = optional(ParamType::Float).range(0.0, 100.0),
+        /// weight of the body axis (toward the tail) added to "down" in the legs' reference: leg fur that lies down and back (module doc); 0 = down alone
+        limb_back: f64 = float(1.0).range(0.0, 100.0),
         /// rounding of each triangle's expected root count: systematic (one running sum, exact total) or local (per triangle: a triangle's count depends on it alone)
         placement: Placement = string("systematic").choices(Placement::NAMES),
     }
@@ -1440,7 +1438,7 @@ impl Stage for RootsStage {
                 direction_smoothing: Some(p.direction_smoothing).filter(|&x| x > 0.0),
                 limb_direction: p.limb_direction,
                 direction_down: p.direction_down as f32,
-                limb_back: p.limb_back.unwrap_or(0.0) as f32,
+                limb_back: p.limb_back as f32,
                 placement: p.placement,
             },
         );

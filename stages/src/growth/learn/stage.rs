@@ -157,8 +157,9 @@ fure_stage_api::stage_params! {
         view_axes_sign_vote: bool = bool(true),
         /// Pool the views' lines (view_axes_radius_px) and the sign vote over the roots of the
         /// root's own part only: a small part whose fur runs across its neighbour's (ears on
-        /// a head) then reads its own lines; unset = every root within the radius.
-        view_axes_within_part: Option<bool> = optional(ParamType::Bool),
+        /// a head) then reads its own lines; false = every root within the radius (chosen on
+        /// the dev split, learn module doc).
+        view_axes_within_part: bool = bool(true),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -918,7 +919,7 @@ fn turn_onto_view_axes(
     let views = ViewOrientation::pair(&cams, &maps);
     let radius = p.view_axes_radius_px * pixel_footprint(&cams, outer);
     let outer_path = ctx.input("outer")?;
-    let pool_parts = p.view_axes_within_part.unwrap_or(false).then_some(parts);
+    let pool_parts = p.view_axes_within_part.then_some(parts);
     let axes = view_axes(positions, frames, outer, &views, radius, pool_parts)
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
     let (mut turned, mut turn_sum, mut unseen) = (0usize, 0.0f64, 0usize);
