@@ -175,13 +175,19 @@
 //!   the turn left on the wrong side (dev split, codec, seeds 0-2: in-plane
 //!   error 12.6 -> 12.0 degrees on the tiger, 15.5 -> 14.0 on the fox; from
 //!   the 45-degree wrong start 14.5 -> 13.6 and 18.3 -> 15.0).
-//!   `view_axes_within_part` (on) pools the lines and the vote over
+//!   `view_axes_within_part` (off) pools the lines and the vote over
 //!   the root's own part only: at 16 pixel footprints a small part (an ear,
 //!   about a pixel wide at 256 px) pools mostly its neighbour's roots, and
 //!   the head's fur runs across the ear's. On the dev split it wins the
 //!   tiger at every threshold and the lynx at 2-4 cm for both learners and
-//!   loses nothing (docs/history.md, "The views' lines pooled within each
-//!   part").
+//!   loses no F-score (docs/history.md, "The views' lines pooled within each
+//!   part"), but it puts a seam where the GT has none: near a boundary a
+//!   root's window holds its own side only, so each side reads its part's
+//!   inner flow and the two meet at an angle (tiger, seed 0: hind legs |
+//!   torso 1.6 -> 21 degrees beyond the GT's turn; the sign vote pooled over
+//!   every part still leaves 17). It stays off until pooling keeps small
+//!   parts apart without that step (docs/history.md, "Pooling within a part
+//!   puts a seam at its boundary").
 //!   `view_axes_min_excess` (0.1) also requires the agreement beyond random
 //!   maps' ([`crate::growth::view_axes`], "The null"): a frame turns only
 //!   where its lines agree beyond what the views' geometry gives noise.

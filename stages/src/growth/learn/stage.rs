@@ -157,9 +157,9 @@ fure_stage_api::stage_params! {
         view_axes_sign_vote: bool = bool(true),
         /// Pool the views' lines (view_axes_radius_px) and the sign vote over the roots of the
         /// root's own part only: a small part whose fur runs across its neighbour's (ears on
-        /// a head) then reads its own lines; false = every root within the radius (chosen on
-        /// the dev split, learn module doc).
-        view_axes_within_part: bool = bool(true),
+        /// a head) then reads its own lines; false = every root within the radius (off: it
+        /// puts a seam at part boundaries, learn module doc).
+        view_axes_within_part: bool = bool(false),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
