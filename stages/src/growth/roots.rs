@@ -118,7 +118,8 @@
 //! limb parts (names containing leg, paw, foot, feet, arm, hoof, limb;
 //! animals stand on their limbs, so this is "down" without assuming a world
 //! up axis), each root's `T` is flipped when `T . ref < 0`, with `ref` =
-//! `D` on limb parts (extremities: below), `p - H` on ears (away from the head, toward the ear
+//! `D` on limb parts (leaning toward the tail by `limb_back`, and the
+//! extremities: below), `p - H` on ears (away from the head, toward the ear
 //! tips; names containing ear, checked after the limb names so `rear_legs`
 //! is a limb), and the body axis `A = C - H` everywhere else (torso, neck,
 //! head, muzzle, belly, tail: fur flows back from the nose and toward the
