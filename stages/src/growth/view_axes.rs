@@ -48,6 +48,13 @@
 //! line that lies along the stretched axis is where the null leans too, and
 //! subtracting it would bias the axis.
 //!
+//! Windows a part barely fills. A window of a few pixel footprints is wider
+//! than a small part (an ear a few pixels across), so such a root's pooled
+//! line is mostly its neighbours' (the head's fur runs across the ear's).
+//! [`own_part_shares`] gives, per root, the share of its window that its own
+//! part fills; callers keep the roots' own frames where it is low (learn
+//! module doc).
+//!
 //! The result is an axis (no sign): a map cannot tell root from tip. Callers
 //! keep the sign of the frame they had (the axis is turned by at most 90
 //! degrees); [`vote_signs`] then lets neighbours outvote a root that kept
@@ -102,6 +109,32 @@ pub struct ViewAxis {
     pub excess_coherence: f32,
     /// Views that saw the root itself.
     pub views: u32,
+}
+
+/// Per root, the share of the roots within `radius` of it (itself included)
+/// that lie on its own part (`labels`, one per root): how much of its
+/// pooling window its own part fills (1 everywhere when `radius` is 0).
+pub fn own_part_shares(
+    positions: &[Vec3],
+    labels: &[u16],
+    radius: f32,
+) -> Result<Vec<f32>, GeomError> {
+    if radius <= 0.0 || positions.is_empty() {
+        return Ok(vec![1.0; positions.len()]);
+    }
+    let index = PointIndex::new(positions)?;
+    Ok(positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, &p)| {
+            let near = index.indices_within(p, radius);
+            let own = near
+                .iter()
+                .filter(|&&j| labels.get(j as usize) == labels.get(i))
+                .count();
+            own as f32 / near.len().max(1) as f32
+        })
+        .collect())
 }
 
 /// Lifts the maps onto every root's tangent plane (module doc). `frames`
@@ -695,6 +728,29 @@ mod tests {
         for i in [0, 1, 2] {
             assert!(along_y(&within, i) < 1e-3, "{:?}", within[i]);
         }
+    }
+
+    #[test]
+    fn a_small_part_fills_little_of_its_window() {
+        // A row of 15 roots of part 0 (x = 0 .. 1.4) with two roots of part 1 (an ear) at
+        // x = 0.65 and 0.75 among them. At radius 0.52 the ear's roots see 10 of part 0's and
+        // their own two; part 0's far end sees only its own.
+        let mut positions: Vec<Vec3> = (0..15)
+            .map(|i| Vec3::new(i as f32 * 0.1, 0.0, 0.0))
+            .collect();
+        positions.push(Vec3::new(0.65, 0.0, 0.0));
+        positions.push(Vec3::new(0.75, 0.0, 0.0));
+        let mut labels = vec![0u16; 15];
+        labels.extend([1u16, 1]);
+        let shares = own_part_shares(&positions, &labels, 0.52).unwrap();
+        assert!((shares[15] - 2.0 / 12.0).abs() < 1e-6, "{}", shares[15]);
+        assert!((shares[16] - 2.0 / 12.0).abs() < 1e-6, "{}", shares[16]);
+        assert_eq!(shares[0], 1.0);
+        // Part 0's roots beside the ear: 11 of their 13 neighbours are their own.
+        assert!((shares[7] - 11.0 / 13.0).abs() < 1e-6, "{}", shares[7]);
+        // No window: every root fills its own.
+        let alone = own_part_shares(&positions, &labels, 0.0).unwrap();
+        assert!(alone.iter().all(|&s| s == 1.0));
     }
 
     #[test]

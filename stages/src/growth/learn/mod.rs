@@ -188,6 +188,15 @@
 //!   every part still leaves 17). It stays off until pooling keeps small
 //!   parts apart without that step (docs/history.md, "Pooling within a part
 //!   puts a seam at its boundary").
+//!   `view_axes_min_own_share` (unset) takes the other way out for the
+//!   roots whose window their own part barely fills
+//!   ([`crate::growth::view_axes::own_part_shares`] below the share): they
+//!   keep the roots' frame, neither turned nor flipped. At 256 px an ear
+//!   fills about a tenth of its window, and the window's line is then the
+//!   head's; the roots' anatomical rule for an ear (base to tip) is closer
+//!   to its fur than that line (docs/history.md, "Ears that keep the
+//!   roots' frame"). Every other root turns as before, so the boundaries
+//!   between large parts pool across as before and get no seam.
 //!   `view_axes_min_excess` (0.1) also requires the agreement beyond random
 //!   maps' ([`crate::growth::view_axes`], "The null"): a frame turns only
 //!   where its lines agree beyond what the views' geometry gives noise.

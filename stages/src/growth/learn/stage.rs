@@ -27,7 +27,9 @@ use crate::data::rootset::Roots;
 use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
-use crate::growth::view_axes::{view_axes, view_elevations, vote_signs, ViewOrientation};
+use crate::growth::view_axes::{
+    own_part_shares, view_axes, view_elevations, vote_signs, ViewOrientation,
+};
 use crate::maths::geom::MeshQuery;
 
 fure_stage_api::param_enum! {
@@ -160,6 +162,11 @@ fure_stage_api::stage_params! {
         /// a head) then reads its own lines; false = every root within the radius (off: it
         /// puts a seam at part boundaries, learn module doc).
         view_axes_within_part: bool = bool(false),
+        /// Roots whose pooling window (view_axes_radius_px) holds less than this share of
+        /// their own part's roots keep the roots' frame, neither turned onto the views' axis
+        /// nor flipped by the sign vote: their window reads mostly other parts' fur (an ear
+        /// on a head; growth::view_axes::own_part_shares). Unset: every root may turn.
+        view_axes_min_own_share: Option<f64> = optional(ParamType::Float).range(0.0, 1.0),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -740,6 +747,14 @@ pub struct ViewAxesReport {
     /// Fraction of the strands flipped by the neighbours' sign vote (view_axes_sign_vote).
     #[serde(default)]
     pub flipped_fraction: f32,
+    /// Fraction of the strands that kept the roots' frame because their own part fills
+    /// little of their window (view_axes_min_own_share).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub kept_fraction: f32,
+}
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
 }
 
 /// What `view_elevation` read and did (metrics.json `view_elevation`).
@@ -922,10 +937,27 @@ fn turn_onto_view_axes(
     let pool_parts = p.view_axes_within_part.then_some(parts);
     let axes = view_axes(positions, frames, outer, &views, radius, pool_parts)
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
+    let roots_path = ctx.input("roots")?;
+    // Roots whose window their own part barely fills keep the roots' frame.
+    let keep: Vec<bool> = match p.view_axes_min_own_share {
+        Some(min) => own_part_shares(positions, parts, radius)
+            .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
+            .into_iter()
+            .map(|s| (s as f64) < min)
+            .collect(),
+        None => vec![false; frames.len()],
+    };
+    let kept: Vec<(usize, Mat3)> = (0..frames.len())
+        .filter(|&i| keep[i])
+        .map(|i| (i, frames[i]))
+        .collect();
     let (mut turned, mut turn_sum, mut unseen) = (0usize, 0.0f64, 0usize);
-    for (f, a) in frames.iter_mut().zip(&axes) {
+    for ((f, a), &k) in frames.iter_mut().zip(&axes).zip(&keep) {
         if a.views == 0 {
             unseen += 1;
+        }
+        if k {
+            continue;
         }
         let excess_ok = a.excess_coherence as f64 >= p.view_axes_min_excess;
         if a.coherence >= p.view_axes_min_coherence && excess_ok && a.coherence > 0.0 {
@@ -934,13 +966,18 @@ fn turn_onto_view_axes(
             turn_sum += a.turn.abs().to_degrees() as f64;
         }
     }
-    let flipped = if p.view_axes_sign_vote {
-        let roots_path = ctx.input("roots")?;
+    let mut flipped = if p.view_axes_sign_vote {
         vote_signs(positions, frames, radius, pool_parts)
             .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
     } else {
         0
     };
+    for &(i, f) in &kept {
+        if frames[i] != f {
+            flipped -= 1;
+        }
+        frames[i] = f;
+    }
     let n = axes.len() as f32;
     let mean_coherence = (axes.iter().map(|a| a.coherence as f64).sum::<f64>() / n as f64) as f32;
     let mean_excess_coherence =
@@ -966,6 +1003,7 @@ fn turn_onto_view_axes(
         mean_coherence,
         mean_excess_coherence,
         unseen_fraction: unseen as f32 / n,
+        kept_fraction: kept.len() as f32 / n,
     }))
 }
 
