@@ -12,6 +12,13 @@ use serde::Serialize;
 
 use super::{read_bytes, write_bytes, FormatError, Position};
 
+/// `#[serde(skip_serializing_if = "crate::formats::json::is_zero")]`: leaves a
+/// report field out at 0, so adding an optional setting's report keeps the
+/// bytes of every report written without it.
+pub fn is_zero(x: &f32) -> bool {
+    *x == 0.0
+}
+
 /// Reads a JSON file into `T`.
 pub fn read_json<T: DeserializeOwned>(path: impl AsRef<Path>) -> Result<T, FormatError> {
     let path = path.as_ref();

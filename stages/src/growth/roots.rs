@@ -690,12 +690,8 @@ pub struct GrowthPrior {
     pub lean_down: f32,
     /// How far the legs' reference leans along the body axis, toward the tail (`limb_back`).
     /// Left out of metrics.json at 0 (the legs' reference is "down" alone).
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::formats::json::is_zero")]
     pub lean_back: f32,
-}
-
-fn is_zero(x: &f32) -> bool {
-    *x == 0.0
 }
 
 impl GrowthPrior {

@@ -749,12 +749,8 @@ pub struct ViewAxesReport {
     pub flipped_fraction: f32,
     /// Fraction of the strands that kept the roots' frame because their own part fills
     /// little of their window (view_axes_min_own_share).
-    #[serde(default, skip_serializing_if = "is_zero")]
+    #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
     pub kept_fraction: f32,
-}
-
-fn is_zero(x: &f32) -> bool {
-    *x == 0.0
 }
 
 /// What `view_elevation` read and did (metrics.json `view_elevation`).
