@@ -832,6 +832,10 @@ iterations = 30
 
     let md = p.read("docs/results.md");
     assert!(md.contains("## Headline, test split"), "{md}");
+    // The targets table reads the codec against its goals on the test scene, before the scenes.
+    let targets = md.find("## Targets, test split: FurE codec").expect(&md);
+    assert!(targets < md.find("## Per scene").unwrap(), "{md}");
+    assert!(md[targets..].contains("\n| cat | "), "{md}");
     // The README's section now holds the stamped headline table; its prose is untouched.
     let readme = p.read("README.md");
     assert!(

@@ -17,6 +17,9 @@
 //! - The headline is the signed F-score (growth direction counted). Each scene's **ceiling** is the
 //!   same animal regrown with another seed, scored against the GT (`ceiling` prefix): what a
 //!   reconstruction could reach when only the seed's draws differ.
+//! - The **targets** tables read the first method's figures, as this report states them,
+//!   against the goals set for it (`target_*` parameters; the rules in
+//!   [`crate::evaluation::targets`]): met, missed, undecided or not judged, per scene.
 //!
 //! # Keys read from the record
 //! A method is `NAME=EVAL[:LEARNER]`: `EVAL` the prefix of its `evaluate` stage
@@ -48,6 +51,7 @@ use serde_json::{json, Map, Value as Json};
 
 use crate::evaluation::charts::{chart_err, fmt_num, write_png_chart, write_svg_chart};
 use crate::evaluation::stability::{SweepRecord, VariantRecord};
+use crate::evaluation::targets::{write_targets, Goals};
 
 /// The line `fure sweep`'s `[publish]` replaces with the date, machine, revision and command
 /// (the engine's `publish::PROVENANCE_MARK`): a cached output cannot say when it was made.
@@ -100,6 +104,8 @@ pub struct Config {
     pub v2_lengths: String,
     /// Where the published charts are, relative to the published document.
     pub charts_link: String,
+    /// What the targets table reads the first method against.
+    pub goals: Goals,
 }
 
 /// Mean, sample standard deviation (`None` below two values) and count.
@@ -270,7 +276,7 @@ fn preprocessing_seconds(v: &VariantRecord, cfg: &Config) -> Option<f64> {
     (!s.is_empty()).then(|| s.iter().sum())
 }
 
-fn fmt_stat(s: Option<Stat>, digits: usize) -> String {
+pub(crate) fn fmt_stat(s: Option<Stat>, digits: usize) -> String {
     match s {
         None => "-".into(),
         Some(Stat {
@@ -285,6 +291,15 @@ fn stat_json(s: Option<Stat>) -> Json {
         None => Json::Null,
         Some(s) => json!({"mean": s.mean, "sd": s.sd, "n": s.n}),
     }
+}
+
+/// The inverse of [`stat_json`]: `None` for a null or malformed figure.
+pub(crate) fn stat_from_json(j: &Json) -> Option<Stat> {
+    Some(Stat {
+        mean: j["mean"].as_f64()?,
+        sd: j["sd"].as_f64(),
+        n: j["n"].as_u64()? as usize,
+    })
 }
 
 /// Everything the stage writes except the charts.
@@ -308,15 +323,32 @@ pub fn report(rec: &SweepRecord, cfg: &Config) -> Report {
     let mut headline = String::new();
     write_headlines(&mut headline, &scenes, cfg);
     md.push_str(&headline);
-    if let Some(verdicts) = write_comparisons(&mut md, &scenes, cfg) {
+    let verdicts = write_comparisons(&mut md, &scenes, cfg);
+    // The scenes' sections come after the targets, which read their figures.
+    let mut scenes_md = String::new();
+    let per_scene: Json = scenes
+        .iter()
+        .map(|sc| (sc.name.clone(), write_scene(&mut scenes_md, sc, cfg)))
+        .collect::<Map<String, Json>>()
+        .into();
+    if let (Some(first), Some(verdicts)) = (cfg.methods.first(), &verdicts) {
+        let order: Vec<(&str, &str)> = scenes.iter().map(|s| (s.name.as_str(), s.split)).collect();
+        let states = write_targets(
+            &mut md,
+            &order,
+            &per_scene,
+            verdicts,
+            &first.name,
+            &cfg.goals,
+        );
+        out.insert("targets".into(), states);
+    }
+    if let Some(verdicts) = verdicts {
         out.insert("verdicts".into(), verdicts);
     }
     let _ = writeln!(md, "## Per scene\n");
-    let per_scene: Map<String, Json> = scenes
-        .iter()
-        .map(|sc| (sc.name.clone(), write_scene(&mut md, sc, cfg)))
-        .collect();
-    out.insert("scenes".into(), per_scene.into());
+    md.push_str(&scenes_md);
+    out.insert("scenes".into(), per_scene);
     out.insert("runs".into(), rec.variants.len().into());
     out.insert("stage_threads".into(), thread_counts(rec).into());
     let load = other_load(rec);
@@ -1249,6 +1281,14 @@ fure_stage_api::stage_params! {
         v2_lengths: String = string("lengths_v2"),
         /// where the published charts are, relative to the published results.md
         charts_link: String = string("benchmark"),
+        /// targets table: methods (by name) the first must match or beat at 2, 3 and 4 cm
+        target_against: Vec<String> = str_list(&["dense", "fixed length"]),
+        /// targets table: the least speed-up to dense's final 3 cm F
+        target_speedup: f64 = float(10.0).range(0.0, 1e6),
+        /// targets table: the largest mean in-plane direction error (degrees)
+        target_direction_deg: f64 = float(20.0).range(0.0, 180.0),
+        /// targets table: curvature variance over the GT's within this factor either way
+        target_curvature_ratio: f64 = float(2.0).range(1.0, 1e6),
     }
 }
 
@@ -1264,6 +1304,20 @@ fn config(p: &Params) -> Result<Config, StageError> {
         return Err(StageError::param(
             "methods",
             "expected at least one NAME=EVAL[:LEARNER]",
+        ));
+    }
+    if let Some(unknown) = p
+        .target_against
+        .iter()
+        .find(|n| !methods.iter().skip(1).any(|m| &&m.name == n))
+    {
+        let names: Vec<&str> = methods.iter().skip(1).map(|m| m.name.as_str()).collect();
+        return Err(StageError::param(
+            "target_against",
+            format!(
+                "`{unknown}` is not a method the first is compared with (expected one of: {})",
+                names.join(", ")
+            ),
         ));
     }
     if let Some(s) = p.dev.iter().find(|s| p.test.contains(s)) {
@@ -1283,6 +1337,12 @@ fn config(p: &Params) -> Result<Config, StageError> {
         speedup: p.speedup,
         v2_lengths: p.v2_lengths,
         charts_link: p.charts_link,
+        goals: Goals {
+            against: p.target_against,
+            speedup: p.target_speedup,
+            direction_deg: p.target_direction_deg,
+            curvature_ratio: p.target_curvature_ratio,
+        },
     })
 }
 
@@ -1298,7 +1358,8 @@ impl Stage for BenchmarkReportStage {
         // 15: the other work beside the stages (`costs.S.other_load`).
         // 16: each method's worst part for the direction error.
         // 17: only parts with enough strands.
-        17
+        // 18: the targets tables.
+        18
     }
     fn doc(&self) -> &'static str {
         "Benchmark suite report from the engine's sweep record: per split and scene, signed F-scores \
@@ -1422,6 +1483,12 @@ mod tests {
             speedup: "speed_accuracy".into(),
             v2_lengths: "lengths_v2".into(),
             charts_link: "benchmark".into(),
+            goals: Goals {
+                against: vec!["dense".into()],
+                speedup: 10.0,
+                direction_deg: 20.0,
+                curvature_ratio: 2.0,
+            },
         }
     }
 

@@ -8,3 +8,4 @@ pub mod evaluate;
 pub mod seams;
 pub mod speed_accuracy;
 pub mod stability;
+pub mod targets;
