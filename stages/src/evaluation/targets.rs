@@ -79,8 +79,7 @@ impl Cell {
 
     fn markdown(&self) -> String {
         match self.status {
-            Status::NotJudged if self.detail.is_empty() => "-".into(),
-            Status::NotJudged => self.detail.clone(),
+            Status::NotJudged => "-".into(),
             s => format!("{} ({})", s.label(), self.detail),
         }
     }
@@ -97,6 +96,16 @@ const OTHER_GOALS: [&str; 4] = [
 /// The verdict thresholds the "at least" goals read: 2, 3 and 4 cm.
 const AGAINST_THRESHOLDS: [&str; 3] = ["2cm_20deg", "3cm_30deg", "4cm_40deg"];
 
+/// A verdict as a cell shows it: "undecided (1 seed)" is the one way to be undecided, so
+/// "1 seed" says it.
+fn short_verdict(label: &str) -> &str {
+    if label.starts_with("undecided") {
+        "1 seed"
+    } else {
+        label
+    }
+}
+
 /// The first method against `other` on `scene`, from the report's verdicts.
 fn against(verdicts: &Json, scene: &str, other: &str) -> Cell {
     let v = &verdicts[format!("{scene}|{other}")];
@@ -112,16 +121,7 @@ fn against(verdicts: &Json, scene: &str, other: &str) -> Cell {
     } else {
         Status::Met
     };
-    let short: Vec<&str> = labels
-        .iter()
-        .map(|l| {
-            if l.starts_with("undecided") {
-                "1 seed"
-            } else {
-                l
-            }
-        })
-        .collect();
+    let short: Vec<&str> = labels.iter().map(|l| short_verdict(l)).collect();
     Cell::new(status, short.join(", "))
 }
 
@@ -140,15 +140,10 @@ fn untrained_start(speedup: &Json) -> Cell {
     } else {
         Status::Met
     };
-    let short = |l: &str| {
-        if l.starts_with("undecided") {
-            "1 seed"
-        } else {
-            l
-        }
-        .to_string()
-    };
-    Cell::new(status, format!("{} / {}", short(first), short(dense)))
+    Cell::new(
+        status,
+        format!("{} / {}", short_verdict(first), short_verdict(dense)),
+    )
 }
 
 /// The speed-up to dense's final 3 cm F against the target.
