@@ -199,6 +199,8 @@ pub struct Rates {
     pub points: f32,
     /// The codec's per-part log length scales (`Codec::with_part_lengths`).
     pub length: f32,
+    /// The codec's log style scale (`Codec::with_style_scale`).
+    pub style: f32,
 }
 
 /// The codec: encoder E_theta and fine-tuned decoder D_psi.
@@ -235,6 +237,8 @@ pub struct Codec {
     pub trained: usize,
     /// Learned length scales per part (`None` = lengths as given).
     pub part_lengths: Option<Box<PartLengths>>,
+    /// A learned scale on every style code (`None` = the codes as given).
+    pub style_scale: Option<Box<StyleScale>>,
     adam_theta: Adam,
     adam_psi: Adam,
 }
@@ -285,6 +289,39 @@ impl PartLengths {
         for l in self.log_scale.iter_mut() {
             *l -= mean;
         }
+    }
+}
+
+/// One learned scale on all the style codes, 1 at the start and never below: the views may
+/// ask every strand to depart further from the guide field's local mean shape than the basis
+/// corpus' own spread (a coat that curls more than the corpus does), not less. The image
+/// terms, fitting detail they do not resolve, pull toward the local mean shape wherever the
+/// detail is not larger than the corpus', which costs F-score on the straight coats (learn
+/// module doc), so a step below 1 is taken back.
+#[derive(Debug, Clone)]
+pub struct StyleScale {
+    /// The log of the scale (a one-element vector, as Adam steps slices).
+    pub log_scale: Vec<f32>,
+    adam: Adam,
+}
+
+impl StyleScale {
+    fn new() -> Self {
+        StyleScale {
+            log_scale: vec![0.0],
+            adam: Adam::new(1),
+        }
+    }
+
+    /// The scale on the style codes.
+    pub fn scale(&self) -> f32 {
+        self.log_scale[0].exp()
+    }
+
+    /// One Adam step on `grad` (d loss / d log scale), kept at or above a scale of 1.
+    fn step(&mut self, grad: &[f32], rate: f32) {
+        self.adam.step(&mut self.log_scale, grad, rate);
+        self.log_scale[0] = self.log_scale[0].max(0.0);
     }
 }
 
@@ -384,6 +421,8 @@ pub enum Grads {
         psi: Vec<f32>,
         /// Per part, d loss / d log length scale (empty without learned lengths).
         length: Vec<f32>,
+        /// d loss / d log style scale (empty without a learned style scale).
+        style: Vec<f32>,
     },
     Dense {
         rows: Vec<f32>,
@@ -407,6 +446,7 @@ impl Codec {
             tilt_scale: ANGLE_SCALE,
             style: Vec::new(),
             part_lengths: None,
+            style_scale: None,
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
         }
@@ -450,6 +490,20 @@ impl Codec {
         self
     }
 
+    /// The same codec with one learned scale on its style codes (1 at the start,
+    /// [`StyleScale`]); without style codes there is nothing to scale.
+    pub fn with_style_scale(mut self) -> Self {
+        if !self.style.is_empty() {
+            self.style_scale = Some(Box::new(StyleScale::new()));
+        }
+        self
+    }
+
+    /// The factor on the style codes (1 unless learned).
+    fn style_factor(&self) -> f32 {
+        self.style_scale.as_ref().map_or(1.0, |s| s.scale())
+    }
+
     /// The same codec whose encoder outputs codes for the first `trained`
     /// components only (clamped to the decoder's K; `mlp` must have that
     /// many outputs before the angles): the trailing components decode from
@@ -474,11 +528,12 @@ impl Codec {
         codes[..t].copy_from_slice(&out[j * st..j * st + t]);
         codes[t..].fill(0.0);
         if !self.style.is_empty() {
+            let factor = self.style_factor();
             for (a, b) in codes
                 .iter_mut()
                 .zip(&self.style[strand * k..(strand + 1) * k])
             {
-                *a += b;
+                *a += factor * b;
             }
         }
     }
@@ -546,6 +601,7 @@ impl Model {
                         0
                     }
                     + c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len())
+                    + c.style_scale.is_some() as usize
             }
             Model::Dense(d) => d.points.len(),
         }
@@ -631,7 +687,8 @@ impl Model {
                 let nt = c.mlp.param_count();
                 let np = c.decoder.params.len();
                 let nparts = c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len());
-                let per_chunk: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = subset
+                let style_factor = c.style_scale.as_ref().map(|s| s.scale());
+                let per_chunk: Vec<(Vec<f32>, Vec<f32>, Vec<f32>, f32)> = subset
                     .par_chunks(CHUNK)
                     .zip(chunks.par_iter())
                     .zip(grad.par_chunks(CHUNK * l))
@@ -641,6 +698,7 @@ impl Model {
                         let mut glen = vec![0.0f32; nparts];
                         let mut gl = vec![Vec3::ZERO; l];
                         let mut gcode = vec![0.0f32; k];
+                        let mut gstyle = 0.0f32;
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
                             let loc = &ch.local[j * l..(j + 1) * l];
@@ -686,16 +744,24 @@ impl Model {
                                 c.finetune_decoder.then_some(&mut gpsi[..]),
                             );
                             gz[j * st..j * st + t].copy_from_slice(&gcode[..t]);
+                            if let Some(factor) = style_factor {
+                                // code = encoder output + factor * style: d code / d log
+                                // factor = factor * style.
+                                let style = &c.style[i * k..(i + 1) * k];
+                                gstyle += factor
+                                    * gcode.iter().zip(style).map(|(g, e)| g * e).sum::<f32>();
+                            }
                         }
                         let mut gt = vec![0.0f32; nt];
                         c.mlp.backward(&ch.tape, &gz, &mut gt);
-                        (gt, gpsi, glen)
+                        (gt, gpsi, glen, gstyle)
                     })
                     .collect();
                 let mut theta = vec![0.0f32; nt];
                 let mut psi = vec![0.0f32; np];
                 let mut length = vec![0.0f32; nparts];
-                for (gt, gp, gl) in per_chunk {
+                let mut style = vec![0.0f32; style_factor.is_some() as usize];
+                for (gt, gp, gl, gs) in per_chunk {
                     for (a, b) in theta.iter_mut().zip(&gt) {
                         *a += b;
                     }
@@ -705,8 +771,16 @@ impl Model {
                     for (a, b) in length.iter_mut().zip(&gl) {
                         *a += b;
                     }
+                    if let Some(a) = style.first_mut() {
+                        *a += gs;
+                    }
                 }
-                Grads::Codec { theta, psi, length }
+                Grads::Codec {
+                    theta,
+                    psi,
+                    length,
+                    style,
+                }
             }
             (Model::Dense(d), _) => {
                 let mut rows = Vec::with_capacity(subset.len() * (l - 1) * 3);
@@ -732,6 +806,7 @@ impl Model {
                 theta: Vec::new(),
                 psi: Vec::new(),
                 length: Vec::new(),
+                style: Vec::new(),
             },
         }
     }
@@ -739,13 +814,24 @@ impl Model {
     /// One Adam step.
     pub fn step(&mut self, grads: &Grads, subset: &[u32], rates: Rates) {
         match (self, grads) {
-            (Model::Codec(c), Grads::Codec { theta, psi, length }) => {
+            (
+                Model::Codec(c),
+                Grads::Codec {
+                    theta,
+                    psi,
+                    length,
+                    style,
+                },
+            ) => {
                 c.adam_theta.step(&mut c.mlp.params, theta, rates.encoder);
                 if c.finetune_decoder {
                     c.adam_psi.step(&mut c.decoder.params, psi, rates.decoder);
                 }
                 if let Some(p) = c.part_lengths.as_mut() {
                     p.step(length, rates.length);
+                }
+                if let Some(s) = c.style_scale.as_mut() {
+                    s.step(style, rates.style);
                 }
             }
             (Model::Dense(d), Grads::Dense { rows }) => {
@@ -872,6 +958,11 @@ mod tests {
     }
 
     #[test]
+    fn codec_backward_with_learned_style_scale_matches_finite_differences() {
+        check_codec_gradients_full(true, false, 0.7, false, 2, true);
+    }
+
+    #[test]
     fn codec_backward_with_untrained_trailing_components_matches_finite_differences() {
         check_codec_gradients_trained(true, true, 0.5, true, 1);
     }
@@ -888,6 +979,17 @@ mod tests {
         style: f32,
         lengths: bool,
         trained: usize,
+    ) {
+        check_codec_gradients_full(rotation, tilt, style, lengths, trained, false);
+    }
+
+    fn check_codec_gradients_full(
+        rotation: bool,
+        tilt: bool,
+        style: f32,
+        lengths: bool,
+        trained: usize,
+        style_scale: bool,
     ) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
@@ -937,6 +1039,10 @@ mod tests {
             codec = codec.with_part_lengths(&[1, 2]);
             codec.part_lengths.as_mut().unwrap().log_scale = vec![0.2, -0.3];
         }
+        if style_scale {
+            codec = codec.with_style_scale();
+            codec.style_scale.as_mut().unwrap().log_scale = vec![0.4];
+        }
         let mut model = Model::Codec(codec);
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)
@@ -949,12 +1055,16 @@ mod tests {
         let (_, cache) = model.forward(&prep, &subset);
         let grads = model.backward(&prep, &subset, &cache, &w);
         let Grads::Codec {
-            theta, psi, length, ..
+            theta,
+            psi,
+            length,
+            style: style_grad,
         } = grads
         else {
             panic!()
         };
         assert_eq!(length.len(), if lengths { 2 } else { 0 });
+        assert_eq!(style_grad.len(), style_scale as usize);
         let h = 1e-2f32;
         let Model::Codec(c) = &mut model else {
             panic!()
@@ -1002,6 +1112,21 @@ mod tests {
                 "part {i}: {fd} vs {g}"
             );
         }
+        if let Some(&g) = style_grad.first() {
+            let set = |c: &mut Codec, v: f32| c.style_scale.as_mut().unwrap().log_scale[0] = v;
+            let o = c.style_scale.as_ref().unwrap().log_scale[0];
+            set(c, o + h);
+            let fp = f(&Model::Codec(c.clone()));
+            set(c, o - h);
+            let fm = f(&Model::Codec(c.clone()));
+            set(c, o);
+            let fd = (fp - fm) / (2.0 * h as f64);
+            assert!(fd.abs() > 1e-3, "style scale: the check needs a gradient");
+            assert!(
+                (fd - g as f64).abs() < 1e-2 * (1.0 + fd.abs()),
+                "style scale: {fd} vs {g}"
+            );
+        }
     }
 
     fn rates_for_test() -> Rates {
@@ -1010,6 +1135,7 @@ mod tests {
             decoder: 0.0,
             points: 0.0,
             length: 0.1,
+            style: 0.0,
         }
     }
 
@@ -1063,6 +1189,20 @@ mod tests {
         assert!((0.75 * s[0] + 0.25 * s[1]).abs() < 1e-6, "{s:?}");
         let lengths: Vec<f32> = (0..n).map(|i| c.length(&prep, i)).collect();
         assert!(lengths[3] < 1.0 && lengths[0] > 1.0, "{lengths:?}");
+    }
+
+    #[test]
+    fn the_style_scale_rises_when_pulled_up_and_stays_at_one_when_pulled_down() {
+        let mut s = StyleScale::new();
+        for _ in 0..10 {
+            s.step(&[1.0], 0.1);
+        }
+        assert_eq!(s.scale(), 1.0);
+        // Adam's momentum first spends the ten steps down, then the scale climbs.
+        for _ in 0..30 {
+            s.step(&[-1.0], 0.1);
+        }
+        assert!(s.scale() > 1.5, "{}", s.scale());
     }
 
     #[test]

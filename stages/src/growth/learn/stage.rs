@@ -223,6 +223,14 @@ fure_stage_api::stage_params! {
         /// with lr_decay, so over the default 100 iterations a scale can move by at most about
         /// exp(14.5 x this); 0.05 chosen on the dev split against 0.1).
         lr_length: f32 = float(0.05).min(0.0),
+        /// One learned scale on every style code, 1 at the start and never below
+        /// (learn::model::StyleScale): a coat that curls more than the basis corpus gets
+        /// strands that depart further from the guide field's local mean shape (chosen on
+        /// the dev split, learn module doc; metrics.json `style_scale`).
+        learn_style: bool = bool(true),
+        /// Initial Adam learning rate of the log style scale (learn_style; decays with
+        /// lr_decay).
+        lr_style: f32 = float(0.05).min(0.0),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
         /// Hidden width of the encoder.
@@ -433,8 +441,8 @@ impl Stage for CodecStrandsStage {
         "codec_strands"
     }
     fn version(&self) -> u32 {
-        // 22: metrics.json reports the components' reach at min_component_px 0 too.
-        22
+        // 23: the learned style scale (learn_style), never below 1.
+        23
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -537,6 +545,9 @@ pub struct LearnMetrics {
     /// over the length they were given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub part_length_scale: Option<std::collections::BTreeMap<String, f32>>,
+    /// The learned scale on the style codes (learn_style).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub style_scale: Option<f32>,
     /// The basis components the codec trains (min_component_px).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub components: Option<ComponentsReport>,
@@ -1325,6 +1336,10 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         view_axes: s.view_axes.clone(),
         view_elevation: s.view_elevation.clone(),
         part_length_scale: learned_length_scales(&model, &s),
+        style_scale: match &model {
+            Model::Codec(c) => c.style_scale.as_ref().map(|s| s.scale()),
+            Model::Dense(_) => None,
+        },
         components: s.components.clone(),
     };
     let _ = (&s.lengths, &s.outer);
@@ -1387,6 +1402,9 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
             if c.learn_length {
                 codec = codec.with_part_lengths(&s.prep.strands_per_part());
             }
+            if c.learn_style {
+                codec = codec.with_style_scale();
+            }
             (
                 Model::Codec(codec),
                 Rates {
@@ -1394,6 +1412,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                     decoder: c.lr_decoder,
                     points: 0.0,
                     length: c.lr_length,
+                    style: c.lr_style,
                 },
             )
         }
@@ -1404,6 +1423,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                 decoder: 0.0,
                 points: d.lr_points,
                 length: 0.0,
+                style: 0.0,
             },
         ),
     }

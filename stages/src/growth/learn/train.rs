@@ -125,6 +125,7 @@ pub fn decayed_rates(rates: Rates, decay: f32, iteration: usize, iterations: usi
         decoder: rates.decoder * f,
         points: rates.points * f,
         length: rates.length * f,
+        style: rates.style * f,
     }
 }
 
@@ -289,6 +290,7 @@ mod tests {
                 decoder: 1e-4,
                 points: 0.02,
                 length: 0.0,
+                style: 0.0,
             },
             lr_decay: 1.0,
             w_chm: 1.0,
@@ -361,6 +363,7 @@ mod tests {
             decoder: 2e-4,
             points: 0.01,
             length: 0.0,
+            style: 0.0,
         };
         let at = |it| decayed_rates(r, 0.01, it, 101);
         assert_eq!(at(0).encoder, r.encoder);
