@@ -1098,34 +1098,16 @@ mod tests {
             );
         }
         for (i, &g) in length.iter().enumerate() {
-            let set = |c: &mut Codec, v: f32| c.part_lengths.as_mut().unwrap().log_scale[i] = v;
-            let o = c.part_lengths.as_ref().unwrap().log_scale[i];
-            set(c, o + h);
-            let fp = f(&Model::Codec(c.clone()));
-            set(c, o - h);
-            let fm = f(&Model::Codec(c.clone()));
-            set(c, o);
-            let fd = (fp - fm) / (2.0 * h as f64);
-            assert!(fd.abs() > 1e-3, "part {i}: the check needs a gradient");
-            assert!(
-                (fd - g as f64).abs() < 1e-2 * (1.0 + fd.abs()),
-                "part {i}: {fd} vs {g}"
-            );
+            let fd = central_difference(c, &f, h, |c| {
+                &mut c.part_lengths.as_mut().unwrap().log_scale[i]
+            });
+            assert_scalar_gradient(&format!("part {i}"), fd, g);
         }
         if let Some(&g) = style_grad.first() {
-            let set = |c: &mut Codec, v: f32| c.style_scale.as_mut().unwrap().log_scale[0] = v;
-            let o = c.style_scale.as_ref().unwrap().log_scale[0];
-            set(c, o + h);
-            let fp = f(&Model::Codec(c.clone()));
-            set(c, o - h);
-            let fm = f(&Model::Codec(c.clone()));
-            set(c, o);
-            let fd = (fp - fm) / (2.0 * h as f64);
-            assert!(fd.abs() > 1e-3, "style scale: the check needs a gradient");
-            assert!(
-                (fd - g as f64).abs() < 1e-2 * (1.0 + fd.abs()),
-                "style scale: {fd} vs {g}"
-            );
+            let fd = central_difference(c, &f, h, |c| {
+                &mut c.style_scale.as_mut().unwrap().log_scale[0]
+            });
+            assert_scalar_gradient("style scale", fd, g);
         }
     }
 
@@ -1189,6 +1171,32 @@ mod tests {
         assert!((0.75 * s[0] + 0.25 * s[1]).abs() < 1e-6, "{s:?}");
         let lengths: Vec<f32> = (0..n).map(|i| c.length(&prep, i)).collect();
         assert!(lengths[3] < 1.0 && lengths[0] > 1.0, "{lengths:?}");
+    }
+
+    /// d f / d the parameter `at` points to, by central differences of step `h`.
+    fn central_difference(
+        c: &mut Codec,
+        f: &impl Fn(&Model) -> f64,
+        h: f32,
+        at: impl Fn(&mut Codec) -> &mut f32,
+    ) -> f64 {
+        let o = *at(c);
+        *at(c) = o + h;
+        let fp = f(&Model::Codec(c.clone()));
+        *at(c) = o - h;
+        let fm = f(&Model::Codec(c.clone()));
+        *at(c) = o;
+        (fp - fm) / (2.0 * h as f64)
+    }
+
+    /// A scalar parameter's gradient `g` against its finite difference `fd`, which must not
+    /// vanish (the check would pass on a zero gradient).
+    fn assert_scalar_gradient(name: &str, fd: f64, g: f32) {
+        assert!(fd.abs() > 1e-3, "{name}: the check needs a gradient");
+        assert!(
+            (fd - g as f64).abs() < 1e-2 * (1.0 + fd.abs()),
+            "{name}: {fd} vs {g}"
+        );
     }
 
     #[test]

@@ -2005,12 +2005,14 @@ pub(crate) mod tests {
         assert_eq!((r.trained, r.decoded), (1, 2));
         assert!(r.pixel_footprint > 0.0 && r.component_px.iter().all(|&a| a < 1e6));
         // Two encoder outputs fewer (16 weights and a bias each), one decoder component
-        // fewer (8 points of 3 coordinates).
+        // fewer (8 points of 3 coordinates), and one more: the scale on its style codes
+        // (learn_style, which a run without style codes has nothing to learn for).
         let mlp_width = 16;
         assert_eq!(
             all.optimised_parameters - coarse.optimised_parameters,
-            2 * (mlp_width + 1) + 8 * 3
+            2 * (mlp_width + 1) + 8 * 3 - 1
         );
+        assert!(all.style_scale.is_none() && coarse.style_scale.is_some());
     }
 
     #[test]
