@@ -26,6 +26,10 @@ use super::mlp::{Mlp, MlpTape, PositionalEncoding};
 use super::placement::{self, Decoder};
 use crate::maths::stats::standard_normal;
 
+/// One chunk's codec gradient sums, added up in chunk order: encoder, decoder, part log
+/// length scales, log style scale.
+type ChunkGrads = (Vec<f32>, Vec<f32>, Vec<f32>, f32);
+
 /// Strands per parallel work item.
 pub const CHUNK: usize = 128;
 
@@ -688,7 +692,7 @@ impl Model {
                 let np = c.decoder.params.len();
                 let nparts = c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len());
                 let style_factor = c.style_scale.as_ref().map(|s| s.scale());
-                let per_chunk: Vec<(Vec<f32>, Vec<f32>, Vec<f32>, f32)> = subset
+                let per_chunk: Vec<ChunkGrads> = subset
                     .par_chunks(CHUNK)
                     .zip(chunks.par_iter())
                     .zip(grad.par_chunks(CHUNK * l))
