@@ -77,6 +77,7 @@ fn time_model(model: &mut Model, prep: &Prepared, rng: &mut Rng) -> [f64; 4] {
         decoder: 1e-5,
         points: 1e-3,
         length: 0.05,
+        style: 0.05,
     };
     let mut runs: Vec<[f64; 4]> = Vec::new();
     for it in 0..REPS + 2 {
