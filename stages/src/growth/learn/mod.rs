@@ -78,6 +78,19 @@
 //!   1 cm), and the tiger and the fox tie at every threshold. Without L_chm
 //!   the dense baseline's strict 1 cm score falls by 7-8 points on the tiger
 //!   and the fox (its free points take the freedom), so it keeps the hinge.
+//! - No shape term by default (`l_turn` 0, codec only; [`geomloss`]'s
+//!   L_turn, the change of the turning angle from vertex to vertex). The
+//!   image terms flatten a strand's visible outer segments and leave the
+//!   hidden root segment as the basis put it, a kink the GT does not have
+//!   (the lynx's codec strands: 38x the GT's local curvature variance). At
+//!   weight 1 the term brings the dev split's variance toward the GT's
+//!   (sheepdog 3.7x -> 1.7x, lynx 38x -> 13x, poodle 4.7x -> 2.1x) at equal F
+//!   on four scenes, but the curling coat (poodle) loses 2 and 3 cm, so it
+//!   stays an option. Its gradient skips the style scale
+//!   ([`model::Grads::add_without_style`]): the style codes' curl is uneven by
+//!   construction, and with the full gradient the term held the scale at 1
+//!   and the poodle lost 14 points at 2 cm (docs/history.md, "A shape term
+//!   for the kink at the root").
 //! - Subset rendering: only the sampled strands are rendered (as in NeuralFur);
 //!   widths are the roots' widths, unscaled.
 //! - Appearance: one RGB colour per strand (lazy Adam on sampled strands) and

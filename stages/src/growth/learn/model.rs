@@ -433,6 +433,42 @@ pub enum Grads {
     },
 }
 
+impl Grads {
+    /// Adds `other` (the same model's gradients for the same subset), all but
+    /// its style-scale part: the shape terms (learn::geomloss::turning) shape
+    /// what the encoder outputs and leave the style map's scale to the views.
+    pub fn add_without_style(&mut self, other: &Grads) {
+        match (self, other) {
+            (
+                Grads::Codec {
+                    theta, psi, length, ..
+                },
+                Grads::Codec {
+                    theta: t2,
+                    psi: p2,
+                    length: l2,
+                    ..
+                },
+            ) => {
+                for (a, b) in theta
+                    .iter_mut()
+                    .chain(psi.iter_mut())
+                    .chain(length.iter_mut())
+                    .zip(t2.iter().chain(p2).chain(l2))
+                {
+                    *a += b;
+                }
+            }
+            (Grads::Dense { rows }, Grads::Dense { rows: r2 }) => {
+                for (a, b) in rows.iter_mut().zip(r2) {
+                    *a += b;
+                }
+            }
+            _ => unreachable!("gradients of two different models"),
+        }
+    }
+}
+
 impl Codec {
     /// `mlp` must have `decoder.k` outputs (or as many as
     /// [`Codec::with_trained_components`] sets), one more with `rotation`.
@@ -959,6 +995,38 @@ mod tests {
     #[test]
     fn codec_backward_with_learned_part_lengths_matches_finite_differences() {
         check_codec_gradients_with(true, false, 0.5, true);
+    }
+
+    #[test]
+    fn added_gradients_skip_only_the_style_scale() {
+        let codec = |v: f32| Grads::Codec {
+            theta: vec![v; 3],
+            psi: vec![2.0 * v; 2],
+            length: vec![3.0 * v; 2],
+            style: vec![4.0 * v],
+        };
+        let mut g = codec(1.0);
+        g.add_without_style(&codec(10.0));
+        let Grads::Codec {
+            theta,
+            psi,
+            length,
+            style,
+        } = g
+        else {
+            unreachable!()
+        };
+        assert_eq!(
+            (theta, psi, length, style),
+            (vec![11.0; 3], vec![22.0; 2], vec![33.0; 2], vec![4.0])
+        );
+        let mut d = Grads::Dense {
+            rows: vec![1.0, 2.0],
+        };
+        d.add_without_style(&Grads::Dense {
+            rows: vec![3.0, 4.0],
+        });
+        assert!(matches!(d, Grads::Dense { rows } if rows == vec![4.0, 6.0]));
     }
 
     #[test]

@@ -274,6 +274,11 @@ fure_stage_api::stage_params! {
         /// Weight of L_chm (strand tips toward M_outer). 0: on the dev split the hinge ties the
         /// tiger and the fox and lays the lynx's upright coat down (learn module doc).
         l_chm: f32 = float(0.0).min(0.0),
+        /// Weight of L_turn, the change of each strand's turning angle from vertex to vertex
+        /// (learn::geomloss; its gradient skips the style scale). 0: at 1 it brings the dev
+        /// split's curvature variance toward the GT's (sheepdog 3.7x -> 1.7x) but loses the
+        /// curling coat's 2 and 3 cm scores (learn module doc).
+        l_turn: f32 = float(0.0).min(0.0),
         /// Give every strand a colour ramp from root to tip, fitted from the views with its
         /// colour and fixed while training (learn::image, `set_ramp`); off = one colour per
         /// strand. On: the tiger's held-out PSNR +0.3 dB, the other dev scenes and every
@@ -352,6 +357,13 @@ impl Learner {
         match self {
             Learner::Codec(c) => c.l_chm,
             Learner::Dense(d) => d.l_chm,
+        }
+    }
+    fn l_turn(&self) -> f32 {
+        match self {
+            Learner::Codec(c) => c.l_turn,
+            // Dense's strands have no such term (not tuned for it).
+            Learner::Dense(_) => 0.0,
         }
     }
     fn colors(&self) -> OwnColors {
@@ -442,13 +454,15 @@ impl Stage for CodecStrandsStage {
     }
     fn version(&self) -> u32 {
         // 23: the learned style scale (learn_style), never below 1.
-        23
+        // 24: the shape term (l_turn).
+        24
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
          shell-width feature and length to PCA codes, a fine-tuned PCA decoder gives a canonical \
          strand, the placement equation puts it on the root with exactly its length; trained \
-         through the Gaussian renderer with L_rgb, L_sil, L_ori, L_chm, L_sdf, L_mask."
+         through the Gaussian renderer with L_rgb, L_sil, L_ori, L_chm, L_sdf, L_mask (and L_turn on \
+         the strands' shape when weighted)."
     }
     fn params(&self) -> Vec<ParamSpec> {
         learner_specs(CodecParams::specs())
@@ -1241,6 +1255,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         lr_decay: learner.lr_decay(),
         w_chm: learner.l_chm(),
         w_sdf: p.l_sdf,
+        w_turn: learner.l_turn(),
         snapshot_first: p.snapshot_first_seconds,
         snapshot_growth: p.snapshot_growth,
         clock_start: 0.0,

@@ -45,6 +45,8 @@ pub struct TrainConfig {
     pub lr_decay: f32,
     pub w_chm: f32,
     pub w_sdf: f32,
+    /// Weight of L_turn (geomloss::turning; 0 = none).
+    pub w_turn: f32,
     /// Training time of the first snapshot after the initial one (0 = only
     /// the initial and final snapshots).
     pub snapshot_first: f64,
@@ -186,12 +188,27 @@ pub fn train(
         if let Some(img) = image.as_deref_mut() {
             terms.extend(img.eval(it, &points, l, &ids, &mut grad)?);
         }
-        if !grad.iter().all(|g| g.is_finite()) {
+        // The shape term's gradient goes through its own backward pass, so that it can skip
+        // the style scale (Grads::add_without_style).
+        let shape = (cfg.w_turn > 0.0).then(|| {
+            let mut g = vec![Vec3::ZERO; points.len()];
+            let v = geomloss::turning(&points, l, cfg.w_turn, &mut g);
+            terms.push(("turn", cfg.w_turn * v));
+            g
+        });
+        if !grad
+            .iter()
+            .chain(shape.iter().flatten())
+            .all(|g| g.is_finite())
+        {
             return Err(StageError::NonFinite {
                 what: format!("strand point gradients at iteration {it}"),
             });
         }
-        let grads = model.backward(prep, &ids, &cache, &grad);
+        let mut grads = model.backward(prep, &ids, &cache, &grad);
+        if let Some(shape) = &shape {
+            grads.add_without_style(&model.backward(prep, &ids, &cache, shape));
+        }
         model.step(
             &grads,
             &ids,
@@ -295,6 +312,7 @@ mod tests {
             lr_decay: 1.0,
             w_chm: 1.0,
             w_sdf: 1.0,
+            w_turn: 0.0,
             snapshot_first: 0.0,
             snapshot_growth: 1.25,
             clock_start: 0.0,
