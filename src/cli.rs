@@ -579,6 +579,23 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         },
         &mut |row| print_variant(row, a.dry_run, &cache),
     )?;
+    if rows.len() < total && sweep::stopped_on_full_disk(&rows) {
+        // As an interrupted sweep: no record, no aggregate, nothing published.
+        let complete = rows
+            .iter()
+            .filter(|r| r.status != sweep::VariantStatus::Failed)
+            .count();
+        eprintln!(
+            "sweep {}: stopped, the disk is full (variant {} failed on it; every later variant \
+             would too); {complete} of {total} variants complete (cached), {} not started, the \
+             previous record, tables and published documents kept",
+            p.name,
+            rows.last().map_or(0, |r| r.variant.index),
+            total - rows.len()
+        );
+        eprintln!("{DISK_FULL_HINT}");
+        return Ok(ExitCode::from(EXIT_FAILED));
+    }
     if crate::signals::received().is_some() {
         // An interrupted sweep writes no record and runs no aggregate: the last complete
         // sweep's tables, record and published documents stay as they were. What finished
@@ -1026,14 +1043,12 @@ fn print_summary(rep: &RunReport, dry_run: bool, out: &Path) {
 
 /// What to do when a failure says the disk is full (ENOSPC), or `None`.
 fn disk_full_hint<'a>(mut errors: impl Iterator<Item = &'a str>) -> Option<&'static str> {
-    errors
-        .any(|e| e.contains("No space left on device") || e.contains("os error 28"))
-        .then_some(
-            "hint: the disk is full. `fure gc --keep PIPELINE` (repeatable) removes the cache \
-             entries those pipelines no longer resolve to, `fure gc --max-size 20G` evicts the \
-             rest down to a size; what finished is cached, and the same command resumes.",
-        )
+    errors.any(exec::is_disk_full).then_some(DISK_FULL_HINT)
 }
+
+const DISK_FULL_HINT: &str = "hint: the disk is full. `fure gc --keep PIPELINE` (repeatable) \
+     removes the cache entries those pipelines no longer resolve to, `fure gc --max-size 20G` \
+     evicts the rest down to a size; what finished is cached, and the same command resumes.";
 
 /// A kind's documentation for `fure stages`.
 pub fn describe_kind(s: &dyn Stage) -> String {

@@ -155,6 +155,19 @@ pub struct StageReport {
     pub notes: Vec<String>,
 }
 
+impl StageReport {
+    /// Whether the stage failed because a disk was full (ENOSPC, as the
+    /// operating system's message or a command's stderr reports it).
+    pub fn failed_on_full_disk(&self) -> bool {
+        self.error.as_deref().is_some_and(is_disk_full)
+    }
+}
+
+/// Whether an error message says a disk is full (ENOSPC).
+pub fn is_disk_full(message: &str) -> bool {
+    message.contains("No space left on device") || message.contains("os error 28")
+}
+
 /// The run report (`--report FILE`, and `runs/` in the cache).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RunReport {

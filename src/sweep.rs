@@ -41,9 +41,14 @@
 //!
 //! # Status of a variant
 //!
-//! A sweep never stops at a failure: variants run with keep-going (a failed
+//! A sweep does not stop at a failure: variants run with keep-going (a failed
 //! stage skips only its dependents, independent branches still run) and every
-//! variant ends with a [`VariantStatus`]:
+//! variant ends with a [`VariantStatus`]. The one exception is a full disk: a
+//! variant with a stage that failed on ENOSPC ends the sweep there (run one
+//! variant at a time; a remote executor runs them all at once), since every
+//! later variant would fail stage by stage on the same disk; the CLI then
+//! reports it as it reports an interrupted sweep (no record, nothing
+//! published, the same command resumes once space is freed). Statuses:
 //! - `failed`: some stage failed; reason `"<stage>: <first line of its
 //!   error>"` for the first failed stage in plan order, plus `" (+N more)"`
 //!   (a first line ending in `:`, like a command's `...; stderr tail:`, takes
@@ -449,8 +454,18 @@ pub fn run_sweep(
         let row = make_row(v, plan, report, cache);
         on_row(&row);
         rows.push(row);
+        if stopped_on_full_disk(&rows) {
+            break;
+        }
     }
     Ok(rows)
+}
+
+/// Whether the last variant run had a stage fail on a full disk (the
+/// sequential sweep stops there; module doc).
+pub fn stopped_on_full_disk(rows: &[Row]) -> bool {
+    rows.last()
+        .is_some_and(|r| r.report.stages.iter().any(|s| s.failed_on_full_disk()))
 }
 
 /// The parsed `metrics.json` of each stage that has one, in plan order.

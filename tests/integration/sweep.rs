@@ -700,3 +700,62 @@ steps = 1
     assert_eq!(p.read("out/s/sweep.json"), before);
     assert_eq!(staging(&p), 0);
 }
+
+#[test]
+fn a_sweep_stops_at_a_full_disk_and_says_so() {
+    use std::process::Command;
+    let p = Project::new();
+    // Every variant runs the same command, which cannot fit on the disk.
+    p.write(
+        "s.toml",
+        r#"
+[stages.wait]
+kind = "demo_sleep"
+seconds = 0.01
+steps = 1
+
+[stages.fill]
+kind = "command"
+cmd = ["sh", "-c", "head -c 300000 /dev/zero > big.bin"]
+outs = ["big.bin"]
+
+[sweep]
+"wait.label" = ["a", "b", "c"]
+"#,
+    );
+    std::fs::create_dir_all(p.path("small")).unwrap();
+    // The cache on a small private tmpfs (as engine_trust's full-disk cases).
+    let script = format!(
+        "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} sweep s.toml --jobs 1 --quiet",
+        env!("CARGO_BIN_EXE_fure")
+    );
+    let out = Command::new("unshare")
+        .args(["-rm", "sh", "-c", &script])
+        .current_dir(p.path(""))
+        .env("FURE_CACHE", p.path("small/cache"))
+        .output();
+    let out = match out {
+        Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => out,
+        _ => {
+            eprintln!("skipped: no private tmpfs here");
+            return;
+        }
+    };
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(1), "{stdout}\n{stderr}");
+    assert!(stdout.contains("No space left on device"), "{stdout}");
+    assert!(
+        stderr.contains("stopped, the disk is full (variant 0 failed on it"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("0 of 3 variants complete (cached), 2 not started"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("fure gc"), "{stderr}");
+    assert!(!stdout.contains("variant 1 ("), "{stdout}");
+    assert!(!p.path("out/s/sweep.json").exists());
+}
