@@ -59,6 +59,33 @@ impl Project {
     pub(crate) fn fure(&self, args: &[&str]) -> Output {
         self.cmd(args).output().expect("run fure")
     }
+    /// Runs `sh -c "FURE_COMMAND; AFTER"` in the project directory, in a private mount
+    /// namespace where `small/` is a 64 KiB tmpfs (a full disk) and with the cache at
+    /// `cache` (under `small/` to put it on that disk). `None` where the test may not create
+    /// such a namespace (the caller skips its case).
+    pub(crate) fn on_a_full_disk(
+        &self,
+        fure_args: &str,
+        after: &str,
+        cache: &str,
+    ) -> Option<Output> {
+        std::fs::create_dir_all(self.path("small")).unwrap();
+        let script = format!(
+            "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} {fure_args}; c=$?; {after} exit $c",
+            env!("CARGO_BIN_EXE_fure")
+        );
+        let out = Command::new("unshare")
+            .args(["-rm", "sh", "-c", &script])
+            .current_dir(self.dir.path())
+            .env("FURE_CACHE", self.path(cache))
+            .output();
+        match out {
+            Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => {
+                Some(out)
+            }
+            _ => None,
+        }
+    }
     /// `fure run` with a report; returns (exit code, stage -> (status, reason), full report).
     pub(crate) fn run(&self, pipeline: &str, extra: &[&str]) -> Run {
         let report = self.path("report.json");

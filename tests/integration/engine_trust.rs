@@ -352,26 +352,20 @@ fn a_materialisation_failure_fails_the_run_and_leaves_no_temporaries() {
         "big.toml",
         "[stages.big]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"head -c 300000 /dev/zero > big.bin\"]\nouts = [\"big.bin\"]\n",
     );
-    std::fs::create_dir_all(p.path("small")).unwrap();
-    let script = format!(
-        "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} run big.toml --plain --out small; c=$?; \
-         find small -name '.fure-tmp-*' | sed 's/^/LEFT /' >&2; exit $c",
-        env!("CARGO_BIN_EXE_fure")
+    let out = p.on_a_full_disk(
+        "run big.toml --plain --out small",
+        "find small -name '.fure-tmp-*' | sed 's/^/LEFT /' >&2;",
+        "cache",
     );
-    let out = Command::new("unshare")
-        .args(["-rm", "sh", "-c", &script])
-        .current_dir(p.path(""))
-        .env("FURE_CACHE", p.path("cache"))
-        .output();
     match out {
-        Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => {
+        Some(out) => {
             let err = String::from_utf8_lossy(&out.stderr);
             assert_eq!(out.status.code(), Some(1), "{err}");
             assert!(err.contains("cannot materialise outputs"), "{err}");
             assert!(err.contains("No space left"), "{err}");
             assert!(!err.contains("LEFT "), "a partial temporary is left: {err}");
         }
-        _ => eprintln!("skipped the full-disk case: no private tmpfs here"),
+        None => eprintln!("skipped the full-disk case: no private tmpfs here"),
     }
     // (The tmpfs was private; no `.fure-tmp-*` is left in the real out/.)
     assert!(walk(&p.path("out"))
@@ -841,25 +835,15 @@ fn a_command_failing_on_a_full_disk_names_the_cause() {
         "fill.toml",
         "[stages.fill]\nkind = \"command\"\ncmd = [\"sh\", \"-c\", \"head -c 300000 /dev/zero > big.bin\"]\nouts = [\"big.bin\"]\n",
     );
-    std::fs::create_dir_all(p.path("small")).unwrap();
-    // The whole cache (staging directories included) on a small private tmpfs:
-    // the command's write fails, and so would a stderr log on that disk.
-    let script = format!(
-        "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} run fill.toml --plain; c=$?; \
-         find small/cache/tmp -mindepth 1 2>/dev/null | sed 's/^/LEFT /' >&2; exit $c",
-        env!("CARGO_BIN_EXE_fure")
-    );
-    let out = Command::new("unshare")
-        .args(["-rm", "sh", "-c", &script])
-        .current_dir(p.path(""))
-        .env("FURE_CACHE", p.path("small/cache"))
-        .output();
-    let out = match out {
-        Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => out,
-        _ => {
-            eprintln!("skipped: no private tmpfs here");
-            return;
-        }
+    // The whole cache (staging directories included) on the small disk: the command's write
+    // fails, and so would a stderr log on that disk.
+    let Some(out) = p.on_a_full_disk(
+        "run fill.toml --plain",
+        "find small/cache/tmp -mindepth 1 2>/dev/null | sed 's/^/LEFT /' >&2;",
+        "small/cache",
+    ) else {
+        eprintln!("skipped: no private tmpfs here");
+        return;
     };
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");

@@ -703,7 +703,6 @@ steps = 1
 
 #[test]
 fn a_sweep_stops_at_a_full_disk_and_says_so() {
-    use std::process::Command;
     let p = Project::new();
     // Every variant runs the same command, which cannot fit on the disk.
     p.write(
@@ -723,23 +722,9 @@ outs = ["big.bin"]
 "wait.label" = ["a", "b", "c"]
 "#,
     );
-    std::fs::create_dir_all(p.path("small")).unwrap();
-    // The cache on a small private tmpfs (as engine_trust's full-disk cases).
-    let script = format!(
-        "mount -t tmpfs -o size=64k tmpfs small || exit 99; {} sweep s.toml --jobs 1 --quiet",
-        env!("CARGO_BIN_EXE_fure")
-    );
-    let out = Command::new("unshare")
-        .args(["-rm", "sh", "-c", &script])
-        .current_dir(p.path(""))
-        .env("FURE_CACHE", p.path("small/cache"))
-        .output();
-    let out = match out {
-        Ok(out) if out.status.code() != Some(99) && !out.stderr.starts_with(b"unshare") => out,
-        _ => {
-            eprintln!("skipped: no private tmpfs here");
-            return;
-        }
+    let Some(out) = p.on_a_full_disk("sweep s.toml --jobs 1 --quiet", "", "small/cache") else {
+        eprintln!("skipped: no private tmpfs here");
+        return;
     };
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
