@@ -581,10 +581,7 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     )?;
     if rows.len() < total && sweep::stopped_on_full_disk(&rows) {
         // As an interrupted sweep: no record, no aggregate, nothing published.
-        let complete = rows
-            .iter()
-            .filter(|r| r.status != sweep::VariantStatus::Failed)
-            .count();
+        let complete = complete_variants(&rows);
         eprintln!(
             "sweep {}: stopped, the disk is full (variant {} failed on it; every later variant \
              would too); {complete} of {total} variants complete (cached), {} not started, the \
@@ -600,10 +597,7 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         // An interrupted sweep writes no record and runs no aggregate: the last complete
         // sweep's tables, record and published documents stay as they were. What finished
         // is cached, so the same command resumes.
-        let complete = rows
-            .iter()
-            .filter(|r| r.status != sweep::VariantStatus::Failed)
-            .count();
+        let complete = complete_variants(&rows);
         eprintln!(
             "sweep {}: interrupted; {complete} of {total} variants complete (cached), the \
              previous record, tables and published documents kept; rerun the same command to \
@@ -660,6 +654,14 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, withheld.as_deref()),
         None => Ok(ExitCode::SUCCESS),
     }
+}
+
+/// Variants that finished without a failure (their entries are cached): what a stopped sweep
+/// keeps.
+fn complete_variants(rows: &[sweep::Row]) -> usize {
+    rows.iter()
+        .filter(|r| r.status != sweep::VariantStatus::Failed)
+        .count()
 }
 
 /// One line per finished (or, dry run, inspected) sweep variant; the
