@@ -42,7 +42,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cache::{self, Cache, IndexEntry, Manifest, OutputRecord};
 use crate::command;
-use crate::key::Preimage;
+use crate::key::{canonical_value, Preimage};
 use crate::plan::{Plan, PlannedStage, Source};
 use crate::ui::{StageProgress, Ui, UiMode};
 
@@ -672,11 +672,25 @@ fn cutoff_reason(plan: &Plan, i: usize, reports: &[Option<StageReport>]) -> Stri
 }
 
 /// The parameters that enter a stage's key: a command's timeout bounds the
-/// run, not the result, so it is left out.
+/// run, not the result, so it is left out; so is a parameter declared with
+/// `omit_default_from_key` while it holds its default (an option added to a
+/// stage keeps the keys made before it existed).
 pub(crate) fn keyed_params(st: &PlannedStage) -> fure_stage_api::Params {
     let mut params = st.params.clone();
     if st.kind == command::KIND {
         params.0.remove(command::TIMEOUT_PARAM);
+    }
+    for spec in st.stage.params() {
+        if !spec.omit_default_from_key {
+            continue;
+        }
+        let at_default = match (params.get(spec.name), &spec.default) {
+            (Some(v), Some(d)) => canonical_value(v) == canonical_value(d),
+            _ => false,
+        };
+        if at_default {
+            params.0.remove(spec.name);
+        }
     }
     params
 }
@@ -801,7 +815,7 @@ fn explain_params(
     for (k, o) in &old.params {
         if !params.contains_key(k) {
             why.push(format!(
-                "parameter {k} unset (was {})",
+                "parameter {k} unset or back to a default the key leaves out (was {})",
                 crate::plan::show(o)
             ));
         }
@@ -1443,6 +1457,98 @@ mod tests {
         assert_eq!(
             explain(Some(&old), &moved),
             "input src now from b.out (was a.out)"
+        );
+    }
+
+    /// A stage whose later version gains an option `extra` (weight 0 = as before).
+    struct Growing {
+        with_option: bool,
+    }
+
+    impl fure_stage_api::Stage for Growing {
+        fn kind(&self) -> &'static str {
+            "growing"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn doc(&self) -> &'static str {
+            "test stage"
+        }
+        fn params(&self) -> Vec<fure_stage_api::ParamSpec> {
+            let mut specs = vec![fure_stage_api::ParamSpec::float("x", 1.0, "a value")];
+            if self.with_option {
+                specs.push(
+                    fure_stage_api::ParamSpec::float("extra", 0.0, "an added option")
+                        .omit_default_from_key(),
+                );
+            }
+            specs
+        }
+        fn inputs(&self, _: &fure_stage_api::Params) -> Vec<fure_stage_api::PortSpec> {
+            Vec::new()
+        }
+        fn outputs(&self, _: &fure_stage_api::Params) -> Vec<fure_stage_api::PortSpec> {
+            Vec::new()
+        }
+        fn run(
+            &self,
+            _: &fure_stage_api::StageContext<'_>,
+        ) -> Result<(), fure_stage_api::StageError> {
+            Ok(())
+        }
+    }
+
+    fn growing_key(with_option: bool, params: &[(&str, Value)]) -> String {
+        let st = PlannedStage {
+            name: "s".into(),
+            kind: "growing".into(),
+            version: 1,
+            stage: std::sync::Arc::new(Growing { with_option }),
+            params: fure_stage_api::Params(
+                params
+                    .iter()
+                    .map(|(k, v)| (k.to_string(), v.clone()))
+                    .collect(),
+            ),
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+            upstream: Vec::new(),
+            loc: crate::pipeline::Loc::origin("test"),
+        };
+        Preimage::new(&st.kind, st.version, &keyed_params(&st), BTreeMap::new()).key()
+    }
+
+    #[test]
+    fn an_option_at_its_default_keeps_the_key_it_had_before_it_existed() {
+        let before = growing_key(false, &[("x", Value::Float(1.0))]);
+        let at_default = growing_key(
+            true,
+            &[("x", Value::Float(1.0)), ("extra", Value::Float(0.0))],
+        );
+        assert_eq!(before, at_default);
+        // -0.0 is the key's 0.0.
+        let negative_zero = growing_key(
+            true,
+            &[("x", Value::Float(1.0)), ("extra", Value::Float(-0.0))],
+        );
+        assert_eq!(before, negative_zero);
+        // Set to anything else, it enters the key as any parameter does.
+        let set = growing_key(
+            true,
+            &[("x", Value::Float(1.0)), ("extra", Value::Float(0.3))],
+        );
+        assert_ne!(before, set);
+        // Parameters without the flag stay in the key at their default: a new value of `x`
+        // is a new key, with or without the option.
+        let other_x = growing_key(
+            true,
+            &[("x", Value::Float(2.0)), ("extra", Value::Float(0.0))],
+        );
+        assert_ne!(before, other_x);
+        assert_ne!(
+            growing_key(false, &[("x", Value::Float(1.0))]),
+            growing_key(false, &[])
         );
     }
 

@@ -12,7 +12,9 @@
 //! objects of tagged values. Inputs enter by content hash only (file: blake3
 //! of the bytes; directory: see [`hash_dir`]); paths, mtimes and host names
 //! never do, so moving the project keeps every hit. `schema` is bumped when
-//! this encoding or the cache layout changes.
+//! this encoding or the cache layout changes. Which parameters enter at all is
+//! the scheduler's choice (`exec::keyed_params`: all but a command's timeout and
+//! an option declared `omit_default_from_key` while at its default).
 
 use std::collections::BTreeMap;
 use std::fs::File;

@@ -128,6 +128,9 @@ pub struct ParamSpec {
     pub choices: &'static [&'static str],
     /// May be left unset even though there is no default.
     pub optional: bool,
+    /// Left out of the stage key while it holds its default (set by
+    /// [`ParamSpec::omit_default_from_key`]).
+    pub omit_default_from_key: bool,
     pub doc: &'static str,
 }
 
@@ -142,6 +145,7 @@ impl ParamSpec {
             min_exclusive: false,
             choices: &[],
             optional: false,
+            omit_default_from_key: false,
             doc,
         }
     }
@@ -232,6 +236,16 @@ impl ParamSpec {
     }
     pub fn choices(mut self, choices: &'static [&'static str]) -> Self {
         self.choices = choices;
+        self
+    }
+    /// Leaves the parameter out of the stage key while it holds its default, so that adding
+    /// it to a stage keeps every existing key, and with them the cache entries and sweeps
+    /// made before it existed. Only for an option whose default reproduces, bit for bit,
+    /// what the stage did before the option was added (an extra loss at weight 0, a step
+    /// that is off): the stage's version is then left as it was. Any other value enters the
+    /// key as every parameter does.
+    pub fn omit_default_from_key(mut self) -> Self {
+        self.omit_default_from_key = true;
         self
     }
 }

@@ -278,7 +278,7 @@ fure_stage_api::stage_params! {
         /// (learn::geomloss; its gradient skips the style scale). 0: at 1 it brings the dev
         /// split's curvature variance toward the GT's (sheepdog 3.7x -> 1.7x) but loses the
         /// curling coat's 2 and 3 cm scores (learn module doc).
-        l_turn: f32 = float(0.0).min(0.0),
+        l_turn: f32 = float(0.0).min(0.0).omit_default_from_key(),
         /// Give every strand a colour ramp from root to tip, fitted from the views with its
         /// colour and fixed while training (learn::image, `set_ramp`); off = one colour per
         /// strand. On: the tiger's held-out PSNR +0.3 dB, the other dev scenes and every
