@@ -308,11 +308,11 @@ fn a_capture_rendered_by_blender_runs_end_to_end() {
     // The user's side: eyes and part flags, no scale; the GT side only reaches `evaluate`.
     p.write(
         "cap/scene.json",
-        &crate::method::capture_scene(&scene, 1.0, 1.0),
+        &crate::method::capture_scene(&scene, 1.0, None),
     );
     p.write(
         "cap/gt/scene.json",
-        &crate::method::capture_scene(&scene, 1.0, s_cm),
+        &crate::method::capture_scene(&scene, 1.0, Some(s_cm)),
     );
     p.write("cap/labels.obj", &p.read("out/tiny/scene/skin.obj"));
     let shipped = std::fs::read_to_string(

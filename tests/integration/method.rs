@@ -297,7 +297,7 @@ fn write_capture(p: &Project, dir: &str, scale: f64) {
     let gt = read_json(&scene.join("scene.json"));
     p.write(
         &format!("{dir}/scene.json"),
-        &capture_scene(&gt, scale, 1.0),
+        &capture_scene(&gt, scale, None),
     );
     p.write(
         &format!("{dir}/capture.toml"),
@@ -306,9 +306,9 @@ fn write_capture(p: &Project, dir: &str, scale: f64) {
 }
 
 /// A capture's `scene.json` from a synthetic scene's: the eyes (times `scale`), the eye
-/// separation and each part's fur flag, with `s_cm` as given (a user's file is not read for
-/// it; an `evaluate` stage's `gt_scene` is).
-pub(crate) fn capture_scene(gt: &Json, scale: f64, s_cm: f64) -> String {
+/// separation and each part's fur flag, with `s_cm` only where given (a user's file has
+/// none; an `evaluate` stage's `gt_scene` needs it).
+pub(crate) fn capture_scene(gt: &Json, scale: f64, s_cm: Option<f64>) -> String {
     let parts: serde_json::Map<String, Json> = gt["parts"]
         .as_object()
         .unwrap()
@@ -327,13 +327,15 @@ pub(crate) fn capture_scene(gt: &Json, scale: f64, s_cm: f64) -> String {
                 .collect()
         })
         .collect();
-    serde_json::json!({
-        "s_cm": s_cm,
+    let mut scene = serde_json::json!({
         "eyes": eyes,
         "eye_separation_cm": gt["eye_separation_cm"],
         "parts": parts,
-    })
-    .to_string()
+    });
+    if let Some(s_cm) = s_cm {
+        scene["s_cm"] = s_cm.into();
+    }
+    scene.to_string()
 }
 
 /// The tiny capture's settings for `capture.toml`.

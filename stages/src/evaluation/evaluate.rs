@@ -1187,7 +1187,7 @@ impl Stage for EvaluateStage {
         let bgv = &p.background;
         let bg = [bgv[0] as f32, bgv[1] as f32, bgv[2] as f32];
 
-        let s_cm = read_scale(ctx)?;
+        let s_cm = crate::data::scene::gt_scale_cm(ctx)?;
         ctx.progress.message("reading strands");
         let (pred, gt) = read_strand_sets(ctx)?;
         ctx.progress.set_total(4);
@@ -1270,21 +1270,6 @@ impl Stage for EvaluateStage {
         ));
         Ok(())
     }
-}
-
-/// The scene scale `s_cm` (cm per scene unit) from `gt_scene`, required positive and finite.
-fn read_scale(ctx: &StageContext<'_>) -> Result<f32, StageError> {
-    let scene_path = ctx.input("gt_scene")?;
-    let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
-    let s_cm = scene.s_cm;
-    if !(s_cm > 0.0 && s_cm.is_finite()) {
-        return Err(StageError::input(
-            "gt_scene",
-            scene_path,
-            format!("field `s_cm`: expected a positive number, found {s_cm}"),
-        ));
-    }
-    Ok(s_cm)
 }
 
 /// The predicted and ground-truth strands, with finite points and at least one GT strand.
@@ -1900,6 +1885,37 @@ pub(crate) mod tests {
     }
 
     /// One straight two-point strand per `(root, chord)`.
+    #[test]
+    fn a_gt_scene_without_its_scale_is_an_error_naming_the_field() {
+        // A capture's scene.json leaves `s_cm` out and parses; as `gt_scene` the metrics
+        // need it and say which file and field lack it.
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        let gt = patch(3, 0.7, 3.0, 3, Vec3::ZERO);
+        crate::formats::hair::write_hair(root.join("gt.hair"), &gt).unwrap();
+        crate::formats::ply::write_ply_strands(root.join("pred.ply"), &gt).unwrap();
+        let capture = r#"{"eyes": [[0,0,0],[1,0,0]], "eye_separation_cm": 3.0, "parts": {}}"#;
+        std::fs::write(root.join("scene.json"), capture).unwrap();
+        let parsed: crate::data::scene::SceneInfo =
+            crate::formats::json::read_json(root.join("scene.json")).unwrap();
+        assert_eq!(parsed.s_cm, None);
+        let err = run_stage(
+            &EvaluateStage,
+            &[
+                ("strands", root.join("pred.ply")),
+                ("gt_strands", root.join("gt.hair")),
+                ("gt_scene", root.join("scene.json")),
+            ],
+            &root.join("out"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("gt_scene") && err.contains("scene.json") && err.contains("`s_cm`"),
+            "{err}"
+        );
+    }
+
     fn strands(chords: &[(Vec3, Vec3)]) -> Strands {
         let mut s = Strands::new();
         for &(root, d) in chords {

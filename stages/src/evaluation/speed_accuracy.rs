@@ -506,7 +506,7 @@ impl Stage for SpeedAccuracyStage {
         let spacing = p.spacing_cm;
         let max_q = p.max_queries;
         let size = (p.width, p.height);
-        let s_cm = read_scene_scale(ctx)?;
+        let s_cm = crate::data::scene::gt_scale_cm(ctx)?;
         let gt = read_gt_strands(ctx)?;
         // The ground truth's oriented points and grid, built once for every snapshot.
         let cell = match_cell(&SCORED);
@@ -572,23 +572,6 @@ impl Stage for SpeedAccuracyStage {
         crate::formats::json::write_json(ctx.output("metrics")?, &metrics)?;
         Ok(())
     }
-}
-
-/// The scene scale `s_cm` (cm per scene unit) from `gt_scene`, required positive and finite.
-fn read_scene_scale(ctx: &StageContext<'_>) -> Result<f32, StageError> {
-    let scene_path = ctx.input("gt_scene")?;
-    let scene: crate::data::scene::SceneInfo = crate::formats::json::read_json(scene_path)?;
-    if !(scene.s_cm > 0.0 && scene.s_cm.is_finite()) {
-        return Err(StageError::input(
-            "gt_scene",
-            scene_path,
-            format!(
-                "field `s_cm`: expected a positive number, found {}",
-                scene.s_cm
-            ),
-        ));
-    }
-    Ok(scene.s_cm)
 }
 
 /// The ground-truth strands, at least one.

@@ -1526,12 +1526,13 @@ fn widths_in_pixels(
     }
     let px = |q: f64| percentile(widths, q).unwrap_or(0.0) / footprint;
     let gt_median_thickness_px = gt_scene.and_then(|sc| {
+        let s_cm = sc.s_cm?;
         let t: Vec<f32> = sc
             .parts
             .values()
             .filter(|p| p.fur)
             .filter_map(|p| p.mean_thickness_cm)
-            .map(|cm| cm / sc.s_cm / footprint)
+            .map(|cm| cm / s_cm / footprint)
             .filter(|x| x.is_finite())
             .collect();
         percentile(&t, 50.0)
@@ -1582,10 +1583,11 @@ fn gt_comparison(
     scene: &crate::data::scene::SceneInfo,
     medians: &BTreeMap<String, f32>,
 ) -> Option<GtComparison> {
+    let s_cm = scene.s_cm?;
     let mut parts = BTreeMap::new();
     for (name, info) in &scene.parts {
         if let (true, Some(t), Some(w)) = (info.fur, info.mean_thickness_cm, medians.get(name)) {
-            parts.insert(name.clone(), [w * scene.s_cm, t]);
+            parts.insert(name.clone(), [w * s_cm, t]);
         }
     }
     if parts.len() < 2 {
@@ -2505,7 +2507,7 @@ mod tests {
             mean_thickness_cm: Some(cm),
         };
         let scene = |s_cm: f32| SceneInfo {
-            s_cm,
+            s_cm: Some(s_cm),
             eyes: [Vec3::ZERO, Vec3::X],
             eye_separation_cm: None,
             parts: [

@@ -424,18 +424,20 @@ fn reference_lengths_cm(p: &LengthsParams) -> Result<BTreeMap<String, f32>, Stag
 }
 
 /// Adds the errors against the ground truth to the metrics `m`: of the
-/// scale and, per fur part with a GT mean length, of the length.
+/// scale (when the GT gives it) and, per fur part with a GT mean length, of the length.
 fn insert_gt_errors(
     m: &mut serde_json::Map<String, serde_json::Value>,
     table: &LengthTable,
     gt: &SceneInfo,
     s_cm: f32,
 ) {
-    m.insert("s_cm_gt".into(), gt.s_cm.into());
-    m.insert(
-        "s_cm_error_pct".into(),
-        (100.0 * (s_cm - gt.s_cm) / gt.s_cm).into(),
-    );
+    if let Some(gt_s_cm) = gt.s_cm {
+        m.insert("s_cm_gt".into(), gt_s_cm.into());
+        m.insert(
+            "s_cm_error_pct".into(),
+            (100.0 * (s_cm - gt_s_cm) / gt_s_cm).into(),
+        );
+    }
     let mut abs = serde_json::Map::new();
     let mut signed = serde_json::Map::new();
     let mut worst = 0.0f32;

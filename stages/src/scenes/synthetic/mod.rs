@@ -675,7 +675,7 @@ pub fn scene_info_of(
         );
     }
     SceneInfo {
-        s_cm: g.s_cm,
+        s_cm: Some(g.s_cm),
         eyes: [g.preset.eyes_cm[0] / g.s_cm, g.preset.eyes_cm[1] / g.s_cm],
         eye_separation_cm: Some(g.preset.eye_separation_cm()),
         parts,
@@ -969,7 +969,7 @@ mod tests {
             );
         }
         let scene: SceneInfo = formats::json::read_json(dir.path().join("scene.json")).unwrap();
-        let sep = (scene.eyes[0] - scene.eyes[1]).length() * scene.s_cm;
+        let sep = (scene.eyes[0] - scene.eyes[1]).length() * scene.s_cm.unwrap();
         assert!((sep - scene.eye_separation_cm.unwrap()).abs() < 1e-3 * sep);
         let preset = presets::preset("tiger").unwrap();
         for (name, fp) in &preset.parts {

@@ -680,7 +680,7 @@ impl GtComparison {
             Some(p) => Some(read_json(p)?),
             None => None,
         };
-        let s_cm = scene.as_ref().map(|s| s.s_cm as f64).unwrap_or(1.0);
+        let s_cm = scene.as_ref().and_then(|s| s.s_cm).map_or(1.0, f64::from);
         let from_scene = scene
             .as_ref()
             .and_then(|s| gt_mean_thickness_cm(&skin_mesh, s));
