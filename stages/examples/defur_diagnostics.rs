@@ -64,6 +64,13 @@ fn load(dir: &Path) -> Result<Loaded, Box<dyn Error>> {
     let outer = read_obj(dir.join("parts/mesh.obj"))?;
     let skin_mesh = read_obj(dir.join("scene/skin.obj"))?;
     let scene: SceneInfo = read_json(dir.join("scene/scene.json"))?;
+    if !scene.s_cm.is_some_and(|s| s > 0.0 && s.is_finite()) {
+        return Err(
+            "scene/scene.json: field `s_cm` (the synthetic scene's centimetres per unit) \
+                    is missing or not positive: the diagnostics read a synthetic run"
+                .into(),
+        );
+    }
     let normals = vertex_normals(&outer);
     let protected: Vec<String> = DEFAULT_PROTECTED.iter().map(|s| s.to_string()).collect();
     let prot = protected_parts(&outer.part_names, &protected);
@@ -71,7 +78,7 @@ fn load(dir: &Path) -> Result<Loaded, Box<dyn Error>> {
         .ok_or("scene.json has no mean_thickness_cm for a fur part of the GT skin")?;
     let gt = GtComparison {
         skin: MeshQuery::new(&skin_mesh)?,
-        s_cm: scene.s_cm as f64,
+        s_cm: f64::from(scale(&scene)),
         thickness_cm,
         thickness_source: "scene",
     };
@@ -83,6 +90,11 @@ fn load(dir: &Path) -> Result<Loaded, Box<dyn Error>> {
         prot,
         gt,
     })
+}
+
+/// The synthetic scene's centimetres per unit (`load` refuses a scene without it).
+fn scale(scene: &SceneInfo) -> f32 {
+    scene.s_cm.expect("load checks the scene's s_cm")
 }
 
 fn main() -> std::process::ExitCode {
@@ -142,7 +154,7 @@ fn oracle(run: Loaded) -> Res {
         (
             "units = cm",
             DefurSettings {
-                unit_scale: scene.s_cm as f64,
+                unit_scale: f64::from(scale(&scene)),
                 ..DefurSettings::default()
             },
         ),
@@ -207,7 +219,7 @@ fn oracle(run: Loaded) -> Res {
             .filter(|&i| outer.part[i] as usize == pi)
             .map(|i| closest[i])
             .collect();
-        let t_cm = scene.s_cm * percentile(&v, 75.0).unwrap_or(0.0);
+        let t_cm = scale(&scene) * percentile(&v, 75.0).unwrap_or(0.0);
         let m = defaults.get(name.as_str()).copied().unwrap_or(2.5);
         let l = m * t_cm;
         eprintln!(
@@ -247,7 +259,7 @@ impl Diagnosis {
             gt,
             ..
         } = run;
-        let s_cm = scene.s_cm as f64;
+        let s_cm = f64::from(scale(&scene));
         let areas = vertex_areas(&outer);
         let o2s = distances_to(&gt.skin, &outer);
         // Distance along -n from the outer vertex to the skin (ray), and the shell width.
@@ -388,10 +400,10 @@ impl Diagnosis {
         let gpart: Vec<f32> = outer
             .part
             .iter()
-            .map(|&p| self.gt_thickness_cm(&outer.part_names[p as usize]) / scene.s_cm)
+            .map(|&p| self.gt_thickness_cm(&outer.part_names[p as usize]) / scale(scene))
             .collect();
         self.report("d = GT part thickness", &self.zero(&gpart));
-        let gpart_off: Vec<f32> = gpart.iter().map(|x| x + 0.26 / scene.s_cm).collect();
+        let gpart_off: Vec<f32> = gpart.iter().map(|x| x + 0.26 / scale(scene)).collect();
         self.report("d = GT part thickness + 0.26 cm", &self.zero(&gpart_off));
         gpart
     }
@@ -402,7 +414,7 @@ impl Diagnosis {
     /// vertex.
     fn gap_analysis(&self, gts: &Strands, gpart: &[f32]) -> Res {
         let (outer, areas, o2s, s_cm) = (&self.outer, &self.areas, &self.o2s, self.s_cm);
-        let step = 0.1 / self.scene.s_cm;
+        let step = 0.1 / scale(&self.scene);
         let mut pts = Vec::new();
         for s in 0..gts.len() {
             for w in gts.strand(s).windows(2) {
