@@ -176,6 +176,13 @@
 //! dev split's figures are in docs/history.md ("Paws: fur toward the toes").
 //! `"down"` keeps one direction for every limb part.
 //!
+//! **Toes that point forward** (`extremity_forward`, 0). Away from the leg is
+//! toward the toes on the front of a paw, but sideways on its flanks and
+//! backward on its heel, where the leg joins it off-centre; the toes of a
+//! standing animal point the way its head does. The parameter adds that much
+//! of "forward" (`-A`) to the distal reference on the extremities (0: distal
+//! alone). Off by default, so it is left out of the stage key at 0.
+//!
 //! **Storage.** JSON (`fure_stages::data::rootset::Roots` through
 //! `formats::json`): about 0.3 kB per root pretty-printed, so ~30 MB and
 //! well under a second each way for 100k roots, and readable by every
@@ -783,6 +790,9 @@ pub struct RootSettings {
     pub direction_down: f32,
     /// The weight of the body axis added to the legs' "down" (module doc).
     pub limb_back: f32,
+    /// The weight of "forward" (toward the head) added to the extremities' distal reference
+    /// (module doc).
+    pub extremity_forward: f32,
     /// How triangle counts are rounded ([`sample_triangles`]).
     pub placement: Placement,
 }
@@ -907,7 +917,10 @@ pub fn build_roots(mesh: &Mesh, vertex_rho: &[f32], s: &RootSettings) -> (Roots,
         _ => None,
     };
     let reference = |gp: &GrowthPrior, f: usize, role: PartRole, p: Vec3| match (role, &distal) {
-        (PartRole::Limb, Some(d)) => d[f].unwrap_or_else(|| gp.reference(role, p)),
+        (PartRole::Limb, Some(d)) => match d[f] {
+            Some(toward_toes) => leaned(toward_toes, -gp.axis, s.extremity_forward),
+            None => gp.reference(role, p),
+        },
         _ => gp.reference(role, p),
     };
     let align = match (&prior, s.direction_smoothing) {
@@ -1181,6 +1194,8 @@ fure_stage_api::stage_params! {
         direction_down: f64 = float(0.15).range(0.0, 100.0),
         /// weight of the body axis (toward the tail) added to "down" in the legs' reference: leg fur that lies down and back (module doc); 0 = down alone
         limb_back: f64 = float(1.0).range(0.0, 100.0),
+        /// weight of "forward" (the body axis toward the head) added to the extremities' distal reference (limb_direction = distal): toes point the way the head does, and the fur on a paw lies toward them (module doc); 0 = distal alone
+        extremity_forward: f64 = float(0.0).range(0.0, 100.0).omit_default_from_key(),
         /// rounding of each triangle's expected root count: systematic (one running sum, exact total) or local (per triangle: a triangle's count depends on it alone)
         placement: Placement = string("systematic").choices(Placement::NAMES),
     }
@@ -1436,6 +1451,7 @@ impl Stage for RootsStage {
                 limb_direction: p.limb_direction,
                 direction_down: p.direction_down as f32,
                 limb_back: p.limb_back as f32,
+                extremity_forward: p.extremity_forward as f32,
                 placement: p.placement,
             },
         );
@@ -1554,6 +1570,7 @@ mod tests {
             limb_direction: LimbDirection::Distal,
             direction_down: 0.0,
             limb_back: 0.0,
+            extremity_forward: 0.0,
             placement: Placement::Systematic,
         };
         let (roots, rep) = build_roots(&mesh, &rho, &s);
@@ -1601,6 +1618,7 @@ mod tests {
             limb_direction: LimbDirection::Down,
             direction_down: 0.0,
             limb_back: 0.0,
+            extremity_forward: 0.0,
             placement: Placement::Systematic,
         }
     }
@@ -1802,6 +1820,48 @@ mod tests {
         let (none, full) = (leg_lean(0.0, 0.0), leg_lean(0.0, 1.0));
         assert!(none.abs() < 0.2, "down alone leans {none}");
         assert!(full > 0.4, "limb_back 1 leans {full} (down alone {none})");
+    }
+
+    #[test]
+    fn extremity_forward_turns_the_paws_fur_toward_the_head() {
+        // The head cap at +z (forward +z), a legs band and a paws cap at the bottom (-y). The
+        // paws' distal reference runs from the band down to the pole, symmetric about it, so
+        // its mean along the body axis is about 0; `extremity_forward` 1 leans it forward.
+        let mut mesh = icosphere(10.0, 3, 0.8);
+        mesh.part_names.push("legs".into());
+        mesh.part_names.push("paws".into());
+        for (i, p) in mesh.positions.iter().enumerate() {
+            if p.y < -8.0 {
+                mesh.part[i] = 3;
+            } else if p.y < -5.0 {
+                mesh.part[i] = 2;
+            }
+        }
+        let rho = vec![0.5; mesh.positions.len()];
+        let forward_lean = |forward: f32| {
+            let s = RootSettings {
+                density: vec![1.0, 0.0, 1.0, 4.0],
+                length: vec![3.0, 0.0, 3.0, 3.0],
+                width: vec![0.05, 0.0, 0.05, 0.05],
+                direction_smoothing: Some(0.01),
+                limb_direction: LimbDirection::Distal,
+                extremity_forward: forward,
+                ..head_cap_settings()
+            };
+            let (roots, _) = build_roots(&mesh, &rho, &s);
+            let leans: Vec<f32> = (0..roots.len())
+                .filter(|&i| roots.part[i] == 3)
+                .map(|i| roots.tangents[i].z)
+                .collect();
+            assert!(leans.len() > 20, "{} paw roots", leans.len());
+            leans.iter().sum::<f32>() / leans.len() as f32
+        };
+        let (distal, forward) = (forward_lean(0.0), forward_lean(1.0));
+        assert!(distal.abs() < 0.2, "distal alone leans {distal}");
+        assert!(
+            forward > 0.3,
+            "extremity_forward 1 leans {forward} (distal alone {distal})"
+        );
     }
 
     #[test]
