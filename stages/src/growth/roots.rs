@@ -181,7 +181,13 @@
 //! backward on its heel, where the leg joins it off-centre; the toes of a
 //! standing animal point the way its head does. The parameter adds that much
 //! of "forward" (`-A`) to the distal reference on the extremities (0: distal
-//! alone). Off by default, so it is left out of the stage key at 0.
+//! alone; left out of the stage key at 0). Off by default: the dev split's
+//! two renderers comb the paws opposite ways. At 1 the synthetic presets'
+//! paws (grown toward the toes) come 3-10 degrees closer to the GT and the
+//! tiger and the lynx gain at 3 and 4 cm; Blender's captures comb every part
+//! back and down, and there the Blender fox's paws end 32 degrees further off
+//! and its 3 and 4 cm scores are lost (docs/history.md, "Toes that point
+//! forward"). Which way a real coat runs on the paw is what the option says.
 //!
 //! **Storage.** JSON (`fure_stages::data::rootset::Roots` through
 //! `formats::json`): about 0.3 kB per root pretty-printed, so ~30 MB and
