@@ -1521,35 +1521,22 @@ mod tests {
 
     #[test]
     fn an_option_at_its_default_keeps_the_key_it_had_before_it_existed() {
-        let before = growing_key(false, &[("x", Value::Float(1.0))]);
-        let at_default = growing_key(
-            true,
-            &[("x", Value::Float(1.0)), ("extra", Value::Float(0.0))],
-        );
-        assert_eq!(before, at_default);
+        // The stage's key for `x`, before the option existed (`None`) or with it set.
+        let key = |x: f64, extra: Option<f64>| {
+            let mut params = vec![("x", Value::Float(x))];
+            params.extend(extra.map(|e| ("extra", Value::Float(e))));
+            growing_key(extra.is_some(), &params)
+        };
+        let before = key(1.0, None);
+        assert_eq!(before, key(1.0, Some(0.0)));
         // -0.0 is the key's 0.0.
-        let negative_zero = growing_key(
-            true,
-            &[("x", Value::Float(1.0)), ("extra", Value::Float(-0.0))],
-        );
-        assert_eq!(before, negative_zero);
+        assert_eq!(before, key(1.0, Some(-0.0)));
         // Set to anything else, it enters the key as any parameter does.
-        let set = growing_key(
-            true,
-            &[("x", Value::Float(1.0)), ("extra", Value::Float(0.3))],
-        );
-        assert_ne!(before, set);
-        // Parameters without the flag stay in the key at their default: a new value of `x`
-        // is a new key, with or without the option.
-        let other_x = growing_key(
-            true,
-            &[("x", Value::Float(2.0)), ("extra", Value::Float(0.0))],
-        );
-        assert_ne!(before, other_x);
-        assert_ne!(
-            growing_key(false, &[("x", Value::Float(1.0))]),
-            growing_key(false, &[])
-        );
+        assert_ne!(before, key(1.0, Some(0.3)));
+        // Parameters without the flag stay in the key: a new `x` is a new key, with or
+        // without the option, and so is an `x` left out.
+        assert_ne!(before, key(2.0, Some(0.0)));
+        assert_ne!(before, growing_key(false, &[]));
     }
 
     #[test]

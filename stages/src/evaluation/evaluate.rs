@@ -1884,7 +1884,6 @@ pub(crate) mod tests {
         assert!(e.contains("bad.hair"), "{e}");
     }
 
-    /// One straight two-point strand per `(root, chord)`.
     #[test]
     fn a_gt_scene_without_its_scale_is_an_error_naming_the_field() {
         // A capture's scene.json leaves `s_cm` out and parses; as `gt_scene` the metrics
@@ -1916,6 +1915,7 @@ pub(crate) mod tests {
         );
     }
 
+    /// One straight two-point strand per `(root, chord)`.
     fn strands(chords: &[(Vec3, Vec3)]) -> Strands {
         let mut s = Strands::new();
         for &(root, d) in chords {
