@@ -579,16 +579,22 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         },
         &mut |row| print_variant(row, a.dry_run, &cache),
     )?;
-    if rows.len() < total && sweep::stopped_on_full_disk(&rows) {
-        // As an interrupted sweep: no record, no aggregate, nothing published.
+    if sweep::stopped_on_full_disk(&rows) {
+        // As an interrupted sweep: no record, no aggregate, nothing published (the last
+        // variant too: the record and the aggregates would write to the same full disk).
         let complete = complete_variants(&rows);
+        let later = total - rows.len();
+        let not_started = if later > 0 {
+            format!(", {later} not started (each would fail on it too)")
+        } else {
+            String::new()
+        };
         eprintln!(
-            "sweep {}: stopped, the disk is full (variant {} failed on it; every later variant \
-             would too); {complete} of {total} variants complete (cached), {} not started, the \
-             previous record, tables and published documents kept",
+            "sweep {}: stopped, the disk is full (variant {} failed on it); {complete} of \
+             {total} variants complete (cached){not_started}, the previous record, tables and \
+             published documents kept",
             p.name,
             rows.last().map_or(0, |r| r.variant.index),
-            total - rows.len()
         );
         eprintln!("{DISK_FULL_HINT}");
         return Ok(ExitCode::from(EXIT_FAILED));

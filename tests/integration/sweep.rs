@@ -703,11 +703,23 @@ steps = 1
 
 #[test]
 fn a_sweep_stops_at_a_full_disk_and_says_so() {
-    let p = Project::new();
-    // Every variant runs the same command, which cannot fit on the disk.
-    p.write(
-        "s.toml",
-        r#"
+    // Every variant runs the same command, which cannot fit on the disk: three variants (the
+    // first fails, two are never started) and one (the last fails: no record either).
+    for (labels, said) in [
+        (
+            r#"["a", "b", "c"]"#,
+            "0 of 3 variants complete (cached), 2 not started",
+        ),
+        (
+            r#"["a"]"#,
+            "0 of 1 variants complete (cached), the previous record",
+        ),
+    ] {
+        let p = Project::new();
+        p.write(
+            "s.toml",
+            &format!(
+                r#"
 [stages.wait]
 kind = "demo_sleep"
 seconds = 0.01
@@ -719,28 +731,27 @@ cmd = ["sh", "-c", "head -c 300000 /dev/zero > big.bin"]
 outs = ["big.bin"]
 
 [sweep]
-"wait.label" = ["a", "b", "c"]
-"#,
-    );
-    let Some(out) = p.on_a_full_disk("sweep s.toml --jobs 1 --quiet", "", "small/cache") else {
-        eprintln!("skipped: no private tmpfs here");
-        return;
-    };
-    let (stdout, stderr) = (
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr),
-    );
-    assert_eq!(out.status.code(), Some(1), "{stdout}\n{stderr}");
-    assert!(stdout.contains("No space left on device"), "{stdout}");
-    assert!(
-        stderr.contains("stopped, the disk is full (variant 0 failed on it"),
-        "{stderr}"
-    );
-    assert!(
-        stderr.contains("0 of 3 variants complete (cached), 2 not started"),
-        "{stderr}"
-    );
-    assert!(stderr.contains("fure gc"), "{stderr}");
-    assert!(!stdout.contains("variant 1 ("), "{stdout}");
-    assert!(!p.path("out/s/sweep.json").exists());
+"wait.label" = {labels}
+"#
+            ),
+        );
+        let Some(out) = p.on_a_full_disk("sweep s.toml --jobs 1 --quiet", "", "small/cache") else {
+            eprintln!("skipped: no private tmpfs here");
+            return;
+        };
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert_eq!(out.status.code(), Some(1), "{stdout}\n{stderr}");
+        assert!(stdout.contains("No space left on device"), "{stdout}");
+        assert!(
+            stderr.contains("stopped, the disk is full (variant 0 failed on it)"),
+            "{stderr}"
+        );
+        assert!(stderr.contains(said), "{stderr}");
+        assert!(stderr.contains("fure gc"), "{stderr}");
+        assert!(!stdout.contains("variant 1 ("), "{stdout}");
+        assert!(!p.path("out/s/sweep.json").exists());
+    }
 }
