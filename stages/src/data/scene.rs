@@ -2,7 +2,6 @@
 
 use std::collections::BTreeMap;
 
-use fure_stage_api::{StageContext, StageError};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
@@ -22,8 +21,8 @@ pub struct PartInfo {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SceneInfo {
     /// Centimetres per scene unit: a synthetic scene's ground truth, read only by the
-    /// metrics (through `gt_scene`, [`gt_scale_cm`]). A capture leaves it out: the method
-    /// takes its scale from the eyes (`lengths`).
+    /// metrics (through `gt_scene`, `evaluation::gt_scale_cm`). A capture leaves it out:
+    /// the method takes its scale from the eyes (`lengths`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub s_cm: Option<f32>,
     /// The two eye centres in scene units.
@@ -32,25 +31,4 @@ pub struct SceneInfo {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub eye_separation_cm: Option<f32>,
     pub parts: BTreeMap<String, PartInfo>,
-}
-
-/// Centimetres per scene unit of the `gt_scene` input: present, positive and finite, or an
-/// error naming the file and the field.
-pub fn gt_scale_cm(ctx: &StageContext<'_>) -> Result<f32, StageError> {
-    let path = ctx.input("gt_scene")?;
-    let scene: SceneInfo = crate::formats::json::read_json(path)?;
-    match scene.s_cm {
-        Some(s) if s > 0.0 && s.is_finite() => Ok(s),
-        Some(s) => Err(StageError::input(
-            "gt_scene",
-            path,
-            format!("field `s_cm`: expected a positive number, found {s}"),
-        )),
-        None => Err(StageError::input(
-            "gt_scene",
-            path,
-            "field `s_cm` (centimetres per scene unit) is missing: the metrics measure the \
-             ground truth in centimetres",
-        )),
-    }
 }

@@ -1187,7 +1187,7 @@ impl Stage for EvaluateStage {
         let bgv = &p.background;
         let bg = [bgv[0] as f32, bgv[1] as f32, bgv[2] as f32];
 
-        let s_cm = crate::data::scene::gt_scale_cm(ctx)?;
+        let s_cm = crate::evaluation::gt_scale_cm(ctx)?;
         ctx.progress.message("reading strands");
         let (pred, gt) = read_strand_sets(ctx)?;
         ctx.progress.set_total(4);

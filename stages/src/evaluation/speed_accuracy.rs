@@ -506,7 +506,7 @@ impl Stage for SpeedAccuracyStage {
         let spacing = p.spacing_cm;
         let max_q = p.max_queries;
         let size = (p.width, p.height);
-        let s_cm = crate::data::scene::gt_scale_cm(ctx)?;
+        let s_cm = crate::evaluation::gt_scale_cm(ctx)?;
         let gt = read_gt_strands(ctx)?;
         // The ground truth's oriented points and grid, built once for every snapshot.
         let cell = match_cell(&SCORED);
