@@ -579,9 +579,10 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         },
         &mut |row| print_variant(row, a.dry_run, &cache),
     )?;
-    if sweep::stopped_on_full_disk(&rows) {
+    if !opts.executor.is_remote() && sweep::stopped_on_full_disk(&rows) {
         // As an interrupted sweep: no record, no aggregate, nothing published (the last
-        // variant too: the record and the aggregates would write to the same full disk).
+        // variant too: the record and the aggregates would write to the same full disk). A
+        // remote executor ran every variant at once: nothing stopped, its record is written.
         let complete = complete_variants(&rows);
         let later = total - rows.len();
         let not_started = if later > 0 {
