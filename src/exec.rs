@@ -680,16 +680,11 @@ pub(crate) fn keyed_params(st: &PlannedStage) -> fure_stage_api::Params {
     if st.kind == command::KIND {
         params.0.remove(command::TIMEOUT_PARAM);
     }
-    for spec in st.stage.params() {
-        if !spec.omit_default_from_key {
-            continue;
-        }
-        let at_default = match (params.get(spec.name), &spec.default) {
-            (Some(v), Some(d)) => canonical_value(v) == canonical_value(d),
-            _ => false,
-        };
-        if at_default {
-            params.0.remove(spec.name);
+    for spec in st.stage.params().iter().filter(|s| s.omit_default_from_key) {
+        if let (Some(v), Some(d)) = (params.get(spec.name), &spec.default) {
+            if canonical_value(v) == canonical_value(d) {
+                params.0.remove(spec.name);
+            }
         }
     }
     params
