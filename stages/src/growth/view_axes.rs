@@ -55,6 +55,18 @@
 //! part fills; callers keep the roots' own frames where it is low (learn
 //! module doc).
 //!
+//! Fur off the tangent plane. The lift assumes the fur lies near the
+//! tangent plane. Fur that hangs under a belly or stands up along the
+//! normal projects into each view as the normal does, and the tangent line
+//! that projects the same way runs toward that camera: the pooled axis is
+//! then the views' layout, not the fur. The planes each view's line spans
+//! with its camera centre meet in the fur's 3D line
+//! ([`view_elevations`]); [`steep_roots`] marks the roots where that line
+//! rises above a given elevation, so that a caller can keep their frames.
+//! A reading counts only where the planes differ
+//! ([`ViewElevation::spread`]): one view, or views from one side, leave the
+//! line anywhere in a plane.
+//!
 //! The result is an axis (no sign): a map cannot tell root from tip. Callers
 //! keep the sign of the frame they had (the axis is turned by at most 90
 //! degrees); [`vote_signs`] then lets neighbours outvote a root that kept
@@ -222,9 +234,24 @@ pub fn view_axes(
     Ok(axes)
 }
 
+/// One root's reading of [`view_elevations`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewElevation {
+    /// The root's index.
+    pub root: usize,
+    /// Radians in `[0, pi/2]` above the envelope.
+    pub elevation: f32,
+    /// How far apart the planes are: the pooled tensor's middle eigenvalue
+    /// over its largest, in `[0, 1]`. Near 0 when every plane is nearly the
+    /// same (one view, or views from one side): the direction is then only
+    /// known to lie in that plane, and its elevation is the power
+    /// iteration's pick, not a reading. Two equal planes at angle `phi`
+    /// give `tan^2(phi / 2)`.
+    pub spread: f32,
+}
+
 /// The fur's elevation above the envelope read from the views, at every
-/// `stride`-th root: `(root index, radians in [0, pi/2])` for each such root
-/// whose neighbourhood some view saw. Each view's Gabor line at the root's
+/// `stride`-th root, for each such root whose neighbourhood some view saw. Each view's Gabor line at the root's
 /// envelope point, with the camera centre, spans a plane that holds the
 /// fur's 3D direction; the plane normals' outer products (weight: the map's
 /// confidence times the cosine of the view angle; views within about 78
@@ -239,7 +266,7 @@ pub fn view_elevations(
     views: &[ViewOrientation<'_>],
     radius: f32,
     stride: usize,
-) -> Result<Vec<(usize, f32)>, GeomError> {
+) -> Result<Vec<ViewElevation>, GeomError> {
     let query = MeshQuery::new(outer)?;
     let (lo, hi) = outer.bounds();
     let lift = 1e-3 * (hi - lo).length();
@@ -262,9 +289,65 @@ pub fn view_elevations(
                 return None;
             }
             let d = least_eigenvector(m);
-            Some((i, d.dot(own[i].0).abs().clamp(0.0, 1.0).asin()))
+            let [_, middle, largest] = symmetric_eigenvalues(m);
+            Some(ViewElevation {
+                root: i,
+                elevation: d.dot(own[i].0).abs().clamp(0.0, 1.0).asin(),
+                spread: if largest > 0.0 {
+                    (middle / largest).clamp(0.0, 1.0) as f32
+                } else {
+                    0.0
+                },
+            })
         })
         .collect())
+}
+
+/// A reading of [`view_elevations`] counts in [`steep_roots`] only where
+/// its planes are at least this far apart ([`ViewElevation::spread`]; two
+/// views about 25 degrees apart): planes that nearly coincide leave the
+/// direction anywhere in them.
+pub const MIN_PLANE_SPREAD: f32 = 0.05;
+
+/// Per root, whether the views read its fur rising more than `max_elevation`
+/// (radians) off the envelope ([`view_elevations`] pooled within `radius`,
+/// every root, readings whose planes are at least [`MIN_PLANE_SPREAD`]
+/// apart). Why: the turn onto the views' axes lifts each view's line onto
+/// the tangent plane, which is the fur's line only while the fur lies near
+/// that plane; the line of fur that hangs or stands along the normal lifts
+/// to a direction it does not have.
+pub fn steep_roots(
+    positions: &[Vec3],
+    outer: &Mesh,
+    views: &[ViewOrientation<'_>],
+    radius: f32,
+    max_elevation: f32,
+) -> Result<Vec<bool>, GeomError> {
+    let mut steep = vec![false; positions.len()];
+    for e in view_elevations(positions, outer, views, radius, 1)? {
+        steep[e.root] = e.spread >= MIN_PLANE_SPREAD && e.elevation > max_elevation;
+    }
+    Ok(steep)
+}
+
+/// The eigenvalues of a symmetric 3x3 matrix, ascending (the trigonometric
+/// closed form, in f64).
+fn symmetric_eigenvalues(m: Mat3) -> [f64; 3] {
+    let a = m.as_dmat3();
+    let (a11, a22, a33) = (a.x_axis.x, a.y_axis.y, a.z_axis.z);
+    let (a12, a13, a23) = (a.y_axis.x, a.z_axis.x, a.z_axis.y);
+    let off = a12 * a12 + a13 * a13 + a23 * a23;
+    let q = (a11 + a22 + a33) / 3.0;
+    let p2 = (a11 - q).powi(2) + (a22 - q).powi(2) + (a33 - q).powi(2) + 2.0 * off;
+    if !(p2 > 1e-30 * q * q) {
+        return [q; 3];
+    }
+    let p = (p2 / 6.0).sqrt();
+    let b = (a - glam::DMat3::from_diagonal(glam::DVec3::splat(q))) * (1.0 / p);
+    let phi = (0.5 * b.determinant()).clamp(-1.0, 1.0).acos() / 3.0;
+    let largest = q + 2.0 * p * phi.cos();
+    let least = q + 2.0 * p * (phi + 2.0 * std::f64::consts::PI / 3.0).cos();
+    [least, 3.0 * q - largest - least, largest]
 }
 
 /// The point of the envelope `outer` nearest to `p` and the unit normal of its face (`None` for
@@ -655,17 +738,62 @@ mod tests {
             .collect();
         let e = view_elevations(&positions, &mesh, &views, 0.1, 4).unwrap();
         assert_eq!(e.len(), 7, "every 4th of 25 roots");
-        for (i, el) in e {
+        for r in e {
             assert!(
-                (el - rise).abs() < 0.02,
-                "root {i}: {} degrees",
-                el.to_degrees()
+                (r.elevation - rise).abs() < 0.02,
+                "root {}: {} degrees",
+                r.root,
+                r.elevation.to_degrees()
             );
+            assert!(r.spread > 0.05, "{r:?}");
         }
-        // One view alone leaves the direction in a plane: no elevation claimed
-        // beyond what that plane allows, but still a finite answer.
+        // One view alone leaves the direction in a plane: still a finite
+        // answer, but the spread says that the planes do not pin it down.
         let one = view_elevations(&positions, &mesh, &views[..1], 0.1, 25).unwrap();
-        assert!(one.iter().all(|(_, e)| e.is_finite()));
+        assert!(
+            one.iter()
+                .all(|r| r.elevation.is_finite() && r.spread < 1e-3),
+            "{one:?}"
+        );
+    }
+
+    #[test]
+    fn fur_along_the_normal_reads_steep_and_fur_along_the_plane_does_not() {
+        let mesh = plane(2.0);
+        let cams = oblique_cameras();
+        let positions: Vec<Vec3> = (0..25)
+            .map(|i| Vec3::new((i % 5) as f32 * 0.05, (i / 5) as f32 * 0.05, -0.01))
+            .collect();
+        let steep_at = |rise_deg: f32, views: usize| {
+            let rise = rise_deg.to_radians();
+            let dir = Vec3::new(rise.cos(), 0.0, rise.sin());
+            let maps: Vec<_> = cams[..views].iter().map(|c| maps_of(c, dir)).collect();
+            let v = ViewOrientation::pair(&cams[..views], &maps);
+            let s = steep_roots(&positions, &mesh, &v, 0.1, 60f32.to_radians()).unwrap();
+            s.iter().filter(|&&b| b).count()
+        };
+        assert_eq!(steep_at(75.0, 3), 25, "fur 15 degrees off the normal");
+        assert_eq!(steep_at(45.0, 3), 0, "fur at 45 degrees");
+        assert_eq!(steep_at(10.0, 3), 0, "fur lying down");
+        // One view cannot tell: its plane holds the lying and the standing
+        // line alike.
+        assert_eq!(steep_at(75.0, 1), 0, "one view");
+    }
+
+    #[test]
+    fn symmetric_eigenvalues_match_a_rotated_diagonal() {
+        let r = Mat3::from_axis_angle(Vec3::new(1.0, 2.0, 3.0).normalize(), 0.7);
+        let m = r * Mat3::from_diagonal(Vec3::new(3.0, 0.5, 2.0)) * r.transpose();
+        let e = symmetric_eigenvalues(m);
+        for (got, want) in e.iter().zip([0.5, 2.0, 3.0]) {
+            assert!((got - want).abs() < 1e-5, "{e:?}");
+        }
+        assert_eq!(symmetric_eigenvalues(Mat3::IDENTITY), [1.0; 3]);
+        // Two unit plane normals 60 degrees apart: spread tan^2(30 degrees).
+        let (a, b) = (Vec3::X, Vec3::new(0.5, 0.75f32.sqrt(), 0.0));
+        let outer = |n: Vec3| Mat3::from_cols(n * n.x, n * n.y, n * n.z);
+        let [least, middle, largest] = symmetric_eigenvalues(outer(a) + outer(b));
+        assert!(least.abs() < 1e-6 && (middle / largest - 1.0 / 3.0).abs() < 1e-5);
     }
 
     #[test]

@@ -226,6 +226,15 @@
 //!   to its fur than that line (docs/history.md, "Ears that keep the
 //!   roots' frame"). Every other root turns as before, so the boundaries
 //!   between large parts pool across as before and get no seam.
+//!   `view_axes_max_elevation_deg` (unset) keeps the roots' frame where
+//!   the views read the fur rising steeply off the envelope
+//!   ([`crate::growth::view_axes::steep_roots`]): the lift onto the
+//!   tangent plane then reads the cameras' layout, not the fur (the
+//!   sheepdog's hanging belly fur turns sideways). At 60 degrees it ties
+//!   every dev F-score and lowers the fox's and the sheepdog's direction
+//!   error, but curls read steep too (the poodle's error rises inside its
+//!   spread), and it waits for the suites (docs/history.md, "Fur that
+//!   hangs: the views' lines off the tangent plane").
 //!   `view_axes_min_excess` (0.1) also requires the agreement beyond random
 //!   maps' ([`crate::growth::view_axes`], "The null"): a frame turns only
 //!   where its lines agree beyond what the views' geometry gives noise.

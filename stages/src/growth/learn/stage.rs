@@ -28,7 +28,7 @@ use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
 use crate::growth::view_axes::{
-    own_part_shares, view_axes, view_elevations, vote_signs, ViewOrientation,
+    own_part_shares, steep_roots, view_axes, view_elevations, vote_signs, ViewOrientation,
 };
 use crate::maths::geom::MeshQuery;
 
@@ -167,6 +167,13 @@ fure_stage_api::stage_params! {
         /// nor flipped by the sign vote: their window reads mostly other parts' fur (an ear
         /// on a head; growth::view_axes::own_part_shares). Unset: every root may turn.
         view_axes_min_own_share: Option<f64> = optional(ParamType::Float).range(0.0, 1.0),
+        /// Roots where the views say the fur rises off the envelope more steeply than this
+        /// (degrees; the direction nearest to every view's line plane, pooled over the same
+        /// window, growth::view_axes::view_elevations) keep the roots' frame, neither turned
+        /// nor flipped: the turn lifts each view's line onto the tangent plane, and the line of
+        /// fur that hangs or stands along the normal lifts to a direction it does not have.
+        /// Unset: every root may turn.
+        view_axes_max_elevation_deg: Option<f64> = optional(ParamType::Float).range(0.0, 90.0),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -776,6 +783,10 @@ pub struct ViewAxesReport {
     /// little of their window (view_axes_min_own_share).
     #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
     pub kept_fraction: f32,
+    /// Fraction of the strands that kept the roots' frame because the views read their fur
+    /// steeper than view_axes_max_elevation_deg.
+    #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
+    pub steep_fraction: f32,
 }
 
 /// What `view_elevation` read and did (metrics.json `view_elevation`).
@@ -960,7 +971,7 @@ fn turn_onto_view_axes(
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
     let roots_path = ctx.input("roots")?;
     // Roots whose window their own part barely fills keep the roots' frame.
-    let keep: Vec<bool> = match p.view_axes_min_own_share {
+    let mut keep: Vec<bool> = match p.view_axes_min_own_share {
         Some(min) => own_part_shares(positions, parts, radius)
             .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
             .into_iter()
@@ -968,6 +979,20 @@ fn turn_onto_view_axes(
             .collect(),
         None => vec![false; frames.len()],
     };
+    // So do the roots whose fur the views read steep (their tangent-plane line is not the
+    // fur's).
+    let mut steep = 0usize;
+    if let Some(max_deg) = p.view_axes_max_elevation_deg {
+        let max = max_deg.to_radians() as f32;
+        let marked = steep_roots(positions, outer, &views, radius, max)
+            .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
+        for (k, s) in keep.iter_mut().zip(marked) {
+            if s && !*k {
+                *k = true;
+                steep += 1;
+            }
+        }
+    }
     let kept: Vec<(usize, Mat3)> = (0..frames.len())
         .filter(|&i| keep[i])
         .map(|i| (i, frames[i]))
@@ -1024,7 +1049,8 @@ fn turn_onto_view_axes(
         mean_coherence,
         mean_excess_coherence,
         unseen_fraction: unseen as f32 / n,
-        kept_fraction: kept.len() as f32 / n,
+        kept_fraction: (kept.len() - steep) as f32 / n,
+        steep_fraction: steep as f32 / n,
     }))
 }
 
@@ -1089,7 +1115,7 @@ fn tilt_onto_view_elevation(
     let mut elevations: Vec<f32> = view_elevations(positions, outer, &views, radius, stride)
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?
         .into_iter()
-        .map(|(_, e)| e)
+        .map(|e| e.elevation)
         .collect();
     if elevations.is_empty() {
         return Ok(None);
@@ -2218,7 +2244,13 @@ pub(crate) mod tests {
     /// the in-plane lean of the strand whose root lies under the envelope
     /// point the pixel sees. Returns the maps' folder.
     fn write_true_maps(dir: &Path, views: &Path, gt_tips: &[Vec3]) -> PathBuf {
-        let maps = dir.join("maps");
+        write_maps_of_rising_fur(dir, views, gt_tips, 0.0)
+    }
+
+    /// [`write_true_maps`] for fur whose line rises `rise` units along the
+    /// normal per unit of its in-plane lean (0: fur lying on the surface).
+    fn write_maps_of_rising_fur(dir: &Path, views: &Path, gt_tips: &[Vec3], rise: f32) -> PathBuf {
+        let maps = dir.join(format!("maps_{rise}"));
         let r = roots(300);
         let fur: Vec<usize> = (0..r.len()).filter(|&i| r.length[i] > 0.0).collect();
         let lean: Vec<(Vec3, Vec3)> = fur
@@ -2227,7 +2259,7 @@ pub(crate) mod tests {
             .map(|(&i, &tip)| {
                 let n = r.normals[i];
                 let d = tip - r.positions[i];
-                (n, (d - n * n.dot(d)).normalize())
+                (n, (d - n * n.dot(d)).normalize() + n * rise)
             })
             .collect();
         let cams = formats::cameras::read_views(views).unwrap().train;
@@ -2306,6 +2338,43 @@ pub(crate) mod tests {
         assert!(report.mean_turn_deg > 10.0, "{report:?}");
         assert!(off > 15.0, "turned start {off} degrees off");
         assert!(on < 0.5 * off, "view axes: {off} -> {on} degrees");
+    }
+
+    #[test]
+    fn frames_keep_their_start_where_the_views_show_fur_along_the_normal() {
+        let d = tempfile::tempdir().unwrap();
+        let (views, gt_tips) = write_views(d.path());
+        let report = |rise: f32, max_elevation: Option<f64>| {
+            let maps = write_maps_of_rising_fur(d.path(), &views, &gt_tips, rise);
+            let dir = d.path().join(format!("steep_{rise}_{max_elevation:?}"));
+            let mut params = vec![
+                ("iterations", Value::Int(0)),
+                ("frame_rotation_deg", Value::Float(45.0)),
+                // Four views: a window of a few pixels pools enough of them.
+                ("view_axes_radius_px", Value::Float(4.0)),
+            ];
+            if let Some(m) = max_elevation {
+                params.push(("view_axes_max_elevation_deg", Value::Float(m)));
+            }
+            let out = run_with_views_and_maps(&dir, views.clone(), Some(maps), &params);
+            let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
+            m.view_axes.expect("view axes recorded")
+        };
+        // Fur rising at about 76 degrees (4 along the normal per unit in the plane).
+        let (free, gated) = (report(4.0, None), report(4.0, Some(60.0)));
+        assert_eq!(free.steep_fraction, 0.0, "{free:?}");
+        assert!(gated.steep_fraction > 0.2, "{gated:?}");
+        // The steep roots keep their frames: most of them would have turned.
+        assert!(
+            gated.turned_fraction < free.turned_fraction - 0.5 * gated.steep_fraction,
+            "{free:?} {gated:?}"
+        );
+        // Fur lying on the surface reads steep almost nowhere.
+        let lying = report(0.0, Some(60.0));
+        assert!(
+            lying.steep_fraction < 0.1 * gated.steep_fraction,
+            "{lying:?}"
+        );
     }
 
     #[test]
