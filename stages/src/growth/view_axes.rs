@@ -251,15 +251,16 @@ pub struct ViewElevation {
 }
 
 /// The fur's elevation above the envelope read from the views, at every
-/// `stride`-th root, for each such root whose neighbourhood some view saw. Each view's Gabor line at the root's
-/// envelope point, with the camera centre, spans a plane that holds the
-/// fur's 3D direction; the plane normals' outer products (weight: the map's
-/// confidence times the cosine of the view angle; views within about 78
-/// degrees of grazing, unoccluded) are summed over the roots within `radius`,
-/// and the direction closest to lying in all those planes is the sum's least
-/// eigenvector. A line has no sign, so neither has the elevation. Per root it
-/// is noisy (the views see the coat's surface, not each strand); its median
-/// over the roots is what the learners use (module doc of `learn`).
+/// `stride`-th root whose neighbourhood some view saw. Each view's Gabor
+/// line at the root's envelope point, with the camera centre, spans a plane
+/// that holds the fur's 3D direction; the plane normals' outer products
+/// (weight: the map's confidence times the cosine of the view angle; views
+/// within about 78 degrees of grazing, unoccluded) are summed over the
+/// roots within `radius`, and the direction closest to lying in all those
+/// planes is the sum's least eigenvector. A line has no sign, so neither has
+/// the elevation. Per root it is noisy (the views see the coat's surface,
+/// not each strand); the learners use its median over the roots (module doc
+/// of `learn`) and, optionally, where it is steep ([`steep_roots`]).
 pub fn view_elevations(
     positions: &[Vec3],
     outer: &Mesh,
