@@ -52,13 +52,14 @@ fn run() -> Res<()> {
     let codec = read_hair(dir.join("codec/strands.hair")).ok();
     let (mut est, mut truth, mut learned) = (Vec::new(), Vec::new(), Vec::new());
     let mut part_of = Vec::new();
-    for (i, e) in sampled {
+    for reading in sampled {
+        let i = reading.root;
         part_of.push(roots.part[i] as usize);
         // The envelope's normal at the root's closest point, as view_elevations measures.
         let (_, _, tri) = query.closest_point(roots.positions[i]);
         let [a, b, c] = outer.triangles[tri as usize].map(|k| outer.positions[k as usize]);
         let nq = (b - a).cross(c - a).normalize_or_zero();
-        est.push(e.to_degrees());
+        est.push(reading.elevation.to_degrees());
         let g = gt.strand(gt_index.nearest(roots.positions[i]).0);
         let chord = g[((g.len() - 1) / 3).max(1)] - g[0];
         truth.push(elevation(chord.normalize_or_zero(), nq));
