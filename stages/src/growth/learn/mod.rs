@@ -232,9 +232,10 @@
 //!   tangent plane then reads the cameras' layout, not the fur (the
 //!   sheepdog's hanging belly fur turns sideways). At 60 degrees it ties
 //!   every dev F-score and lowers the fox's and the sheepdog's direction
-//!   error, but curls read steep too (the poodle's error rises inside its
-//!   spread), and it waits for the suites (docs/history.md, "Fur that
-//!   hangs: the views' lines off the tangent plane").
+//!   error for both learners, but curls read steep too (the poodle's error
+//!   rises, beyond the seed spread for dense), so it is an option
+//!   (docs/history.md, "Fur that hangs: the views' lines off the tangent
+//!   plane").
 //!   `view_axes_min_excess` (0.1) also requires the agreement beyond random
 //!   maps' ([`crate::growth::view_axes`], "The null"): a frame turns only
 //!   where its lines agree beyond what the views' geometry gives noise.
