@@ -241,6 +241,10 @@ pub struct ViewElevation {
     pub root: usize,
     /// Radians in `[0, pi/2]` above the envelope.
     pub elevation: f32,
+    /// The line the views agree on: a unit direction, pointing away from the
+    /// envelope (its sign is the line's only where the line leaves the
+    /// envelope's tangent plane).
+    pub line: Vec3,
     /// How far apart the planes are: the pooled tensor's middle eigenvalue
     /// over its largest, in `[0, 1]`. Near 0 when every plane is nearly the
     /// same (one view, or views from one side): the direction is then only
@@ -291,8 +295,10 @@ pub fn view_elevations(
             }
             let d = least_eigenvector(m);
             let [_, middle, largest] = symmetric_eigenvalues(m);
+            let outward = if d.dot(own[i].0) < 0.0 { -d } else { d };
             Some(ViewElevation {
                 root: i,
+                line: outward,
                 elevation: d.dot(own[i].0).abs().clamp(0.0, 1.0).asin(),
                 spread: if largest > 0.0 {
                     (middle / largest).clamp(0.0, 1.0) as f32
