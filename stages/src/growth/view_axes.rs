@@ -131,8 +131,33 @@ pub fn own_part_shares(
     labels: &[u16],
     radius: f32,
 ) -> Result<Vec<f32>, GeomError> {
+    window_shares(positions, radius, |i, j| labels.get(j) == labels.get(i))
+}
+
+/// Per root, the share of the roots within `radius` (itself included) that
+/// `steep` marks (each root's own mark when `radius` is 0). Why: a steep root
+/// that keeps the roots' frame beside neighbours that turn onto the views'
+/// axes leaves a seam where the two meet; turning each root by the share of
+/// its window that is not steep eases one into the other over the window.
+pub fn steep_shares(
+    positions: &[Vec3],
+    steep: &[bool],
+    radius: f32,
+) -> Result<Vec<f32>, GeomError> {
+    window_shares(positions, radius, |_, j| steep.get(j) == Some(&true))
+}
+
+/// Per root `i`, the share of the roots `j` within `radius` (itself
+/// included) for which `counts(i, j)` holds; with no window, `counts(i, i)`.
+fn window_shares(
+    positions: &[Vec3],
+    radius: f32,
+    counts: impl Fn(usize, usize) -> bool + Sync,
+) -> Result<Vec<f32>, GeomError> {
     if radius <= 0.0 || positions.is_empty() {
-        return Ok(vec![1.0; positions.len()]);
+        return Ok((0..positions.len())
+            .map(|i| counts(i, i) as u8 as f32)
+            .collect());
     }
     let index = PointIndex::new(positions)?;
     Ok(positions
@@ -140,11 +165,8 @@ pub fn own_part_shares(
         .enumerate()
         .map(|(i, &p)| {
             let near = index.indices_within(p, radius);
-            let own = near
-                .iter()
-                .filter(|&&j| labels.get(j as usize) == labels.get(i))
-                .count();
-            own as f32 / near.len().max(1) as f32
+            let n = near.iter().filter(|&&j| counts(i, j as usize)).count();
+            n as f32 / near.len().max(1) as f32
         })
         .collect())
 }
@@ -886,6 +908,29 @@ mod tests {
         // No window: every root fills its own.
         let alone = own_part_shares(&positions, &labels, 0.0).unwrap();
         assert!(alone.iter().all(|&s| s == 1.0));
+    }
+
+    #[test]
+    fn a_root_turns_by_the_share_of_its_window_that_is_not_steep() {
+        // Ten roots in a row (x = 0 .. 0.9), the last five steep. At radius 0.25 each sees
+        // up to two neighbours on either side.
+        let positions: Vec<Vec3> = (0..10)
+            .map(|i| Vec3::new(i as f32 * 0.1, 0.0, 0.0))
+            .collect();
+        let steep: Vec<bool> = (0..10).map(|i| i >= 5).collect();
+        let shares = steep_shares(&positions, &steep, 0.25).unwrap();
+        assert_eq!(shares[0], 0.0);
+        assert_eq!(shares[9], 1.0);
+        // Across the step the share rises 1/5, 2/5, 3/5 at roots 3, 4, 5.
+        for (i, want) in [(3, 0.2), (4, 0.4), (5, 0.6), (6, 0.8)] {
+            assert!((shares[i] - want).abs() < 1e-6, "root {i}: {}", shares[i]);
+        }
+        // No window: each root's own mark.
+        let alone = steep_shares(&positions, &steep, 0.0).unwrap();
+        assert_eq!(
+            alone,
+            steep.iter().map(|&s| s as u8 as f32).collect::<Vec<_>>()
+        );
     }
 
     #[test]

@@ -28,7 +28,8 @@ use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
 use crate::growth::view_axes::{
-    own_part_shares, steep_roots, view_axes, view_elevations, vote_signs, ViewOrientation,
+    own_part_shares, steep_roots, steep_shares, view_axes, view_elevations, vote_signs,
+    ViewOrientation,
 };
 use crate::maths::geom::MeshQuery;
 
@@ -174,6 +175,11 @@ fure_stage_api::stage_params! {
         /// fur that hangs or stands along the normal lifts to a direction it does not have.
         /// Unset: every root may turn.
         view_axes_max_elevation_deg: Option<f64> = optional(ParamType::Float).range(0.0, 90.0),
+        /// With view_axes_max_elevation_deg: turn each root by the share of its window that
+        /// the views do not read steep (growth::view_axes::steep_shares), and keep the roots'
+        /// sign where most of it is steep, instead of keeping the roots' frame at the steep
+        /// roots alone; the kept and the turned fur then meet without a step.
+        view_axes_steep_blend: bool = bool(false).omit_default_from_key(),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -784,7 +790,8 @@ pub struct ViewAxesReport {
     #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
     pub kept_fraction: f32,
     /// Fraction of the strands that kept the roots' frame because the views read their fur
-    /// steeper than view_axes_max_elevation_deg.
+    /// steeper than view_axes_max_elevation_deg (with view_axes_steep_blend: that the views
+    /// read steeper, whose turn the blend then scales down).
     #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
     pub steep_fraction: f32,
 }
@@ -980,16 +987,26 @@ fn turn_onto_view_axes(
         None => vec![false; frames.len()],
     };
     // So do the roots whose fur the views read steep (their tangent-plane line is not the
-    // fur's).
-    let mut steep = 0usize;
+    // fur's); blended, each root turns by the share of its window that is not steep.
+    let (mut steep, mut steep_read) = (0usize, 0usize);
+    let mut turn_share = vec![1.0f32; frames.len()];
     if let Some(max_deg) = p.view_axes_max_elevation_deg {
         let max = max_deg.to_radians() as f32;
         let marked = steep_roots(positions, outer, &views, radius, max)
             .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
-        for (k, s) in keep.iter_mut().zip(marked) {
-            if s && !*k {
-                *k = true;
-                steep += 1;
+        if p.view_axes_steep_blend {
+            let shares = steep_shares(positions, &marked, radius)
+                .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?;
+            for (t, s) in turn_share.iter_mut().zip(shares) {
+                *t = 1.0 - s;
+            }
+            steep_read = marked.iter().filter(|&&s| s).count();
+        } else {
+            for (k, s) in keep.iter_mut().zip(marked) {
+                if s && !*k {
+                    *k = true;
+                    steep += 1;
+                }
             }
         }
     }
@@ -998,7 +1015,7 @@ fn turn_onto_view_axes(
         .map(|i| (i, frames[i]))
         .collect();
     let (mut turned, mut turn_sum, mut unseen) = (0usize, 0.0f64, 0usize);
-    for ((f, a), &k) in frames.iter_mut().zip(&axes).zip(&keep) {
+    for (((f, a), &k), &share) in frames.iter_mut().zip(&axes).zip(&keep).zip(&turn_share) {
         if a.views == 0 {
             unseen += 1;
         }
@@ -1007,18 +1024,24 @@ fn turn_onto_view_axes(
         }
         let excess_ok = a.excess_coherence as f64 >= p.view_axes_min_excess;
         if a.coherence >= p.view_axes_min_coherence && excess_ok && a.coherence > 0.0 {
-            *f *= Mat3::from_rotation_z(a.turn);
+            *f *= Mat3::from_rotation_z(a.turn * share);
             turned += 1;
-            turn_sum += a.turn.abs().to_degrees() as f64;
+            turn_sum += (a.turn * share).abs().to_degrees() as f64;
         }
     }
+    // Where most of the window is steep the roots' sign stays (the vote reads turned
+    // neighbours' axes).
+    let signed: Vec<(usize, Mat3)> = (0..frames.len())
+        .filter(|&i| !keep[i] && turn_share[i] < 0.5)
+        .map(|i| (i, frames[i]))
+        .collect();
     let mut flipped = if p.view_axes_sign_vote {
         vote_signs(positions, frames, radius, pool_parts)
             .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
     } else {
         0
     };
-    for &(i, f) in &kept {
+    for &(i, f) in kept.iter().chain(&signed) {
         if frames[i] != f {
             flipped -= 1;
         }
@@ -1050,7 +1073,12 @@ fn turn_onto_view_axes(
         mean_excess_coherence,
         unseen_fraction: unseen as f32 / n,
         kept_fraction: (kept.len() - steep) as f32 / n,
-        steep_fraction: steep as f32 / n,
+        steep_fraction: if p.view_axes_steep_blend {
+            steep_read
+        } else {
+            steep
+        } as f32
+            / n,
     }))
 }
 
@@ -2344,9 +2372,11 @@ pub(crate) mod tests {
     fn frames_keep_their_start_where_the_views_show_fur_along_the_normal() {
         let d = tempfile::tempdir().unwrap();
         let (views, gt_tips) = write_views(d.path());
-        let report = |rise: f32, max_elevation: Option<f64>| {
+        let report = |rise: f32, max_elevation: Option<f64>, blend: bool| {
             let maps = write_maps_of_rising_fur(d.path(), &views, &gt_tips, rise);
-            let dir = d.path().join(format!("steep_{rise}_{max_elevation:?}"));
+            let dir = d
+                .path()
+                .join(format!("steep_{rise}_{max_elevation:?}_{blend}"));
             let mut params = vec![
                 ("iterations", Value::Int(0)),
                 ("frame_rotation_deg", Value::Float(45.0)),
@@ -2356,12 +2386,15 @@ pub(crate) mod tests {
             if let Some(m) = max_elevation {
                 params.push(("view_axes_max_elevation_deg", Value::Float(m)));
             }
+            if blend {
+                params.push(("view_axes_steep_blend", Value::Bool(true)));
+            }
             let out = run_with_views_and_maps(&dir, views.clone(), Some(maps), &params);
             let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
             m.view_axes.expect("view axes recorded")
         };
         // Fur rising at about 76 degrees (4 along the normal per unit in the plane).
-        let (free, gated) = (report(4.0, None), report(4.0, Some(60.0)));
+        let (free, gated) = (report(4.0, None, false), report(4.0, Some(60.0), false));
         assert_eq!(free.steep_fraction, 0.0, "{free:?}");
         assert!(gated.steep_fraction > 0.2, "{gated:?}");
         // The steep roots keep their frames: most of them would have turned.
@@ -2370,7 +2403,17 @@ pub(crate) mod tests {
             "{free:?} {gated:?}"
         );
         // Fur lying on the surface reads steep almost nowhere.
-        let lying = report(0.0, Some(60.0));
+        // Blended, a root amid steep ones turns by the little of its window that is not.
+        let blended = report(4.0, Some(60.0), true);
+        assert!(
+            (blended.steep_fraction - gated.steep_fraction).abs() < 1e-6,
+            "{blended:?}"
+        );
+        assert!(
+            blended.mean_turn_deg < 0.5 * free.mean_turn_deg,
+            "{free:?} {blended:?}"
+        );
+        let lying = report(0.0, Some(60.0), false);
         assert!(
             lying.steep_fraction < 0.1 * gated.steep_fraction,
             "{lying:?}"
