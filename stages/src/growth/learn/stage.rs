@@ -168,18 +168,6 @@ fure_stage_api::stage_params! {
         /// nor flipped by the sign vote: their window reads mostly other parts' fur (an ear
         /// on a head; growth::view_axes::own_part_shares). Unset: every root may turn.
         view_axes_min_own_share: Option<f64> = optional(ParamType::Float).range(0.0, 1.0),
-        /// Roots where the views say the fur rises off the envelope more steeply than this
-        /// (degrees; the direction nearest to every view's line plane, pooled over the same
-        /// window, growth::view_axes::view_elevations) keep the roots' frame, neither turned
-        /// nor flipped: the turn lifts each view's line onto the tangent plane, and the line of
-        /// fur that hangs or stands along the normal lifts to a direction it does not have.
-        /// Unset: every root may turn.
-        view_axes_max_elevation_deg: Option<f64> = optional(ParamType::Float).range(0.0, 90.0),
-        /// With view_axes_max_elevation_deg: turn each root by the share of its window that
-        /// the views do not read steep (growth::view_axes::steep_shares), and keep the roots'
-        /// sign where most of it is steep, instead of keeping the roots' frame at the steep
-        /// roots alone; the kept and the turned fur then meet without a step.
-        view_axes_steep_blend: bool = bool(false).omit_default_from_key(),
         /// Strand coverage in the held-out renders: width = each strand segment's opacity
         /// scaled to its true width in the view (learn::image::width_coverage); opaque = the
         /// training opacity 1, which the renderer's low-pass widens to about a pixel.
@@ -292,6 +280,15 @@ fure_stage_api::stage_params! {
         /// split's curvature variance toward the GT's (sheepdog 3.7x -> 1.7x) but loses the
         /// curling coat's 2 and 3 cm scores (learn module doc).
         l_turn: f32 = float(0.0).min(0.0).omit_default_from_key(),
+        /// The views' steep fur (growth::view_axes::steep_roots): roots where the views say the
+        /// fur rises off the envelope more steeply than this (degrees; the direction nearest to
+        /// every view's line plane, pooled over the view-axes window) mark their window, and
+        /// each root turns onto the views' axis only by the share of its window that is not
+        /// steep (growth::view_axes::steep_shares), keeping the roots' sign where most of it
+        /// is. The turn lifts each view's line onto the tangent plane, and the line of fur that
+        /// hangs or stands along the normal lifts to a direction it does not have. 90 = every
+        /// root turns. 50: chosen on the dev split (learn module doc).
+        view_axes_steep_deg: f64 = float(50.0).range(0.0, 90.0),
         /// Give every strand a colour ramp from root to tip, fitted from the views with its
         /// colour and fixed while training (learn::image, `set_ramp`); off = one colour per
         /// strand. On: the tiger's held-out PSNR +0.3 dB, the other dev scenes and every
@@ -331,6 +328,8 @@ fure_stage_api::stage_params! {
         /// As the codec's `color_ramp`; dense keeps it off: on its strands it tied on every dev
         /// scene (learn::image).
         color_ramp: bool = bool(false),
+        /// As the codec's (learn module doc).
+        view_axes_steep_deg: f64 = float(90.0).range(0.0, 90.0).omit_default_from_key(),
     }
 }
 
@@ -371,6 +370,14 @@ impl Learner {
             Learner::Codec(c) => c.l_chm,
             Learner::Dense(d) => d.l_chm,
         }
+    }
+    /// `view_axes_steep_deg`, `None` at 90 and above (no root is steeper).
+    fn view_axes_steep_deg(&self) -> Option<f64> {
+        let max = match self {
+            Learner::Codec(c) => c.view_axes_steep_deg,
+            Learner::Dense(d) => d.view_axes_steep_deg,
+        };
+        (max < 90.0).then_some(max)
     }
     fn l_turn(&self) -> f32 {
         match self {
@@ -789,9 +796,8 @@ pub struct ViewAxesReport {
     /// little of their window (view_axes_min_own_share).
     #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
     pub kept_fraction: f32,
-    /// Fraction of the strands that kept the roots' frame because the views read their fur
-    /// steeper than view_axes_max_elevation_deg (with view_axes_steep_blend: that the views
-    /// read steeper, whose turn the blend then scales down).
+    /// Fraction of the strands the views read steeper than view_axes_steep_deg
+    /// (their window's turn is scaled down).
     #[serde(default, skip_serializing_if = "crate::formats::json::is_zero")]
     pub steep_fraction: f32,
 }
@@ -815,6 +821,7 @@ fn setup(
     pe_frequencies: usize,
     codec: Option<&CodecParams>,
     chamfer: bool,
+    max_elevation_deg: Option<f64>,
 ) -> Result<Setup, StageError> {
     let roots_path = ctx.input("roots")?;
     let mut roots: Roots = formats::json::read_json(roots_path)?;
@@ -862,7 +869,15 @@ fn setup(
         .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
         .collect();
     let parts: Vec<u16> = keep.iter().map(|&i| roots.part[i]).collect();
-    let view_axes = turn_onto_view_axes(ctx, p, &positions, &parts, &mut frames, &outer)?;
+    let view_axes = turn_onto_view_axes(
+        ctx,
+        p,
+        max_elevation_deg,
+        &positions,
+        &parts,
+        &mut frames,
+        &outer,
+    )?;
     let view_elevation = tilt_onto_view_elevation(
         ctx,
         p,
@@ -959,6 +974,7 @@ fn components_to_train(
 fn turn_onto_view_axes(
     ctx: &StageContext<'_>,
     p: &LearnParams,
+    max_elevation_deg: Option<f64>,
     positions: &[Vec3],
     parts: &[u16],
     frames: &mut [Mat3],
@@ -978,7 +994,7 @@ fn turn_onto_view_axes(
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
     let roots_path = ctx.input("roots")?;
     // Roots whose window their own part barely fills keep the roots' frame.
-    let mut keep: Vec<bool> = match p.view_axes_min_own_share {
+    let keep: Vec<bool> = match p.view_axes_min_own_share {
         Some(min) => own_part_shares(positions, parts, radius)
             .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?
             .into_iter()
@@ -986,28 +1002,20 @@ fn turn_onto_view_axes(
             .collect(),
         None => vec![false; frames.len()],
     };
-    // So do the roots whose fur the views read steep (their tangent-plane line is not the
-    // fur's); blended, each root turns by the share of its window that is not steep.
-    let (mut steep, mut steep_read) = (0usize, 0usize);
+    // Roots whose window the views read steep turn only by the share of it that is not (the
+    // tangent-plane line of steep fur is not the fur's): kept and turned fur meet without a
+    // step (a seam).
     let mut turn_share = vec![1.0f32; frames.len()];
-    if let Some(max_deg) = p.view_axes_max_elevation_deg {
+    let mut steep = 0usize;
+    if let Some(max_deg) = max_elevation_deg {
         let max = max_deg.to_radians() as f32;
         let marked = steep_roots(positions, outer, &views, radius, max)
             .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
-        if p.view_axes_steep_blend {
-            let shares = steep_shares(positions, &marked, radius)
-                .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?;
-            for (t, s) in turn_share.iter_mut().zip(shares) {
-                *t = 1.0 - s;
-            }
-            steep_read = marked.iter().filter(|&&s| s).count();
-        } else {
-            for (k, s) in keep.iter_mut().zip(marked) {
-                if s && !*k {
-                    *k = true;
-                    steep += 1;
-                }
-            }
+        steep = marked.iter().filter(|&&s| s).count();
+        let shares = steep_shares(positions, &marked, radius)
+            .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?;
+        for (t, s) in turn_share.iter_mut().zip(shares) {
+            *t = 1.0 - s;
         }
     }
     let kept: Vec<(usize, Mat3)> = (0..frames.len())
@@ -1072,13 +1080,8 @@ fn turn_onto_view_axes(
         mean_coherence,
         mean_excess_coherence,
         unseen_fraction: unseen as f32 / n,
-        kept_fraction: (kept.len() - steep) as f32 / n,
-        steep_fraction: if p.view_axes_steep_blend {
-            steep_read
-        } else {
-            steep
-        } as f32
-            / n,
+        kept_fraction: kept.len() as f32 / n,
+        steep_fraction: steep as f32 / n,
     }))
 }
 
@@ -1297,7 +1300,14 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         Learner::Dense(_) => (0, None),
     };
     ctx.progress.message("reading inputs");
-    let s = setup(ctx, &p, pe_f, codec, learner.l_chm() > 0.0)?;
+    let s = setup(
+        ctx,
+        &p,
+        pe_f,
+        codec,
+        learner.l_chm() > 0.0,
+        learner.view_axes_steep_deg(),
+    )?;
     let l = s.prep.points;
 
     let (mut model, rates) = initial_model(&learner, &s, seed);
@@ -2372,48 +2382,31 @@ pub(crate) mod tests {
     fn frames_keep_their_start_where_the_views_show_fur_along_the_normal() {
         let d = tempfile::tempdir().unwrap();
         let (views, gt_tips) = write_views(d.path());
-        let report = |rise: f32, max_elevation: Option<f64>, blend: bool| {
+        let report = |rise: f32, max_elevation: f64| {
             let maps = write_maps_of_rising_fur(d.path(), &views, &gt_tips, rise);
-            let dir = d
-                .path()
-                .join(format!("steep_{rise}_{max_elevation:?}_{blend}"));
-            let mut params = vec![
+            let dir = d.path().join(format!("steep_{rise}_{max_elevation}"));
+            let params = [
                 ("iterations", Value::Int(0)),
                 ("frame_rotation_deg", Value::Float(45.0)),
                 // Four views: a window of a few pixels pools enough of them.
                 ("view_axes_radius_px", Value::Float(4.0)),
+                ("view_axes_steep_deg", Value::Float(max_elevation)),
             ];
-            if let Some(m) = max_elevation {
-                params.push(("view_axes_max_elevation_deg", Value::Float(m)));
-            }
-            if blend {
-                params.push(("view_axes_steep_blend", Value::Bool(true)));
-            }
             let out = run_with_views_and_maps(&dir, views.clone(), Some(maps), &params);
             let m: LearnMetrics = formats::json::read_json(out.join("metrics.json")).unwrap();
             m.view_axes.expect("view axes recorded")
         };
         // Fur rising at about 76 degrees (4 along the normal per unit in the plane).
-        let (free, gated) = (report(4.0, None, false), report(4.0, Some(60.0), false));
+        let (free, gated) = (report(4.0, 90.0), report(4.0, 60.0));
         assert_eq!(free.steep_fraction, 0.0, "{free:?}");
         assert!(gated.steep_fraction > 0.2, "{gated:?}");
-        // The steep roots keep their frames: most of them would have turned.
+        // Windows the views read steep turn less: the frames stay nearer their start.
         assert!(
-            gated.turned_fraction < free.turned_fraction - 0.5 * gated.steep_fraction,
+            gated.mean_turn_deg < (1.0 - 0.5 * gated.steep_fraction) * free.mean_turn_deg,
             "{free:?} {gated:?}"
         );
         // Fur lying on the surface reads steep almost nowhere.
-        // Blended, a root amid steep ones turns by the little of its window that is not.
-        let blended = report(4.0, Some(60.0), true);
-        assert!(
-            (blended.steep_fraction - gated.steep_fraction).abs() < 1e-6,
-            "{blended:?}"
-        );
-        assert!(
-            blended.mean_turn_deg < 0.5 * free.mean_turn_deg,
-            "{free:?} {blended:?}"
-        );
-        let lying = report(0.0, Some(60.0), false);
+        let lying = report(0.0, 60.0);
         assert!(
             lying.steep_fraction < 0.1 * gated.steep_fraction,
             "{lying:?}"
