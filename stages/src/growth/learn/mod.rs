@@ -239,7 +239,10 @@
 //!   the window, 50 degrees ties every dev F-score and seam but the lynx's
 //!   (won, with its 3 cm score) and brings the sheepdog's direction error
 //!   from 20.9 to 19.5 degrees (docs/history.md, "Steep fur eased into the
-//!   turn").
+//!   turn"). Dense gains the same on four dev scenes but loses the curling
+//!   poodle's 4 cm score and direction error beyond its seed spread (the
+//!   codec's poodle moves the same way, inside its wider spread), so by the
+//!   same rule it keeps 90.
 //!   `view_axes_min_excess` (0.1) also requires the agreement beyond random
 //!   maps' ([`crate::growth::view_axes`], "The null"): a frame turns only
 //!   where its lines agree beyond what the views' geometry gives noise.
