@@ -286,7 +286,8 @@ pub struct ViewElevation {
 /// planes is the sum's least eigenvector. A line has no sign, so neither has
 /// the elevation. Per root it is noisy (the views see the coat's surface,
 /// not each strand); the learners use its median over the roots (module doc
-/// of `learn`) and, optionally, where it is steep ([`steep_roots`]).
+/// of `learn`) and, optionally, where it is steep ([`steep_roots`]). One
+/// reading; [`PlaneTensors`] keeps the per-root tensors for several.
 pub fn view_elevations(
     positions: &[Vec3],
     outer: &Mesh,
@@ -294,42 +295,7 @@ pub fn view_elevations(
     radius: f32,
     stride: usize,
 ) -> Result<Vec<ViewElevation>, GeomError> {
-    let query = MeshQuery::new(outer)?;
-    let (lo, hi) = outer.bounds();
-    let lift = 1e-3 * (hi - lo).length();
-    // Per root: its envelope normal and plane-normal tensor.
-    let own: Vec<(Vec3, Mat3)> = positions
-        .par_iter()
-        .map(|&p| plane_tensor(p, &query, outer, views, lift))
-        .collect();
-    let index = PointIndex::new(positions)?;
-    let sampled: Vec<usize> = (0..positions.len()).step_by(stride.max(1)).collect();
-    Ok(sampled
-        .into_par_iter()
-        .filter_map(|i| {
-            let mut m = Mat3::ZERO;
-            // Ascending indices: a fixed summation order.
-            for j in index.indices_within(positions[i], radius) {
-                m += own[j as usize].1;
-            }
-            if !(m.x_axis.x + m.y_axis.y + m.z_axis.z > 0.0) {
-                return None;
-            }
-            let d = least_eigenvector(m);
-            let [_, middle, largest] = symmetric_eigenvalues(m);
-            let outward = if d.dot(own[i].0) < 0.0 { -d } else { d };
-            Some(ViewElevation {
-                root: i,
-                line: outward,
-                elevation: d.dot(own[i].0).abs().clamp(0.0, 1.0).asin(),
-                spread: if largest > 0.0 {
-                    (middle / largest).clamp(0.0, 1.0) as f32
-                } else {
-                    0.0
-                },
-            })
-        })
-        .collect())
+    Ok(PlaneTensors::new(positions, outer, views)?.elevations(radius, stride))
 }
 
 /// A reading of [`view_elevations`] counts in [`steep_roots`] only where
@@ -352,11 +318,81 @@ pub fn steep_roots(
     radius: f32,
     max_elevation: f32,
 ) -> Result<Vec<bool>, GeomError> {
-    let mut steep = vec![false; positions.len()];
-    for e in view_elevations(positions, outer, views, radius, 1)? {
-        steep[e.root] = e.spread >= MIN_PLANE_SPREAD && e.elevation > max_elevation;
+    Ok(PlaneTensors::new(positions, outer, views)?.steep_roots(radius, max_elevation))
+}
+
+/// Every root's envelope normal and plane-normal tensor (the views' part of
+/// [`view_elevations`]), made once and pooled at any radius: the per-root
+/// tensors (a ray to every camera per root) cost far more than the pooling,
+/// and a learner reads both the median elevation and the steep roots.
+pub struct PlaneTensors<'p> {
+    positions: &'p [Vec3],
+    own: Vec<(Vec3, Mat3)>,
+    index: PointIndex,
+}
+
+impl<'p> PlaneTensors<'p> {
+    /// The tensors of the roots at `positions`, seen on the envelope `outer`.
+    pub fn new(
+        positions: &'p [Vec3],
+        outer: &Mesh,
+        views: &[ViewOrientation<'_>],
+    ) -> Result<Self, GeomError> {
+        let query = MeshQuery::new(outer)?;
+        let (lo, hi) = outer.bounds();
+        let lift = 1e-3 * (hi - lo).length();
+        let own = positions
+            .par_iter()
+            .map(|&p| plane_tensor(p, &query, outer, views, lift))
+            .collect();
+        let index = PointIndex::new(positions)?;
+        Ok(PlaneTensors {
+            positions,
+            own,
+            index,
+        })
     }
-    Ok(steep)
+
+    /// [`view_elevations`] pooled within `radius`, at every `stride`-th root.
+    pub fn elevations(&self, radius: f32, stride: usize) -> Vec<ViewElevation> {
+        let sampled: Vec<usize> = (0..self.positions.len()).step_by(stride.max(1)).collect();
+        sampled
+            .into_par_iter()
+            .filter_map(|i| {
+                let mut m = Mat3::ZERO;
+                // Ascending indices: a fixed summation order.
+                for j in self.index.indices_within(self.positions[i], radius) {
+                    m += self.own[j as usize].1;
+                }
+                if !(m.x_axis.x + m.y_axis.y + m.z_axis.z > 0.0) {
+                    return None;
+                }
+                let d = least_eigenvector(m);
+                let [_, middle, largest] = symmetric_eigenvalues(m);
+                let normal = self.own[i].0;
+                let outward = if d.dot(normal) < 0.0 { -d } else { d };
+                Some(ViewElevation {
+                    root: i,
+                    line: outward,
+                    elevation: d.dot(normal).abs().clamp(0.0, 1.0).asin(),
+                    spread: if largest > 0.0 {
+                        (middle / largest).clamp(0.0, 1.0) as f32
+                    } else {
+                        0.0
+                    },
+                })
+            })
+            .collect()
+    }
+
+    /// [`steep_roots`] of these tensors.
+    pub fn steep_roots(&self, radius: f32, max_elevation: f32) -> Vec<bool> {
+        let mut steep = vec![false; self.positions.len()];
+        for e in self.elevations(radius, 1) {
+            steep[e.root] = e.spread >= MIN_PLANE_SPREAD && e.elevation > max_elevation;
+        }
+        steep
+    }
 }
 
 /// The eigenvalues of a symmetric 3x3 matrix, ascending (the trigonometric

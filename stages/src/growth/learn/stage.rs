@@ -28,8 +28,7 @@ use crate::data::strands::Strands;
 use crate::formats;
 use crate::growth::strand_basis::StrandBasis;
 use crate::growth::view_axes::{
-    own_part_shares, steep_roots, steep_shares, view_axes, view_elevations, vote_signs,
-    ViewOrientation,
+    own_part_shares, steep_shares, view_axes, vote_signs, PlaneTensors, ViewOrientation,
 };
 use crate::maths::geom::MeshQuery;
 
@@ -870,24 +869,54 @@ fn setup(
         .map(|&i| frame(roots.tangents[i], roots.bitangents[i], roots.normals[i]) * turn)
         .collect();
     let parts: Vec<u16> = keep.iter().map(|&i| roots.part[i]).collect();
-    let view_axes = turn_onto_view_axes(
-        ctx,
-        p,
-        max_elevation_deg,
-        &positions,
-        &parts,
-        &mut frames,
-        &outer,
-    )?;
-    let view_elevation = tilt_onto_view_elevation(
-        ctx,
-        p,
-        &positions,
-        &mut frames,
-        &outer,
-        &basis,
-        view_axes.as_ref(),
-    )?;
+    // The maps are read once for the turn and the tilt, and the views' plane tensors made once
+    // for the steep roots and the median elevation.
+    let turn_on = p.view_axes_radius_px > 0.0 && !frames.is_empty();
+    let tilt_on = p.view_elevation && !frames.is_empty() && basis.mean.len() >= 2;
+    let maps = if turn_on || tilt_on {
+        training_maps(ctx, "fur axes and elevation from the views")?
+    } else {
+        None
+    };
+    let views = maps
+        .as_ref()
+        .map(|(cams, maps)| (cams.as_slice(), ViewOrientation::pair(cams, maps)));
+    let planes = match &views {
+        Some((_, v)) if tilt_on || (turn_on && max_elevation_deg.is_some()) => {
+            let outer_path = ctx.input("outer")?;
+            Some(
+                PlaneTensors::new(&positions, &outer, v)
+                    .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?,
+            )
+        }
+        _ => None,
+    };
+    let views = views.as_ref().map(|(cams, v)| (*cams, v.as_slice()));
+    let view_axes = match views.filter(|_| turn_on) {
+        Some(views) => Some(turn_onto_view_axes(
+            ctx,
+            p,
+            max_elevation_deg.zip(planes.as_ref()),
+            views,
+            &positions,
+            &parts,
+            &mut frames,
+            &outer,
+        )?),
+        None => None,
+    };
+    let view_elevation = match (views.filter(|_| tilt_on), &planes) {
+        (Some((cams, _)), Some(planes)) => tilt_onto_view_elevation(
+            ctx,
+            cams,
+            planes,
+            &mut frames,
+            &outer,
+            &basis,
+            view_axes.as_ref(),
+        ),
+        _ => None,
+    };
     let inputs = RootInputs {
         positions,
         frames,
@@ -970,28 +999,25 @@ fn components_to_train(
 }
 
 /// Turns `frames` about their normals onto the fur's axis read from the
-/// orientation maps (growth::view_axes), where the views agree; `None` when
-/// `view_axes_radius_px` is 0 or the views or maps are not connected.
+/// orientation maps (`views`: the training cameras and their maps;
+/// growth::view_axes), where the views agree. `steep_gate`: the elevation
+/// (degrees) above which the views read a root's fur steep, with the views'
+/// plane tensors of the roots; `None`: no root is read steep.
+#[allow(clippy::too_many_arguments)]
 fn turn_onto_view_axes(
     ctx: &StageContext<'_>,
     p: &LearnParams,
-    max_elevation_deg: Option<f64>,
+    steep_gate: Option<(f64, &PlaneTensors<'_>)>,
+    (cams, views): (&[Camera], &[ViewOrientation<'_>]),
     positions: &[Vec3],
     parts: &[u16],
     frames: &mut [Mat3],
     outer: &Mesh,
-) -> Result<Option<ViewAxesReport>, StageError> {
-    if p.view_axes_radius_px <= 0.0 || frames.is_empty() {
-        return Ok(None);
-    }
-    let Some((cams, maps)) = training_maps(ctx, "fur axes from the views")? else {
-        return Ok(None);
-    };
-    let views = ViewOrientation::pair(&cams, &maps);
-    let radius = p.view_axes_radius_px * pixel_footprint(&cams, outer);
+) -> Result<ViewAxesReport, StageError> {
+    let radius = p.view_axes_radius_px * pixel_footprint(cams, outer);
     let outer_path = ctx.input("outer")?;
     let pool_parts = p.view_axes_within_part.then_some(parts);
-    let axes = view_axes(positions, frames, outer, &views, radius, pool_parts)
+    let axes = view_axes(positions, frames, outer, views, radius, pool_parts)
         .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
     let roots_path = ctx.input("roots")?;
     // Roots whose window their own part barely fills keep the roots' frame.
@@ -1008,10 +1034,8 @@ fn turn_onto_view_axes(
     // step (a seam).
     let mut turn_share = vec![1.0f32; frames.len()];
     let mut steep = 0usize;
-    if let Some(max_deg) = max_elevation_deg {
-        let max = max_deg.to_radians() as f32;
-        let marked = steep_roots(positions, outer, &views, radius, max)
-            .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?;
+    if let Some((max_deg, planes)) = steep_gate {
+        let marked = planes.steep_roots(radius, max_deg.to_radians() as f32);
         steep = marked.iter().filter(|&&s| s).count();
         let shares = steep_shares(positions, &marked, radius)
             .map_err(|e| StageError::input("roots", roots_path, e.to_string()))?;
@@ -1069,7 +1093,7 @@ fn turn_onto_view_axes(
             p.view_axes_min_excess
         ));
     }
-    Ok(Some(ViewAxesReport {
+    Ok(ViewAxesReport {
         flipped_fraction: flipped as f32 / n,
         radius,
         turned_fraction: turned as f32 / n,
@@ -1083,7 +1107,7 @@ fn turn_onto_view_axes(
         unseen_fraction: unseen as f32 / n,
         kept_fraction: kept.len() as f32 / n,
         steep_fraction: steep as f32 / n,
-    }))
+    })
 }
 
 /// Below this ratio of the mean excess coherence to the mean coherence the
@@ -1117,40 +1141,33 @@ fn training_maps(
 /// The start elevation from the views (`view_elevation`): every frame tilted
 /// about its bitangent by the basis mean strand's elevation (its first
 /// third's chord over the frame's normal) minus the fur's median elevation
-/// in the views ([`view_elevations`], pooled over 4 pixel footprints, at most
-/// about 4,000 roots sampled). `None` when off, when the views or maps are
-/// not connected, or when no root is seen.
+/// in the views (`planes`, the roots' plane tensors in the training
+/// cameras `cams`, pooled over 4 pixel footprints, at most about 4,000 roots
+/// sampled; growth::view_axes::view_elevations). `None` when no root is
+/// seen.
 fn tilt_onto_view_elevation(
     ctx: &StageContext<'_>,
-    p: &LearnParams,
-    positions: &[Vec3],
+    cams: &[Camera],
+    planes: &PlaneTensors<'_>,
     frames: &mut [Mat3],
     outer: &Mesh,
     basis: &StrandBasis,
     axes: Option<&ViewAxesReport>,
-) -> Result<Option<ViewElevationReport>, StageError> {
-    if !p.view_elevation || frames.is_empty() || basis.mean.len() < 2 {
-        return Ok(None);
-    }
+) -> Option<ViewElevationReport> {
     // Maps that carry no direction read the mean viewing direction, steep
     // whatever the fur does: keep the basis' elevation where the lines agree
     // little beyond random maps (growth::view_axes, "The null").
     let unreliable =
         axes.is_some_and(|a| a.mean_excess_coherence < MIN_EXCESS_RATIO * a.mean_coherence);
-    let Some((cams, maps)) = training_maps(ctx, "fur elevation from the views")? else {
-        return Ok(None);
-    };
-    let views = ViewOrientation::pair(&cams, &maps);
-    let radius = 4.0 * pixel_footprint(&cams, outer);
-    let outer_path = ctx.input("outer")?;
-    let stride = (positions.len() / 4000).max(1);
-    let mut elevations: Vec<f32> = view_elevations(positions, outer, &views, radius, stride)
-        .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?
+    let radius = 4.0 * pixel_footprint(cams, outer);
+    let stride = (frames.len() / 4000).max(1);
+    let mut elevations: Vec<f32> = planes
+        .elevations(radius, stride)
         .into_iter()
         .map(|e| e.elevation)
         .collect();
     if elevations.is_empty() {
-        return Ok(None);
+        return None;
     }
     elevations.sort_by(f32::total_cmp);
     let views_elevation = elevations[elevations.len() / 2];
@@ -1175,12 +1192,12 @@ fn tilt_onto_view_elevation(
     for f in frames.iter_mut() {
         *f *= r;
     }
-    Ok(Some(ViewElevationReport {
+    Some(ViewElevationReport {
         views_deg: views_elevation.to_degrees(),
         basis_deg: basis_elevation.to_degrees(),
         tilt_deg: tilt.to_degrees(),
         sampled_roots: elevations.len(),
-    }))
+    })
 }
 
 /// The shape-prior ablation's roots: each moved to its closest point on
