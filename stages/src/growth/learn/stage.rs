@@ -878,45 +878,42 @@ fn setup(
     } else {
         None
     };
-    let views = maps
-        .as_ref()
-        .map(|(cams, maps)| (cams.as_slice(), ViewOrientation::pair(cams, maps)));
-    let planes = match &views {
-        Some((_, v)) if tilt_on || (turn_on && max_elevation_deg.is_some()) => {
+    let (mut view_axes, mut view_elevation) = (None, None);
+    if let Some((cams, maps)) = &maps {
+        let views = ViewOrientation::pair(cams, maps);
+        let planes = if tilt_on || (turn_on && max_elevation_deg.is_some()) {
             let outer_path = ctx.input("outer")?;
             Some(
-                PlaneTensors::new(&positions, &outer, v)
+                PlaneTensors::new(&positions, &outer, &views)
                     .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?,
             )
+        } else {
+            None
+        };
+        if turn_on {
+            view_axes = Some(turn_onto_view_axes(
+                ctx,
+                p,
+                max_elevation_deg.zip(planes.as_ref()),
+                (cams, &views),
+                &positions,
+                &parts,
+                &mut frames,
+                &outer,
+            )?);
         }
-        _ => None,
-    };
-    let views = views.as_ref().map(|(cams, v)| (*cams, v.as_slice()));
-    let view_axes = match views.filter(|_| turn_on) {
-        Some(views) => Some(turn_onto_view_axes(
-            ctx,
-            p,
-            max_elevation_deg.zip(planes.as_ref()),
-            views,
-            &positions,
-            &parts,
-            &mut frames,
-            &outer,
-        )?),
-        None => None,
-    };
-    let view_elevation = match (views.filter(|_| tilt_on), &planes) {
-        (Some((cams, _)), Some(planes)) => tilt_onto_view_elevation(
-            ctx,
-            cams,
-            planes,
-            &mut frames,
-            &outer,
-            &basis,
-            view_axes.as_ref(),
-        ),
-        _ => None,
-    };
+        if let (true, Some(planes)) = (tilt_on, &planes) {
+            view_elevation = tilt_onto_view_elevation(
+                ctx,
+                cams,
+                planes,
+                &mut frames,
+                &outer,
+                &basis,
+                view_axes.as_ref(),
+            );
+        }
+    }
     let inputs = RootInputs {
         positions,
         frames,
