@@ -157,6 +157,27 @@ kind = "parts"
 inputs = { mesh = "outer.mesh", labels = "labels.obj" }
 "#;
 
+/// Writes a 3-channel image as a JPEG (quality 95), as a camera or COLMAP's users would have it.
+fn write_jpeg(path: &Path, rgb: &fure_stages::data::image::ImageF32) {
+    assert_eq!(rgb.channels, 3);
+    let bytes: Vec<u8> = rgb
+        .data
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    let mut out = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95)
+        .encode(
+            &bytes,
+            rgb.width,
+            rgb.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .unwrap();
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(path, out).unwrap();
+}
+
 fn hull(p: &Project, name: &str, views: &str) -> crate::engine::Run {
     p.write(
         &format!("{name}.toml"),
@@ -165,9 +186,10 @@ fn hull(p: &Project, name: &str, views: &str) -> crate::engine::Run {
     p.run(&format!("{name}.toml"), &[])
 }
 
-/// The synthetic views as a user's COLMAP capture: a sparse text model, RGB photos without
-/// alpha under `images/`, masks under `masks/`. The visual hull and the label transfer on it
-/// match those of the same training cameras written as transforms.json.
+/// The synthetic views as a user's COLMAP capture: a sparse text model, JPEG photos (no alpha)
+/// under `images/`, masks under `masks/`. The visual hull and the label transfer on it match
+/// those of the same training cameras written as transforms.json, and the shipped
+/// `capture.toml` runs on it end to end (every stage that reads the photos reads JPEG).
 #[test]
 fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     use fure_stages::formats::{cameras, colmap, images};
@@ -183,14 +205,14 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     let all: Vec<_> = set.train.iter().chain(&set.test).cloned().collect();
     assert_eq!(all.len(), 9);
 
-    let cap = p.path("cap");
+    let cap = p.path("cap/views");
     let mut model = colmap::ColmapModel::default();
     for (i, cam) in all.iter().enumerate() {
         let v = cameras::read_view(&src, cam).unwrap();
-        let name = format!("{i:04}.png");
-        images::write_png(cap.join("images").join(&name), &v.rgb).unwrap();
+        let name = format!("{i:04}.jpg");
+        write_jpeg(&cap.join("images").join(&name), &v.rgb);
         let mask = v.mask.expect("the synthetic views have masks");
-        images::write_png(cap.join("masks").join(&name), &mask).unwrap();
+        images::write_png(cap.join("masks").join(format!("{i:04}.png")), &mask).unwrap();
         let cid = model.cameras.len() as u32 + 1;
         model.cameras.push(colmap::ColmapCamera {
             id: cid,
@@ -216,7 +238,7 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
             .iter()
             .map(|c| c.file_path.as_str())
             .collect::<Vec<_>>(),
-        ["images/0000.png", "images/0008.png"]
+        ["images/0000.jpg", "images/0008.jpg"]
     );
     assert_eq!(read.train.len(), 7);
 
@@ -225,7 +247,7 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     for cam in &read.train {
         let v = cameras::read_view(&cap, cam).unwrap();
         assert!(v.mask.is_some(), "masks/ is read");
-        images::write_png(cameras::image_path(&ngp, cam), &v.rgb).unwrap();
+        write_jpeg(&cameras::image_path(&ngp, cam), &v.rgb);
         images::write_png(cameras::mask_path(&ngp, cam), &v.mask.unwrap()).unwrap();
     }
     cameras::write_views(
@@ -237,7 +259,7 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     )
     .unwrap();
 
-    hull(&p, "from_colmap", "cap").ok();
+    hull(&p, "from_colmap", "cap/views").ok();
     hull(&p, "from_ngp", "ngp").ok();
     let m = |name: &str| read_json(&p.path(&format!("out/{name}/outer/metrics.json")));
     let (a, b) = (m("from_colmap"), m("from_ngp"));
@@ -252,16 +274,41 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
         |name: &str| read_json(&p.path(&format!("out/{name}/parts/metrics.json")))["parts"].clone();
     assert_eq!(parts("from_colmap"), parts("from_ngp"));
 
+    // The whole method on the JPEG capture, as a user runs it.
+    let gt = read_json(&p.path("out/scene/scene/scene.json"));
+    p.write(
+        "cap/scene.json",
+        &crate::method::capture_scene(&gt, 1.0, None),
+    );
+    p.write("cap/labels.obj", &p.read("out/scene/scene/labels.obj"));
+    let shipped = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/capture.toml"),
+    )
+    .unwrap();
+    p.write("cap/capture.toml", &shipped);
+    let r = p.run("cap/capture.toml", &crate::method::TINY_CAPTURE);
+    r.ok();
+    assert_eq!(r.with("failed"), Vec::<&str>::new());
+    let codec = read_json(&p.path("out/capture/codec/metrics.json"));
+    assert_eq!(codec["method"], "codec", "{codec}");
+    let fitted = codec["colors_fitted"][0].as_f64().unwrap();
+    assert!(
+        fitted > 0.5,
+        "the JPEG photos coloured the strands: {codec}"
+    );
+    let maps = read_json(&p.path("out/capture/orientation/maps/index.json"));
+    assert_eq!(maps["maps"].as_array().unwrap().len(), 7, "{maps}");
+
     // Without masks/ the RGB photos have nothing to carve with: the error names an image and
     // where its mask was looked for.
     std::fs::rename(cap.join("masks"), p.path("masks_aside")).unwrap();
-    let r = hull(&p, "no_masks", "cap");
+    let r = hull(&p, "no_masks", "cap/views");
     assert_eq!(r.status("outer"), "failed", "{:?}", r.stages);
     let text = format!("{}{}", r.stdout(), r.stderr());
     eprintln!("{text}");
     // The first training view (0000 is held out).
     assert!(
-        text.contains("cap/images/0001.png")
+        text.contains("cap/views/images/0001.jpg")
             && text.contains("masks/0001.png")
             && text.contains("images/0001_mask.png"),
         "the image and its mask files are not named:\n{text}"

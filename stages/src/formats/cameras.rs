@@ -68,8 +68,8 @@ use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
 use crate::data::camera::{Camera, CameraSet};
 use crate::data::image::ImageF32;
 
-/// Image extensions probed for extension-less `file_path`s, in order.
-const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];
+// The image extensions, probed in this order for extension-less `file_path`s.
+use super::images::IMAGE_EXTENSIONS;
 
 /// [`read_views`] for stages that fit to the training views: a capture without
 /// training frames is an error naming the `views` input.

@@ -38,6 +38,9 @@ use crate::data::image::ImageF32;
 
 const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
 
+/// The photo extensions [`read_image`] reads (lower case; file names match case-insensitively).
+pub const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "exr"];
+
 /// Reads an image by file extension (`.png`, `.jpg`/`.jpeg` or `.exr`, case-insensitive).
 pub fn read_image(path: impl AsRef<Path>) -> Result<ImageF32, FormatError> {
     let path = path.as_ref();

@@ -44,12 +44,13 @@
 //!
 //! # Inputs and outputs
 //! Either `views` (a views directory: its training frames, colour with mask from `_mask.png` or alpha)
-//! or `images` (any folder: every `.png` in it except `*_mask.png`, sorted by name; an alpha channel, if
-//! present, is the mask). Exactly one must be connected. Pixels outside the mask (mask < 0.5) are not
-//! filtered (speed: fur images are mostly background) and get angle 0 and confidence 0. Without a mask
-//! every pixel is processed. `downscale` (integer, default 1 because our synthetic images are small; the
-//! public code usually works at half resolution, i.e. 2) box-averages the image (and the mask) by that
-//! factor first; the maps then have the reduced size, recorded in `index.json`.
+//! or `images` (any folder: every `.png`, `.jpg`, `.jpeg` and `.exr` in it except `*_mask.png`,
+//! sorted by name; an alpha channel, if present, is the mask). Exactly one must be connected. Pixels
+//! outside the mask (mask < 0.5) are not filtered (speed: fur images are mostly background) and get
+//! angle 0 and confidence 0. Without a mask every pixel is processed. `downscale` (integer, default
+//! 1 because our synthetic images are small; the public code usually works at half resolution, i.e.
+//! 2) box-averages the image (and the mask) by that factor first; the maps then have the reduced
+//! size, recorded in `index.json`.
 //!
 //! Output directory `maps`: `<name>_orient.exr` and `<name>_conf.exr` (one channel, f32), `<name>` being
 //! the image path relative to its folder without extension (`train/r_000` -> `train/r_000_orient.exr`),
@@ -432,7 +433,7 @@ impl Stage for OrientationMapsStage {
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
             PortSpec::dir("views", "views directory (training frames are used)").optional(),
-            PortSpec::dir("images", "any folder of PNG images").optional(),
+            PortSpec::dir("images", "any folder of PNG, JPEG or EXR images").optional(),
         ]
     }
     fn outputs(&self, _: &Params) -> Vec<PortSpec> {
@@ -483,16 +484,19 @@ impl Stage for OrientationMapsStage {
                 for e in std::fs::read_dir(dir).map_err(|e| StageError::io(dir, e))? {
                     let path = e.map_err(|e| StageError::io(dir, e))?.path();
                     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-                    if path.is_file()
-                        && name.to_ascii_lowercase().ends_with(".png")
-                        && !name.ends_with("_mask.png")
-                    {
+                    let photo = crate::formats::images::IMAGE_EXTENSIONS
+                        .contains(&crate::formats::extension(&path).as_str());
+                    if path.is_file() && photo && !name.ends_with("_mask.png") {
                         files.push((name.to_string(), path.clone(), None));
                     }
                 }
                 files.sort_by(|a, b| a.0.cmp(&b.0));
                 if files.is_empty() {
-                    return Err(StageError::input("images", dir, "holds no .png image"));
+                    return Err(StageError::input(
+                        "images",
+                        dir,
+                        "holds no image (.png, .jpg, .jpeg or .exr)",
+                    ));
                 }
                 files
             }
@@ -514,7 +518,7 @@ impl Stage for OrientationMapsStage {
                     (v.rgb, v.mask)
                 }
                 None => {
-                    let im = crate::formats::images::read_png(&path)?;
+                    let im = crate::formats::images::read_image(&path)?;
                     let mask = (im.channels == 4 || im.channels == 2).then(|| {
                         let c = im.channels as usize;
                         let mut m = ImageF32::new(im.width, im.height, 1);
@@ -785,6 +789,14 @@ mod tests {
         crate::formats::images::write_png(imgs.join("a.png"), &stripes(32, 24, 0.3, 4.35)).unwrap();
         crate::formats::images::write_png(imgs.join("a_mask.png"), &ImageF32::new(32, 24, 1))
             .unwrap();
+        // c.JPG: the same 45-degree stripes as a JPEG photo; notes.txt is no image.
+        let raw: Vec<u8> = s.data.iter().map(|v| (v * 255.0).round() as u8).collect();
+        let mut jpg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpg, 95)
+            .encode(&raw, 32, 24, image::ExtendedColorType::Rgb8)
+            .unwrap();
+        std::fs::write(imgs.join("c.JPG"), &jpg).unwrap();
+        std::fs::write(imgs.join("notes.txt"), "not an image").unwrap();
         let out = dir.path().join("out");
         let outs = crate::evaluation::evaluate::tests::run_stage(
             &OrientationMapsStage,
@@ -795,13 +807,15 @@ mod tests {
         let maps = &outs["maps"];
         let idx: MapIndex = crate::formats::json::read_json(maps.join("index.json")).unwrap();
         let names: Vec<&str> = idx.maps.iter().map(|m| m.image.as_str()).collect();
-        assert_eq!(names, vec!["a.png", "b.png"]);
+        assert_eq!(names, vec!["a.png", "b.png", "c.JPG"]);
         let o = crate::formats::images::read_exr(maps.join(&idx.maps[1].orient)).unwrap();
         let c = crate::formats::images::read_exr(maps.join(&idx.maps[1].conf)).unwrap();
         assert_eq!((o.width, o.height, o.channels), (32, 24, 1));
         assert!(circ_deg(o.pixel(8, 12)[0], 45f32.to_radians()) <= 1.01);
         assert!(c.pixel(8, 12)[0] > 0.0);
         assert_eq!(c.pixel(24, 12)[0], 0.0, "outside the alpha mask");
+        let o = crate::formats::images::read_exr(maps.join(&idx.maps[2].orient)).unwrap();
+        assert!(circ_deg(o.pixel(16, 12)[0], 45f32.to_radians()) <= 2.0);
         // Neither or both inputs: a clear error.
         let e = crate::evaluation::evaluate::tests::run_stage(
             &OrientationMapsStage,

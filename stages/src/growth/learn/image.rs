@@ -294,44 +294,20 @@ impl ImageLosses {
         }
         let mut views = Vec::with_capacity(cams.train.len());
         for (vi, cam) in cams.train.iter().enumerate() {
-            let ipath = formats::cameras::image_path(views_dir, cam);
-            let img = formats::images::read_png(&ipath)?;
-            if (img.width, img.height) != (cam.width, cam.height) {
-                return Err(StageError::input(
-                    "views",
-                    &ipath,
-                    format!(
-                        "image is {}x{}, camera says {}x{}",
-                        img.width, img.height, cam.width, cam.height
-                    ),
-                ));
-            }
-            let c = img.channels as usize;
-            let mut rgb = ImageF32::new(img.width, img.height, 3);
-            let mut alpha = None;
-            if c == 4 || c == 2 {
-                alpha = Some(ImageF32::new(img.width, img.height, 1));
-            }
-            for (i, px) in img.data.chunks_exact(c).enumerate() {
-                let (col, a) = match c {
-                    1 => ([px[0]; 3], 1.0),
-                    2 => ([px[0]; 3], px[1]),
-                    3 => ([px[0], px[1], px[2]], 1.0),
-                    _ => ([px[0], px[1], px[2]], px[3]),
-                };
-                for (k, c) in col.iter().enumerate() {
-                    rgb.data[3 * i + k] = c * a;
-                }
-                if let Some(al) = alpha.as_mut() {
-                    al.data[i] = a;
+            // Any photo format the views may hold (PNG, JPEG, EXR), its mask as every stage
+            // finds it; the learner's colour target is premultiplied by the photo's alpha.
+            let formats::cameras::ViewImages {
+                mut rgb,
+                mask,
+                alpha,
+            } = formats::cameras::read_view(views_dir, cam)?;
+            if let Some(a) = &alpha {
+                for (px, a) in rgb.data.chunks_exact_mut(3).zip(&a.data) {
+                    for c in px {
+                        *c *= a;
+                    }
                 }
             }
-            let mpath = formats::cameras::mask_path(views_dir, cam);
-            let mask = if mpath.is_file() {
-                Some(first_channel(formats::images::read_png(&mpath)?))
-            } else {
-                alpha
-            };
             let fpath = fur_mask_path(views_dir, cam);
             let fur = if fpath.is_file() {
                 Some(first_channel(formats::images::read_png(&fpath)?))
