@@ -18,13 +18,20 @@
 //! 2. **Occupancy.** A point's occupancy in one view is the mask sampled
 //!    bilinearly (pixel centres at half-integers) at its projection; a point
 //!    behind the camera or projecting outside the image has occupancy 0 in that
-//!    view (the standard visual-hull assumption that every view sees the whole
-//!    object). The point's occupancy is the `min_views_outside`-th smallest of
+//!    view (the visual-hull assumption that the view sees the whole object),
+//!    except where the view's foreground touches the image border on that
+//!    side: the object may go on beyond the frame there (a close-up, a tail
+//!    cut by the border), so the border pixels' values go on outward (clamp to
+//!    edge) and that view carves nothing beyond the frame that its border row
+//!    or column does not; the other views still do. A capture whose masks
+//!    never reach the border is carved exactly as the classic hull. The
+//!    point's occupancy is the `min_views_outside`-th smallest of
 //!    its per-view values: with 1 this is the classic hull (one view suffices
 //!    to carve), with k > 1 a point survives unless k views see it outside the
 //!    mask, which tolerates a few bad masks or cameras.
 //! 3. **Bounding box.** The hull lies inside the intersection of the cones
-//!    through each view's foreground rectangle. Starting from a box around the
+//!    through each view's foreground rectangle (unbounded on an open side).
+//!    Starting from a box around the
 //!    point nearest to all optical axes (half-size = farthest camera distance),
 //!    a 48^3 lattice is tested against the rectangle cones three times, each
 //!    time shrinking the box to the surviving lattice points plus one cell.
@@ -148,8 +155,12 @@ pub struct MaskView {
     height: u32,
     /// Mask values in [0, 1], row-major, top row first.
     mask: Vec<f32>,
-    /// Foreground rectangle (pixel bounds, inclusive-exclusive) dilated by 2 px.
+    /// Foreground rectangle (pixel bounds, inclusive-exclusive) dilated by 2 px; unbounded on
+    /// an open side.
     rect: [f32; 4],
+    /// Whether the foreground touches the left, top, right and bottom image border: the object
+    /// may go on beyond that side, so the view cannot carve there (module doc, "Occupancy").
+    open: [bool; 4],
 }
 
 impl MaskView {
@@ -191,6 +202,15 @@ impl MaskView {
                 threshold,
             });
         }
+        let open = [x0 == 0, y0 == 0, x1 == w, y1 == h];
+        // An open side's rectangle edge is at infinity.
+        let bound = |open: bool, edge: usize, dilate: f32| {
+            if open {
+                dilate * f32::INFINITY
+            } else {
+                edge as f32 + dilate
+            }
+        };
         Ok(MaskView {
             w2c: cam.w2c(),
             fx: cam.fx,
@@ -201,11 +221,12 @@ impl MaskView {
             height: mask_h,
             mask: mask.into_iter().map(|v| v.clamp(0.0, 1.0)).collect(),
             rect: [
-                x0 as f32 - 2.0,
-                y0 as f32 - 2.0,
-                x1 as f32 + 2.0,
-                y1 as f32 + 2.0,
+                bound(open[0], x0, -2.0),
+                bound(open[1], y0, -2.0),
+                bound(open[2], x1, 2.0),
+                bound(open[3], y1, 2.0),
             ],
+            open,
         })
     }
 
@@ -224,12 +245,18 @@ impl MaskView {
         )
     }
 
-    /// Bilinearly sampled mask value at the projection of `p` (0 off-image or behind).
+    /// Bilinearly sampled mask value at the projection of `p`: 0 behind the camera or off the
+    /// image, except beyond an open side, where the border's value goes on (clamp to edge).
     #[inline]
     pub fn occupancy(&self, p: Vec3) -> f32 {
         let (u, v, depth) = self.project(p);
+        let (w, h) = (self.width as f32, self.height as f32);
+        let off = |x: f32, size: f32, low: bool, high: bool| {
+            (x < 0.0 && !low) || (x > size && !high) || x.is_nan()
+        };
         if depth <= 1e-9
-            || !(u >= 0.0 && v >= 0.0 && u <= self.width as f32 && v <= self.height as f32)
+            || off(u, w, self.open[0], self.open[2])
+            || off(v, h, self.open[1], self.open[3])
         {
             return 0.0;
         }
@@ -1201,7 +1228,8 @@ fn train_file(dir: &Path) -> std::path::PathBuf {
 /// The `outer_surface` stage.
 pub struct OuterSurfaceStage;
 
-const VERSION: u32 = 2;
+// 3: a view whose foreground touches the image border carves nothing beyond that side.
+const VERSION: u32 = 3;
 
 /// Reads the training views' masks (see the module doc for the convention).
 pub fn read_mask_views(
@@ -1552,6 +1580,57 @@ mod tests {
                 m.positions.len()
             ),
         }
+    }
+
+    /// Views whose frame cuts the object (a close-up, a tail past the border) do not carve
+    /// what lies beyond their frame; a view whose foreground stays inside keeps carving there.
+    #[test]
+    fn a_view_whose_frame_cuts_the_object_carves_nothing_beyond_it() {
+        let cams = cameras(24);
+        let (c, r) = (Vec3::new(0.1, -0.05, 0.08), 0.8);
+        let s = HullSettings {
+            resolution: Some(32),
+            ..Default::default()
+        };
+        let full = visual_hull(&cams, &views_for(&cams, c, r), &s).unwrap().1;
+        // Every fourth camera keeps only the left 36 columns of its image (the same
+        // intrinsics): the sphere's right side leaves those frames.
+        let mut cut = cams.clone();
+        for cam in cut.iter_mut().step_by(4) {
+            cam.width = 36;
+        }
+        let views: Vec<MaskView> = cut
+            .iter()
+            .enumerate()
+            .map(|(i, cam)| {
+                let m = sphere_mask(cam, c, r);
+                assert!(cam.width == 64 || (0..64).any(|y| m[y * 36 + 35] > 0.5));
+                MaskView::new(i, cam, m, cam.width, cam.height, 0.5).unwrap()
+            })
+            .collect();
+        assert_eq!(views[0].open, [false, false, true, false]);
+        assert_eq!(views[1].open, [false; 4]);
+        let (mesh, rep) = visual_hull(&cut, &views, &s).unwrap();
+        check_closed_manifold(&mesh).unwrap();
+        assert!(
+            (rep.volume / full.volume - 1.0).abs() < 0.02,
+            "cut frames {} vs full frames {}",
+            rep.volume,
+            full.volume
+        );
+        // Without the open side the cut views carve the sphere's far side away.
+        let mut closed = views.clone();
+        for v in closed.iter_mut() {
+            v.open = [false; 4];
+            v.rect[2] = v.rect[2].min(v.width as f32 + 2.0);
+        }
+        let carved = visual_hull(&cut, &closed, &s).unwrap().1;
+        assert!(
+            carved.volume < 0.8 * full.volume,
+            "{} vs {}",
+            carved.volume,
+            full.volume
+        );
     }
 
     #[test]
