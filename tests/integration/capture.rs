@@ -186,10 +186,11 @@ fn hull(p: &Project, name: &str, views: &str) -> crate::engine::Run {
     p.run(&format!("{name}.toml"), &[])
 }
 
-/// The synthetic views as a user's COLMAP capture: a sparse text model, JPEG photos (no alpha)
-/// under `images/`, masks under `masks/`. The visual hull and the label transfer on it match
-/// those of the same training cameras written as transforms.json, and the shipped
-/// `capture.toml` runs on it end to end (every stage that reads the photos reads JPEG).
+/// The synthetic views as a user's COLMAP capture: a sparse text model, JPEG photos (no alpha,
+/// the animal in front of a light wall) under `images/`, masks under `masks/`. The visual hull
+/// and the label transfer on it match those of the same training cameras written as
+/// transforms.json, and the shipped `capture.toml` runs on it end to end (every stage that
+/// reads the photos reads JPEG, and the learner sees the photos over black through the masks).
 #[test]
 fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     use fure_stages::formats::{cameras, colmap, images};
@@ -210,8 +211,15 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     for (i, cam) in all.iter().enumerate() {
         let v = cameras::read_view(&src, cam).unwrap();
         let name = format!("{i:04}.jpg");
-        write_jpeg(&cap.join("images").join(&name), &v.rgb);
         let mask = v.mask.expect("the synthetic views have masks");
+        // A photo's own background (a light wall), not the renderer's black.
+        let mut photo = v.rgb.clone();
+        for (px, m) in photo.data.chunks_exact_mut(3).zip(&mask.data) {
+            for (c, wall) in px.iter_mut().zip([0.75, 0.7, 0.6]) {
+                *c = *c * m + wall * (1.0 - m);
+            }
+        }
+        write_jpeg(&cap.join("images").join(&name), &photo);
         images::write_png(cap.join("masks").join(format!("{i:04}.png")), &mask).unwrap();
         let cid = model.cameras.len() as u32 + 1;
         model.cameras.push(colmap::ColmapCamera {
@@ -295,6 +303,13 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
     assert!(
         fitted > 0.5,
         "the JPEG photos coloured the strands: {codec}"
+    );
+    // The learner compares its renders with the photos over black (through the masks), so
+    // the wall is no loss that no strand could remove (0.11 here; 0.63 when the wall counted).
+    let rgb_loss = codec["final_losses"]["rgb"].as_f64().unwrap();
+    assert!(
+        rgb_loss < 0.3,
+        "the photos' background reached the colour loss: {codec}"
     );
     let maps = read_json(&p.path("out/capture/orientation/maps/index.json"));
     assert_eq!(maps["maps"].as_array().unwrap().len(), 7, "{maps}");

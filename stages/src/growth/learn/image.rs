@@ -295,13 +295,15 @@ impl ImageLosses {
         let mut views = Vec::with_capacity(cams.train.len());
         for (vi, cam) in cams.train.iter().enumerate() {
             // Any photo format the views may hold (PNG, JPEG, EXR), its mask as every stage
-            // finds it; the learner's colour target is premultiplied by the photo's alpha.
+            // finds it. The colour target is the photo over black, as the renderer draws it:
+            // premultiplied by the photo's alpha, or by the mask for a photo without one (a
+            // real photo's background is not the renderer's, and no strand can match it).
             let formats::cameras::ViewImages {
                 mut rgb,
                 mask,
                 alpha,
             } = formats::cameras::read_view(views_dir, cam)?;
-            if let Some(a) = &alpha {
+            if let Some(a) = alpha.as_ref().or(mask.as_ref()) {
                 for (px, a) in rgb.data.chunks_exact_mut(3).zip(&a.data) {
                     for c in px {
                         *c *= a;
