@@ -360,7 +360,10 @@ fn vertex_parts(
                 path,
                 Position::Line(line),
                 format!(
-                    "label run {first}+{count} -> part {p} is out of range ({nv} vertices, {} parts)",
+                    "label run {first}+{count} -> part {p} is out of range ({nv} vertices, {} parts): \
+                     the `# fure-vertex-parts` lines fure wrote no longer match the file's \
+                     vertices or groups (edited by hand?); delete those lines and the groups \
+                     label the vertices",
                     part_names.len()
                 ),
             ));
