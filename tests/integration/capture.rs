@@ -311,6 +311,9 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
         rgb_loss < 0.3,
         "the photos' background reached the colour loss: {codec}"
     );
+    // The tiny capture is already below the working size: its photos pass through.
+    let resized = read_json(&p.path("out/capture/working_views/metrics.json"));
+    assert_eq!(resized["factor"], 1, "{resized}");
     let maps = read_json(&p.path("out/capture/orientation/maps/index.json"));
     assert_eq!(maps["maps"].as_array().unwrap().len(), 7, "{maps}");
 

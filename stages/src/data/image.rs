@@ -34,4 +34,53 @@ impl ImageF32 {
         let c = self.channels as usize;
         &mut self.data[i..i + c]
     }
+
+    /// Box-averages the image by an integer factor (the last partial rows and columns are
+    /// dropped): output pixel `(x, y)` covers input pixels `[x f, (x + 1) f)`, so a camera's
+    /// intrinsics scale by `1 / f` exactly (pixel centres at half-integers).
+    pub fn box_downscaled(&self, factor: u32) -> ImageF32 {
+        if factor <= 1 {
+            return self.clone();
+        }
+        let (w, h) = ((self.width / factor).max(1), (self.height / factor).max(1));
+        let c = self.channels as usize;
+        let mut out = ImageF32::new(w, h, self.channels);
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = vec![0.0f32; c];
+                let mut cnt = 0.0;
+                for yy in y * factor..((y + 1) * factor).min(self.height) {
+                    for xx in x * factor..((x + 1) * factor).min(self.width) {
+                        for (a, v) in acc.iter_mut().zip(self.pixel(xx, yy)) {
+                            *a += v;
+                        }
+                        cnt += 1.0;
+                    }
+                }
+                for (o, a) in out.pixel_mut(x, y).iter_mut().zip(acc) {
+                    *o = a / cnt;
+                }
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn box_downscaled_averages_blocks() {
+        let mut im = ImageF32::new(4, 2, 1);
+        im.data = vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
+        let d = im.box_downscaled(2);
+        assert_eq!((d.width, d.height), (2, 1));
+        assert_eq!(d.data, vec![2.5, 4.5]);
+        // An odd size drops the last column; factor 1 is the identity.
+        let mut odd = ImageF32::new(5, 2, 1);
+        odd.data = (0..10).map(|v| v as f32).collect();
+        assert_eq!(odd.box_downscaled(2).data, vec![3.0, 5.0]);
+        assert_eq!(odd.box_downscaled(1), odd);
+    }
 }

@@ -327,34 +327,6 @@ pub fn orientation_maps_on(
     }
 }
 
-/// Box-averages an image by an integer factor (the last partial rows/columns are dropped).
-pub fn downscale(im: &ImageF32, factor: u32) -> ImageF32 {
-    if factor <= 1 {
-        return im.clone();
-    }
-    let (w, h) = ((im.width / factor).max(1), (im.height / factor).max(1));
-    let c = im.channels as usize;
-    let mut out = ImageF32::new(w, h, im.channels);
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = vec![0.0f32; c];
-            let mut cnt = 0.0;
-            for yy in y * factor..((y + 1) * factor).min(im.height) {
-                for xx in x * factor..((x + 1) * factor).min(im.width) {
-                    for (a, v) in acc.iter_mut().zip(im.pixel(xx, yy)) {
-                        *a += v;
-                    }
-                    cnt += 1.0;
-                }
-            }
-            for (o, a) in out.pixel_mut(x, y).iter_mut().zip(acc) {
-                *o = a / cnt;
-            }
-        }
-    }
-    out
-}
-
 /// One entry of `index.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapEntry {
@@ -536,8 +508,8 @@ impl Stage for OrientationMapsStage {
                     path.display()
                 )));
             }
-            let img = downscale(&img, factor);
-            let mask = mask.map(|m| downscale(&m, factor));
+            let img = img.box_downscaled(factor);
+            let mask = mask.map(|m| m.box_downscaled(factor));
             let (o, c) =
                 orientation_maps_on(&device, &img, mask.as_ref().map(|m| m.data.as_slice()), &gp)?;
             fure_stage_api::ensure_finite(
@@ -759,15 +731,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    #[test]
-    fn downscale_averages_blocks() {
-        let mut im = ImageF32::new(4, 2, 1);
-        im.data = vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
-        let d = downscale(&im, 2);
-        assert_eq!((d.width, d.height), (2, 1));
-        assert_eq!(d.data, vec![2.5, 4.5]);
     }
 
     #[test]

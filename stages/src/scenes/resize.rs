@@ -1,0 +1,419 @@
+//! The `resize_views` stage: a capture's views at a working resolution, so that what a large
+//! photo capture costs stays bounded.
+//!
+//! Every stage that renders or filters the images pays for each pixel: the tiger's views
+//! upscaled 4x (1024 px) took 207 s for the orientation maps instead of 11 and 364 s for the
+//! Frosting fit instead of 20, so a photo capture at 4,000-6,000 px would run for hours. More
+//! pixels do help up to a point: the lynx rendered at 512 px (the animal spans 368 px) through
+//! this pipeline scores 46.6 / 87.2 / 97.2 / 99.0 (signed F 1-4 cm, seed 0) at full resolution
+//! and 43.1 / 86.3 / 97.3 / 98.9 box-averaged by 2, in 273 s against 96 s (docs/history.md,
+//! "Captures as other software writes them"). So the stage leaves a capture whose animal spans
+//! up to 1.5 `subject_px` (600 px at the default 400) as it is, and brings a larger one down to
+//! between about 300 and 500 px. `pipelines/capture.toml` reads its photos through it.
+//!
+//! The factor is one integer `f` for the whole capture: the animal's extent, the median over
+//! the training views of the longer side of the mask's bounding box (mask above one half), over
+//! `subject_px`, rounded (`f = max(1, round(extent / subject_px))`; `subject_px = 0` keeps every
+//! view as it is). With `f = 1` the output is the input, byte for byte (any layout), so a capture
+//! already near the working size reads exactly as without the stage. Otherwise every frame,
+//! training and held-out, is box-averaged by `f` ([`ImageF32::box_downscaled`]: the last partial
+//! rows and columns dropped), its mask file (found as every stage finds it,
+//! [`cameras::mask_path`]) and its fur mask (`<stem>_fur.png`) with it, and its camera's `fx`,
+//! `fy`, `cx`, `cy` divided by `f` (exact: an output pixel covers `f x f` input pixels, centres
+//! at half-integers). The output is a NeRF-style views directory (`transforms.json`,
+//! `transforms_test.json`; a COLMAP capture's frames keep their names and its held-out split)
+//! of PNG images (`<stem>.png`, alpha kept) and `<stem>_mask.png` masks: we never write lossy
+//! files.
+
+use std::path::Path;
+
+use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
+use rayon::prelude::*;
+use serde_json::json;
+
+use crate::data::camera::{Camera, CameraSet};
+use crate::data::image::ImageF32;
+use crate::formats::{self, cameras, images};
+
+fure_stage_api::stage_params! {
+    /// The `resize_views` stage's parameters.
+    pub struct ResizeParams {
+        /// the animal's extent in pixels to aim for (median over the training views of the mask's bounding box's longer side); 0 keeps the views as they are
+        subject_px: usize = int(400).range(0.0, 100000.0),
+    }
+}
+
+/// The longer side of the foreground's bounding box (values above one half), in pixels; 0 for
+/// an empty mask.
+fn extent(mask: &ImageF32) -> u32 {
+    let (mut x0, mut y0, mut x1, mut y1) = (u32::MAX, u32::MAX, 0, 0);
+    for y in 0..mask.height {
+        for x in 0..mask.width {
+            if mask.pixel(x, y)[0] > 0.5 {
+                x0 = x0.min(x);
+                y0 = y0.min(y);
+                x1 = x1.max(x + 1);
+                y1 = y1.max(y + 1);
+            }
+        }
+    }
+    if x0 == u32::MAX {
+        0
+    } else {
+        (x1 - x0).max(y1 - y0)
+    }
+}
+
+/// The capture's factor for `subject_px` (module doc) and the animal's extent it was read from.
+pub fn resize_factor(
+    dir: &Path,
+    train: &[Camera],
+    subject_px: usize,
+) -> Result<(u32, u32), StageError> {
+    let mut extents = train
+        .par_iter()
+        .map(|cam| {
+            let v = cameras::read_view(dir, cam).map_err(|e| e.for_input("views"))?;
+            let mask = v.mask.ok_or_else(|| {
+                StageError::from(cameras::missing_mask(dir, cam).for_input("views"))
+            })?;
+            Ok(extent(&mask))
+        })
+        .collect::<Vec<Result<u32, StageError>>>()
+        .into_iter()
+        // The first bad view by index, whichever thread met it first.
+        .collect::<Result<Vec<u32>, StageError>>()?;
+    extents.sort_unstable();
+    let median = extents[extents.len() / 2];
+    if subject_px == 0 {
+        return Ok((1, median));
+    }
+    let f = (median as f64 / subject_px as f64).round().max(1.0) as u32;
+    Ok((f, median))
+}
+
+/// `camera` seen through images box-averaged by `f`, its image renamed `<stem>.png`.
+fn scaled_camera(camera: &Camera, f: u32) -> Camera {
+    let s = 1.0 / f as f32;
+    let stem = match Path::new(&camera.file_path).extension() {
+        Some(ext) => &camera.file_path[..camera.file_path.len() - ext.len() - 1],
+        None => camera.file_path.as_str(),
+    };
+    Camera {
+        file_path: format!("{stem}.png"),
+        fx: camera.fx * s,
+        fy: camera.fy * s,
+        cx: camera.cx * s,
+        cy: camera.cy * s,
+        width: (camera.width / f).max(1),
+        height: (camera.height / f).max(1),
+        ..camera.clone()
+    }
+}
+
+/// Writes one frame of `input` into `output`, box-averaged by `f`; returns its new camera.
+fn resize_frame(
+    input: &Path,
+    output: &Path,
+    camera: &Camera,
+    f: u32,
+) -> Result<Camera, StageError> {
+    let out_cam = scaled_camera(camera, f);
+    let fmt = |e: formats::FormatError| e.for_input("views");
+    let src = cameras::image_path(input, camera);
+    let img = images::read_image(&src).map_err(fmt)?;
+    if (img.width, img.height) != (camera.width, camera.height) {
+        return Err(StageError::input(
+            "views",
+            &src,
+            format!(
+                "image is {} x {} but its camera says {} x {}",
+                img.width, img.height, camera.width, camera.height
+            ),
+        ));
+    }
+    let write = |rel: &str, im: &ImageF32| -> Result<(), StageError> {
+        let dst = output.join(rel);
+        if let Some(parent) = dst.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| StageError::io(parent, e))?;
+        }
+        images::write_png(&dst, &im.box_downscaled(f)).map_err(fmt)
+    };
+    write(&out_cam.file_path, &img)?;
+    let mask = cameras::mask_path(input, camera);
+    if mask.is_file() {
+        let m = images::read_png(&mask).map_err(fmt)?;
+        write(&cameras::mask_file_path(&out_cam.file_path), &m)?;
+    }
+    let fur_rel = cameras::mask_file_path(&camera.file_path).replace("_mask.png", "_fur.png");
+    if input.join(&fur_rel).is_file() {
+        let m = images::read_png(input.join(&fur_rel)).map_err(fmt)?;
+        let out_fur = cameras::mask_file_path(&out_cam.file_path).replace("_mask.png", "_fur.png");
+        write(&out_fur, &m)?;
+    }
+    Ok(out_cam)
+}
+
+/// Copies every regular file under `input` to `output`, keeping relative paths.
+fn copy_tree(input: &Path, output: &Path) -> Result<usize, StageError> {
+    let mut n = 0;
+    for entry in std::fs::read_dir(input).map_err(|e| StageError::io(input, e))? {
+        let entry = entry.map_err(|e| StageError::io(input, e))?;
+        let (src, dst) = (entry.path(), output.join(entry.file_name()));
+        let meta = std::fs::metadata(&src).map_err(|e| StageError::io(&src, e))?;
+        if meta.is_dir() {
+            std::fs::create_dir_all(&dst).map_err(|e| StageError::io(&dst, e))?;
+            n += copy_tree(&src, &dst)?;
+        } else if meta.is_file() {
+            std::fs::copy(&src, &dst).map_err(|e| StageError::io(&src, e))?;
+            n += 1;
+        }
+    }
+    Ok(n)
+}
+
+/// Stage `resize_views`.
+pub struct ResizeViewsStage;
+
+impl Stage for ResizeViewsStage {
+    fn kind(&self) -> &'static str {
+        "resize_views"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn doc(&self) -> &'static str {
+        "A capture's views at the working resolution: every frame box-averaged by one integer \
+         factor so that the animal spans about subject_px pixels (the median over the training \
+         views of the mask's bounding box), intrinsics scaled with it; a capture already near \
+         that size passes through byte for byte."
+    }
+    fn params(&self) -> Vec<ParamSpec> {
+        ResizeParams::specs()
+    }
+    fn inputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![PortSpec::dir(
+            "views",
+            "views directory (transforms.json or a COLMAP model, images, masks)",
+        )]
+    }
+    fn outputs(&self, _: &Params) -> Vec<PortSpec> {
+        vec![
+            PortSpec::dir("views", "the views at the working resolution"),
+            PortSpec::file(
+                "metrics",
+                "json",
+                "the animal's extent before and after, the factor",
+            ),
+        ]
+    }
+    fn validate(&self, params: &Params) -> Result<(), StageError> {
+        ResizeParams::from_params(params).map(|_| ())
+    }
+    fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
+        let p = ResizeParams::from_params(ctx.params)?;
+        let input = ctx.input("views")?;
+        let output = ctx.output("views")?;
+        let set = cameras::read_training_views(input)?;
+        ctx.progress
+            .message("measuring the animal in the training views");
+        let (f, extent) = resize_factor(input, &set.train, p.subject_px)?;
+        let files_copied = if f == 1 {
+            copy_tree(input, output)?
+        } else {
+            let frames: Vec<&Camera> = set.train.iter().chain(&set.test).collect();
+            ctx.progress.set_total(frames.len() as u64);
+            let mut out = Vec::with_capacity(frames.len());
+            for cam in frames {
+                ctx.progress.check_interrupted()?;
+                ctx.progress.message(&format!("resizing {}", cam.file_path));
+                out.push(resize_frame(input, output, cam, f)?);
+                ctx.progress.advance(1);
+            }
+            let test = out.split_off(set.train.len());
+            cameras::write_views(output, &CameraSet { train: out, test })
+                .map_err(|e| e.for_input("views"))?;
+            0
+        };
+        ctx.progress.note(&format!(
+            "the animal spans {extent} px (median over {} training views): {}",
+            set.train.len(),
+            if f == 1 {
+                "views kept as they are".to_string()
+            } else {
+                format!("views box-averaged by {f}, to about {} px", extent / f)
+            }
+        ));
+        formats::json::write_json(
+            ctx.output("metrics")?,
+            &json!({
+                "subject_px": p.subject_px,
+                "extent_px": extent,
+                "factor": f,
+                "extent_px_after": extent / f,
+                "training_views": set.train.len(),
+                "test_views": set.test.len(),
+                "files_copied": files_copied,
+            }),
+        )?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::evaluation::evaluate::tests::{run_stage, run_stage_with};
+    use glam::{Mat4, Vec3};
+
+    /// A views directory of `n` training frames and one held-out frame, `size` px square, a
+    /// disc of radius `r` px in the middle (RGB photos, masks in `masks/`, COLMAP-style names).
+    fn capture(dir: &Path, n: usize, size: u32, r: f32) -> CameraSet {
+        let cam = |i: usize, split: &str| Camera {
+            file_path: format!("images/{split}{i:03}.png"),
+            c2w: Mat4::from_translation(Vec3::new(0.1 * i as f32, 0.0, 4.0)),
+            fx: 2.0 * size as f32,
+            fy: 2.0 * size as f32,
+            cx: 0.5 * size as f32 + 0.25,
+            cy: 0.5 * size as f32 - 0.75,
+            width: size,
+            height: size,
+        };
+        let set = CameraSet {
+            train: (0..n).map(|i| cam(i, "t")).collect(),
+            test: vec![cam(0, "h")],
+        };
+        for c in set.train.iter().chain(&set.test) {
+            let mut rgb = ImageF32::new(size, size, 3);
+            let mut mask = ImageF32::new(size, size, 1);
+            for y in 0..size {
+                for x in 0..size {
+                    let (dx, dy) = (
+                        x as f32 + 0.5 - 0.5 * size as f32,
+                        y as f32 + 0.5 - 0.5 * size as f32,
+                    );
+                    let inside = (dx * dx + dy * dy).sqrt() < r;
+                    mask.pixel_mut(x, y)[0] = inside as u8 as f32;
+                    let v = if inside {
+                        0.2 + 0.6 * (x % 2) as f32
+                    } else {
+                        0.9
+                    };
+                    rgb.pixel_mut(x, y).copy_from_slice(&[v, v, 0.5]);
+                }
+            }
+            let png = &c.file_path;
+            std::fs::create_dir_all(dir.join("images")).unwrap();
+            images::write_png(dir.join(png), &rgb).unwrap();
+            let stem = png.trim_start_matches("images/").trim_end_matches(".png");
+            images::write_png(dir.join(format!("masks/{stem}.png")), &mask).unwrap();
+        }
+        cameras::write_views(dir, &set).unwrap();
+        set
+    }
+
+    fn tree(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+        let mut out = std::collections::BTreeMap::new();
+        let mut stack = vec![dir.to_path_buf()];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else {
+                    let rel = p.strip_prefix(dir).unwrap().to_string_lossy().to_string();
+                    out.insert(rel, std::fs::read(&p).unwrap());
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn a_large_capture_is_box_averaged_and_its_cameras_scaled_with_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let views = dir.path().join("views");
+        let set = capture(&views, 5, 96, 37.0);
+        let out = dir.path().join("out");
+        // The disc spans 74 px: 74 / 18 rounds to a factor of 4.
+        let outs = run_stage_with(
+            &ResizeViewsStage,
+            &[("subject_px", fure_stage_api::Value::Int(18))],
+            &[("views", views.clone())],
+            &out,
+        )
+        .unwrap();
+        let m: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&outs["metrics"]).unwrap()).unwrap();
+        assert_eq!(
+            (m["extent_px"].as_u64(), m["factor"].as_u64()),
+            (Some(74), Some(4))
+        );
+        let read = cameras::read_views(&outs["views"]).unwrap();
+        assert_eq!((read.train.len(), read.test.len()), (5, 1));
+        for (a, b) in set.train.iter().zip(&read.train) {
+            assert_eq!((b.width, b.height), (24, 24));
+            assert_eq!(b.file_path, a.file_path);
+            // A world point lands on the same place of the image, in the new pixels.
+            let p = Vec3::new(0.3, -0.2, 0.5);
+            let (ua, _) = a.project(p);
+            let (ub, _) = b.project(p);
+            assert!((ub - ua / 4.0).length() < 1e-4, "{ua} / 4 vs {ub}");
+            let v = cameras::read_view(&outs["views"], b).unwrap();
+            let mask = v.mask.expect("the mask is written beside the photo");
+            // The disc's area, in the new pixels, is the old area over 16.
+            let area: f32 = mask.data.iter().sum();
+            let disc = std::f32::consts::PI * (37.0f32 / 4.0).powi(2);
+            assert!((area / disc - 1.0).abs() < 0.08, "{area} vs {disc}");
+            // Box averages of the photo: a 4x4 block of alternating columns inside the disc.
+            assert!(
+                (v.rgb.pixel(12, 12)[0] - 0.5).abs() < 1e-2,
+                "{:?}",
+                v.rgb.pixel(12, 12)
+            );
+        }
+    }
+
+    #[test]
+    fn a_capture_near_the_working_size_passes_through_byte_for_byte() {
+        let dir = tempfile::tempdir().unwrap();
+        let views = dir.path().join("views");
+        capture(&views, 3, 64, 20.0);
+        std::fs::write(views.join("notes.txt"), "kept").unwrap();
+        let outs = run_stage(
+            &ResizeViewsStage,
+            &[("views", views.clone())],
+            &dir.path().join("a"),
+        )
+        .unwrap();
+        assert_eq!(tree(&outs["views"]), tree(&views));
+        // subject_px = 0 keeps a large capture as it is too.
+        let outs = run_stage_with(
+            &ResizeViewsStage,
+            &[("subject_px", fure_stage_api::Value::Int(0))],
+            &[("views", views.clone())],
+            &dir.path().join("b"),
+        )
+        .unwrap();
+        assert_eq!(tree(&outs["views"]), tree(&views));
+    }
+
+    #[test]
+    fn a_photo_without_mask_or_alpha_is_an_error_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let views = dir.path().join("views");
+        capture(&views, 2, 32, 10.0);
+        std::fs::remove_dir_all(views.join("masks")).unwrap();
+        let e = run_stage(
+            &ResizeViewsStage,
+            &[("views", views)],
+            &dir.path().join("o"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("images/t000.png") && e.contains("no mask"),
+            "{e}"
+        );
+    }
+}
