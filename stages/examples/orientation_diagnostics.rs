@@ -35,7 +35,7 @@ use fure_stages::formats::cameras::{read_view, read_views};
 use fure_stages::formats::hair::read_hair;
 use fure_stages::formats::images::read_image;
 use fure_stages::growth::learn::image::normalise_confidence;
-use fure_stages::growth::orientation::{downscale, orientation_maps, GaborParams};
+use fure_stages::growth::orientation::{orientation_maps, GaborParams};
 
 use common::Res;
 
@@ -214,8 +214,8 @@ fn run() -> Res<()> {
         let v = read_view(&views, cam)?;
         let (im, mask) = if factor > 1 {
             (
-                downscale(&v.rgb, factor),
-                v.mask.as_ref().map(|m| downscale(m, factor)),
+                v.rgb.box_downscaled(factor),
+                v.mask.as_ref().map(|m| m.box_downscaled(factor)),
             )
         } else {
             (v.rgb, v.mask)

@@ -112,11 +112,13 @@ use crate::data::mesh::Mesh;
 pub enum HullError {
     #[error("no training views")]
     NoViews,
-    #[error("view {view} ({file}): the mask has no foreground pixel above {threshold}")]
+    #[error("view {view} ({file}): the mask has no foreground pixel above {threshold} (its largest value is {max}{hint})")]
     EmptyMask {
         view: usize,
         file: String,
         threshold: f32,
+        max: f32,
+        hint: &'static str,
     },
     #[error("view {view} ({file}): mask is {got_w}x{got_h}, the camera expects {want_w}x{want_h}")]
     MaskSize {
@@ -196,10 +198,20 @@ impl MaskView {
             }
         }
         if x0 == usize::MAX {
+            let max = mask.iter().copied().fold(0.0f32, f32::max);
+            // A label image (object = 1 of 255) reads as a mask of 1/255.
+            let hint = if max > 0.0 && max <= 1.5 / 255.0 {
+                ": masks are white (255) where the object is; this looks like a label image \
+                 with the object at 1"
+            } else {
+                ""
+            };
             return Err(HullError::EmptyMask {
                 view,
                 file: cam.file_path.clone(),
                 threshold,
+                max,
+                hint,
             });
         }
         let open = [x0 == 0, y0 == 0, x1 == w, y1 == h];
@@ -1550,6 +1562,17 @@ mod tests {
         let msg = err.to_string();
         assert!(
             msg.contains("view 2") && msg.contains("train/002.png"),
+            "{msg}"
+        );
+        assert!(!msg.contains("label image"), "{msg}");
+        // A label image (the object at 1 of 255) is named as such.
+        let mut labels = vec![0.0; 64 * 64];
+        labels[100..400].fill(1.0 / 255.0);
+        let msg = MaskView::new(1, &cams[1], labels, 64, 64, 0.5)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("label image") && msg.contains("white (255)"),
             "{msg}"
         );
     }
