@@ -732,7 +732,7 @@ impl Stage for CorruptViewsStage {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use glam::Vec3;
 
@@ -792,7 +792,8 @@ mod tests {
         set
     }
 
-    fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    /// Every file under `dir`: relative path -> bytes.
+    pub(crate) fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
         list_files(dir)
             .unwrap()
             .into_iter()

@@ -74,9 +74,9 @@ pub fn resize_factor(
         .par_iter()
         .map(|cam| {
             let v = cameras::read_view(dir, cam).map_err(|e| e.for_input("views"))?;
-            let mask = v.mask.ok_or_else(|| {
-                StageError::from(cameras::missing_mask(dir, cam).for_input("views"))
-            })?;
+            let mask = v
+                .mask
+                .ok_or_else(|| cameras::missing_mask(dir, cam).for_input("views"))?;
             Ok(extent(&mask))
         })
         .collect::<Vec<Result<u32, StageError>>>()
@@ -264,6 +264,7 @@ impl Stage for ResizeViewsStage {
 mod tests {
     use super::*;
     use crate::evaluation::evaluate::tests::{run_stage, run_stage_with};
+    use crate::scenes::corrupt::tests::tree;
     use glam::{Mat4, Vec3};
 
     /// A views directory of `n` training frames and one held-out frame, `size` px square, a
@@ -310,23 +311,6 @@ mod tests {
         }
         cameras::write_views(dir, &set).unwrap();
         set
-    }
-
-    fn tree(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
-        let mut out = std::collections::BTreeMap::new();
-        let mut stack = vec![dir.to_path_buf()];
-        while let Some(d) = stack.pop() {
-            for e in std::fs::read_dir(&d).unwrap() {
-                let p = e.unwrap().path();
-                if p.is_dir() {
-                    stack.push(p);
-                } else {
-                    let rel = p.strip_prefix(dir).unwrap().to_string_lossy().to_string();
-                    out.insert(rel, std::fs::read(&p).unwrap());
-                }
-            }
-        }
-        out
     }
 
     #[test]
