@@ -1,19 +1,16 @@
-//! The `resize_views` stage: a capture's views at the working resolution the method's defaults
-//! were chosen at, which also bounds what a large photo capture costs.
+//! The `resize_views` stage: a capture's views at a working resolution, so that what a large
+//! photo capture costs stays bounded.
 //!
 //! Every stage that renders or filters the images pays for each pixel: the tiger's views
 //! upscaled 4x (1024 px) took 207 s for the orientation maps instead of 11 and 364 s for the
-//! Frosting fit instead of 20, so a photo capture at 4,000-6,000 px would run for hours. And
-//! the method's length chain (Frosting's `width_scale`, the parts' multipliers) was chosen on
-//! the dev scenes' 256 px views, where the animal spans 172-192 px (median over the training
-//! views of the mask's bounding box); sharper views read the fur shorter than it expects
-//! (docs/history.md, "Sharper views"). Two dev scenes rendered at 512 px and run as captures
-//! (seed 0, signed F 1-4 cm), full resolution against box-averaged by 2: sheepdog 18.4 / 57.3 /
-//! 79.1 / 89.8 against 23.6 / 61.8 / 81.3 / 90.6, lynx 46.6 / 87.2 / 97.2 / 99.0 against 43.1 /
-//! 86.3 / 97.3 / 98.9, the averaged views 2.6-2.8 times faster (docs/history.md, "Captures as
-//! other software writes them"). So `subject_px` is 180: a capture whose animal spans up to
-//! 270 px passes as it is, a larger one comes down to 135-225 px. `pipelines/capture.toml`
-//! reads its photos through this stage.
+//! Frosting fit instead of 20, so a photo capture at 4,000-6,000 px would run for hours. But
+//! averaging also erases the strands' texture the orientation maps read: four dev scenes
+//! rendered at 512 px (the animal spans 346-367 px) and run as captures, full resolution against
+//! box-averaged by 2, seed 0, signed F at 1 cm: tiger 78.2 against 55.9 (the maps' coherence 0.54
+//! against 0.24), lynx 46.6 against 43.1, fox 64.2 against 65.7, sheepdog 18.4 against 23.6
+//! (docs/history.md, "Captures as other software writes them"). So `subject_px` is 400: a
+//! capture whose animal spans up to 600 px passes as it is, and only a larger one comes down,
+//! to 300-500 px, to bound the cost. `pipelines/capture.toml` reads its photos through it.
 //!
 //! The factor is one integer `f` for the whole capture: the animal's extent, the median over
 //! the training views of the longer side of the mask's bounding box (mask above one half), over
@@ -43,7 +40,7 @@ fure_stage_api::stage_params! {
     /// The `resize_views` stage's parameters.
     pub struct ResizeParams {
         /// the animal's extent in pixels to aim for (median over the training views of the mask's bounding box's longer side); 0 keeps the views as they are
-        subject_px: usize = int(180).range(0.0, 100000.0),
+        subject_px: usize = int(400).range(0.0, 100000.0),
     }
 }
 
