@@ -263,7 +263,7 @@ fn add_noise(img: &mut ImageF32, sigma: f64, rng: &mut ChaCha8Rng) -> (f64, u64)
 }
 
 /// Every regular file under `dir`, as `/`-separated relative paths, sorted.
-fn list_files(dir: &Path) -> Result<Vec<String>, StageError> {
+pub(crate) fn list_files(dir: &Path) -> Result<Vec<String>, StageError> {
     fn walk(root: &Path, rel: &Path, out: &mut Vec<String>) -> Result<(), StageError> {
         let here = root.join(rel);
         let rd = std::fs::read_dir(&here).map_err(|e| StageError::io(&here, e))?;
@@ -308,7 +308,7 @@ fn frame_files<'a>(files: &'a [String], file_path: &str) -> Vec<&'a String> {
         .collect()
 }
 
-fn copy_file(src: &Path, dst: &Path) -> Result<(), StageError> {
+pub(crate) fn copy_file(src: &Path, dst: &Path) -> Result<(), StageError> {
     if let Some(parent) = dst.parent() {
         std::fs::create_dir_all(parent).map_err(|e| StageError::io(parent, e))?;
     }

@@ -155,24 +155,6 @@ fn resize_frame(
     Ok(out_cam)
 }
 
-/// Copies every regular file under `input` to `output`, keeping relative paths.
-fn copy_tree(input: &Path, output: &Path) -> Result<usize, StageError> {
-    let mut n = 0;
-    for entry in std::fs::read_dir(input).map_err(|e| StageError::io(input, e))? {
-        let entry = entry.map_err(|e| StageError::io(input, e))?;
-        let (src, dst) = (entry.path(), output.join(entry.file_name()));
-        let meta = std::fs::metadata(&src).map_err(|e| StageError::io(&src, e))?;
-        if meta.is_dir() {
-            std::fs::create_dir_all(&dst).map_err(|e| StageError::io(&dst, e))?;
-            n += copy_tree(&src, &dst)?;
-        } else if meta.is_file() {
-            std::fs::copy(&src, &dst).map_err(|e| StageError::io(&src, e))?;
-            n += 1;
-        }
-    }
-    Ok(n)
-}
-
 /// Stage `resize_views`.
 pub struct ResizeViewsStage;
 
@@ -220,7 +202,12 @@ impl Stage for ResizeViewsStage {
             .message("measuring the animal in the training views");
         let (f, extent) = resize_factor(input, &set.train, p.subject_px)?;
         let files_copied = if f == 1 {
-            copy_tree(input, output)?
+            // The identity: every file as it is, copied as corrupt_views copies.
+            let files = super::corrupt::list_files(input)?;
+            for f in &files {
+                super::corrupt::copy_file(&input.join(f), &output.join(f))?;
+            }
+            files.len()
         } else {
             let frames: Vec<&Camera> = set.train.iter().chain(&set.test).collect();
             ctx.progress.set_total(frames.len() as u64);
