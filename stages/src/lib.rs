@@ -48,7 +48,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(growth::roots::RootsStage),
         Box::new(growth::strand_basis::StrandBasisStage),
         Box::new(scenes::corrupt::CorruptViewsStage),
-        Box::new(scenes::resize::ResizeViewsStage),
+        Box::new(scenes::working_views::WorkingViewsStage),
         Box::new(scenes::synthetic::SyntheticSceneStage),
         Box::new(scenes::synthetic::blender::BlenderSceneStage),
         Box::new(surface::fit_template::FitTemplateStage),

@@ -35,6 +35,32 @@ impl ImageF32 {
         &mut self.data[i..i + c]
     }
 
+    /// The image at continuous pixel coordinates `(u, v)` (pixel centres at half-integers),
+    /// bilinear between centres and clamped to the edge pixels within half a pixel of the frame,
+    /// into `out` (one value per channel); zero outside the frame.
+    pub fn sample_bilinear(&self, u: f64, v: f64, out: &mut [f32]) {
+        let (w, h) = (self.width as f64, self.height as f64);
+        if !(u >= 0.0 && v >= 0.0 && u <= w && v <= h) {
+            out.fill(0.0);
+            return;
+        }
+        let (x, y) = ((u - 0.5).clamp(0.0, w - 1.0), (v - 0.5).clamp(0.0, h - 1.0));
+        let (x0, y0) = (x.floor() as u32, y.floor() as u32);
+        let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
+        let (tx, ty) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+        let (a, b, c, d) = (
+            self.pixel(x0, y0),
+            self.pixel(x1, y0),
+            self.pixel(x0, y1),
+            self.pixel(x1, y1),
+        );
+        for (i, o) in out.iter_mut().enumerate() {
+            let top = a[i] + (b[i] - a[i]) * tx;
+            let bottom = c[i] + (d[i] - c[i]) * tx;
+            *o = top + (bottom - top) * ty;
+        }
+    }
+
     /// Box-averages the image by an integer factor (the last partial rows and columns are
     /// dropped): output pixel `(x, y)` covers input pixels `[x f, (x + 1) f)`, so a camera's
     /// intrinsics scale by `1 / f` exactly (pixel centres at half-integers).
@@ -82,5 +108,21 @@ mod tests {
         odd.data = (0..10).map(|v| v as f32).collect();
         assert_eq!(odd.box_downscaled(2).data, vec![3.0, 5.0]);
         assert_eq!(odd.box_downscaled(1), odd);
+    }
+
+    #[test]
+    fn bilinear_samples_hit_centres_and_blend_between_them() {
+        let mut im = ImageF32::new(2, 2, 1);
+        im.data = vec![0.0, 1.0, 2.0, 3.0];
+        let at = |u, v| {
+            let mut o = [f32::NAN];
+            im.sample_bilinear(u, v, &mut o);
+            o[0]
+        };
+        assert_eq!((at(0.5, 0.5), at(1.5, 1.5)), (0.0, 3.0));
+        assert_eq!(at(1.0, 1.0), 1.5);
+        // Clamped within the frame, empty beyond it.
+        assert_eq!((at(0.1, 0.5), at(2.0, 0.5)), (0.0, 1.0));
+        assert_eq!((at(-0.01, 1.0), at(1.0, 2.01)), (0.0, 0.0));
     }
 }

@@ -3,6 +3,7 @@
 
 pub mod camera;
 pub mod image;
+pub mod lens;
 pub mod mesh;
 pub mod rootset;
 pub mod scene;

@@ -32,10 +32,13 @@
 //! (pixel centres at half-integers, see [`Camera`]) is exactly the middle of the image. `w` and `h`
 //! come from the frame, then the file, then the image header (PNG, EXR or JPEG) when missing.
 //!
-//! nerfstudio's distortion `k1 k2 k3 k4 p1 p2` and `camera_model` are checked at either level:
-//! distortion is not modelled, so a non-zero coefficient or a model other than `PINHOLE`,
-//! `SIMPLE_PINHOLE` or `OPENCV` (with zero distortion) is an error naming the field and how to
-//! undistort. Other extra keys (`aabb_scale`, `sharpness`, `scale`, `offset`, `colmap_im_id`, ...)
+//! nerfstudio's lens (`camera_model` and `k1 k2 k3 k4 p1 p2`, at either level; a frame that names
+//! any of them has its own lens, not merged with the file's) is read as a [`Distortion`]: `OPENCV` (or no model) radial-tangential, `OPENCV_FISHEYE`
+//! the equidistant fisheye; other models are an error naming the field. [`read_views`], which
+//! every stage but one reads views through, takes a lens with every coefficient zero for a pinhole
+//! and refuses any other, naming the field and what to do; [`read_capture`] keeps the lenses for
+//! the `working_views` stage, which undistorts the photos. Other extra keys
+//! (`aabb_scale`, `sharpness`, `scale`, `offset`, `colmap_im_id`, ...)
 //! are ignored: instant-ngp's `scale`/`offset` only move its own training box, so the cameras stay
 //! in the file's world frame.
 //!
@@ -63,10 +66,12 @@ use glam::{Mat4, Vec4};
 use serde::Serialize;
 use serde_json::{Map, Value};
 
+use super::colmap::{Lenses, UNDISTORT_HINT};
 use super::json::{from_slice, to_pretty_bytes};
 use super::{check_finite, read_bytes, write_bytes, FormatError, Position};
 use crate::data::camera::{Camera, CameraSet};
 use crate::data::image::ImageF32;
+use crate::data::lens::Distortion;
 
 // The image extensions, probed in this order for extension-less `file_path`s.
 use super::images::IMAGE_EXTENSIONS;
@@ -88,32 +93,61 @@ pub fn read_training_views(dir: &Path) -> Result<CameraSet, fure_stage_api::Stag
     Ok(set)
 }
 
-/// Reads a views directory (see the module doc for which files count).
+/// Reads a views directory (see the module doc for which files count) as pinhole cameras: a
+/// camera whose lens distorts is an error naming it ([`read_capture`] keeps the lens).
 pub fn read_views(dir: impl AsRef<Path>) -> Result<CameraSet, FormatError> {
-    let dir = dir.as_ref();
+    Ok(read_views_with(dir.as_ref(), Lenses::Refuse)?.views)
+}
+
+/// A views directory's cameras and each one's lens, as [`read_capture`] reads them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Capture {
+    pub views: CameraSet,
+    /// The lens of each training view, then of each held-out view.
+    pub lenses: Vec<Distortion>,
+}
+
+/// Reads a views directory keeping each camera's lens distortion (the `working_views` stage,
+/// which undoes it; [`crate::data::lens`]).
+pub fn read_capture(dir: impl AsRef<Path>) -> Result<Capture, FormatError> {
+    read_views_with(dir.as_ref(), Lenses::Keep)
+}
+
+fn read_views_with(dir: &Path, lenses: Lenses) -> Result<Capture, FormatError> {
     let Some(train_path) = ["transforms.json", "transforms_train.json"]
         .iter()
         .map(|n| dir.join(n))
         .find(|p| p.is_file())
     else {
         return match super::colmap::find_sparse(dir) {
-            Some(sparse) => super::colmap::read_colmap_views(dir, &sparse),
+            Some(sparse) => {
+                let (views, lenses) = super::colmap::read_colmap_views(dir, &sparse, lenses)?;
+                Ok(Capture { views, lenses })
+            }
             None => Err(FormatError::invalid(
                 dir,
                 "no cameras: expected transforms.json or transforms_train.json, or a COLMAP model (cameras and images, .bin or .txt) in sparse/0/ or sparse/, in this directory",
             )),
         };
     };
-    let train = read_transforms(&train_path)?;
+    let (train, mut all_lenses): (Vec<Camera>, Vec<Distortion>) =
+        read_transforms_with(&train_path, lenses)?
+            .into_iter()
+            .unzip();
     let test = match ["transforms_test.json", "transforms_val.json"]
         .iter()
         .map(|n| dir.join(n))
         .find(|p| p.is_file())
     {
-        Some(p) => read_transforms(&p)?,
+        Some(p) => read_transforms_with(&p, lenses)?,
         None => Vec::new(),
     };
-    Ok(CameraSet { train, test })
+    let (test, test_lenses): (Vec<Camera>, Vec<Distortion>) = test.into_iter().unzip();
+    all_lenses.extend(test_lenses);
+    Ok(Capture {
+        views: CameraSet { train, test },
+        lenses: all_lenses,
+    })
 }
 
 /// Writes `transforms.json` (training) and `transforms_test.json` (held-out) into `dir`.
@@ -258,9 +292,20 @@ pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, F
     Ok(ViewImages { rgb, mask, alpha })
 }
 
-/// Reads one `transforms*.json` file. `file_path`s are resolved against the file's directory.
+/// Reads one `transforms*.json` file as pinhole cameras (a distorting lens is an error).
+/// `file_path`s are resolved against the file's directory.
 pub fn read_transforms(path: impl AsRef<Path>) -> Result<Vec<Camera>, FormatError> {
-    let path = path.as_ref();
+    Ok(read_transforms_with(path.as_ref(), Lenses::Refuse)?
+        .into_iter()
+        .map(|(c, _)| c)
+        .collect())
+}
+
+/// Reads one `transforms*.json` file, each camera with its lens (module doc).
+fn read_transforms_with(
+    path: &Path,
+    lenses: Lenses,
+) -> Result<Vec<(Camera, Distortion)>, FormatError> {
     let bytes = read_bytes(path)?;
     let root: Value = from_slice(path, &bytes)?;
     let dir = path.parent().unwrap_or(Path::new(""));
@@ -288,14 +333,14 @@ pub fn read_transforms(path: impl AsRef<Path>) -> Result<Vec<Camera>, FormatErro
             ))
         }
     };
-    let top_intr = Level::read(path, top, "")?;
+    let top_intr = Level::read(path, top, "", lenses)?;
     let mut cameras = Vec::with_capacity(frames.len());
     for (i, frame) in frames.iter().enumerate() {
         let prefix = format!("frames[{i}]");
         let obj = frame
             .as_object()
             .ok_or_else(|| FormatError::at(path, field(&prefix), "expected a frame object"))?;
-        cameras.push(read_frame(path, dir, obj, &prefix, &top_intr)?);
+        cameras.push(read_frame(path, dir, obj, &prefix, &top_intr, lenses)?);
     }
     Ok(cameras)
 }
@@ -314,8 +359,9 @@ fn join_field(prefix: &str, key: &str) -> String {
 
 /// nerfstudio's distortion coefficients (OpenCV's radial `k`, tangential `p`).
 const DISTORTION_KEYS: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
-/// nerfstudio `camera_model` values that are a pinhole when the distortion is zero.
-const PINHOLE_MODELS: [&str; 3] = ["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"];
+/// nerfstudio `camera_model` values read (the first three radial-tangential, a pinhole when
+/// every coefficient is zero).
+const LENS_MODELS: [&str; 4] = ["PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "OPENCV_FISHEYE"];
 
 /// Intrinsics as found at one level (the file or a frame); every entry optional.
 #[derive(Default)]
@@ -330,16 +376,24 @@ struct Level {
     k: Option<[f64; 4]>,
     angle_x: Option<f64>,
     angle_y: Option<f64>,
+    /// The lens, when this level gives distortion coefficients or a `camera_model`.
+    lens: Option<Distortion>,
 }
 
 impl Level {
     /// Reads and checks the intrinsics entries of `obj` (the file's top level or a frame, whose
-    /// field names start with `prefix`), refusing lens distortion and non-pinhole models.
-    fn read(path: &Path, obj: &Map<String, Value>, prefix: &str) -> Result<Level, FormatError> {
+    /// field names start with `prefix`), refusing lens distortion under [`Lenses::Refuse`].
+    fn read(
+        path: &Path,
+        obj: &Map<String, Value>,
+        prefix: &str,
+        lenses: Lenses,
+    ) -> Result<Level, FormatError> {
         let fields = LevelFields { path, obj, prefix };
         let k = fields.intrinsic_matrix()?;
-        fields.check_pinhole()?;
+        let lens = fields.lens(lenses)?;
         Ok(Level {
+            lens,
             w: fields.size("w")?,
             h: fields.size("h")?,
             fl_x: fields.positive("fl_x")?,
@@ -482,40 +536,72 @@ impl LevelFields<'_> {
         }
     }
 
-    /// Refuses non-zero distortion and non-pinhole `camera_model`s.
-    ///
-    /// nerfstudio writes its COLMAP conversion's distortion and model here. A
-    /// pinhole model is all fure renders: non-zero distortion or a fisheye
-    /// model would be a silently wrong camera, so it is refused.
-    fn check_pinhole(&self) -> Result<(), FormatError> {
-        for key in DISTORTION_KEYS {
+    /// The lens of this level (nerfstudio's `camera_model` and `k1 k2 k3 k4 p1 p2`,
+    /// [`crate::data::lens`]), `None` when it names neither; under [`Lenses::Refuse`] a lens that
+    /// distorts is an error naming the field.
+    fn lens(&self, lenses: Lenses) -> Result<Option<Distortion>, FormatError> {
+        let mut c = [0.0; 6];
+        let mut given = None;
+        for (i, key) in DISTORTION_KEYS.iter().enumerate() {
             if let Some(v) = self.num(key)? {
-                if v != 0.0 {
-                    return Err(FormatError::at(
-                        self.path,
-                        self.at(key),
-                        format!(
-                            "lens distortion {key} = {v}: fure models pinhole cameras; undistort the \
-                             images first (nerfstudio: `ns-process-data` with an undistorting COLMAP \
-                             run; COLMAP: `colmap image_undistorter`) and write the undistorted intrinsics"
-                        ),
-                    ));
+                c[i] = v;
+                if v != 0.0 && given.is_none() {
+                    given = Some((*key, v));
                 }
             }
         }
-        match self.obj.get("camera_model") {
-            None | Some(Value::Null) => Ok(()),
-            Some(Value::String(m)) if PINHOLE_MODELS.contains(&m.as_str()) => Ok(()),
-            Some(other) => Err(FormatError::at(
-                self.path,
-                self.at("camera_model"),
-                format!(
-                    "camera model {other}: expected one of {} (a pinhole camera, distortion zero); \
-                     undistort fisheye or equirectangular captures first",
-                    PINHOLE_MODELS.join(", ")
+        let keys_present = DISTORTION_KEYS.iter().any(|k| self.obj.contains_key(*k));
+        let model = match self.obj.get("camera_model") {
+            None | Some(Value::Null) => None,
+            Some(Value::String(m)) => Some(m.as_str()),
+            Some(other) => {
+                return Err(FormatError::at(
+                    self.path,
+                    self.at("camera_model"),
+                    format!("expected a string, found {}", kind(other)),
+                ))
+            }
+        };
+        let lens =
+            match model {
+                None | Some("PINHOLE" | "SIMPLE_PINHOLE" | "OPENCV") => {
+                    Distortion::radial_tangential([c[0], c[1], c[2], c[3]], [c[4], c[5]])
+                }
+                Some("OPENCV_FISHEYE") if c[4] == 0.0 && c[5] == 0.0 => Distortion::Fisheye {
+                    k: [c[0], c[1], c[2], c[3]],
+                },
+                Some("OPENCV_FISHEYE") => return Err(FormatError::at(
+                    self.path,
+                    self.at(if c[4] != 0.0 { "p1" } else { "p2" }),
+                    "a fisheye (OPENCV_FISHEYE) has no tangential distortion: expected p1 = p2 = 0",
+                )),
+                Some(other) => {
+                    return Err(FormatError::at(
+                        self.path,
+                        self.at("camera_model"),
+                        format!(
+                            "camera model `{other}`: expected one of {}; undistort other captures \
+                         (equirectangular, FISHEYE624) first",
+                            LENS_MODELS.join(", ")
+                        ),
+                    ))
+                }
+            };
+        if lenses == Lenses::Refuse && !lens.is_pinhole() {
+            let (at, what) = match given {
+                Some((key, v)) => (key, format!("lens distortion {key} = {v}")),
+                None => (
+                    "camera_model",
+                    format!("camera model {}", model.unwrap_or("?")),
                 ),
-            )),
+            };
+            return Err(FormatError::at(
+                self.path,
+                self.at(at),
+                format!("{what}: {UNDISTORT_HINT}"),
+            ));
         }
+        Ok((keys_present || model.is_some()).then_some(lens))
     }
 }
 
@@ -573,10 +659,11 @@ fn read_frame(
     obj: &Map<String, Value>,
     prefix: &str,
     top: &Level,
-) -> Result<Camera, FormatError> {
+    lenses: Lenses,
+) -> Result<(Camera, Distortion), FormatError> {
     let file_path = frame_file_path(path, dir, obj, prefix)?;
     let c2w = frame_c2w(path, obj, prefix)?;
-    let local = Level::read(path, obj, prefix)?;
+    let local = Level::read(path, obj, prefix, lenses)?;
     let (w, h) = frame_size(path, dir, &file_path, prefix, &local, top)?;
     let (fx, fy) = local.focal(w, h).or_else(|| top.focal(w, h)).ok_or_else(|| {
         FormatError::at(
@@ -611,7 +698,8 @@ fn read_frame(
             "intrinsics out of f32 range or not positive",
         ));
     }
-    Ok(camera)
+    let lens = local.lens.or(top.lens).unwrap_or(Distortion::None);
+    Ok((camera, lens))
 }
 
 /// The frame's `file_path`, required non-empty, normalised.
@@ -1157,6 +1245,39 @@ mod tests {
         )
         .unwrap();
         assert_eq!(read_transforms(&p).unwrap().len(), 1);
+        // The lenses read_capture keeps: nerfstudio's OPENCV (k4 the r^8 term) at the top level,
+        // a frame's own lens replacing it whole; a model fure does not know is refused by both.
+        std::fs::write(dir.path().join("b.png"), b"").unwrap();
+        std::fs::write(
+            &p,
+            r#"{"camera_model": "OPENCV", "fl_x": 5, "w": 4, "h": 4, "k1": -0.1, "k2": 0.02, "k3": 0.003, "k4": 0.0004, "p1": 0.001, "p2": -0.002, "frames": [
+                {"file_path": "b.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]},
+                {"file_path": "b.png", "camera_model": "OPENCV_FISHEYE", "k1": 0.05, "p1": 0, "p2": 0, "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}"#,
+        )
+        .unwrap();
+        let cap = read_capture(dir.path()).unwrap();
+        assert_eq!(
+            cap.lenses,
+            [
+                Distortion::radial_tangential([-0.1, 0.02, 0.003, 0.0004], [0.001, -0.002]),
+                Distortion::Fisheye {
+                    k: [0.05, 0.0, 0.0, 0.0]
+                },
+            ]
+        );
+        for model in ["EQUIRECTANGULAR", "FISHEYE624"] {
+            std::fs::write(
+                &p,
+                format!(r#"{{"camera_model": "{model}", "fl_x": 5, "w": 4, "h": 4, "frames": [{frame_ok}]}}"#),
+            )
+            .unwrap();
+            let e = read_capture(dir.path()).unwrap_err();
+            assert_eq!(
+                e.position(),
+                Some(&Position::Field("camera_model".into())),
+                "{e}"
+            );
+        }
         // Syntax errors and truncation: line and column.
         std::fs::write(&p, "{\n  \"frames\": [\n    {\"file_path\": \"a.png\",\n").unwrap();
         let e = read_views(dir.path()).unwrap_err();

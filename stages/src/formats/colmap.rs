@@ -21,12 +21,15 @@
 //! y and z columns negated. COLMAP's pixel centres are at half-integers, as ours: `cx`, `cy`
 //! carry over unchanged.
 //!
-//! **Camera models.** `SIMPLE_PINHOLE` and `PINHOLE` are read as they are; `SIMPLE_RADIAL`,
-//! `RADIAL`, `OPENCV` and `FULL_OPENCV` only when every distortion coefficient is zero. Any
-//! other model, or non-zero distortion, is refused with an error naming the camera id, the
-//! model and the coefficients: the renderer is a pinhole, so undistort first with
-//! `colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`
-//! and point `views` at `dense/` (it writes `PINHOLE` cameras and undistorted images).
+//! **Camera models.** `SIMPLE_PINHOLE` and `PINHOLE` are pinholes. `SIMPLE_RADIAL` (COLMAP's
+//! default), `RADIAL`, `OPENCV`, `FULL_OPENCV` and the fisheyes `OPENCV_FISHEYE`,
+//! `SIMPLE_RADIAL_FISHEYE`, `RADIAL_FISHEYE` are read with their lens
+//! ([`crate::data::lens::Distortion`]) under [`Lenses::Keep`], which the `working_views` stage
+//! uses to undistort the photos; every other reader ([`Lenses::Refuse`]) takes a lens with every
+//! coefficient zero for a pinhole and refuses any other with an error naming the camera, its
+//! model and coefficients, and what to do. `FOV` and the thin-prism models are refused in both:
+//! undistort them with `colmap image_undistorter --image_path images --input_path sparse/0
+//! --output_path dense` and point `views` at `dense/` (it writes `PINHOLE` cameras).
 //!
 //! **Held-out views.** Images are sorted by name; when there are at least [`HOLDOUT_EVERY`]
 //! images, every [`HOLDOUT_EVERY`]-th one from the first (index `i % 8 == 0`, the LLFF /
@@ -40,6 +43,7 @@ use glam::{DMat3, DQuat, DVec3, Mat4};
 
 use super::{read_bytes, write_bytes, FormatError, Position};
 use crate::data::camera::{Camera, CameraSet};
+use crate::data::lens::Distortion;
 
 /// One in this many images (by sorted name, from the first) is held out for testing.
 pub const HOLDOUT_EVERY: usize = 8;
@@ -512,30 +516,78 @@ pub fn write_model_bin(dir: &Path, model: &ColmapModel) -> Result<(), FormatErro
     write_bytes(&dir.join("images.bin"), &s)
 }
 
-/// Pinhole intrinsics (fx, fy, cx, cy) of a camera, or an error naming it when it distorts.
-fn pinhole(cam: &ColmapCamera, path: &Path) -> Result<[f64; 4], FormatError> {
+/// Whether a reader keeps a distorting camera's lens or refuses the camera.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Lenses {
+    /// An error naming the camera and what to do: for every stage that projects through the
+    /// views' cameras as pinholes.
+    Refuse,
+    /// Kept beside the pinhole intrinsics: for the stage that undoes it (`working_views`).
+    Keep,
+}
+
+/// What a distorting camera's error says to do.
+pub const UNDISTORT_HINT: &str = "fure's stages see through pinhole cameras: read the capture through a `working_views` stage, which undistorts the photos (pipelines/capture.toml does), or undistort them first (`colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`, then use `dense/` as the views directory)";
+
+/// A camera's intrinsics (fx, fy, cx, cy) and lens ([`crate::data::lens`]); under
+/// [`Lenses::Refuse`] a camera that distorts is an error naming it.
+fn intrinsics(
+    cam: &ColmapCamera,
+    path: &Path,
+    lenses: Lenses,
+) -> Result<([f64; 4], Distortion), FormatError> {
     let p = &cam.params;
-    let (k, distortion): ([f64; 4], &[f64]) = match cam.model.as_str() {
-        "SIMPLE_PINHOLE" => ([p[0], p[0], p[1], p[2]], &[]),
-        "PINHOLE" => ([p[0], p[1], p[2], p[3]], &[]),
-        "SIMPLE_RADIAL" | "RADIAL" => ([p[0], p[0], p[1], p[2]], &p[3..]),
-        "OPENCV" | "FULL_OPENCV" => ([p[0], p[1], p[2], p[3]], &p[4..]),
+    let rt =
+        |radial: [f64; 4], tangential: [f64; 2]| Distortion::radial_tangential(radial, tangential);
+    let fisheye = |k: [f64; 4]| Distortion::Fisheye { k };
+    let (k, lens) = match cam.model.as_str() {
+        "SIMPLE_PINHOLE" => ([p[0], p[0], p[1], p[2]], Distortion::None),
+        "PINHOLE" => ([p[0], p[1], p[2], p[3]], Distortion::None),
+        "SIMPLE_RADIAL" => ([p[0], p[0], p[1], p[2]], rt([p[3], 0.0, 0.0, 0.0], [0.0; 2])),
+        "RADIAL" => ([p[0], p[0], p[1], p[2]], rt([p[3], p[4], 0.0, 0.0], [0.0; 2])),
+        "OPENCV" => ([p[0], p[1], p[2], p[3]], rt([p[4], p[5], 0.0, 0.0], [p[6], p[7]])),
+        "FULL_OPENCV" => (
+            [p[0], p[1], p[2], p[3]],
+            Distortion::RadialTangential {
+                radial: [p[4], p[5], p[8], 0.0],
+                rational: [p[9], p[10], p[11]],
+                tangential: [p[6], p[7]],
+            },
+        ),
+        "OPENCV_FISHEYE" => ([p[0], p[1], p[2], p[3]], fisheye([p[4], p[5], p[6], p[7]])),
+        "SIMPLE_RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], fisheye([p[3], 0.0, 0.0, 0.0])),
+        "RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], fisheye([p[3], p[4], 0.0, 0.0])),
         other => {
             return Err(FormatError::invalid(
                 path,
                 format!(
-                    "camera {} has model {other}, which is not a pinhole: undistort the images first (`colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`, then use `dense/` as the views directory)",
+                    "camera {} has model {other}, which fure does not model: undistort the images first (`colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`, then use `dense/` as the views directory)",
                     cam.id
                 ),
             ))
         }
     };
-    if distortion.iter().any(|d| *d != 0.0) {
+    // The parameters after the focal lengths and the principal point.
+    let one_focal = matches!(
+        cam.model.as_str(),
+        "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" | "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE"
+    );
+    let coefficients = &p[if one_focal { 3 } else { 4 }..];
+    if !coefficients.iter().all(|c| c.is_finite()) {
         return Err(FormatError::invalid(
             path,
             format!(
-                "camera {} ({}) has lens distortion {:?}, which fure does not model: undistort the images first (`colmap image_undistorter --image_path images --input_path sparse/0 --output_path dense`, then use `dense/` as the views directory), or calibrate with PINHOLE",
-                cam.id, cam.model, distortion
+                "camera {} ({}): expected finite distortion coefficients, found {:?}",
+                cam.id, cam.model, coefficients
+            ),
+        ));
+    }
+    if lenses == Lenses::Refuse && !lens.is_pinhole() {
+        return Err(FormatError::invalid(
+            path,
+            format!(
+                "camera {} ({}) has lens distortion {:?}: {UNDISTORT_HINT}",
+                cam.id, cam.model, coefficients
             ),
         ));
     }
@@ -552,7 +604,7 @@ fn pinhole(cam: &ColmapCamera, path: &Path) -> Result<[f64; 4], FormatError> {
             format!("camera {} ({}): expected positive focal lengths and image size, found {:?}, {} x {}", cam.id, cam.model, cam.params, cam.width, cam.height),
         ));
     }
-    Ok(k)
+    Ok((k, lens))
 }
 
 /// COLMAP's world-to-camera pose (OpenCV axes) as our camera-to-world matrix (OpenGL axes).
@@ -587,8 +639,13 @@ pub fn colmap_from_c2w(c2w: &Mat4) -> ([f64; 4], [f64; 3]) {
 }
 
 /// The views of a COLMAP views directory `dir` (see the module doc): images under `images/`,
-/// sorted by name, every [`HOLDOUT_EVERY`]-th held out.
-pub fn read_colmap_views(dir: &Path, sparse: &Path) -> Result<CameraSet, FormatError> {
+/// sorted by name, every [`HOLDOUT_EVERY`]-th held out; with each camera's lens (all
+/// [`Distortion::None`] under [`Lenses::Refuse`]), training views' then held-out views'.
+pub fn read_colmap_views(
+    dir: &Path,
+    sparse: &Path,
+    lenses: Lenses,
+) -> Result<(CameraSet, Vec<Distortion>), FormatError> {
     let model = read_model(sparse)?;
     let images_file = ["images.bin", "images.txt"]
         .iter()
@@ -600,10 +657,11 @@ pub fn read_colmap_views(dir: &Path, sparse: &Path) -> Result<CameraSet, FormatE
         .map(|n| sparse.join(n))
         .find(|p| p.is_file())
         .unwrap_or_else(|| sparse.to_path_buf());
-    let cameras = model_cameras(&model, &cameras_file, &images_file)?;
+    let cameras = lensed_model_cameras(&model, &cameras_file, &images_file, lenses)?;
     let mut set = CameraSet::default();
+    let (mut train_lenses, mut test_lenses) = (Vec::new(), Vec::new());
     let holdout = cameras.len() >= HOLDOUT_EVERY;
-    for (i, camera) in cameras.into_iter().enumerate() {
+    for (i, (camera, lens)) in cameras.into_iter().enumerate() {
         if !dir.join(&camera.file_path).is_file() {
             return Err(FormatError::invalid(
                 &dir.join(&camera.file_path),
@@ -616,25 +674,43 @@ pub fn read_colmap_views(dir: &Path, sparse: &Path) -> Result<CameraSet, FormatE
         }
         if holdout && i % HOLDOUT_EVERY == 0 {
             set.test.push(camera);
+            test_lenses.push(lens);
         } else {
             set.train.push(camera);
+            train_lenses.push(lens);
         }
     }
-    Ok(set)
+    train_lenses.extend(test_lenses);
+    Ok((set, train_lenses))
 }
 
-/// A model's images as cameras (`file_path` = `images/<name>`), sorted by name; the files are
-/// named in errors.
+/// A model's images as pinhole cameras ([`Lenses::Refuse`]; see [`lensed_model_cameras`]).
 pub fn model_cameras(
     model: &ColmapModel,
     cameras_file: &Path,
     images_file: &Path,
 ) -> Result<Vec<Camera>, FormatError> {
+    Ok(
+        lensed_model_cameras(model, cameras_file, images_file, Lenses::Refuse)?
+            .into_iter()
+            .map(|(c, _)| c)
+            .collect(),
+    )
+}
+
+/// A model's images as cameras (`file_path` = `images/<name>`), sorted by name, each with its
+/// camera's lens; the files are named in errors.
+pub fn lensed_model_cameras(
+    model: &ColmapModel,
+    cameras_file: &Path,
+    images_file: &Path,
+    lenses: Lenses,
+) -> Result<Vec<(Camera, Distortion)>, FormatError> {
     let (cameras_file, images_file) = (cameras_file.to_path_buf(), images_file.to_path_buf());
-    let mut by_id: BTreeMap<u32, (&ColmapCamera, [f64; 4])> = BTreeMap::new();
+    let mut by_id: BTreeMap<u32, (&ColmapCamera, ([f64; 4], Distortion))> = BTreeMap::new();
     for cam in &model.cameras {
         if by_id
-            .insert(cam.id, (cam, pinhole(cam, &cameras_file)?))
+            .insert(cam.id, (cam, intrinsics(cam, &cameras_file, lenses)?))
             .is_some()
         {
             return Err(FormatError::invalid(
@@ -653,7 +729,7 @@ pub fn model_cameras(
     }
     let mut out = Vec::with_capacity(images.len());
     for im in images {
-        let (cam, k) = by_id.get(&im.camera_id).ok_or_else(|| {
+        let (cam, (k, lens)) = by_id.get(&im.camera_id).ok_or_else(|| {
             FormatError::invalid(
                 &images_file,
                 format!(
@@ -696,7 +772,7 @@ pub fn model_cameras(
                 ),
             ));
         }
-        out.push(camera);
+        out.push((camera, *lens));
     }
     Ok(out)
 }
@@ -1002,35 +1078,80 @@ mod tests {
     }
 
     #[test]
-    fn distortion_and_fisheye_are_refused_naming_the_camera() {
+    fn distorting_lenses_are_refused_by_pinhole_readers_and_kept_for_working_views() {
+        use super::super::cameras::{read_capture, read_views};
         let (mut model, _) = known();
         model.cameras[2].params[4] = -0.05;
         let dir = views_dir(&model, false, true);
-        let e = super::super::cameras::read_views(dir.path())
-            .unwrap_err()
-            .to_string();
+        let e = read_views(dir.path()).unwrap_err().to_string();
         assert!(
             e.contains("camera 3 (OPENCV)")
                 && e.contains("distortion")
+                && e.contains("working_views")
                 && e.contains("image_undistorter")
                 && e.contains("cameras.txt"),
             "{e}"
         );
+        // Kept: the images of camera 3 carry its lens, the others are pinholes.
+        let cap = read_capture(dir.path()).unwrap();
+        let frames: Vec<&Camera> = cap.views.train.iter().chain(&cap.views.test).collect();
+        assert_eq!(frames.len(), cap.lenses.len());
+        let on_3 = |c: &Camera| {
+            let im = model
+                .images
+                .iter()
+                .find(|i| c.file_path.ends_with(&i.name))
+                .unwrap();
+            im.camera_id == 3
+        };
+        assert!(frames.iter().any(|c| on_3(c)));
+        for (c, lens) in frames.iter().zip(&cap.lenses) {
+            let expected = if on_3(c) {
+                Distortion::radial_tangential([-0.05, 0.0, 0.0, 0.0], [0.0; 2])
+            } else {
+                Distortion::None
+            };
+            assert_eq!(*lens, expected, "{}", c.file_path);
+        }
+        // A fisheye is never a pinhole, whatever its coefficients; COLMAP's order of OPENCV_FISHEYE
+        // parameters is fx fy cx cy k1 k2 k3 k4.
         model.cameras[2] = ColmapCamera {
             id: 3,
             model: "OPENCV_FISHEYE".into(),
             width: 64,
             height: 48,
-            params: vec![60.0, 61.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0],
+            params: vec![60.0, 61.0, 32.0, 24.0, 0.01, 0.0, 0.0, 0.003],
         };
         let dir = views_dir(&model, true, true);
-        let e = super::super::cameras::read_views(dir.path())
-            .unwrap_err()
-            .to_string();
+        let e = read_views(dir.path()).unwrap_err().to_string();
         assert!(
-            e.contains("camera 3 has model OPENCV_FISHEYE") && e.contains("cameras.bin"),
+            e.contains("camera 3 (OPENCV_FISHEYE)") && e.contains("cameras.bin"),
             "{e}"
         );
+        let cap = read_capture(dir.path()).unwrap();
+        assert!(cap.lenses.contains(&Distortion::Fisheye {
+            k: [0.01, 0.0, 0.0, 0.003]
+        }));
+        // FULL_OPENCV: fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6, k4-k6 the rational denominator.
+        model.cameras[2].model = "FULL_OPENCV".into();
+        model.cameras[2].params = vec![
+            60.0, 61.0, 32.0, 24.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0,
+        ];
+        let dir = views_dir(&model, false, true);
+        assert!(read_capture(dir.path())
+            .unwrap()
+            .lenses
+            .contains(&Distortion::RadialTangential {
+                radial: [1.0, 2.0, 5.0, 0.0],
+                rational: [6.0, 7.0, 8.0],
+                tangential: [3.0, 4.0],
+            }));
+        // FOV is refused by both readers.
+        model.cameras[2].model = "FOV".into();
+        model.cameras[2].params = vec![60.0, 61.0, 32.0, 24.0, 0.9];
+        let dir = views_dir(&model, false, true);
+        let e = read_capture(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("camera 3 has model FOV"), "{e}");
         // SIMPLE_RADIAL with k = 0 is a pinhole.
         model.cameras[2] = ColmapCamera {
             id: 3,
@@ -1040,7 +1161,7 @@ mod tests {
             params: vec![60.0, 32.0, 24.0, 0.0],
         };
         let dir = views_dir(&model, true, true);
-        super::super::cameras::read_views(dir.path()).unwrap();
+        read_views(dir.path()).unwrap();
     }
 
     #[test]

@@ -1,6 +1,15 @@
-//! The `resize_views` stage: a capture's views at a working resolution, so that what a large
-//! photo capture costs stays bounded.
+//! The `working_views` stage: a capture's views as every other stage works on them, pinhole
+//! cameras at a working resolution.
 //!
+//! **Lenses.** The stages project through pinholes ([`Camera`]), and every reader but this
+//! stage's refuses a camera whose lens distorts ([`cameras::read_views`]). A photo capture
+//! calibrated by COLMAP has one by default (`SIMPLE_RADIAL`), nerfstudio's `OPENCV` another, so
+//! this stage reads the lenses ([`cameras::read_capture`]) and resamples each distorted photo,
+//! its mask and fur mask onto the pinhole with the same intrinsics and size
+//! ([`crate::data::lens`]: the frame keeps its size and centre; what the lens showed beyond the
+//! pinhole's frame is dropped, and where the pinhole sees past the photo the output is empty).
+//!
+//! **Resolution**, so that what a large photo capture costs stays bounded.
 //! Every stage that renders or filters the images pays for each pixel: the tiger's views
 //! upscaled 4x (1024 px) took 207 s for the orientation maps instead of 11 and 364 s for the
 //! Frosting fit instead of 20, so a photo capture at 4,000-6,000 px would run for hours. But
@@ -15,16 +24,16 @@
 //! The factor is one integer `f` for the whole capture: the animal's extent, the median over
 //! the training views of the longer side of the mask's bounding box (mask above one half), over
 //! `subject_px`, rounded (`f = max(1, round(extent / subject_px))`; `subject_px = 0` keeps every
-//! view as it is). With `f = 1` the output is the input, byte for byte (any layout), so a capture
-//! already near the working size reads exactly as without the stage. Otherwise every frame,
-//! training and held-out, is box-averaged by `f` ([`ImageF32::box_downscaled`]: the last partial
-//! rows and columns dropped), its mask file (found as every stage finds it,
-//! [`cameras::mask_path`]) and its fur mask (`<stem>_fur.png`) with it, and its camera's `fx`,
-//! `fy`, `cx`, `cy` divided by `f` (exact: an output pixel covers `f x f` input pixels, centres
-//! at half-integers). The output is a NeRF-style views directory (`transforms.json`,
-//! `transforms_test.json`; a COLMAP capture's frames keep their names and its held-out split)
-//! of PNG images (`<stem>.png`, alpha kept) and `<stem>_mask.png` masks: we never write lossy
-//! files.
+//! view's size). With `f = 1` and pinhole lenses the output is the input, byte for byte (any
+//! layout), so a capture already near the working size reads exactly as without the stage.
+//! Otherwise every frame, training and held-out, is undistorted when its lens distorts, then
+//! box-averaged by `f` ([`ImageF32::box_downscaled`]: the last partial rows and columns
+//! dropped), its mask file (found as every stage finds it, [`cameras::mask_path`]) and its fur
+//! mask (`<stem>_fur.png`) with it, and its camera's `fx`, `fy`, `cx`, `cy` divided by `f`
+//! (exact: an output pixel covers `f x f` input pixels, centres at half-integers). The output is
+//! a NeRF-style views directory (`transforms.json`, `transforms_test.json`, pinhole cameras; a
+//! COLMAP capture's frames keep their names and its held-out split) of PNG images
+//! (`<stem>.png`, alpha kept) and `<stem>_mask.png` masks: we never write lossy files.
 
 use std::path::Path;
 
@@ -34,11 +43,12 @@ use serde_json::json;
 
 use crate::data::camera::{Camera, CameraSet};
 use crate::data::image::ImageF32;
+use crate::data::lens::{undistorted, Distortion};
 use crate::formats::{self, cameras, images};
 
 fure_stage_api::stage_params! {
-    /// The `resize_views` stage's parameters.
-    pub struct ResizeParams {
+    /// The `working_views` stage's parameters.
+    pub struct WorkingViewsParams {
         /// the animal's extent in pixels to aim for (median over the training views of the mask's bounding box's longer side); 0 keeps the views as they are
         subject_px: usize = int(400).range(0.0, 100000.0),
     }
@@ -112,11 +122,13 @@ fn scaled_camera(camera: &Camera, f: u32) -> Camera {
     }
 }
 
-/// Writes one frame of `input` into `output`, box-averaged by `f`; returns its new camera.
-fn resize_frame(
+/// Writes one frame of `input` into `output`, undistorted through `lens` and box-averaged by
+/// `f`; returns its new camera.
+fn working_frame(
     input: &Path,
     output: &Path,
     camera: &Camera,
+    lens: &Distortion,
     f: u32,
 ) -> Result<Camera, StageError> {
     let out_cam = scaled_camera(camera, f);
@@ -138,41 +150,59 @@ fn resize_frame(
         if let Some(parent) = dst.parent() {
             std::fs::create_dir_all(parent).map_err(|e| StageError::io(parent, e))?;
         }
-        images::write_png(&dst, &im.box_downscaled(f)).map_err(fmt)
+        let im = if lens.is_pinhole() {
+            im.box_downscaled(f)
+        } else {
+            undistorted(im, camera, lens).box_downscaled(f)
+        };
+        images::write_png(&dst, &im).map_err(fmt)
     };
     write(&out_cam.file_path, &img)?;
+    // Masks are read by their first channel (cameras::read_view): resampled as one.
+    let first_channel = |m: ImageF32| ImageF32 {
+        width: m.width,
+        height: m.height,
+        channels: 1,
+        data: m
+            .data
+            .chunks_exact(m.channels as usize)
+            .map(|p| p[0])
+            .collect(),
+    };
     let mask = cameras::mask_path(input, camera);
     if mask.is_file() {
-        let m = images::read_png(&mask).map_err(fmt)?;
+        let m = first_channel(images::read_png(&mask).map_err(fmt)?);
         write(&cameras::mask_file_path(&out_cam.file_path), &m)?;
     }
     let fur_rel = cameras::mask_file_path(&camera.file_path).replace("_mask.png", "_fur.png");
     if input.join(&fur_rel).is_file() {
-        let m = images::read_png(input.join(&fur_rel)).map_err(fmt)?;
+        let m = first_channel(images::read_png(input.join(&fur_rel)).map_err(fmt)?);
         let out_fur = cameras::mask_file_path(&out_cam.file_path).replace("_mask.png", "_fur.png");
         write(&out_fur, &m)?;
     }
     Ok(out_cam)
 }
 
-/// Stage `resize_views`.
-pub struct ResizeViewsStage;
+/// Stage `working_views`.
+pub struct WorkingViewsStage;
 
-impl Stage for ResizeViewsStage {
+impl Stage for WorkingViewsStage {
     fn kind(&self) -> &'static str {
-        "resize_views"
+        "working_views"
     }
     fn version(&self) -> u32 {
         1
     }
     fn doc(&self) -> &'static str {
-        "A capture's views at the working resolution: every frame box-averaged by one integer \
-         factor so that the animal spans about subject_px pixels (the median over the training \
-         views of the mask's bounding box), intrinsics scaled with it; a capture already near \
-         that size passes through byte for byte."
+        "A capture's views as the stages work on them: photos taken through a distorting lens \
+         (COLMAP's SIMPLE_RADIAL, OPENCV, fisheyes; nerfstudio's OPENCV) resampled onto pinhole \
+         cameras, and every frame box-averaged by one integer factor so that the animal spans \
+         about subject_px pixels (the median over the training views of the mask's bounding \
+         box), intrinsics scaled with it; a pinhole capture already near that size passes \
+         through byte for byte."
     }
     fn params(&self) -> Vec<ParamSpec> {
-        ResizeParams::specs()
+        WorkingViewsParams::specs()
     }
     fn inputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![PortSpec::dir(
@@ -182,26 +212,35 @@ impl Stage for ResizeViewsStage {
     }
     fn outputs(&self, _: &Params) -> Vec<PortSpec> {
         vec![
-            PortSpec::dir("views", "the views at the working resolution"),
+            PortSpec::dir(
+                "views",
+                "the views as pinhole cameras at the working resolution",
+            ),
             PortSpec::file(
                 "metrics",
                 "json",
-                "the animal's extent before and after, the factor",
+                "the animal's extent before and after, the factor, the views undistorted",
             ),
         ]
     }
     fn validate(&self, params: &Params) -> Result<(), StageError> {
-        ResizeParams::from_params(params).map(|_| ())
+        WorkingViewsParams::from_params(params).map(|_| ())
     }
     fn run(&self, ctx: &StageContext<'_>) -> Result<(), StageError> {
-        let p = ResizeParams::from_params(ctx.params)?;
+        let p = WorkingViewsParams::from_params(ctx.params)?;
         let input = ctx.input("views")?;
         let output = ctx.output("views")?;
-        let set = cameras::read_training_views(input)?;
+        let cameras::Capture { views: set, lenses } =
+            cameras::read_capture(input).map_err(|e| e.for_input("views"))?;
+        if set.train.is_empty() {
+            // The same error as every other stage's (no training frames).
+            cameras::read_training_views(input)?;
+        }
+        let undistorted_views = lenses.iter().filter(|l| !l.is_pinhole()).count();
         ctx.progress
             .message("measuring the animal in the training views");
         let (f, extent) = resize_factor(input, &set.train, p.subject_px)?;
-        let files_copied = if f == 1 {
+        let files_copied = if f == 1 && undistorted_views == 0 {
             // The identity: every file as it is, copied as corrupt_views copies.
             let files = super::corrupt::list_files(input)?;
             for f in &files {
@@ -212,10 +251,11 @@ impl Stage for ResizeViewsStage {
             let frames: Vec<&Camera> = set.train.iter().chain(&set.test).collect();
             ctx.progress.set_total(frames.len() as u64);
             let mut out = Vec::with_capacity(frames.len());
-            for cam in frames {
+            for (cam, lens) in frames.into_iter().zip(&lenses) {
                 ctx.progress.check_interrupted()?;
-                ctx.progress.message(&format!("resizing {}", cam.file_path));
-                out.push(resize_frame(input, output, cam, f)?);
+                ctx.progress
+                    .message(&format!("working view {}", cam.file_path));
+                out.push(working_frame(input, output, cam, lens, f)?);
                 ctx.progress.advance(1);
             }
             let test = out.split_off(set.train.len());
@@ -224,12 +264,17 @@ impl Stage for ResizeViewsStage {
             0
         };
         ctx.progress.note(&format!(
-            "the animal spans {extent} px (median over {} training views): {}",
+            "the animal spans {extent} px (median over {} training views): {}{}",
             set.train.len(),
             if f == 1 {
-                "views kept as they are".to_string()
+                "views kept at their size".to_string()
             } else {
                 format!("views box-averaged by {f}, to about {} px", extent / f)
+            },
+            if undistorted_views > 0 {
+                format!("; {undistorted_views} views undistorted onto pinhole cameras")
+            } else {
+                String::new()
             }
         ));
         formats::json::write_json(
@@ -242,6 +287,7 @@ impl Stage for ResizeViewsStage {
                 "training_views": set.train.len(),
                 "test_views": set.test.len(),
                 "files_copied": files_copied,
+                "undistorted_views": undistorted_views,
             }),
         )?;
         Ok(())
@@ -309,7 +355,7 @@ mod tests {
         let out = dir.path().join("out");
         // The disc spans 74 px: 74 / 18 rounds to a factor of 4.
         let outs = run_stage_with(
-            &ResizeViewsStage,
+            &WorkingViewsStage,
             &[("subject_px", fure_stage_api::Value::Int(18))],
             &[("views", views.clone())],
             &out,
@@ -353,7 +399,7 @@ mod tests {
         capture(&views, 3, 64, 20.0);
         std::fs::write(views.join("notes.txt"), "kept").unwrap();
         let outs = run_stage(
-            &ResizeViewsStage,
+            &WorkingViewsStage,
             &[("views", views.clone())],
             &dir.path().join("a"),
         )
@@ -361,7 +407,7 @@ mod tests {
         assert_eq!(tree(&outs["views"]), tree(&views));
         // subject_px = 0 keeps a large capture as it is too.
         let outs = run_stage_with(
-            &ResizeViewsStage,
+            &WorkingViewsStage,
             &[("subject_px", fure_stage_api::Value::Int(0))],
             &[("views", views.clone())],
             &dir.path().join("b"),
@@ -371,13 +417,85 @@ mod tests {
     }
 
     #[test]
+    fn photos_through_a_distorting_lens_come_out_as_a_pinhole_sees_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let views = dir.path().join("views");
+        let set = capture(&views, 3, 64, 20.0);
+        // The same frames through a barrel lens (nerfstudio's OPENCV, k1 = -0.25, focal length
+        // 48 px): a disc of 0.5 (24 px) around the principal point seen by the pinhole lies at
+        // r_d = 0.5 (1 - 0.25 * 0.25) in the photo.
+        let (f, k1, r) = (48.0f64, -0.25, 0.5);
+        for c in set.train.iter().chain(&set.test) {
+            let mut mask = ImageF32::new(64, 64, 1);
+            for y in 0..64 {
+                for x in 0..64 {
+                    let xd = (x as f64 + 0.5 - c.cx as f64) / f;
+                    let yd = (y as f64 + 0.5 - c.cy as f64) / f;
+                    let rd = (xd * xd + yd * yd).sqrt();
+                    mask.pixel_mut(x, y)[0] = (rd < r * (1.0 + k1 * r * r)) as u8 as f32;
+                }
+            }
+            let stem = c
+                .file_path
+                .trim_start_matches("images/")
+                .trim_end_matches(".png");
+            images::write_png(views.join(format!("masks/{stem}.png")), &mask).unwrap();
+        }
+        for file in ["transforms.json", "transforms_test.json"] {
+            let path = views.join(file);
+            let mut t: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+            let top = t.as_object_mut().unwrap();
+            top.remove("camera_angle_x");
+            top.remove("camera_angle_y");
+            top.insert("fl_x".into(), json!(f));
+            top.insert("fl_y".into(), json!(f));
+            top.insert("camera_model".into(), json!("OPENCV"));
+            top.insert("k1".into(), json!(k1));
+            std::fs::write(&path, serde_json::to_vec(&t).unwrap()).unwrap();
+        }
+        // Every other stage refuses the capture, naming this one.
+        let e = cameras::read_views(&views).unwrap_err().to_string();
+        assert!(e.contains("k1") && e.contains("working_views"), "{e}");
+        let outs = run_stage(
+            &WorkingViewsStage,
+            &[("views", views.clone())],
+            &dir.path().join("o"),
+        )
+        .unwrap();
+        let m: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&outs["metrics"]).unwrap()).unwrap();
+        assert_eq!(
+            (m["factor"].as_u64(), m["undistorted_views"].as_u64()),
+            (Some(1), Some(4))
+        );
+        let read = cameras::read_views(&outs["views"]).unwrap();
+        assert_eq!((read.train.len(), read.test.len()), (3, 1));
+        let pinhole_area = std::f64::consts::PI * (r * f).powi(2);
+        for cam in read.train.iter().chain(&read.test) {
+            assert_eq!((cam.fx as f64, cam.width), (f, 64));
+            let mask = cameras::read_view(&outs["views"], cam)
+                .unwrap()
+                .mask
+                .unwrap();
+            let area: f32 = mask.data.iter().sum();
+            // The photo's disc is 12 % smaller; the pinhole's is back to its area.
+            assert!(
+                (area as f64 / pinhole_area - 1.0).abs() < 0.02,
+                "{}: {area} against {pinhole_area}",
+                cam.file_path
+            );
+        }
+    }
+
+    #[test]
     fn a_photo_without_mask_or_alpha_is_an_error_naming_it() {
         let dir = tempfile::tempdir().unwrap();
         let views = dir.path().join("views");
         capture(&views, 2, 32, 10.0);
         std::fs::remove_dir_all(views.join("masks")).unwrap();
         let e = run_stage(
-            &ResizeViewsStage,
+            &WorkingViewsStage,
             &[("views", views)],
             &dir.path().join("o"),
         )
