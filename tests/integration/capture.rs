@@ -341,6 +341,151 @@ fn colmap_capture_with_masks_folder_reads_like_transforms_json() {
 /// the metric scale comes from the eyes and the strands land on Blender's hair (signed F at 4 cm
 /// was 86.6 when written; a camera convention read wrongly scores near zero). Skipped with a
 /// note without a `blender` on the PATH or with FURE_SKIP_BLENDER set, as the groom's check.
+/// The synthetic views as photos taken through a barrel lens, calibrated by COLMAP's default
+/// model (`SIMPLE_RADIAL`): every stage but `working_views` refuses the capture and says to read
+/// it through that stage; through it, the visual hull is the pinhole capture's (0.2 % apart
+/// when written), and the same photos taken for a pinhole's (the lens ignored) give another
+/// (4.4 % smaller).
+#[test]
+fn a_capture_through_a_distorting_lens_reads_as_the_pinhole_capture() {
+    use fure_stages::data::image::ImageF32;
+    use fure_stages::formats::{cameras, colmap, images};
+    let p = Project::new();
+    p.write(
+        "scene.toml",
+        &LABELS.replace("name = \"labels\"", "name = \"scene\""),
+    );
+    p.run(
+        "scene.toml",
+        &["--until", "scene", "--set", "scene.resolution=128"],
+    )
+    .ok();
+    p.write("labels.obj", &p.read("out/scene/scene/labels.obj"));
+    let src = p.path("out/scene/scene/views");
+    let set = cameras::read_views(&src).unwrap();
+    let all: Vec<_> = set.train.iter().chain(&set.test).cloned().collect();
+
+    // COLMAP's SIMPLE_RADIAL: x_d = x (1 + k r^2). Each photo pixel shows the pinhole's point
+    // at radius r with r (1 + k r^2) = r_d (Newton), so the photo is the pinhole view resampled.
+    let k = -0.5f64;
+    let lens_photo = |im: &ImageF32, cam: &fure_stages::data::camera::Camera| {
+        let mut out = ImageF32::new(im.width, im.height, im.channels);
+        for v in 0..im.height {
+            for u in 0..im.width {
+                let xd = (u as f64 + 0.5 - cam.cx as f64) / cam.fx as f64;
+                let yd = (v as f64 + 0.5 - cam.cy as f64) / cam.fy as f64;
+                let rd = (xd * xd + yd * yd).sqrt();
+                let mut r = rd;
+                for _ in 0..30 {
+                    r -= (r + k * r * r * r - rd) / (1.0 + 3.0 * k * r * r);
+                }
+                let s = if rd > 0.0 { r / rd } else { 1.0 };
+                let (x, y) = (
+                    cam.fx as f64 * xd * s + cam.cx as f64,
+                    cam.fy as f64 * yd * s + cam.cy as f64,
+                );
+                im.sample_bilinear(x, y, out.pixel_mut(u, v));
+            }
+        }
+        out
+    };
+    let write_capture = |dir: &str, model_name: &str, through_lens: bool| {
+        let photo = |im: &ImageF32, cam| {
+            if through_lens {
+                lens_photo(im, cam)
+            } else {
+                im.clone()
+            }
+        };
+        let cap = p.path(dir);
+        let mut model = colmap::ColmapModel::default();
+        for (i, cam) in all.iter().enumerate() {
+            let v = cameras::read_view(&src, cam).unwrap();
+            let name = format!("{i:04}.png");
+            images::write_png(cap.join("images").join(&name), &photo(&v.rgb, cam)).unwrap();
+            let mask = photo(&v.mask.unwrap(), cam);
+            images::write_png(cap.join("masks").join(&name), &mask).unwrap();
+            let mut params = vec![cam.fx as f64, cam.cx as f64, cam.cy as f64];
+            if model_name == "SIMPLE_RADIAL" {
+                params.push(k);
+            }
+            model.cameras.push(colmap::ColmapCamera {
+                id: i as u32 + 1,
+                model: model_name.into(),
+                width: cam.width as u64,
+                height: cam.height as u64,
+                params,
+            });
+            let (q, t) = colmap::colmap_from_c2w(&cam.c2w);
+            model.images.push(colmap::ColmapImage {
+                id: i as u32 + 1,
+                q,
+                t,
+                camera_id: i as u32 + 1,
+                name,
+            });
+        }
+        colmap::write_model_bin(&cap.join("sparse/0"), &model).unwrap();
+    };
+    write_capture("lens/views", "SIMPLE_RADIAL", true);
+    write_capture("ignored/views", "SIMPLE_PINHOLE", true);
+    // The reference: the pinhole photos, the same split (every 8th image held out).
+    write_capture("pinhole/views", "SIMPLE_PINHOLE", false);
+
+    // Read directly, the capture is refused, naming the camera and the stage to read it through.
+    let r = hull(&p, "direct", "lens/views");
+    assert_eq!(r.status("outer"), "failed", "{:?}", r.stages);
+    let text = format!("{}{}", r.stdout(), r.stderr());
+    assert!(
+        text.contains("SIMPLE_RADIAL") && text.contains("working_views"),
+        "{text}"
+    );
+
+    p.write(
+        "undistorted.toml",
+        &HULL
+            .replace("NAME", "undistorted")
+            .replace("VIEWS", "working_views.views")
+            .replace(
+                "[stages.outer]",
+                "[stages.working_views]\nkind = \"working_views\"\ninputs = { views = \"lens/views\" }\n\n[stages.outer]",
+            ),
+    );
+    p.run("undistorted.toml", &[]).ok();
+    let working = read_json(&p.path("out/undistorted/working_views/metrics.json"));
+    assert_eq!(working["undistorted_views"], 9, "{working}");
+    hull(&p, "pinhole", "pinhole/views").ok();
+    hull(&p, "ignored", "ignored/views").ok();
+    let volume = |name: &str| {
+        read_json(&p.path(&format!("out/{name}/outer/metrics.json")))["volume"]
+            .as_f64()
+            .unwrap()
+    };
+    let (pinhole, undistorted, ignored) =
+        (volume("pinhole"), volume("undistorted"), volume("ignored"));
+    eprintln!("hull volume: pinhole {pinhole}, undistorted {undistorted}, lens ignored {ignored}");
+
+    assert!(
+        (undistorted / pinhole - 1.0).abs() < 0.01,
+        "undistorted {undistorted} against the pinhole's {pinhole}"
+    );
+    assert!(
+        (ignored / pinhole - 1.0).abs() > 0.03,
+        "the control: the lens ignored gives {ignored} against {pinhole}"
+    );
+    // Every part transfers onto the undistorted hull (vertex counts differ with the mesh).
+    let parts = |name: &str| {
+        let m = read_json(&p.path(&format!("out/{name}/parts/metrics.json")));
+        m["parts"]
+            .as_object()
+            .unwrap()
+            .keys()
+            .cloned()
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(parts("undistorted"), parts("pinhole"));
+}
+
 #[test]
 fn a_capture_rendered_by_blender_runs_end_to_end() {
     let p = Project::new();
