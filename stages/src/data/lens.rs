@@ -22,7 +22,10 @@
 //!   `θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)` and `(x_d, y_d) = (x, y) θ_d / r`.
 //!
 //! Pixel centres are at half-integers in both cameras, as COLMAP's are ([`Camera`]); samples are
-//! bilinear, and an image with alpha is resampled premultiplied, so a fringe keeps its colour.
+//! Lanczos-3 ([`ImageF32::sample_lanczos3`]; its ringing clamped at 0, and coverage at 1), and
+//! an image with alpha is resampled premultiplied, so a fringe keeps its colour.
+
+use rayon::prelude::*;
 
 use super::camera::Camera;
 use super::image::ImageF32;
@@ -128,21 +131,31 @@ pub fn undistorted(image: &ImageF32, camera: &Camera, lens: &Distortion) -> Imag
         camera.cy as f64,
     );
     let mut out = ImageF32::new(image.width, image.height, image.channels);
-    for y in 0..image.height {
-        for x in 0..image.width {
-            let nx = (x as f64 + 0.5 - cx) / fx;
-            let ny = (y as f64 + 0.5 - cy) / fy;
-            let (dx, dy) = lens.distort(nx, ny);
-            let px = out.pixel_mut(x, y);
-            src.sample_bilinear(fx * dx + cx, fy * dy + cy, px);
-            if alpha {
-                let a = px[c - 1];
-                for v in &mut px[..c - 1] {
-                    *v = if a > 1e-6 { (*v / a).min(1.0) } else { 0.0 };
+    let row_len = (image.width * image.channels) as usize;
+    out.data
+        .par_chunks_mut(row_len)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, px) in row.chunks_exact_mut(c).enumerate() {
+                let nx = (x as f64 + 0.5 - cx) / fx;
+                let ny = (y as f64 + 0.5 - cy) / fy;
+                let (dx, dy) = lens.distort(nx, ny);
+                src.sample_lanczos3(fx * dx + cx, fy * dy + cy, px);
+                // The kernel rings past a step: no negative light, no coverage beyond [0, 1].
+                for v in px.iter_mut() {
+                    *v = v.max(0.0);
+                }
+                if alpha || c == 1 {
+                    px[c - 1] = px[c - 1].min(1.0);
+                }
+                if alpha {
+                    let a = px[c - 1];
+                    for v in &mut px[..c - 1] {
+                        *v = if a > 1e-6 { *v / a } else { 0.0 };
+                    }
                 }
             }
-        }
-    }
+        });
     out
 }
 
@@ -279,7 +292,7 @@ mod tests {
             let p = out.pixel(x, 32);
             assert!(p[1] == 0.0, "green leaked at {x}: {p:?}");
             if p[3] > 0.0 {
-                assert!((p[0] - 1.0).abs() < 1e-5, "{p:?}");
+                assert!((p[0] - 1.0).abs() < 1e-3, "{p:?}");
             }
         }
     }

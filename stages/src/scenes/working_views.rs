@@ -191,7 +191,7 @@ impl Stage for WorkingViewsStage {
         "working_views"
     }
     fn version(&self) -> u32 {
-        1
+        2
     }
     fn doc(&self) -> &'static str {
         "A capture's views as the stages work on them: photos taken through a distorting lens \
