@@ -33,7 +33,8 @@
 //! (exact: an output pixel covers `f x f` input pixels, centres at half-integers). The output is
 //! a NeRF-style views directory (`transforms.json`, `transforms_test.json`, pinhole cameras; a
 //! COLMAP capture's frames keep their names and its held-out split) of PNG images
-//! (`<stem>.png`, alpha kept) and `<stem>_mask.png` masks: we never write lossy files.
+//! (`<stem>.png`, alpha kept; `<stem>.exr` for an EXR photo, its values as they were) and
+//! `<stem>_mask.png` masks: we never write lossy files.
 
 use std::path::Path;
 
@@ -103,15 +104,23 @@ pub fn resize_factor(
     Ok((f, median))
 }
 
-/// `camera` seen through images box-averaged by `f`, its image renamed `<stem>.png`.
+/// `camera` seen through images box-averaged by `f`, its image renamed `<stem>.png` (`.exr`
+/// for an EXR photo, whose values may exceed 1 and want more than 8 bits).
 fn scaled_camera(camera: &Camera, f: u32) -> Camera {
     let s = 1.0 / f as f32;
-    let stem = match Path::new(&camera.file_path).extension() {
-        Some(ext) => &camera.file_path[..camera.file_path.len() - ext.len() - 1],
-        None => camera.file_path.as_str(),
+    let (stem, ext) = match Path::new(&camera.file_path).extension() {
+        Some(ext) => (
+            &camera.file_path[..camera.file_path.len() - ext.len() - 1],
+            if ext.eq_ignore_ascii_case("exr") {
+                "exr"
+            } else {
+                "png"
+            },
+        ),
+        None => (camera.file_path.as_str(), "png"),
     };
     Camera {
-        file_path: format!("{stem}.png"),
+        file_path: format!("{stem}.{ext}"),
         fx: camera.fx * s,
         fy: camera.fy * s,
         cx: camera.cx * s,
@@ -155,7 +164,7 @@ fn working_frame(
         } else {
             undistorted(im, camera, lens).box_downscaled(f)
         };
-        images::write_png(&dst, &im).map_err(fmt)
+        images::write_image(&dst, &im).map_err(fmt)
     };
     write(&out_cam.file_path, &img)?;
     // Masks are read by their first channel (cameras::read_view): resampled as one.
@@ -191,7 +200,7 @@ impl Stage for WorkingViewsStage {
         "working_views"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "A capture's views as the stages work on them: photos taken through a distorting lens \
@@ -486,6 +495,39 @@ mod tests {
                 cam.file_path
             );
         }
+    }
+
+    #[test]
+    fn exr_photos_stay_exr_with_their_values() {
+        let dir = tempfile::tempdir().unwrap();
+        let views = dir.path().join("views");
+        let mut set = capture(&views, 2, 32, 10.0);
+        // The photos as EXR, 2.5 (brighter than a PNG holds) inside the disc.
+        for c in set.train.iter_mut().chain(set.test.iter_mut()) {
+            let png = views.join(&c.file_path);
+            let mut im = images::read_image(&png).unwrap();
+            for v in &mut im.data {
+                *v *= 5.0;
+            }
+            std::fs::remove_file(&png).unwrap();
+            c.file_path = c.file_path.replace(".png", ".exr");
+            images::write_exr(views.join(&c.file_path), &im).unwrap();
+        }
+        cameras::write_views(&views, &set).unwrap();
+        let outs = run_stage_with(
+            &WorkingViewsStage,
+            &[("subject_px", fure_stage_api::Value::Int(10))],
+            &[("views", views.clone())],
+            &dir.path().join("o"),
+        )
+        .unwrap();
+        let read = cameras::read_views(&outs["views"]).unwrap();
+        let cam = &read.train[0];
+        assert!(cam.file_path.ends_with(".exr"), "{}", cam.file_path);
+        let v = cameras::read_view(&outs["views"], cam).unwrap();
+        // Blocks of alternating columns 0.2 and 0.8, times 5, averaged: 2.5.
+        let centre = v.rgb.pixel(cam.width / 2, cam.height / 2)[0];
+        assert!((centre - 2.5).abs() < 1e-3, "{centre}");
     }
 
     #[test]
