@@ -35,6 +35,20 @@ impl ImageF32 {
         &mut self.data[i..i + c]
     }
 
+    /// The first channel alone (a mask or a scalar map stored with more channels).
+    pub fn first_channel(self) -> ImageF32 {
+        let c = self.channels as usize;
+        if c == 1 {
+            return self;
+        }
+        ImageF32 {
+            width: self.width,
+            height: self.height,
+            channels: 1,
+            data: self.data.chunks_exact(c).map(|p| p[0]).collect(),
+        }
+    }
+
     /// The image at continuous pixel coordinates `(u, v)` (pixel centres at half-integers),
     /// interpolated with the Lanczos-3 kernel (6 x 6 taps, weights normalised, taps beyond the
     /// frame clamped to the edge pixels), into `out` (one value per channel); zero outside the

@@ -211,6 +211,14 @@ pub fn mask_file_path(file_path: &str) -> String {
     format!("{}_mask.png", &file_path[..stem_len])
 }
 
+/// `file_path` of a camera's fur mask (`<stem>_fur.png`: the pixels where a strand is seen
+/// first, which synthetic scenes write and the learners' L_mask reads), relative like the
+/// image's.
+pub fn fur_mask_file_path(file_path: &str) -> String {
+    let m = mask_file_path(file_path);
+    format!("{}_fur.png", m.strip_suffix("_mask.png").unwrap_or(&m))
+}
+
 /// One view's pixels: colour (3 channels, [0, 1]), the foreground mask (1 channel, [0, 1]) if
 /// the capture has one, and the image's own alpha channel if it has one.
 #[derive(Debug, Clone, PartialEq)]
@@ -279,13 +287,7 @@ pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, F
                 ),
             ));
         }
-        let mc = m.channels as usize;
-        Some(ImageF32 {
-            width: m.width,
-            height: m.height,
-            channels: 1,
-            data: m.data.chunks_exact(mc).map(|p| p[0]).collect(),
-        })
+        Some(m.first_channel())
     } else {
         alpha.clone()
     };
@@ -1380,6 +1382,8 @@ mod tests {
     fn paths_and_masks() {
         assert_eq!(mask_file_path("train/r_000.png"), "train/r_000_mask.png");
         assert_eq!(mask_file_path("a.b/c"), "a.b/c_mask.png");
+        assert_eq!(fur_mask_file_path("train/r_000.png"), "train/r_000_fur.png");
+        assert_eq!(fur_mask_file_path("images/0001.jpg"), "images/0001_fur.png");
         let dir = tempfile::tempdir().unwrap();
         std::fs::create_dir_all(dir.path().join("im")).unwrap();
         std::fs::write(dir.path().join("im/x.JPG"), b"").unwrap();

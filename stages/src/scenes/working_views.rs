@@ -168,26 +168,15 @@ fn working_frame(
     };
     write(&out_cam.file_path, &img)?;
     // Masks are read by their first channel (cameras::read_view): resampled as one.
-    let first_channel = |m: ImageF32| ImageF32 {
-        width: m.width,
-        height: m.height,
-        channels: 1,
-        data: m
-            .data
-            .chunks_exact(m.channels as usize)
-            .map(|p| p[0])
-            .collect(),
-    };
     let mask = cameras::mask_path(input, camera);
     if mask.is_file() {
-        let m = first_channel(images::read_png(&mask).map_err(fmt)?);
+        let m = images::read_png(&mask).map_err(fmt)?.first_channel();
         write(&cameras::mask_file_path(&out_cam.file_path), &m)?;
     }
-    let fur_rel = cameras::mask_file_path(&camera.file_path).replace("_mask.png", "_fur.png");
-    if input.join(&fur_rel).is_file() {
-        let m = first_channel(images::read_png(input.join(&fur_rel)).map_err(fmt)?);
-        let out_fur = cameras::mask_file_path(&out_cam.file_path).replace("_mask.png", "_fur.png");
-        write(&out_fur, &m)?;
+    let fur = input.join(cameras::fur_mask_file_path(&camera.file_path));
+    if fur.is_file() {
+        let m = images::read_png(&fur).map_err(fmt)?.first_channel();
+        write(&cameras::fur_mask_file_path(&out_cam.file_path), &m)?;
     }
     Ok(out_cam)
 }

@@ -203,25 +203,6 @@ pub struct ImageTiming {
     pub backward: f64,
 }
 
-fn fur_mask_path(views: &Path, cam: &Camera) -> std::path::PathBuf {
-    let m = formats::cameras::mask_file_path(&cam.file_path);
-    let stem = m.strip_suffix("_mask.png").unwrap_or(&m);
-    views.join(format!("{stem}_fur.png"))
-}
-
-fn first_channel(img: ImageF32) -> ImageF32 {
-    let c = img.channels as usize;
-    if c == 1 {
-        return img;
-    }
-    ImageF32 {
-        width: img.width,
-        height: img.height,
-        channels: 1,
-        data: img.data.chunks_exact(c).map(|p| p[0]).collect(),
-    }
-}
-
 /// Area-weighted seeded surface samples as flat opaque Gaussians.
 pub fn body_gaussians(mesh: &Mesh, n: usize, seed: u64) -> Gaussians {
     let mut g = Gaussians::default();
@@ -310,9 +291,9 @@ impl ImageLosses {
                     }
                 }
             }
-            let fpath = fur_mask_path(views_dir, cam);
+            let fpath = views_dir.join(formats::cameras::fur_mask_file_path(&cam.file_path));
             let fur = if fpath.is_file() {
-                Some(first_channel(formats::images::read_png(&fpath)?))
+                Some(formats::images::read_png(&fpath)?.first_channel())
             } else {
                 None
             };
@@ -930,10 +911,8 @@ pub fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32)
         None => rel.as_str(),
     };
     let opath = dir.join(format!("{stem}_orient.exr"));
-    let o = first_channel(formats::images::read_exr(&opath)?);
-    let c = first_channel(formats::images::read_exr(
-        dir.join(format!("{stem}_conf.exr")),
-    )?);
+    let o = formats::images::read_exr(&opath)?.first_channel();
+    let c = formats::images::read_exr(dir.join(format!("{stem}_conf.exr")))?.first_channel();
     let (w, h) = (cam.width, cam.height);
     let fits = |m: &ImageF32| {
         m.width > 0
