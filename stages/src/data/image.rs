@@ -35,17 +35,23 @@ impl ImageF32 {
         &mut self.data[i..i + c]
     }
 
-    /// The first channel alone (a mask or a scalar map stored with more channels).
-    pub fn first_channel(self) -> ImageF32 {
+    /// Channel `ch` alone, as a one-channel image.
+    pub fn channel(&self, ch: usize) -> ImageF32 {
         let c = self.channels as usize;
-        if c == 1 {
-            return self;
-        }
         ImageF32 {
             width: self.width,
             height: self.height,
             channels: 1,
-            data: self.data.chunks_exact(c).map(|p| p[0]).collect(),
+            data: self.data.chunks_exact(c).map(|p| p[ch]).collect(),
+        }
+    }
+
+    /// The first channel alone (a mask or a scalar map stored with more channels).
+    pub fn first_channel(self) -> ImageF32 {
+        if self.channels == 1 {
+            self
+        } else {
+            self.channel(0)
         }
     }
 

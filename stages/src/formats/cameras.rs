@@ -42,7 +42,9 @@
 //! are ignored: instant-ngp's `scale`/`offset` only move its own training box, so the cameras stay
 //! in the file's world frame.
 //!
-//! `file_path` is normalised when read: backslashes become `/`, a leading `./` is dropped, and a
+//! `file_path` must lie inside the directory (relative, no `..`): the directory's hash is the
+//! views' cache key, and stages name per-view outputs after it. It is normalised when read:
+//! backslashes become `/`, a leading `./` is dropped, and a
 //! path without an image extension gets one (`./train/r_0` -> `train/r_0.png`): the first of `.png`,
 //! `.jpg`, `.jpeg`, `.exr` (any case) that exists next to it, `.png` when none does.
 //! Foreground masks (PNG, white = object; the first channel is read) are looked for, in this
@@ -269,12 +271,7 @@ pub fn read_view(dir: impl AsRef<Path>, camera: &Camera) -> Result<ViewImages, F
         };
         rgb.data[3 * i..3 * i + 3].copy_from_slice(&[r, g, b]);
     }
-    let alpha = (c == 2 || c == 4).then(|| ImageF32 {
-        width: img.width,
-        height: img.height,
-        channels: 1,
-        data: img.data.chunks_exact(c).map(|p| p[c - 1]).collect(),
-    });
+    let alpha = (c == 2 || c == 4).then(|| img.channel(c - 1));
     let mpath = mask_path(dir, camera);
     let mask = if mpath.is_file() {
         let m = super::images::read_png(&mpath)?;
@@ -729,7 +726,31 @@ fn frame_file_path(
             ))
         }
     };
-    Ok(normalise_file_path(dir, raw_path))
+    let rel = normalise_file_path(dir, raw_path);
+    if leaves_directory(&rel) {
+        return Err(FormatError::at(
+            path,
+            field(&fp_field),
+            format!("`{raw_path}` {OUTSIDE_VIEWS}"),
+        ));
+    }
+    Ok(rel)
+}
+
+/// What an image path outside the views directory is told.
+pub(crate) const OUTSIDE_VIEWS: &str = "lies outside the views directory: the views' cache key \
+    is the hash of that directory's files, so a photo elsewhere could change without anything \
+    rerunning, and the stages name their per-view outputs after the path; copy (or link) the \
+    photos into the views directory and give paths relative to it";
+
+/// Whether a relative image path is absolute or climbs out of its directory (`..`).
+pub(crate) fn leaves_directory(rel: &str) -> bool {
+    Path::new(rel).components().any(|c| {
+        !matches!(
+            c,
+            std::path::Component::Normal(_) | std::path::Component::CurDir
+        )
+    })
 }
 
 /// The frame's `transform_matrix`: 4 rows (or 3) of 4 numbers, a last row of `[0, 0, 0, 1]`,
@@ -1170,6 +1191,15 @@ mod tests {
                     r#"{{"fl_x": 5, "w": 4, "h": 4, "frames": [{frame_ok}, {{"file_path": "b.png"}}]}}"#
                 ),
                 "frames[1].transform_matrix",
+            ),
+            // Photos outside the views directory: absolute, or climbing out of it.
+            (
+                r#"{"fl_x": 5, "w": 4, "h": 4, "frames": [{"file_path": "/data/cap/a.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}"#.to_string(),
+                "frames[0].file_path",
+            ),
+            (
+                r#"{"fl_x": 5, "w": 4, "h": 4, "frames": [{"file_path": "./../images/a.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}"#.to_string(),
+                "frames[0].file_path",
             ),
             (
                 format!(

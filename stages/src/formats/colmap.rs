@@ -748,6 +748,17 @@ pub fn lensed_model_cameras(
             ));
         }
         let name = im.name.replace('\\', "/");
+        if super::cameras::leaves_directory(&name) {
+            return Err(FormatError::invalid(
+                &images_file,
+                format!(
+                    "image {} is named `{}`, which {}",
+                    im.id,
+                    im.name,
+                    super::cameras::OUTSIDE_VIEWS
+                ),
+            ));
+        }
         let camera = Camera {
             file_path: format!("images/{name}"),
             c2w: c2w_from_colmap(im.q, im.t),
@@ -1162,6 +1173,25 @@ mod tests {
         };
         let dir = views_dir(&model, true, true);
         read_views(dir.path()).unwrap();
+    }
+
+    #[test]
+    fn image_names_outside_the_views_directory_are_refused() {
+        let (model, _) = known();
+        let dir = views_dir(&model, false, true);
+        let txt = dir.path().join("sparse/0/images.txt");
+        let text = std::fs::read_to_string(&txt).unwrap();
+        let name = &model.images[1].name;
+        std::fs::write(&txt, text.replace(name.as_str(), "../elsewhere/0001.jpg")).unwrap();
+        let e = super::super::cameras::read_views(dir.path())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("images.txt")
+                && e.contains("../elsewhere/0001.jpg")
+                && e.contains("outside the views directory"),
+            "{e}"
+        );
     }
 
     #[test]

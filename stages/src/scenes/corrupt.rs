@@ -555,7 +555,7 @@ fn morph_masks(
         }
         let src = if mpath.is_file() {
             let m = formats::images::read_png(&mpath).map_err(fmt_err)?;
-            first_channel(&m)
+            m.first_channel()
         } else {
             // Alpha as the mask, when there is one (a noisy rewrite keeps alpha unchanged).
             let img = match edits.images.get(&cam.file_path) {
@@ -565,7 +565,7 @@ fn morph_masks(
                 }
             };
             match img.channels {
-                2 | 4 => channel(&img, img.channels as usize - 1),
+                2 | 4 => img.channel(img.channels as usize - 1),
                 _ => continue,
             }
         };
@@ -621,20 +621,6 @@ fn formats_ext(p: &str) -> String {
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default()
-}
-
-fn channel(img: &ImageF32, ch: usize) -> ImageF32 {
-    let c = img.channels as usize;
-    ImageF32 {
-        width: img.width,
-        height: img.height,
-        channels: 1,
-        data: img.data.chunks_exact(c).map(|p| p[ch]).collect(),
-    }
-}
-
-fn first_channel(img: &ImageF32) -> ImageF32 {
-    channel(img, 0)
 }
 
 /// Stage `corrupt_views`.
