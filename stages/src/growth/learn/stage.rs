@@ -288,6 +288,11 @@ fure_stage_api::stage_params! {
         /// hangs or stands along the normal lifts to a direction it does not have. 90 = every
         /// root turns. 50: chosen on the dev split (learn module doc).
         view_axes_steep_deg: f64 = float(50.0).range(0.0, 90.0),
+        /// Where the views' start elevation is trusted whole: the maps' mean excess coherence
+        /// over their mean coherence at which its weight reaches 1, from 0 at 0.65
+        /// (view_elevation_trust; at 0.65 or below, a step there). 0.75: chosen on the dev
+        /// split with the curling poodle (learn module doc).
+        view_elevation_full_ratio: f32 = float(0.75).range(0.0, 1.0),
         /// Give every strand a colour ramp from root to tip, fitted from the views with its
         /// colour and fixed while training (learn::image, `set_ramp`); off = one colour per
         /// strand. On: the tiger's held-out PSNR +0.3 dB, the other dev scenes and every
@@ -330,6 +335,9 @@ fure_stage_api::stage_params! {
         /// As the codec's; dense keeps 90 (every root turns): at 50 it lost the curling
         /// poodle's 4 cm score and direction error on the dev split (learn module doc).
         view_axes_steep_deg: f64 = float(90.0).range(0.0, 90.0).omit_default_from_key(),
+        /// As the codec's; dense keeps the step at 0.65: at 0.75 it won the poodle's 2-4 cm
+        /// and direction but lost its strict 1 cm score (learn module doc).
+        view_elevation_full_ratio: f32 = float(0.65).range(0.0, 1.0).omit_default_from_key(),
     }
 }
 
@@ -378,6 +386,12 @@ impl Learner {
             Learner::Dense(d) => d.view_axes_steep_deg,
         };
         (max < 90.0).then_some(max)
+    }
+    fn view_elevation_full_ratio(&self) -> f32 {
+        match self {
+            Learner::Codec(c) => c.view_elevation_full_ratio,
+            Learner::Dense(d) => d.view_elevation_full_ratio,
+        }
     }
     fn l_turn(&self) -> f32 {
         match self {
@@ -504,8 +518,7 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        // 15: the views' elevation weighed by the maps' excess coherence.
-        15
+        14
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
@@ -826,6 +839,7 @@ fn setup(
     codec: Option<&CodecParams>,
     chamfer: bool,
     max_elevation_deg: Option<f64>,
+    view_elevation_full_ratio: f32,
 ) -> Result<Setup, StageError> {
     let roots_path = ctx.input("roots")?;
     let mut roots: Roots = formats::json::read_json(roots_path)?;
@@ -915,6 +929,7 @@ fn setup(
                 &outer,
                 &basis,
                 view_axes.as_ref(),
+                view_elevation_full_ratio,
             );
         }
     }
@@ -1118,28 +1133,26 @@ fn turn_onto_view_axes(
 /// do not show the fur's direction").
 const MIN_EXCESS_RATIO: f32 = 0.65;
 
-/// From this ratio up the views' start elevation is trusted whole; from
-/// [`MIN_EXCESS_RATIO`] to here, in proportion. The poodle's curls read
-/// 0.653-0.658 and an elevation of 57-58 degrees that loses 3.3 points of its
-/// 2 cm score against the basis' 39; the tiger at 0.761-0.767 loses 38 points
-/// at 1 cm without the views' reading (docs/history.md, "The views' elevation
-/// where the maps carry less direction"). A ramp rather than a second step:
-/// a scene between them gets part of each.
-const FULL_EXCESS_RATIO: f32 = 0.75;
-
 /// The weight of the views' start elevation beside the basis' (0 to 1): the
 /// maps' mean excess coherence over their mean coherence, ramped from
-/// [`MIN_EXCESS_RATIO`] (0) to [`FULL_EXCESS_RATIO`] (1); 1 without a
-/// view-axes report or a coherence.
-fn view_elevation_trust(axes: Option<&ViewAxesReport>) -> f32 {
-    match axes {
-        Some(a) if a.mean_coherence > 0.0 => {
-            let ratio = a.mean_excess_coherence / a.mean_coherence;
-            ((ratio - MIN_EXCESS_RATIO) / (FULL_EXCESS_RATIO - MIN_EXCESS_RATIO)).clamp(0.0, 1.0)
-        }
-        Some(a) if a.mean_excess_coherence < 0.0 => 0.0,
-        _ => 1.0,
+/// [`MIN_EXCESS_RATIO`] (0) to `full_ratio` (1, `view_elevation_full_ratio`),
+/// a step at [`MIN_EXCESS_RATIO`] when `full_ratio` is not above it; 1
+/// without a view-axes report. The poodle's curls read 0.653-0.658 and an
+/// elevation of 57-58 degrees that loses 1 and 2 cm against the basis' 39;
+/// the tiger at 0.761-0.767 loses 38 points at 1 cm without the views'
+/// reading (docs/history.md, "The views' elevation where the maps carry less
+/// direction"). A ramp rather than a second step: a scene between them gets
+/// part of each.
+fn view_elevation_trust(axes: Option<&ViewAxesReport>, full_ratio: f32) -> f32 {
+    let Some(a) = axes else {
+        return 1.0;
+    };
+    let below = a.mean_excess_coherence < MIN_EXCESS_RATIO * a.mean_coherence;
+    if full_ratio <= MIN_EXCESS_RATIO || a.mean_coherence <= 0.0 {
+        return if below { 0.0 } else { 1.0 };
     }
+    let ratio = a.mean_excess_coherence / a.mean_coherence;
+    ((ratio - MIN_EXCESS_RATIO) / (full_ratio - MIN_EXCESS_RATIO)).clamp(0.0, 1.0)
 }
 
 /// The training cameras and their orientation maps (angle, confidence), or
@@ -1178,11 +1191,12 @@ fn tilt_onto_view_elevation(
     outer: &Mesh,
     basis: &StrandBasis,
     axes: Option<&ViewAxesReport>,
+    full_ratio: f32,
 ) -> Option<ViewElevationReport> {
     // Maps that carry no direction read the mean viewing direction, steep
     // whatever the fur does: the views' elevation is trusted as far as the
     // lines agree beyond random maps (growth::view_axes, "The null").
-    let trust = view_elevation_trust(axes);
+    let trust = view_elevation_trust(axes, full_ratio);
     let radius = 4.0 * pixel_footprint(cams, outer);
     let stride = (frames.len() / 4000).max(1);
     let mut elevations: Vec<f32> = planes
@@ -1358,6 +1372,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         codec,
         learner.l_chm() > 0.0,
         learner.view_axes_steep_deg(),
+        learner.view_elevation_full_ratio(),
     )?;
     let l = s.prep.points;
 
@@ -1684,7 +1699,7 @@ pub(crate) mod tests {
             kept_fraction: 0.0,
             steep_fraction: 0.0,
         };
-        let trust = |c, e| view_elevation_trust(Some(&report(c, e)));
+        let trust = |c, e| view_elevation_trust(Some(&report(c, e)), 0.75);
         // Blender's renders (0.55 of the coherence): none; the tiger (0.76): whole, exactly.
         assert_eq!(trust(0.22, 0.12), 0.0);
         assert_eq!(trust(0.41, 0.312), 1.0);
@@ -1692,8 +1707,11 @@ pub(crate) mod tests {
         assert!((trust(0.30, 0.1965) - 0.05).abs() < 1e-3);
         assert!((trust(0.40, 0.28) - 0.5).abs() < 1e-4);
         // No report, or maps with no coherence at all: as before, the views' reading.
-        assert_eq!(view_elevation_trust(None), 1.0);
+        assert_eq!(view_elevation_trust(None, 0.75), 1.0);
         assert_eq!(trust(0.0, 0.0), 1.0);
+        // Dense's step at 0.65: none below it, whole above.
+        let step = |c, e| view_elevation_trust(Some(&report(c, e)), 0.65);
+        assert_eq!((step(0.30, 0.1965), step(0.30, 0.1935)), (1.0, 0.0));
     }
 
     /// A UV sphere (closed, outward normals).
