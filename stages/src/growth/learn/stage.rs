@@ -928,8 +928,7 @@ fn setup(
                 &mut frames,
                 &outer,
                 &basis,
-                view_axes.as_ref(),
-                view_elevation_full_ratio,
+                view_elevation_trust(view_axes.as_ref(), view_elevation_full_ratio),
             );
         }
     }
@@ -1181,8 +1180,10 @@ fn training_maps(
 /// third's chord over the frame's normal) minus the fur's median elevation
 /// in the views (`planes`, the roots' plane tensors in the training
 /// cameras `cams`, pooled over 4 pixel footprints, at most about 4,000 roots
-/// sampled; growth::view_axes::view_elevations). `None` when no root is
-/// seen.
+/// sampled; growth::view_axes::view_elevations), that difference scaled by
+/// `trust` ([`view_elevation_trust`]: maps that carry no direction read the
+/// mean viewing direction, steep whatever the fur does). `None` when no root
+/// is seen.
 fn tilt_onto_view_elevation(
     ctx: &StageContext<'_>,
     cams: &[Camera],
@@ -1190,13 +1191,8 @@ fn tilt_onto_view_elevation(
     frames: &mut [Mat3],
     outer: &Mesh,
     basis: &StrandBasis,
-    axes: Option<&ViewAxesReport>,
-    full_ratio: f32,
+    trust: f32,
 ) -> Option<ViewElevationReport> {
-    // Maps that carry no direction read the mean viewing direction, steep
-    // whatever the fur does: the views' elevation is trusted as far as the
-    // lines agree beyond random maps (growth::view_axes, "The null").
-    let trust = view_elevation_trust(axes, full_ratio);
     let radius = 4.0 * pixel_footprint(cams, outer);
     let stride = (frames.len() / 4000).max(1);
     let mut elevations: Vec<f32> = planes
