@@ -824,7 +824,8 @@ pub struct ViewElevationReport {
     pub views_deg: f32,
     /// The basis mean strand's elevation (first third), degrees.
     pub basis_deg: f32,
-    /// The weight of the views' elevation beside the basis' ([`view_elevation_trust`]).
+    /// The weight of the views' elevation beside the basis' (`view_elevation_trust`: the maps'
+    /// excess coherence over their coherence, ramped from 0.65 to `view_elevation_full_ratio`).
     pub trust: f32,
     /// The tilt applied to every frame (positive lowers), degrees.
     pub tilt_deg: f32,
