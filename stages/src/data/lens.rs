@@ -115,15 +115,20 @@ pub fn undistorted(image: &ImageF32, camera: &Camera, lens: &Distortion) -> Imag
     let c = image.channels as usize;
     let alpha = c == 2 || c == 4;
     // Premultiplied, so that transparent neighbours lend no colour to a fringe.
-    let mut src = image.clone();
-    if alpha {
-        for px in src.data.chunks_exact_mut(c) {
+    let premultiplied;
+    let src = if alpha {
+        let mut p = image.clone();
+        for px in p.data.chunks_exact_mut(c) {
             let a = px[c - 1];
             for v in &mut px[..c - 1] {
                 *v *= a;
             }
         }
-    }
+        premultiplied = p;
+        &premultiplied
+    } else {
+        image
+    };
     let (fx, fy, cx, cy) = (
         camera.fx as f64,
         camera.fy as f64,

@@ -83,16 +83,20 @@ use super::images::IMAGE_EXTENSIONS;
 pub fn read_training_views(dir: &Path) -> Result<CameraSet, fure_stage_api::StageError> {
     let set = read_views(dir)?;
     if set.train.is_empty() {
-        let what = if super::colmap::find_sparse(dir).is_some()
-            && !dir.join("transforms.json").is_file()
-        {
+        return Err(no_training_views(dir));
+    }
+    Ok(set)
+}
+
+/// The error for a views directory `dir` that lists no training frame, naming the `views` input.
+pub fn no_training_views(dir: &Path) -> fure_stage_api::StageError {
+    let what =
+        if super::colmap::find_sparse(dir).is_some() && !dir.join("transforms.json").is_file() {
             "the COLMAP model lists no images"
         } else {
             "transforms.json lists no training frames"
         };
-        return Err(fure_stage_api::StageError::input("views", dir, what));
-    }
-    Ok(set)
+    fure_stage_api::StageError::input("views", dir, what)
 }
 
 /// Reads a views directory (see the module doc for which files count) as pinhole cameras: a
@@ -179,10 +183,7 @@ pub fn mask_path(dir: impl AsRef<Path>, camera: &Camera) -> PathBuf {
 /// the module doc): `<stem>_mask.png`, `masks/<stem>.png`, `masks/<name>.png`.
 pub fn mask_candidates(file_path: &str) -> Vec<String> {
     let rel = file_path.strip_prefix("images/").unwrap_or(file_path);
-    let stem = match Path::new(rel).extension() {
-        Some(ext) => &rel[..rel.len() - ext.len() - 1],
-        None => rel,
-    };
+    let stem = file_stem(rel);
     vec![
         mask_file_path(file_path),
         format!("masks/{stem}.png"),
@@ -203,22 +204,25 @@ pub fn missing_mask(dir: impl AsRef<Path>, camera: &Camera) -> FormatError {
     )
 }
 
+/// An image's relative path without its extension (`train/r_000.png` -> `train/r_000`): the
+/// name a stage gives the files it writes for that view.
+pub fn file_stem(file_path: &str) -> &str {
+    match Path::new(file_path).extension() {
+        Some(ext) => &file_path[..file_path.len() - ext.len() - 1],
+        None => file_path,
+    }
+}
+
 /// `file_path` of a camera's mask, relative like the image's.
 pub fn mask_file_path(file_path: &str) -> String {
-    let p = Path::new(file_path);
-    let stem_len = match p.extension() {
-        Some(ext) => file_path.len() - ext.len() - 1,
-        None => file_path.len(),
-    };
-    format!("{}_mask.png", &file_path[..stem_len])
+    format!("{}_mask.png", file_stem(file_path))
 }
 
 /// `file_path` of a camera's fur mask (`<stem>_fur.png`: the pixels where a strand is seen
 /// first, which synthetic scenes write and the learners' L_mask reads), relative like the
 /// image's.
 pub fn fur_mask_file_path(file_path: &str) -> String {
-    let m = mask_file_path(file_path);
-    format!("{}_fur.png", m.strip_suffix("_mask.png").unwrap_or(&m))
+    format!("{}_fur.png", file_stem(file_path))
 }
 
 /// One view's pixels: colour (3 channels, [0, 1]), the foreground mask (1 channel, [0, 1]) if

@@ -57,7 +57,7 @@
 //! and `index.json` listing, in input order, `{image, orient, conf, width, height, downscale}` plus the
 //! parameters used.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
 use rayon::prelude::*;
@@ -378,14 +378,6 @@ fure_stage_api::stage_params! {
 /// Stage `orientation_maps`.
 pub struct OrientationMapsStage;
 
-fn stem_of(rel: &str) -> String {
-    let p = Path::new(rel);
-    match p.extension() {
-        Some(ext) => rel[..rel.len() - ext.len() - 1].to_string(),
-        None => rel.to_string(),
-    }
-}
-
 impl Stage for OrientationMapsStage {
     fn kind(&self) -> &'static str {
         "orientation_maps"
@@ -516,7 +508,7 @@ impl Stage for OrientationMapsStage {
                 &format!("orientation maps of {rel}"),
                 o.data.iter().chain(&c.data).copied(),
             )?;
-            let stem = stem_of(&rel);
+            let stem = crate::formats::cameras::file_stem(&rel);
             let (on, cn) = (format!("{stem}_orient.exr"), format!("{stem}_conf.exr"));
             crate::formats::images::write_exr(out_dir.join(&on), &o)?;
             crate::formats::images::write_exr(out_dir.join(&cn), &c)?;

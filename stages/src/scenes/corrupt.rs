@@ -290,17 +290,9 @@ pub(crate) fn list_files(dir: &Path) -> Result<Vec<String>, StageError> {
     Ok(out)
 }
 
-/// The `<stem>` of a frame's `file_path` (extension removed), relative.
-fn stem_of(file_path: &str) -> &str {
-    match Path::new(file_path).extension() {
-        Some(ext) => &file_path[..file_path.len() - ext.len() - 1],
-        None => file_path,
-    }
-}
-
 /// Files of `files` that belong to a frame: its image and every `<stem>_*` sibling.
 fn frame_files<'a>(files: &'a [String], file_path: &str) -> Vec<&'a String> {
-    let stem = stem_of(file_path);
+    let stem = cameras::file_stem(file_path);
     let prefix = format!("{stem}_");
     files
         .iter()
@@ -524,7 +516,7 @@ fn add_image_noise(
             edits.images.insert(cam.file_path.clone(), img);
         } else {
             // Lossy source: write a PNG next to it and point the camera there.
-            let new_path = format!("{}.png", stem_of(&cam.file_path));
+            let new_path = format!("{}.png", cameras::file_stem(&cam.file_path));
             edits.replaced.insert(cam.file_path.clone());
             edits.images.insert(new_path.clone(), img);
             cam.file_path = new_path;
@@ -769,7 +761,7 @@ pub(crate) mod tests {
                     mask.data[(y * 24 + x) as usize] = if inside { 1.0 } else { 0.0 };
                 }
             }
-            let stem = stem_of(&c.file_path).to_string();
+            let stem = cameras::file_stem(&c.file_path).to_string();
             formats::images::write_png(dir.join(&c.file_path), &img).unwrap();
             formats::images::write_png(dir.join(format!("{stem}_mask.png")), &mask).unwrap();
             formats::images::write_png(dir.join(format!("{stem}_fur.png")), &mask).unwrap();

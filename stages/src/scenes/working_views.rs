@@ -108,19 +108,12 @@ pub fn resize_factor(
 /// for an EXR photo, whose values may exceed 1 and want more than 8 bits).
 fn scaled_camera(camera: &Camera, f: u32) -> Camera {
     let s = 1.0 / f as f32;
-    let (stem, ext) = match Path::new(&camera.file_path).extension() {
-        Some(ext) => (
-            &camera.file_path[..camera.file_path.len() - ext.len() - 1],
-            if ext.eq_ignore_ascii_case("exr") {
-                "exr"
-            } else {
-                "png"
-            },
-        ),
-        None => (camera.file_path.as_str(), "png"),
+    let ext = match formats::extension(Path::new(&camera.file_path)).as_str() {
+        "exr" => "exr",
+        _ => "png",
     };
     Camera {
-        file_path: format!("{stem}.{ext}"),
+        file_path: format!("{}.{ext}", cameras::file_stem(&camera.file_path)),
         fx: camera.fx * s,
         fy: camera.fy * s,
         cx: camera.cx * s,
@@ -231,8 +224,7 @@ impl Stage for WorkingViewsStage {
         let cameras::Capture { views: set, lenses } =
             cameras::read_capture(input).map_err(|e| e.for_input("views"))?;
         if set.train.is_empty() {
-            // The same error as every other stage's (no training frames).
-            cameras::read_training_views(input)?;
+            return Err(cameras::no_training_views(input));
         }
         let undistorted_views = lenses.iter().filter(|l| !l.is_pinhole()).count();
         ctx.progress

@@ -905,11 +905,7 @@ pub fn width_coverage(g: &Gaussians, segs: usize, cam: &Camera, low_pass: f32) -
 /// `orientation_maps` stage's naming). Maps computed on a downscaled image
 /// (an integer factor) are upsampled by pixel replication to the view's size.
 pub fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
-    let rel = &cam.file_path;
-    let stem = match Path::new(rel).extension() {
-        Some(ext) => &rel[..rel.len() - ext.len() - 1],
-        None => rel.as_str(),
-    };
+    let stem = formats::cameras::file_stem(&cam.file_path);
     let opath = dir.join(format!("{stem}_orient.exr"));
     let o = formats::images::read_exr(&opath)?.first_channel();
     let c = formats::images::read_exr(dir.join(format!("{stem}_conf.exr")))?.first_channel();
