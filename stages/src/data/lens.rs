@@ -8,7 +8,12 @@
 //! pinhole camera with the same `fx, fy, cx, cy` and size, so the camera reads unchanged and only
 //! the pixels move (as COLMAP's `image_undistorter` does, without its choice of a new focal
 //! length: the frame keeps its size and centre; what the lens showed beyond the pinhole's frame
-//! is dropped, and where the pinhole sees past the photo the output is empty, alpha and mask 0).
+//! is dropped). Where the pinhole sees past the photo (the corners under a pincushion lens), the
+//! photo's border goes on outward (clamp to edge), so a mask that the photo's frame cuts still
+//! reaches the working frame's border and `outer_surface` keeps what lies beyond it (its rule
+//! for frames that cut the object; an empty fill there would end such a mask short of the
+//! border, and the hull would carve away what the photo's frame cut off). A mask inside the
+//! photo stays inside: its border is background.
 //!
 //! The models, `r² = x² + y²`:
 //! - **radial-tangential** (OpenCV; COLMAP `SIMPLE_RADIAL`, `RADIAL`, `OPENCV`, `FULL_OPENCV`;
@@ -145,7 +150,11 @@ pub fn undistorted(image: &ImageF32, camera: &Camera, lens: &Distortion) -> Imag
                 let nx = (x as f64 + 0.5 - cx) / fx;
                 let ny = (y as f64 + 0.5 - cy) / fy;
                 let (dx, dy) = lens.distort(nx, ny);
-                src.sample_lanczos3(fx * dx + cx, fy * dy + cy, px);
+                // Past the photo its border goes on (clamp to edge), as `outer_surface` reads
+                // a frame that cuts the object.
+                let u = (fx * dx + cx).clamp(0.0, image.width as f64);
+                let v = (fy * dy + cy).clamp(0.0, image.height as f64);
+                src.sample_lanczos3(u, v, px);
                 // The kernel rings past a step: no negative light, no coverage beyond [0, 1].
                 for v in px.iter_mut() {
                     *v = v.max(0.0);
@@ -265,7 +274,7 @@ mod tests {
     }
 
     #[test]
-    fn where_the_pinhole_sees_past_the_photo_the_output_is_empty_and_alpha_keeps_colour() {
+    fn where_the_pinhole_sees_past_the_photo_its_border_goes_on_and_alpha_keeps_colour() {
         let cam = Camera {
             file_path: "a.png".into(),
             c2w: Mat4::IDENTITY,
@@ -291,13 +300,60 @@ mod tests {
         // Pincushion: the corners of the pinhole frame fall outside the photo.
         let lens = Distortion::radial_tangential([0.3, 0.0, 0.0, 0.0], [0.0; 2]);
         let out = undistorted(&im, &cam, &lens);
-        assert_eq!(out.pixel(0, 0), &[0.0, 0.0, 0.0, 0.0]);
+        // Past the photo's corners its corner pixels go on: opaque red on the left, empty on
+        // the right.
+        assert_eq!(out.pixel(0, 0), &[1.0, 0.0, 0.0, 1.0]);
+        assert_eq!(out.pixel(63, 63), &[0.0, 0.0, 0.0, 0.0]);
         // The fringe between the halves is red with partial alpha, never green.
         for x in 28..36 {
             let p = out.pixel(x, 32);
             assert!(p[1] == 0.0, "green leaked at {x}: {p:?}");
             if p[3] > 0.0 {
                 assert!((p[0] - 1.0).abs() < 1e-3, "{p:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_mask_the_photos_frame_cuts_still_reaches_the_working_frames_border() {
+        let cam = Camera {
+            file_path: "a.png".into(),
+            c2w: Mat4::IDENTITY,
+            fx: 40.0,
+            fy: 40.0,
+            cx: 32.0,
+            cy: 32.0,
+            width: 64,
+            height: 64,
+        };
+        // An object cut by the photo's left border (rows 24-39), and one inside the photo.
+        let mut mask = ImageF32::new(64, 64, 1);
+        for y in 24..40 {
+            for x in 0..12 {
+                mask.pixel_mut(x, y)[0] = 1.0;
+            }
+            for x in 44..56 {
+                mask.pixel_mut(x, y)[0] = 1.0;
+            }
+        }
+        // Pincushion: every pixel of the working frame's border lies past the photo's.
+        let lens = Distortion::radial_tangential([0.3, 0.0, 0.0, 0.0], [0.0; 2]);
+        let (nx, _) = lens.distort(-32.0 / 40.0, 0.0);
+        assert!(40.0 * nx + 32.0 < 0.0);
+        let out = undistorted(&mask, &cam, &lens);
+        // The cut object reaches the working frame's left border, as it reached the photo's.
+        assert!(out.pixel(0, 31)[0] > 0.99 && out.pixel(0, 32)[0] > 0.99);
+        // Nothing else reaches any border: the photo's border is background elsewhere.
+        for i in 0..64 {
+            for (x, y) in [(63, i), (i, 0), (i, 63)] {
+                assert!(
+                    out.pixel(x, y)[0] < 1e-3,
+                    "({x}, {y}): {:?}",
+                    out.pixel(x, y)
+                );
+            }
+            if !(20..44).contains(&i) {
+                assert!(out.pixel(0, i)[0] < 1e-3, "(0, {i})");
             }
         }
     }

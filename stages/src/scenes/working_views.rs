@@ -7,7 +7,9 @@
 //! this stage reads the lenses ([`cameras::read_capture`]) and resamples each distorted photo,
 //! its mask and fur mask onto the pinhole with the same intrinsics and size
 //! ([`crate::data::lens`]: the frame keeps its size and centre; what the lens showed beyond the
-//! pinhole's frame is dropped, and where the pinhole sees past the photo the output is empty).
+//! pinhole's frame is dropped, and where the pinhole sees past the photo its border goes on, so
+//! that an animal the photo's frame cuts still reaches the working frame's border, where
+//! `outer_surface` carves nothing beyond it).
 //!
 //! **Resolution**, so that what a large photo capture costs stays bounded.
 //! Every stage that renders or filters the images pays for each pixel: the tiger's views
@@ -182,7 +184,8 @@ impl Stage for WorkingViewsStage {
         "working_views"
     }
     fn version(&self) -> u32 {
-        3
+        // 4: past a photo's border (a pincushion lens' corners) its border goes on.
+        4
     }
     fn doc(&self) -> &'static str {
         "A capture's views as the stages work on them: photos taken through a distorting lens \
