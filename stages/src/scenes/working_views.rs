@@ -23,10 +23,34 @@
 //! capture whose animal spans up to 600 px passes as it is, and only a larger one comes down,
 //! to 300-500 px, to bound the cost. `pipelines/capture.toml` reads its photos through it.
 //!
+//! **Soft photos.** Every rule that reads the views assumes their pixel is their resolution:
+//! the orientation maps' Gabor filters have a fixed frequency per pixel, and the roots' density,
+//! the basis' points per strand and the codec's component reach go by the pixel footprint.
+//! Photos softer than their pixel (upscaled, out of focus, heavily compressed) break that: the
+//! JPEG tiger capture upscaled 4x (bicubic) and box-averaged by 2 for its extent read no fur
+//! texture (the maps' mean coherence 0.24 against 0.42), the views' elevation stood the strands
+//! up (52 degrees against 19) and the strict 1 cm F-score fell from 73.5 to 8.4. So the stage
+//! reads how far the photos are smooth: inside the animal (the mask eroded by 3 px, so the
+//! silhouette's step does not count), `D(k)`, the mean squared difference of luma between
+//! pixels `k` apart along rows and columns, and per lag the median over the training views of
+//! `D(2k) / D(k)`. Independent pixels read 1, a scale-free texture 2, a signal smooth over more
+//! than `2k` pixels 4; for white noise under a Gaussian blur of `s` px the ratio falls through
+//! 2.86 at `k = s`, hence `smooth_ratio` 2.86: the photos are smooth over the first lag whose
+//! ratio is below it (`smooth_lag`, at most [`MAX_SMOOTH_LAG`]). Rendered and photographed
+//! captures at their native sharpness read 1.3-2.1 at lag 1 (the synthetic presets at 256 and
+//! 512 px, their JPEG and lens-resampled copies, Blender's Cycles renders), so their lag is 1;
+//! the upscaled tiger reads 3.66, 3.14, 2.60 at lags 1-3, a lag of 3.
+//!
 //! The factor is one integer `f` for the whole capture: the animal's extent, the median over
 //! the training views of the longer side of the mask's bounding box (mask above one half), over
-//! `subject_px`, rounded (`f = max(1, round(extent / subject_px))`; `subject_px = 0` keeps every
-//! view's size). With `f = 1` and pinhole lenses the output is the input, byte for byte (any
+//! `subject_px`, rounded (`f_extent = max(1, round(extent / subject_px))`), raised to the lag the
+//! photos are smooth over where the animal keeps at least `subject_px / 2` pixels (`f =
+//! max(f_extent, min(lag, max(1, floor(2 extent / subject_px))))`; `subject_px = 0` keeps every
+//! view's size). The floor, because a small animal loses more with its pixels than its texture
+//! gains: the same JPEG tiger capture blurred at its own 256 px (Gaussian, 2 px; the animal 183
+//! px, smooth over 3) scores 10.5 / 56.2 / 81.0 / 91.9 (unsigned F, 1-4 cm) kept as it is and 7.4
+//! / 37.3 / 59.4 / 78.6 averaged by 3 (61 px); the upscaled tiger (732 px) at a factor of 3 (244
+//! px) scores 75.4 / 96.7 / 98.8 / 99.6 (docs/history.md, "Photos softer than their pixel"). With `f = 1` and pinhole lenses the output is the input, byte for byte (any
 //! layout), so a capture already near the working size reads exactly as without the stage.
 //! Otherwise every frame, training and held-out, is undistorted when its lens distorts, then
 //! box-averaged by `f` ([`ImageF32::box_downscaled`]: the last partial rows and columns
@@ -54,7 +78,119 @@ fure_stage_api::stage_params! {
     pub struct WorkingViewsParams {
         /// the animal's extent in pixels to aim for (median over the training views of the mask's bounding box's longer side); 0 keeps the views as they are
         subject_px: usize = int(400).range(0.0, 100000.0),
+        /// photos count as smooth over a lag of k pixels while the mean squared luma difference at 2k over that at k (inside the animal) is at least this, and are box-averaged by at least the first k where it is not (soft photos, module doc); 0 = no such reading
+        smooth_ratio: f64 = float(2.86).range(0.0, 4.0),
     }
+}
+
+/// The largest lag, in pixels, at which the photos' smoothness is read (and so the largest
+/// factor the reading can ask for).
+pub const MAX_SMOOTH_LAG: usize = 8;
+
+/// Margin, in pixels, by which the mask is eroded before a pair of pixels counts as inside the
+/// animal: the silhouette's own step is not the coat's texture.
+const SMOOTH_MARGIN: u32 = 3;
+
+/// A view's structure function of luma inside the animal: `d[k - 1]` is the mean squared
+/// difference between pixels `k` apart (along rows and columns, both pixels at least
+/// [`SMOOTH_MARGIN`] inside the mask) for `k = 1..=2 MAX_SMOOTH_LAG`; `None` where a lag has
+/// fewer than 256 such pairs or no difference at all (a flat or tiny animal says nothing).
+fn structure_function(rgb: &ImageF32, mask: &ImageF32) -> Vec<Option<f64>> {
+    let (w, h) = (rgb.width as usize, rgb.height as usize);
+    let c = rgb.channels as usize;
+    let luma: Vec<f32> = rgb
+        .data
+        .chunks_exact(c)
+        .map(|p| {
+            if c >= 3 {
+                0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]
+            } else {
+                p[0]
+            }
+        })
+        .collect();
+    // Inside: the mask above one half over a square of SMOOTH_MARGIN around the pixel (the
+    // image's edge counts as outside), rows then columns.
+    let fg: Vec<bool> = mask.data.iter().map(|v| *v > 0.5).collect();
+    let r = SMOOTH_MARGIN as usize;
+    let erode = |src: &[bool], step: usize, len: usize, count: usize| -> Vec<bool> {
+        let mut out = vec![false; src.len()];
+        for line in 0..count {
+            let base = if step == 1 { line * len } else { line };
+            let at = |i: usize| base + i * step;
+            // Length of the run of foreground ending at each position, forward and backward.
+            let mut fwd = vec![0usize; len];
+            let mut run = 0;
+            for i in 0..len {
+                run = if src[at(i)] { run + 1 } else { 0 };
+                fwd[i] = run;
+            }
+            let mut run = 0;
+            for i in (0..len).rev() {
+                run = if src[at(i)] { run + 1 } else { 0 };
+                out[at(i)] = fwd[i] > r && run > r;
+            }
+        }
+        out
+    };
+    let inside = erode(&erode(&fg, 1, w, h), w, h, w);
+    (1..=2 * MAX_SMOOTH_LAG)
+        .map(|k| {
+            let (mut sum, mut n) = (0.0f64, 0usize);
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    if !inside[i] {
+                        continue;
+                    }
+                    if x + k < w && inside[i + k] {
+                        let d = (luma[i + k] - luma[i]) as f64;
+                        sum += d * d;
+                        n += 1;
+                    }
+                    if y + k < h && inside[i + k * w] {
+                        let d = (luma[i + k * w] - luma[i]) as f64;
+                        sum += d * d;
+                        n += 1;
+                    }
+                }
+            }
+            (n >= 256 && sum > 0.0).then(|| sum / n as f64)
+        })
+        .collect()
+}
+
+/// What one training view says: the animal's extent and its structure function.
+struct ViewReading {
+    extent: u32,
+    structure: Vec<Option<f64>>,
+}
+
+/// The photos' smoothness: for `k = 1..=MAX_SMOOTH_LAG`, the median over the views that carry
+/// both lags of `D(2k) / D(k)` (module doc); `None` where no view does.
+fn smoothness_ratios(readings: &[ViewReading]) -> Vec<Option<f64>> {
+    (1..=MAX_SMOOTH_LAG)
+        .map(|k| {
+            let mut r: Vec<f64> = readings
+                .iter()
+                .filter_map(|v| Some(v.structure[2 * k - 1]? / v.structure[k - 1]?))
+                .collect();
+            r.sort_by(f64::total_cmp);
+            (!r.is_empty()).then(|| r[r.len() / 2])
+        })
+        .collect()
+}
+
+/// The smallest lag at which the photos stop being smooth (`ratio < smooth_ratio`), capped at
+/// [`MAX_SMOOTH_LAG`]; 1 where the reading is off or no lag could be read.
+pub fn smooth_lag(ratios: &[Option<f64>], smooth_ratio: f64) -> u32 {
+    if smooth_ratio <= 0.0 || ratios.iter().all(Option::is_none) {
+        return 1;
+    }
+    ratios
+        .iter()
+        .position(|r| r.is_none_or(|r| r < smooth_ratio))
+        .map_or(MAX_SMOOTH_LAG, |i| i + 1) as u32
 }
 
 /// The longer side of the foreground's bounding box (values above one half), in pixels; 0 for
@@ -78,32 +214,69 @@ fn extent(mask: &ImageF32) -> u32 {
     }
 }
 
-/// The capture's factor for `subject_px` (module doc) and the animal's extent it was read from.
-pub fn resize_factor(
+/// The capture's working factor (module doc): the larger of the factor for `subject_px` and
+/// the lag over which the photos are smooth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WorkingFactor {
+    /// The factor every frame is box-averaged by.
+    pub factor: u32,
+    /// The animal's extent, the median over the training views (pixels).
+    pub extent: u32,
+    /// The factor `subject_px` asks for.
+    pub for_extent: u32,
+    /// The lag over which the photos are smooth ([`smooth_lag`]).
+    pub smooth_lag: u32,
+    /// The median `D(2k) / D(k)` for `k = 1..=MAX_SMOOTH_LAG`.
+    pub ratios: Vec<Option<f64>>,
+}
+
+/// Reads the training views once for the animal's extent and the photos' smoothness.
+pub fn working_factor(
     dir: &Path,
     train: &[Camera],
-    subject_px: usize,
-) -> Result<(u32, u32), StageError> {
-    let mut extents = train
+    p: &WorkingViewsParams,
+) -> Result<WorkingFactor, StageError> {
+    let readings = train
         .par_iter()
         .map(|cam| {
             let v = cameras::read_view(dir, cam).map_err(|e| e.for_input("views"))?;
             let mask = v
                 .mask
                 .ok_or_else(|| cameras::missing_mask(dir, cam).for_input("views"))?;
-            Ok(extent(&mask))
+            Ok(ViewReading {
+                extent: extent(&mask),
+                structure: structure_function(&v.rgb, &mask),
+            })
         })
-        .collect::<Vec<Result<u32, StageError>>>()
+        .collect::<Vec<Result<ViewReading, StageError>>>()
         .into_iter()
         // The first bad view by index, whichever thread met it first.
-        .collect::<Result<Vec<u32>, StageError>>()?;
+        .collect::<Result<Vec<ViewReading>, StageError>>()?;
+    let mut extents: Vec<u32> = readings.iter().map(|r| r.extent).collect();
     extents.sort_unstable();
     let median = extents[extents.len() / 2];
-    if subject_px == 0 {
-        return Ok((1, median));
+    let ratios = smoothness_ratios(&readings);
+    if p.subject_px == 0 {
+        return Ok(WorkingFactor {
+            factor: 1,
+            extent: median,
+            for_extent: 1,
+            smooth_lag: 1,
+            ratios,
+        });
     }
-    let f = (median as f64 / subject_px as f64).round().max(1.0) as u32;
-    Ok((f, median))
+    let for_extent = (median as f64 / p.subject_px as f64).round().max(1.0) as u32;
+    let smooth_lag = smooth_lag(&ratios, p.smooth_ratio);
+    // Soft photos come down by the lag they are smooth over, but the animal keeps at least half
+    // of subject_px (module doc).
+    let floor = (2 * median as usize / p.subject_px).max(1) as u32;
+    Ok(WorkingFactor {
+        factor: for_extent.max(smooth_lag.min(floor)),
+        extent: median,
+        for_extent,
+        smooth_lag,
+        ratios,
+    })
 }
 
 /// `camera` seen through images box-averaged by `f`, its image renamed `<stem>.png` (`.exr`
@@ -176,6 +349,20 @@ fn working_frame(
     Ok(out_cam)
 }
 
+/// `D(2k) / D(k)` for `k = 1..=upto`, for the run log.
+fn ratio_list(ratios: &[Option<f64>], upto: usize) -> String {
+    ratios
+        .iter()
+        .take(upto)
+        .enumerate()
+        .map(|(i, r)| match r {
+            Some(r) => format!("{r:.2} at {}", i + 1),
+            None => format!("- at {}", i + 1),
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// Stage `working_views`.
 pub struct WorkingViewsStage;
 
@@ -185,15 +372,17 @@ impl Stage for WorkingViewsStage {
     }
     fn version(&self) -> u32 {
         // 4: past a photo's border (a pincushion lens' corners) its border goes on.
-        4
+        // 5: photos softer than their pixel are box-averaged by the lag they are smooth over.
+        5
     }
     fn doc(&self) -> &'static str {
         "A capture's views as the stages work on them: photos taken through a distorting lens \
          (COLMAP's SIMPLE_RADIAL, OPENCV, fisheyes; nerfstudio's OPENCV) resampled onto pinhole \
          cameras, and every frame box-averaged by one integer factor so that the animal spans \
          about subject_px pixels (the median over the training views of the mask's bounding \
-         box), intrinsics scaled with it; a pinhole capture already near that size passes \
-         through byte for byte."
+         box), or by the distance photos softer than their pixel are smooth over (the animal \
+         keeping at least subject_px / 2), intrinsics scaled with it; a sharp pinhole capture \
+         already near that size passes through byte for byte."
     }
     fn params(&self) -> Vec<ParamSpec> {
         WorkingViewsParams::specs()
@@ -232,7 +421,8 @@ impl Stage for WorkingViewsStage {
         let undistorted_views = lenses.iter().filter(|l| !l.is_pinhole()).count();
         ctx.progress
             .message("measuring the animal in the training views");
-        let (f, extent) = resize_factor(input, &set.train, p.subject_px)?;
+        let wf = working_factor(input, &set.train, &p)?;
+        let (f, extent) = (wf.factor, wf.extent);
         let files_copied = if f == 1 && undistorted_views == 0 {
             // The identity: every file as it is, copied as corrupt_views copies.
             let files = super::corrupt::list_files(input)?;
@@ -256,6 +446,30 @@ impl Stage for WorkingViewsStage {
                 .map_err(|e| e.for_input("views"))?;
             0
         };
+        if wf.smooth_lag > 1 {
+            ctx.progress.note(&format!(
+                "the photos are smooth over {} px (inside the animal, the luma's mean squared \
+                 difference at twice a lag over that at the lag: {}), softer than their pixel: \
+                 {}",
+                wf.smooth_lag,
+                ratio_list(&wf.ratios, wf.smooth_lag as usize),
+                if wf.factor > wf.for_extent {
+                    format!(
+                        "box-averaged by {} rather than {}, so that the orientation maps' filters \
+                         and every per-pixel rule meet the fur's texture at its own scale",
+                        wf.factor, wf.for_extent
+                    )
+                } else {
+                    format!(
+                        "kept at a factor of {}, since the animal keeps at least {} px; the \
+                         orientation maps may show little of the fur's texture, and the \
+                         widths and lengths read from the views may be long",
+                        wf.factor,
+                        p.subject_px / 2
+                    )
+                },
+            ));
+        }
         ctx.progress.note(&format!(
             "the animal spans {extent} px (median over {} training views): {}{}",
             set.train.len(),
@@ -276,6 +490,10 @@ impl Stage for WorkingViewsStage {
                 "subject_px": p.subject_px,
                 "extent_px": extent,
                 "factor": f,
+                "factor_for_extent": wf.for_extent,
+                "smooth_ratio": p.smooth_ratio,
+                "smooth_lag_px": wf.smooth_lag,
+                "smoothness_ratios": wf.ratios,
                 "extent_px_after": extent / f,
                 "training_views": set.train.len(),
                 "test_views": set.test.len(),
@@ -531,5 +749,107 @@ mod tests {
             e.contains("images/t000.png") && e.contains("no mask"),
             "{e}"
         );
+    }
+
+    /// Grey fur-like texture: independent values on a grid of `cell` px, bilinearly
+    /// interpolated (`cell` 1: a value per pixel, the sharpest a photo gets).
+    fn texture(x: u32, y: u32, cell: u32) -> f32 {
+        let value = |i: u32, j: u32| {
+            let h = (i.wrapping_mul(73_856_093) ^ j.wrapping_mul(19_349_663))
+                .wrapping_mul(2_654_435_761);
+            (h >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let (u, v) = (
+            (x as f32 + 0.5) / cell as f32 - 0.5,
+            (y as f32 + 0.5) / cell as f32 - 0.5,
+        );
+        let (i, j) = (u.floor().max(0.0) as u32, v.floor().max(0.0) as u32);
+        let (a, b) = (
+            (u - i as f32).clamp(0.0, 1.0),
+            (v - j as f32).clamp(0.0, 1.0),
+        );
+        let top = value(i, j) * (1.0 - a) + value(i + 1, j) * a;
+        let bottom = value(i, j + 1) * (1.0 - a) + value(i + 1, j + 1) * a;
+        top * (1.0 - b) + bottom * b
+    }
+
+    /// `capture`'s frames with the disc's photo replaced by [`texture`] at `cell` px.
+    fn textured_capture(dir: &Path, size: u32, r: f32, cell: u32) {
+        let set = capture(dir, 3, size, r);
+        for c in set.train.iter().chain(&set.test) {
+            let mut rgb = ImageF32::new(size, size, 3);
+            for y in 0..size {
+                for x in 0..size {
+                    let v = texture(x, y, cell);
+                    rgb.pixel_mut(x, y).copy_from_slice(&[v, 0.8 * v, 0.5 * v]);
+                }
+            }
+            images::write_png(dir.join(&c.file_path), &rgb).unwrap();
+        }
+    }
+
+    #[test]
+    fn the_lag_photos_are_smooth_over_is_the_first_where_they_stop_being_smooth() {
+        let r = |v: &[f64]| v.iter().map(|x| Some(*x)).collect::<Vec<_>>();
+        assert_eq!(smooth_lag(&r(&[1.9, 1.7, 1.4]), 2.86), 1);
+        assert_eq!(smooth_lag(&r(&[3.7, 3.1, 2.6, 2.3]), 2.86), 3);
+        assert_eq!(
+            smooth_lag(&r(&[3.9; MAX_SMOOTH_LAG]), 2.86),
+            MAX_SMOOTH_LAG as u32
+        );
+        // Off, or nothing read: the photos' own pixel.
+        assert_eq!(smooth_lag(&r(&[3.7, 3.1, 2.6]), 0.0), 1);
+        assert_eq!(smooth_lag(&[None, None], 2.86), 1);
+        // A lag no view could read ends the smooth run.
+        assert_eq!(smooth_lag(&[Some(3.5), None, Some(3.5)], 2.86), 2);
+    }
+
+    #[test]
+    fn soft_photos_are_box_averaged_by_the_lag_they_are_smooth_over() {
+        let dir = tempfile::tempdir().unwrap();
+        let metrics = |cell: u32, name: &str| -> serde_json::Value {
+            let views = dir.path().join(name);
+            // A disc of 90 px across in 128 px frames; subject_px 60: a factor of 2 for the
+            // extent, and soft photos may come down to 30 px (a factor of 3).
+            textured_capture(&views, 128, 45.0, cell);
+            let outs = run_stage_with(
+                &WorkingViewsStage,
+                &[("subject_px", fure_stage_api::Value::Int(60))],
+                &[("views", views)],
+                &dir.path().join(format!("out-{name}")),
+            )
+            .unwrap();
+            serde_json::from_slice(&std::fs::read(&outs["metrics"]).unwrap()).unwrap()
+        };
+        // A texture value per pixel: sharp, the extent's factor alone.
+        let sharp = metrics(1, "sharp");
+        assert_eq!(sharp["smooth_lag_px"].as_u64(), Some(1), "{sharp}");
+        assert_eq!(sharp["factor"].as_u64(), Some(2), "{sharp}");
+        let r1 = sharp["smoothness_ratios"][0].as_f64().unwrap();
+        assert!(r1 < 1.5, "independent pixels: D(2) about D(1), read {r1}");
+        // The same texture on a 4 px grid (a photo upscaled 4x): smooth over a few pixels, so
+        // box-averaged by 3 (the floor: the disc keeps 30 px).
+        let soft = metrics(4, "soft");
+        let lag = soft["smooth_lag_px"].as_u64().unwrap();
+        assert!((2..=5).contains(&lag), "{soft}");
+        assert_eq!(soft["factor_for_extent"].as_u64(), Some(2), "{soft}");
+        assert_eq!(soft["factor"].as_u64(), Some(lag.min(3)), "{soft}");
+        let r1 = soft["smoothness_ratios"][0].as_f64().unwrap();
+        assert!(r1 > 3.0, "interpolated: D(2) near 4 D(1), read {r1}");
+        // Off: the extent's factor.
+        let views = dir.path().join("soft");
+        let outs = run_stage_with(
+            &WorkingViewsStage,
+            &[
+                ("subject_px", fure_stage_api::Value::Int(60)),
+                ("smooth_ratio", fure_stage_api::Value::Float(0.0)),
+            ],
+            &[("views", views)],
+            &dir.path().join("off"),
+        )
+        .unwrap();
+        let off: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&outs["metrics"]).unwrap()).unwrap();
+        assert_eq!(off["factor"].as_u64(), Some(2), "{off}");
     }
 }
