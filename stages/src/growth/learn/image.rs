@@ -902,46 +902,55 @@ pub fn width_coverage(g: &Gaussians, segs: usize, cam: &Camera, low_pass: f32) -
 
 /// Reads the orientation angle and confidence maps of a view:
 /// `<image path without extension>_orient.exr` and `_conf.exr` (the
-/// `orientation_maps` stage's naming). Maps computed on a downscaled image
-/// (an integer factor) are upsampled by pixel replication to the view's size.
+/// `orientation_maps` stage's naming). Maps computed on an image box-averaged
+/// by an integer factor `f` (its `downscale`, which drops the last partial
+/// rows and columns: `w / f` by `h / f`, rounded down) are upsampled by pixel
+/// replication to the view's size; the pixels past the last whole block have
+/// no reading and get confidence 0.
 pub fn read_orientation(dir: &Path, cam: &Camera) -> Result<(ImageF32, ImageF32), StageError> {
     let stem = formats::cameras::file_stem(&cam.file_path);
     let opath = dir.join(format!("{stem}_orient.exr"));
     let o = formats::images::read_exr(&opath)?.first_channel();
     let c = formats::images::read_exr(dir.join(format!("{stem}_conf.exr")))?.first_channel();
     let (w, h) = (cam.width, cam.height);
-    let fits = |m: &ImageF32| {
-        m.width > 0
-            && m.height > 0
-            && w % m.width == 0
-            && h % m.height == 0
-            && w / m.width == h / m.height
+    let factor = |m: &ImageF32| {
+        (m.width > 0 && m.height > 0)
+            .then(|| w / m.width)
+            .filter(|f| *f >= 1 && w / f == m.width && h / f == m.height)
     };
-    if !fits(&o) || (c.width, c.height) != (o.width, o.height) {
-        return Err(StageError::input(
-            "orientation",
-            &opath,
-            format!(
-                "maps are {}x{} (orientation) and {}x{} (confidence); the camera is {w}x{h}, \
-                 expected equal sizes that divide it by an integer factor",
-                o.width, o.height, c.width, c.height
-            ),
-        ));
-    }
-    let up = |m: ImageF32| -> ImageF32 {
-        let f = w / m.width;
+    let f = match factor(&o) {
+        Some(f) if (c.width, c.height) == (o.width, o.height) => f,
+        _ => {
+            return Err(StageError::input(
+                "orientation",
+                &opath,
+                format!(
+                    "maps are {}x{} (orientation) and {}x{} (confidence); the camera is \
+                     {w}x{h}, expected equal sizes of the camera's divided by an integer \
+                     factor (rounded down)",
+                    o.width, o.height, c.width, c.height
+                ),
+            ))
+        }
+    };
+    let up = |m: ImageF32, outside: f32| -> ImageF32 {
         if f == 1 {
             return m;
         }
         let mut out = ImageF32::new(w, h, 1);
         for y in 0..h {
             for x in 0..w {
-                out.data[(y * w + x) as usize] = m.data[((y / f) * m.width + x / f) as usize];
+                let (mx, my) = (x / f, y / f);
+                out.data[(y * w + x) as usize] = if mx < m.width && my < m.height {
+                    m.data[(my * m.width + mx) as usize]
+                } else {
+                    outside
+                };
             }
         }
         out
     };
-    let (o, mut c) = (up(o), up(c));
+    let (o, mut c) = (up(o, 0.0), up(c, 0.0));
     normalise_confidence(&mut c);
     Ok((o, c))
 }
@@ -1116,6 +1125,41 @@ impl ImageTerm for ImageLosses {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn maps_of_a_view_the_factor_does_not_divide_cover_its_whole_blocks() {
+        let dir = tempfile::tempdir().unwrap();
+        // A 67 x 65 view filtered at a downscale of 2: the orientation stage drops the last
+        // column and row, so its maps are 33 x 32.
+        let cam = Camera {
+            width: 67,
+            height: 65,
+            ..camera()
+        };
+        let (mut o, mut c) = (ImageF32::new(33, 32, 1), ImageF32::new(33, 32, 1));
+        for (i, v) in o.data.iter_mut().enumerate() {
+            *v = (i % 7) as f32 * 0.1;
+        }
+        c.data.iter_mut().for_each(|v| *v = 2.0);
+        formats::images::write_exr(dir.path().join("c_orient.exr"), &o).unwrap();
+        formats::images::write_exr(dir.path().join("c_conf.exr"), &c).unwrap();
+        let (angle, conf) = read_orientation(dir.path(), &cam).unwrap();
+        assert_eq!((angle.width, angle.height), (67, 65));
+        // Pixel replication over the whole 2 x 2 blocks.
+        for (x, y) in [(0, 0), (5, 9), (65, 63)] {
+            assert_eq!(angle.pixel(x, y)[0], o.pixel(x / 2, y / 2)[0], "({x}, {y})");
+            assert_eq!(conf.pixel(x, y)[0], 1.0, "({x}, {y})");
+        }
+        // The dropped column and row have no reading.
+        assert_eq!(conf.pixel(66, 10)[0], 0.0);
+        assert_eq!(conf.pixel(10, 64)[0], 0.0);
+        // Maps that match no integer factor are refused, naming the sizes.
+        let odd = ImageF32::new(30, 32, 1);
+        formats::images::write_exr(dir.path().join("c_orient.exr"), &odd).unwrap();
+        formats::images::write_exr(dir.path().join("c_conf.exr"), &odd).unwrap();
+        let e = read_orientation(dir.path(), &cam).unwrap_err().to_string();
+        assert!(e.contains("30x32") && e.contains("67x65"), "{e}");
+    }
 
     /// A 64 px view of the origin from 5 units away.
     fn camera() -> Camera {
