@@ -7,5 +7,6 @@ pub mod lens;
 pub mod mesh;
 pub mod rootset;
 pub mod scene;
+pub mod sharpness;
 pub mod shell;
 pub mod strands;

@@ -30,16 +30,9 @@
 //! JPEG tiger capture upscaled 4x (bicubic) and box-averaged by 2 for its extent read no fur
 //! texture (the maps' mean coherence 0.24 against 0.42), the views' elevation stood the strands
 //! up (52 degrees against 19) and the strict 1 cm F-score fell from 73.5 to 8.4. So the stage
-//! reads how far the photos are smooth: inside the animal (the mask eroded by 3 px, so the
-//! silhouette's step does not count), `D(k)`, the mean squared difference of luma between
-//! pixels `k` apart along rows and columns, and per lag the median over the training views of
-//! `D(2k) / D(k)`. Independent pixels read 1, a scale-free texture 2, a signal smooth over more
-//! than `2k` pixels 4; for white noise under a Gaussian blur of `s` px the ratio falls through
-//! 2.86 at `k = s`, hence `smooth_ratio` 2.86: the photos are smooth over the first lag whose
-//! ratio is below it (`smooth_lag`, at most [`MAX_SMOOTH_LAG`]). Rendered and photographed
-//! captures at their native sharpness read 1.3-2.1 at lag 1 (the synthetic presets at 256 and
-//! 512 px, their JPEG and lens-resampled copies, Blender's Cycles renders), so their lag is 1;
-//! the upscaled tiger reads 3.66, 3.14, 2.60 at lags 1-3, a lag of 3.
+//! reads how far the photos are smooth ([`crate::data::sharpness`]: the lag over which the
+//! luma inside the animal varies like a signal blurred beyond its pixel; 1 for every sharp
+//! capture measured, 3 for that upscaled tiger) and box-averages them by that lag.
 //!
 //! The factor is one integer `f` for the whole capture: the animal's extent, the median over
 //! the training views of the longer side of the mask's bounding box (mask above one half), over
@@ -71,6 +64,7 @@ use serde_json::json;
 use crate::data::camera::{Camera, CameraSet};
 use crate::data::image::ImageF32;
 use crate::data::lens::{undistorted, Distortion};
+use crate::data::sharpness::{smooth_lag, smoothness_ratios, structure_function};
 use crate::formats::{self, cameras, images};
 
 fure_stage_api::stage_params! {
@@ -79,118 +73,8 @@ fure_stage_api::stage_params! {
         /// the animal's extent in pixels to aim for (median over the training views of the mask's bounding box's longer side); 0 keeps the views as they are
         subject_px: usize = int(400).range(0.0, 100000.0),
         /// photos count as smooth over a lag of k pixels while the mean squared luma difference at 2k over that at k (inside the animal) is at least this, and are box-averaged by at least the first k where it is not (soft photos, module doc); 0 = no such reading
-        smooth_ratio: f64 = float(2.86).range(0.0, 4.0),
+        smooth_ratio: f64 = float(crate::data::sharpness::SMOOTH_RATIO).range(0.0, 4.0),
     }
-}
-
-/// The largest lag, in pixels, at which the photos' smoothness is read (and so the largest
-/// factor the reading can ask for).
-pub const MAX_SMOOTH_LAG: usize = 8;
-
-/// Margin, in pixels, by which the mask is eroded before a pair of pixels counts as inside the
-/// animal: the silhouette's own step is not the coat's texture.
-const SMOOTH_MARGIN: u32 = 3;
-
-/// A view's structure function of luma inside the animal: `d[k - 1]` is the mean squared
-/// difference between pixels `k` apart (along rows and columns, both pixels at least
-/// [`SMOOTH_MARGIN`] inside the mask) for `k = 1..=2 MAX_SMOOTH_LAG`; `None` where a lag has
-/// fewer than 256 such pairs or no difference at all (a flat or tiny animal says nothing).
-fn structure_function(rgb: &ImageF32, mask: &ImageF32) -> Vec<Option<f64>> {
-    let (w, h) = (rgb.width as usize, rgb.height as usize);
-    let c = rgb.channels as usize;
-    let luma: Vec<f32> = rgb
-        .data
-        .chunks_exact(c)
-        .map(|p| {
-            if c >= 3 {
-                0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]
-            } else {
-                p[0]
-            }
-        })
-        .collect();
-    // Inside: the mask above one half over a square of SMOOTH_MARGIN around the pixel (the
-    // image's edge counts as outside), rows then columns.
-    let fg: Vec<bool> = mask.data.iter().map(|v| *v > 0.5).collect();
-    let r = SMOOTH_MARGIN as usize;
-    let erode = |src: &[bool], step: usize, len: usize, count: usize| -> Vec<bool> {
-        let mut out = vec![false; src.len()];
-        for line in 0..count {
-            let base = if step == 1 { line * len } else { line };
-            let at = |i: usize| base + i * step;
-            // Length of the run of foreground ending at each position, forward and backward.
-            let mut fwd = vec![0usize; len];
-            let mut run = 0;
-            for i in 0..len {
-                run = if src[at(i)] { run + 1 } else { 0 };
-                fwd[i] = run;
-            }
-            let mut run = 0;
-            for i in (0..len).rev() {
-                run = if src[at(i)] { run + 1 } else { 0 };
-                out[at(i)] = fwd[i] > r && run > r;
-            }
-        }
-        out
-    };
-    let inside = erode(&erode(&fg, 1, w, h), w, h, w);
-    (1..=2 * MAX_SMOOTH_LAG)
-        .map(|k| {
-            let (mut sum, mut n) = (0.0f64, 0usize);
-            for y in 0..h {
-                for x in 0..w {
-                    let i = y * w + x;
-                    if !inside[i] {
-                        continue;
-                    }
-                    if x + k < w && inside[i + k] {
-                        let d = (luma[i + k] - luma[i]) as f64;
-                        sum += d * d;
-                        n += 1;
-                    }
-                    if y + k < h && inside[i + k * w] {
-                        let d = (luma[i + k * w] - luma[i]) as f64;
-                        sum += d * d;
-                        n += 1;
-                    }
-                }
-            }
-            (n >= 256 && sum > 0.0).then(|| sum / n as f64)
-        })
-        .collect()
-}
-
-/// What one training view says: the animal's extent and its structure function.
-struct ViewReading {
-    extent: u32,
-    structure: Vec<Option<f64>>,
-}
-
-/// The photos' smoothness: for `k = 1..=MAX_SMOOTH_LAG`, the median over the views that carry
-/// both lags of `D(2k) / D(k)` (module doc); `None` where no view does.
-fn smoothness_ratios(readings: &[ViewReading]) -> Vec<Option<f64>> {
-    (1..=MAX_SMOOTH_LAG)
-        .map(|k| {
-            let mut r: Vec<f64> = readings
-                .iter()
-                .filter_map(|v| Some(v.structure[2 * k - 1]? / v.structure[k - 1]?))
-                .collect();
-            r.sort_by(f64::total_cmp);
-            (!r.is_empty()).then(|| r[r.len() / 2])
-        })
-        .collect()
-}
-
-/// The smallest lag at which the photos stop being smooth (`ratio < smooth_ratio`), capped at
-/// [`MAX_SMOOTH_LAG`]; 1 where the reading is off or no lag could be read.
-pub fn smooth_lag(ratios: &[Option<f64>], smooth_ratio: f64) -> u32 {
-    if smooth_ratio <= 0.0 || ratios.iter().all(Option::is_none) {
-        return 1;
-    }
-    ratios
-        .iter()
-        .position(|r| r.is_none_or(|r| r < smooth_ratio))
-        .map_or(MAX_SMOOTH_LAG, |i| i + 1) as u32
 }
 
 /// The longer side of the foreground's bounding box (values above one half), in pixels; 0 for
@@ -243,19 +127,16 @@ pub fn working_factor(
             let mask = v
                 .mask
                 .ok_or_else(|| cameras::missing_mask(dir, cam).for_input("views"))?;
-            Ok(ViewReading {
-                extent: extent(&mask),
-                structure: structure_function(&v.rgb, &mask),
-            })
+            Ok((extent(&mask), structure_function(&v.rgb, &mask)))
         })
-        .collect::<Vec<Result<ViewReading, StageError>>>()
+        .collect::<Vec<Result<(u32, Vec<Option<f64>>), StageError>>>()
         .into_iter()
         // The first bad view by index, whichever thread met it first.
-        .collect::<Result<Vec<ViewReading>, StageError>>()?;
-    let mut extents: Vec<u32> = readings.iter().map(|r| r.extent).collect();
+        .collect::<Result<Vec<_>, StageError>>()?;
+    let (mut extents, structures): (Vec<u32>, Vec<Vec<Option<f64>>>) = readings.into_iter().unzip();
     extents.sort_unstable();
     let median = extents[extents.len() / 2];
-    let ratios = smoothness_ratios(&readings);
+    let ratios = smoothness_ratios(&structures);
     if p.subject_px == 0 {
         return Ok(WorkingFactor {
             factor: 1,
@@ -751,57 +632,20 @@ mod tests {
         );
     }
 
-    /// Grey fur-like texture: independent values on a grid of `cell` px, bilinearly
-    /// interpolated (`cell` 1: a value per pixel, the sharpest a photo gets).
-    fn texture(x: u32, y: u32, cell: u32) -> f32 {
-        let value = |i: u32, j: u32| {
-            let h = (i.wrapping_mul(73_856_093) ^ j.wrapping_mul(19_349_663))
-                .wrapping_mul(2_654_435_761);
-            (h >> 8) as f32 / (1u32 << 24) as f32
-        };
-        let (u, v) = (
-            (x as f32 + 0.5) / cell as f32 - 0.5,
-            (y as f32 + 0.5) / cell as f32 - 0.5,
-        );
-        let (i, j) = (u.floor().max(0.0) as u32, v.floor().max(0.0) as u32);
-        let (a, b) = (
-            (u - i as f32).clamp(0.0, 1.0),
-            (v - j as f32).clamp(0.0, 1.0),
-        );
-        let top = value(i, j) * (1.0 - a) + value(i + 1, j) * a;
-        let bottom = value(i, j + 1) * (1.0 - a) + value(i + 1, j + 1) * a;
-        top * (1.0 - b) + bottom * b
-    }
-
-    /// `capture`'s frames with the disc's photo replaced by [`texture`] at `cell` px.
+    /// `capture`'s frames with the disc's photo replaced by a texture on a grid of `cell` px
+    /// (`data::sharpness`' test texture).
     fn textured_capture(dir: &Path, size: u32, r: f32, cell: u32) {
         let set = capture(dir, 3, size, r);
         for c in set.train.iter().chain(&set.test) {
             let mut rgb = ImageF32::new(size, size, 3);
             for y in 0..size {
                 for x in 0..size {
-                    let v = texture(x, y, cell);
+                    let v = crate::data::sharpness::tests::texture_at(x, y, cell);
                     rgb.pixel_mut(x, y).copy_from_slice(&[v, 0.8 * v, 0.5 * v]);
                 }
             }
             images::write_png(dir.join(&c.file_path), &rgb).unwrap();
         }
-    }
-
-    #[test]
-    fn the_lag_photos_are_smooth_over_is_the_first_where_they_stop_being_smooth() {
-        let r = |v: &[f64]| v.iter().map(|x| Some(*x)).collect::<Vec<_>>();
-        assert_eq!(smooth_lag(&r(&[1.9, 1.7, 1.4]), 2.86), 1);
-        assert_eq!(smooth_lag(&r(&[3.7, 3.1, 2.6, 2.3]), 2.86), 3);
-        assert_eq!(
-            smooth_lag(&r(&[3.9; MAX_SMOOTH_LAG]), 2.86),
-            MAX_SMOOTH_LAG as u32
-        );
-        // Off, or nothing read: the photos' own pixel.
-        assert_eq!(smooth_lag(&r(&[3.7, 3.1, 2.6]), 0.0), 1);
-        assert_eq!(smooth_lag(&[None, None], 2.86), 1);
-        // A lag no view could read ends the smooth run.
-        assert_eq!(smooth_lag(&[Some(3.5), None, Some(3.5)], 2.86), 2);
     }
 
     #[test]
