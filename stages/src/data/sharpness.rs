@@ -18,12 +18,11 @@
 //! tiger's views upscaled 4x read 3.66, 3.14, 2.60 at lags 1-3, a lag of 3 (docs/history.md,
 //! "Photos softer than their pixel").
 //!
-//! `working_views` box-averages soft photos by their lag; the strand learners set the
-//! orientation maps aside where the views they train on are still soft.
+//! `working_views` box-averages soft photos by their lag.
 
 use super::image::ImageF32;
 
-/// The default of the stages' `smooth_ratio` / `soft_views_ratio` (module doc).
+/// The default of `working_views`' `smooth_ratio` (module doc).
 pub const SMOOTH_RATIO: f64 = 2.86;
 
 /// The largest lag, in pixels, at which the photos' smoothness is read (and so the largest
