@@ -72,7 +72,7 @@ fure_stage_api::stage_params! {
     pub struct WorkingViewsParams {
         /// the animal's extent in pixels to aim for (median over the training views of the mask's bounding box's longer side); 0 keeps the views as they are
         subject_px: usize = int(400).range(0.0, 100000.0),
-        /// photos count as smooth over a lag of k pixels while the mean squared luma difference at 2k over that at k (inside the animal) is at least this, and are box-averaged by at least the first k where it is not (soft photos, module doc); 0 = no such reading
+        /// photos count as smooth over a lag of k pixels while the mean squared luma difference at 2k over that at k (inside the animal) is at least this, and are box-averaged by the first k where it is not, as far as the animal keeps subject_px / 2 pixels (soft photos, module doc); 0 = no such reading
         smooth_ratio: f64 = float(crate::data::sharpness::SMOOTH_RATIO).range(0.0, 4.0),
     }
 }
