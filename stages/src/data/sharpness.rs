@@ -31,7 +31,7 @@ pub const MAX_SMOOTH_LAG: usize = 8;
 
 /// Margin, in pixels, by which the mask is eroded before a pair of pixels counts as inside the
 /// animal: the silhouette's own step is not the coat's texture.
-const SMOOTH_MARGIN: u32 = 3;
+pub const SMOOTH_MARGIN: u32 = 3;
 
 /// A view's structure function of luma inside the animal: `d[k - 1]` is the mean squared
 /// difference between pixels `k` apart (along rows and columns, both pixels at least
