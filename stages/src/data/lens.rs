@@ -273,9 +273,9 @@ mod tests {
         assert!(fixed.data.iter().all(|v| *v > 0.05));
     }
 
-    #[test]
-    fn where_the_pinhole_sees_past_the_photo_its_border_goes_on_and_alpha_keeps_colour() {
-        let cam = Camera {
+    /// A 64 px pinhole camera, focal length 40 px, principal point in the middle.
+    fn square_camera() -> Camera {
+        Camera {
             file_path: "a.png".into(),
             c2w: Mat4::IDENTITY,
             fx: 40.0,
@@ -284,7 +284,12 @@ mod tests {
             cy: 32.0,
             width: 64,
             height: 64,
-        };
+        }
+    }
+
+    #[test]
+    fn where_the_pinhole_sees_past_the_photo_its_border_goes_on_and_alpha_keeps_colour() {
+        let cam = square_camera();
         // A red photo, opaque in its left half, transparent (and green underneath) on the right.
         let mut im = ImageF32::new(64, 64, 4);
         for y in 0..64 {
@@ -316,16 +321,7 @@ mod tests {
 
     #[test]
     fn a_mask_the_photos_frame_cuts_still_reaches_the_working_frames_border() {
-        let cam = Camera {
-            file_path: "a.png".into(),
-            c2w: Mat4::IDENTITY,
-            fx: 40.0,
-            fy: 40.0,
-            cx: 32.0,
-            cy: 32.0,
-            width: 64,
-            height: 64,
-        };
+        let cam = square_camera();
         // An object cut by the photo's left border (rows 24-39), and one inside the photo.
         let mut mask = ImageF32::new(64, 64, 1);
         for y in 24..40 {
