@@ -484,6 +484,7 @@ impl<'a> Scheduler<'a> {
                 key: k.key.clone(),
                 preimage: k.preimage.clone(),
                 inputs: stage_inputs(plan, i, &self.states),
+                origins: input_origins(plan, i),
                 threads: tokens,
             };
             let job = match &opts.executor {
@@ -824,6 +825,34 @@ pub(crate) enum InputPath {
     Path(PathBuf),
 }
 
+/// Per input port of stage `i` fed by another stage, that output as the pipeline names it.
+fn input_origins(plan: &Plan, i: usize) -> BTreeMap<String, String> {
+    plan.stages[i]
+        .inputs
+        .iter()
+        .filter_map(|inp| match &inp.source {
+            Source::Upstream { stage, port } => Some((
+                inp.port.clone(),
+                format!("{}.{port}", plan.stages[*stage].name),
+            )),
+            Source::Path { .. } => None,
+        })
+        .collect()
+}
+
+/// A failed stage's message with the paths of its staging directory (gone once it fails)
+/// replaced by what the pipeline calls them: an input by the upstream output it was staged
+/// from (`stage.port`, or `` upstream output of `port` `` where the origin is not known), an
+/// output by `stage.port`. Longest paths first, so that one staged path inside another is not
+/// cut in two.
+fn readable_staged_paths(message: String, staged: &[(String, String)]) -> String {
+    let mut staged: Vec<&(String, String)> = staged.iter().collect();
+    staged.sort_by_key(|(path, _)| std::cmp::Reverse(path.len()));
+    staged
+        .into_iter()
+        .fold(message, |m, (path, name)| m.replace(path.as_str(), name))
+}
+
 fn stage_inputs(plan: &Plan, i: usize, states: &[State]) -> Vec<(String, InputPath)> {
     plan.stages[i]
         .inputs
@@ -989,6 +1018,10 @@ pub(crate) struct Computation<'a> {
     pub key: String,
     pub preimage: Preimage,
     pub inputs: Vec<(String, InputPath)>,
+    /// Per input port fed by another stage, how the pipeline names that output
+    /// (`stage.port`): a failing stage's message names its staged inputs so,
+    /// since the staging directory is gone once it fails.
+    pub origins: BTreeMap<String, String>,
     /// The size of the stage's rayon pool (its CPU tokens).
     pub threads: usize,
 }
@@ -1032,6 +1065,20 @@ fn execute(
     let in_dir = staging.path.join("in");
     let out_dir = staging.path.join("out");
     fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+    let mut staged: Vec<(String, String)> = work
+        .inputs
+        .iter()
+        .filter_map(|(port, p)| match p {
+            InputPath::Object(o) => Some((
+                in_dir.join(port).join(&o.file_name).display().to_string(),
+                work.origins
+                    .get(port)
+                    .cloned()
+                    .unwrap_or_else(|| format!("upstream output of `{port}`")),
+            )),
+            InputPath::Path(_) => None,
+        })
+        .collect();
     let ctx = StageContext {
         name: &st.name,
         params: &st.params,
@@ -1039,6 +1086,11 @@ fn execute(
         outputs: stage_output_paths(st, &out_dir)?,
         progress,
     };
+    staged.extend(
+        ctx.outputs
+            .iter()
+            .map(|(port, path)| (path.display().to_string(), format!("{}.{port}", st.name))),
+    );
     let t = Instant::now();
     let load = crate::load::Meter::start();
     let (result, peak) = if st.kind == command::KIND {
@@ -1051,7 +1103,7 @@ fn execute(
     };
     let seconds = t.elapsed().as_secs_f64();
     let other_load = load.finish();
-    result?;
+    result.map_err(|e| readable_staged_paths(e, &staged))?;
     let outputs = store_outputs(cache, st, &ctx.outputs)?;
     let m = Manifest {
         schema: cache::CACHE_SCHEMA,

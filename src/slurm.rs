@@ -1246,6 +1246,8 @@ pub fn worker(
         key: spec.key.clone(),
         preimage,
         inputs,
+        // A job knows its upstream entries by key, not by stage name.
+        origins: BTreeMap::new(),
         threads: worker_threads(),
     };
     let (_, computed) = crate::exec::compute_stage(cache, work, ui, &worker_may_commit)

@@ -463,6 +463,37 @@ outs = ["never.txt"]
 }
 
 #[test]
+fn a_failing_stage_names_its_inputs_as_the_pipeline_does() {
+    // A stage reads its upstream inputs from a staging directory inside the cache that is
+    // removed once it fails: its message names them by the output they came from instead.
+    let p = Project::new();
+    p.write(
+        "names.toml",
+        r#"
+[stages.make]
+kind = "command"
+cmd = ["sh", "-c", "echo 7 > a.txt"]
+outs = ["a.txt"]
+
+[stages.check]
+kind = "command"
+cmd = ["sh", "-c", "echo \"unexpected value in {deps.a}\" >&2; exit 2"]
+deps = { a = "make.a.txt" }
+outs = ["n.txt"]
+"#,
+    );
+    let r = p.run("names.toml", &[]);
+    assert_eq!(r.code(), 1);
+    assert_eq!(r.status("check"), "failed");
+    let err = r.stderr();
+    assert!(err.contains("unexpected value in make.a.txt"), "{err}");
+    assert!(
+        !err.contains("cache/tmp") && !err.contains("/in/a/"),
+        "a staging path in the message: {err}"
+    );
+}
+
+#[test]
 fn a_panicking_stage_is_a_failure_without_backtrace() {
     let p = Project::new();
     p.write(
