@@ -1104,7 +1104,8 @@ fn execute(
     let seconds = t.elapsed().as_secs_f64();
     let other_load = load.finish();
     result.map_err(|e| readable_staged_paths(e, &staged))?;
-    let outputs = store_outputs(cache, st, &ctx.outputs)?;
+    let outputs =
+        store_outputs(cache, st, &ctx.outputs).map_err(|e| readable_staged_paths(e, &staged))?;
     let m = Manifest {
         schema: cache::CACHE_SCHEMA,
         key: key.to_string(),
