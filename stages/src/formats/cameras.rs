@@ -36,7 +36,8 @@
 //! any of them has its own lens, not merged with the file's) is read as a [`Distortion`]: `OPENCV` (or no model) radial-tangential, `OPENCV_FISHEYE`
 //! the equidistant fisheye; other models are an error naming the field. [`read_views`], which
 //! every stage but one reads views through, takes a lens with every coefficient zero for a pinhole
-//! and refuses any other, naming the field and what to do; [`read_capture`] keeps the lenses for
+//! and refuses any other a frame uses (the file's lens only where a frame names none of its own),
+//! naming the field and what to do; [`read_capture`] keeps the lenses for
 //! the `working_views` stage, which undistorts the photos. Other extra keys
 //! (`aabb_scale`, `sharpness`, `scale`, `offset`, `colmap_im_id`, ...)
 //! are ignored: instant-ngp's `scale`/`offset` only move its own training box, so the cameras stay
@@ -336,14 +337,21 @@ fn read_transforms_with(
             ))
         }
     };
-    let top_intr = Level::read(path, top, "", lenses)?;
+    // The file's lens is refused only where a frame takes it: a frame that names its own lens
+    // replaces the file's whole.
+    let top_intr = Level::read(path, top, "", Lenses::Keep)?;
     let mut cameras = Vec::with_capacity(frames.len());
     for (i, frame) in frames.iter().enumerate() {
         let prefix = format!("frames[{i}]");
         let obj = frame
             .as_object()
             .ok_or_else(|| FormatError::at(path, field(&prefix), "expected a frame object"))?;
-        cameras.push(read_frame(path, dir, obj, &prefix, &top_intr, lenses)?);
+        let (camera, lens) = read_frame(path, dir, obj, &prefix, &top_intr, lenses)?;
+        // A frame's own distorting lens was refused as it was read, so this one is the file's.
+        if lenses == Lenses::Refuse && !lens.is_pinhole() {
+            Level::read(path, top, "", Lenses::Refuse)?;
+        }
+        cameras.push((camera, lens));
     }
     Ok(cameras)
 }
@@ -1272,6 +1280,32 @@ mod tests {
             );
             assert!(e.to_string().contains("transforms.json"), "{e}");
         }
+        // A file-level lens that every frame replaces with its own pinhole reads; one that a
+        // frame takes is refused, naming the file's field.
+        let own = |lens: &str| {
+            format!(
+                r#"{{"file_path": "a.png", {lens}"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}}"#
+            )
+        };
+        let pinhole = own(r#""camera_model": "OPENCV", "k1": 0, "#);
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"fl_x": 5, "w": 4, "h": 4, "k1": 0.02, "frames": [{pinhole}, {pinhole}]}}"#
+            ),
+        )
+        .unwrap();
+        assert_eq!(read_views(dir.path()).unwrap().train.len(), 2);
+        std::fs::write(
+            &p,
+            format!(
+                r#"{{"fl_x": 5, "w": 4, "h": 4, "k1": 0.02, "frames": [{pinhole}, {}]}}"#,
+                own("")
+            ),
+        )
+        .unwrap();
+        let e = read_views(dir.path()).unwrap_err();
+        assert_eq!(e.position(), Some(&Position::Field("k1".into())), "{e}");
         // nerfstudio's own undistorted output (OPENCV, zero distortion) reads.
         std::fs::write(
             &p,
