@@ -538,13 +538,47 @@ fn cameras_looking_away_give_an_empty_visual_hull() {
         }
     }
     s.write(file, &pretty(&v));
-    s.fails(
+    let err = s.fails(
         "hull.toml",
         "outer",
         &[
             "no camera sees the object",
             "the visual hull is empty",
             "data/views/transforms.json",
+        ],
+    );
+    // Turned around, not written with OpenCV's axes: no hint that they are.
+    assert!(!err.contains("OpenCV"), "{err}");
+    s.write(file, &good);
+    s.succeeds("hull.toml");
+}
+
+#[test]
+fn cameras_written_with_opencv_axes_are_named_as_such() {
+    let s = Scene::new();
+    let file = "data/views/transforms.json";
+    let good = s.read(file);
+    // Camera-to-world matrices with OpenCV's camera axes (+z forward, +y down): the y and z
+    // columns negated.
+    let mut v = json(&good);
+    for f in v["frames"].as_array_mut().unwrap() {
+        let m = &mut f["transform_matrix"];
+        for r in 0..3 {
+            for c in [1, 2] {
+                let x = m[r][c].as_f64().unwrap();
+                m[r][c] = Json::from(-x);
+            }
+        }
+    }
+    s.write(file, &pretty(&v));
+    s.fails(
+        "hull.toml",
+        "outer",
+        &[
+            "the visual hull is empty",
+            "data/views/transforms.json",
+            "the cameras look like OpenCV's",
+            "negate the second and third columns",
         ],
     );
     s.write(file, &good);

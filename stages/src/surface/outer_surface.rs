@@ -14,7 +14,14 @@
 //!    alpha), and an RGB image with neither is an error naming the image and
 //!    the mask files looked for. A mask value is "foreground" when
 //!    it exceeds `mask_threshold`. A view whose mask has no foreground pixel is
-//!    an error (the whole object would be carved away).
+//!    an error (the whole object would be carved away). So is an empty hull,
+//!    naming the cameras' file; where every camera's y and z axes negated would
+//!    carve a hull that covers the masks (a camera-to-world matrix written with
+//!    OpenCV's camera axes, the commonest way a `transforms.json` from other
+//!    software goes wrong), the error says so ([`opencv_axes_would_agree`]:
+//!    on the tiger's views the negated OpenCV cameras' hull covers all of the
+//!    masks, while cameras turned about their up axis, rolled by half a turn
+//!    under the same negation, carve one that covers 68 % of them).
 //! 2. **Occupancy.** A point's occupancy in one view is the mask sampled
 //!    bilinearly (pixel centres at half-integers) at its projection; a point
 //!    behind the camera or projecting outside the image has occupancy 0 in that
@@ -978,6 +985,81 @@ pub fn taubin_smooth(mesh: &mut Mesh, iterations: usize) {
     }
 }
 
+/// What the empty-hull error adds where [`opencv_axes_would_agree`].
+pub const OPENCV_AXES_HINT: &str = "; with every camera's y and z axes negated the masks \
+     agree: the cameras look like OpenCV's (+z forward, +y down) where transforms.json wants \
+     OpenGL's (+y up, looking down -z); negate the second and third columns of every \
+     transform_matrix";
+
+/// The share of the masks' foreground that a hull must cover, in every view's mean, for the
+/// cameras that carved it to count as agreeing with the masks ([`opencv_axes_would_agree`]): a
+/// visual hull projects onto its silhouettes, while cameras with a wrong roll carve a smaller
+/// region of cones that disagree.
+const AGREEING_COVERAGE: f64 = 0.9;
+
+/// Whether the masks would agree if every camera's y and z axes were negated (a
+/// camera-to-world matrix written with OpenCV's camera axes, which `transforms.json` does not
+/// use): the hull those cameras carve is not empty and covers [`AGREEING_COVERAGE`] of the
+/// masks' foreground ([`silhouette_coverage`]). Cameras turned about their up axis become
+/// cameras rolled by half a turn under the same negation, and their hull, where it is not
+/// empty, does not cover the masks. `views` are turned for the test and back.
+pub fn opencv_axes_would_agree(cams: &[Camera], views: &mut [MaskView], s: &HullSettings) -> bool {
+    // Its own inverse: c2w' = c2w F, so w2c' = F w2c.
+    let flip = Mat4::from_diagonal(glam::Vec4::new(1.0, -1.0, -1.0, 1.0));
+    let flipped: Vec<Camera> = cams
+        .iter()
+        .map(|c| Camera {
+            c2w: c.c2w * flip,
+            ..c.clone()
+        })
+        .collect();
+    let turn = |views: &mut [MaskView]| views.iter_mut().for_each(|v| v.w2c = flip * v.w2c);
+    turn(views);
+    let agree = visual_hull(&flipped, views, s)
+        .is_ok_and(|(mesh, _)| silhouette_coverage(&mesh, &flipped, views) >= AGREEING_COVERAGE);
+    turn(views);
+    agree
+}
+
+/// The mean over views of the share of the mask's foreground pixels that the mesh's vertices,
+/// projected and each widened to 5 x 5 pixels, reach (the vertices lie about a voxel, 1.5 px,
+/// apart, so a surface that fills a silhouette reaches all of it).
+fn silhouette_coverage(mesh: &Mesh, cams: &[Camera], views: &[MaskView]) -> f64 {
+    let shares: Vec<f64> = cams
+        .par_iter()
+        .zip(views)
+        .map(|(cam, view)| {
+            let (w, h) = (view.width as i64, view.height as i64);
+            let mut reached = vec![false; (w * h) as usize];
+            for p in &mesh.positions {
+                let (uv, depth) = cam.project(*p);
+                if !(depth > 0.0 && uv.is_finite()) {
+                    continue;
+                }
+                let (x, y) = (uv.x.floor() as i64, uv.y.floor() as i64);
+                for yy in (y - 2).max(0)..(y + 3).min(h) {
+                    for xx in (x - 2).max(0)..(x + 3).min(w) {
+                        reached[(yy * w + xx) as usize] = true;
+                    }
+                }
+            }
+            let fg = view.mask.iter().filter(|m| **m > 0.5).count();
+            let hit = view
+                .mask
+                .iter()
+                .zip(&reached)
+                .filter(|(m, r)| **m > 0.5 && **r)
+                .count();
+            if fg == 0 {
+                1.0
+            } else {
+                hit as f64 / fg as f64
+            }
+        })
+        .collect();
+    shares.iter().sum::<f64>() / shares.len().max(1) as f64
+}
+
 /// Computes the visual hull mesh of the masks.
 pub fn visual_hull(
     cams: &[Camera],
@@ -1343,15 +1425,22 @@ impl Stage for OuterSurfaceStage {
             )),
             (Some(dir), None) => {
                 ctx.progress.message("reading masks");
-                let (cams, views) = read_mask_views(dir, s.mask_threshold)?;
+                let (cams, mut views) = read_mask_views(dir, s.mask_threshold)?;
                 ctx.progress.message("carving the visual hull");
-                let (mesh, rep) = visual_hull(&cams, &views, &s).map_err(|e| match e {
+                let hull = visual_hull(&cams, &views, &s);
+                let (mesh, rep) = hull.map_err(|e| match e {
                     HullError::EmptyMask { .. } | HullError::MaskSize { .. } => {
                         StageError::input("views", dir, e)
                     }
-                    // Cameras that look away, or masks that disagree: name the cameras' file.
+                    // Cameras that look away, or masks that disagree: name the cameras' file,
+                    // and say so where the cameras seen with OpenCV's axes agree.
                     HullError::NoCommonRegion | HullError::EmptyHull => {
-                        StageError::input("views", &train_file(dir), e)
+                        let hint = if opencv_axes_would_agree(&cams, &mut views, &s) {
+                            OPENCV_AXES_HINT
+                        } else {
+                            ""
+                        };
+                        StageError::input("views", &train_file(dir), format!("{e}{hint}"))
                     }
                     other => StageError::failed(other),
                 })?;
