@@ -999,8 +999,8 @@ const AGREEING_COVERAGE: f64 = 0.9;
 
 /// Whether the masks would agree if every camera's y and z axes were negated (a
 /// camera-to-world matrix written with OpenCV's camera axes, which `transforms.json` does not
-/// use): the hull those cameras carve is not empty and covers [`AGREEING_COVERAGE`] of the
-/// masks' foreground ([`silhouette_coverage`]). Cameras turned about their up axis become
+/// use): the hull those cameras carve is not empty and covers `AGREEING_COVERAGE` (0.9) of the
+/// masks' foreground (`silhouette_coverage`, the mean over views). Cameras turned about their up axis become
 /// cameras rolled by half a turn under the same negation, and their hull, where it is not
 /// empty, does not cover the masks. `views` are turned for the test and back.
 pub fn opencv_axes_would_agree(cams: &[Camera], views: &mut [MaskView], s: &HullSettings) -> bool {
