@@ -17,7 +17,7 @@
 //!    an error (the whole object would be carved away). So is an empty hull,
 //!    naming the cameras' file; where every camera's y and z axes negated would
 //!    carve a hull that covers the masks (a camera-to-world matrix written with
-//!    OpenCV's camera axes, the commonest way a `transforms.json` from other
+//!    OpenCV's camera axes, a common way for a `transforms.json` from other
 //!    software goes wrong), the error says so ([`opencv_axes_would_agree`]:
 //!    on the tiger's views the negated OpenCV cameras' hull covers all of the
 //!    masks, while cameras turned about their up axis, rolled by half a turn
