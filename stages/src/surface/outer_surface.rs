@@ -18,7 +18,7 @@
 //!    naming the cameras' file; where every camera's y and z axes negated would
 //!    carve a hull that covers the masks (a camera-to-world matrix written with
 //!    OpenCV's camera axes, a common way for a `transforms.json` from other
-//!    software goes wrong), the error says so ([`opencv_axes_would_agree`]:
+//!    software to go wrong), the error says so ([`opencv_axes_would_agree`]:
 //!    on the tiger's views the negated OpenCV cameras' hull covers all of the
 //!    masks, while cameras turned about their up axis, rolled by half a turn
 //!    under the same negation, carve one that covers 68 % of them).
