@@ -521,23 +521,29 @@ fn broken_transforms_json_names_the_field() {
 
 // ---------------------------------------------------------------- cameras and masks
 
+/// The scene's `transforms.json` with the given columns (camera axes) of every frame's
+/// camera-to-world matrix negated.
+fn with_camera_axes_negated(good: &[u8], columns: [usize; 2]) -> Vec<u8> {
+    let mut v = json(good);
+    for f in v["frames"].as_array_mut().unwrap() {
+        let m = &mut f["transform_matrix"];
+        for r in 0..3 {
+            for c in columns {
+                let x = m[r][c].as_f64().unwrap();
+                m[r][c] = Json::from(-x);
+            }
+        }
+    }
+    pretty(&v)
+}
+
 #[test]
 fn cameras_looking_away_give_an_empty_visual_hull() {
     let s = Scene::new();
     let file = "data/views/transforms.json";
     let good = s.read(file);
     // Turn every camera around its own up axis (negate its x and z axes).
-    let mut v = json(&good);
-    for f in v["frames"].as_array_mut().unwrap() {
-        let m = &mut f["transform_matrix"];
-        for r in 0..3 {
-            for c in [0, 2] {
-                let x = m[r][c].as_f64().unwrap();
-                m[r][c] = Json::from(-x);
-            }
-        }
-    }
-    s.write(file, &pretty(&v));
+    s.write(file, &with_camera_axes_negated(&good, [0, 2]));
     let err = s.fails(
         "hull.toml",
         "outer",
@@ -560,17 +566,7 @@ fn cameras_written_with_opencv_axes_are_named_as_such() {
     let good = s.read(file);
     // Camera-to-world matrices with OpenCV's camera axes (+z forward, +y down): the y and z
     // columns negated.
-    let mut v = json(&good);
-    for f in v["frames"].as_array_mut().unwrap() {
-        let m = &mut f["transform_matrix"];
-        for r in 0..3 {
-            for c in [1, 2] {
-                let x = m[r][c].as_f64().unwrap();
-                m[r][c] = Json::from(-x);
-            }
-        }
-    }
-    s.write(file, &pretty(&v));
+    s.write(file, &with_camera_axes_negated(&good, [1, 2]));
     s.fails(
         "hull.toml",
         "outer",
