@@ -327,14 +327,14 @@ impl Stage for WorkingViewsStage {
                 .map_err(|e| e.for_input("views"))?;
             0
         };
-        if wf.smooth_lag > 1 {
+        if wf.smooth_lag > wf.for_extent {
             ctx.progress.note(&format!(
                 "the photos are smooth over {} px (inside the animal, the luma's mean squared \
                  difference at twice a lag over that at the lag: {}), softer than their pixel: \
                  {}",
                 wf.smooth_lag,
                 ratio_list(&wf.ratios, wf.smooth_lag as usize),
-                if wf.factor > wf.for_extent {
+                if wf.factor >= wf.smooth_lag {
                     format!(
                         "box-averaged by {} rather than {}, so that the orientation maps' filters \
                          and every per-pixel rule meet the fur's texture at its own scale",
@@ -342,7 +342,7 @@ impl Stage for WorkingViewsStage {
                     )
                 } else {
                     format!(
-                        "kept at a factor of {}, since the animal keeps at least {} px; the \
+                        "box-averaged by {} only, so that the animal keeps at least {} px; the \
                          orientation maps may show little of the fur's texture, and the \
                          widths and lengths read from the views may be long",
                         wf.factor,

@@ -1002,8 +1002,12 @@ const AGREEING_COVERAGE: f64 = 0.9;
 /// use): the hull those cameras carve is not empty and covers `AGREEING_COVERAGE` (0.9) of the
 /// masks' foreground (`silhouette_coverage`, the mean over views). Cameras turned about their up axis become
 /// cameras rolled by half a turn under the same negation, and their hull, where it is not
-/// empty, does not cover the masks. `views` are turned for the test and back.
-pub fn opencv_axes_would_agree(cams: &[Camera], views: &mut [MaskView], s: &HullSettings) -> bool {
+/// empty, does not cover the masks.
+pub fn opencv_axes_would_agree(
+    cams: &[Camera],
+    mut views: Vec<MaskView>,
+    s: &HullSettings,
+) -> bool {
     // Its own inverse: c2w' = c2w F, so w2c' = F w2c.
     let flip = Mat4::from_diagonal(glam::Vec4::new(1.0, -1.0, -1.0, 1.0));
     let flipped: Vec<Camera> = cams
@@ -1013,12 +1017,9 @@ pub fn opencv_axes_would_agree(cams: &[Camera], views: &mut [MaskView], s: &Hull
             ..c.clone()
         })
         .collect();
-    let turn = |views: &mut [MaskView]| views.iter_mut().for_each(|v| v.w2c = flip * v.w2c);
-    turn(views);
-    let agree = visual_hull(&flipped, views, s)
-        .is_ok_and(|(mesh, _)| silhouette_coverage(&mesh, &flipped, views) >= AGREEING_COVERAGE);
-    turn(views);
-    agree
+    views.iter_mut().for_each(|v| v.w2c = flip * v.w2c);
+    visual_hull(&flipped, &views, s)
+        .is_ok_and(|(mesh, _)| silhouette_coverage(&mesh, &flipped, &views) >= AGREEING_COVERAGE)
 }
 
 /// The mean over views of the share of the mask's foreground pixels that the mesh's vertices,
@@ -1425,22 +1426,24 @@ impl Stage for OuterSurfaceStage {
             )),
             (Some(dir), None) => {
                 ctx.progress.message("reading masks");
-                let (cams, mut views) = read_mask_views(dir, s.mask_threshold)?;
+                let (cams, views) = read_mask_views(dir, s.mask_threshold)?;
                 ctx.progress.message("carving the visual hull");
-                let hull = visual_hull(&cams, &views, &s);
-                let (mesh, rep) = hull.map_err(|e| match e {
+                let (mesh, rep) = visual_hull(&cams, &views, &s).map_err(|e| match e {
                     HullError::EmptyMask { .. } | HullError::MaskSize { .. } => {
                         StageError::input("views", dir, e)
                     }
                     // Cameras that look away, or masks that disagree: name the cameras' file,
                     // and say so where the cameras seen with OpenCV's axes agree.
                     HullError::NoCommonRegion | HullError::EmptyHull => {
-                        let hint = if opencv_axes_would_agree(&cams, &mut views, &s) {
+                        let file = train_file(dir);
+                        // COLMAP's poses are converted by fure; a transforms.json's are not.
+                        let from_json = file.extension().is_some_and(|x| x == "json");
+                        let hint = if from_json && opencv_axes_would_agree(&cams, views, &s) {
                             OPENCV_AXES_HINT
                         } else {
                             ""
                         };
-                        StageError::input("views", &train_file(dir), format!("{e}{hint}"))
+                        StageError::input("views", &file, format!("{e}{hint}"))
                     }
                     other => StageError::failed(other),
                 })?;
