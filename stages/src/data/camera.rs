@@ -5,7 +5,7 @@
 //! pixel centres at half-integers; a camera-space point (x, y, z), z < 0,
 //! projects to u = cx + fx * x / -z, v = cy - fy * y / -z.
 
-use glam::{Mat4, Vec2, Vec3};
+use glam::{DMat3, DVec3, Mat4, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -53,20 +53,204 @@ pub struct CameraSet {
 }
 
 /// The views' pixel footprint at the subject, in scene units: the median over
-/// the cameras of their distance to the centre of `outer`'s bounding box over
-/// their focal length in pixels. Radii given in pixels scale with it, so they
-/// mean the same in any unit and at any resolution.
+/// the resolving cameras ([`resolving_views`]) of their distance to the centre
+/// of `outer`'s bounding box over their focal length in pixels. Radii given in
+/// pixels scale with it, so they mean the same in any unit and at any
+/// resolution.
 pub fn pixel_footprint(cameras: &[Camera], outer: &crate::data::mesh::Mesh) -> f32 {
     let (lo, hi) = outer.bounds();
     let centre = 0.5 * (lo + hi);
-    let mut f: Vec<f32> = cameras
+    let f: Vec<f64> = cameras
         .iter()
-        .map(|c| (c.center() - centre).length() / c.fx.abs().max(1e-12))
-        .filter(|x| x.is_finite())
+        .map(|c| ((c.center() - centre).length() / c.fx.abs().max(1e-12)) as f64)
         .collect();
-    if f.is_empty() {
-        return 0.0;
+    resolving_footprint(&f).unwrap_or(0.0) as f32
+}
+
+/// How much coarser than the sharper views a view's pixel may be and still
+/// count as resolving the subject: 1.5, above the spread of an orbit at one
+/// focal length whose distance varies by a few tens of percent (the
+/// synthetic rigs span 1.3), below a second camera at half the resolution
+/// (2).
+pub const RESOLVING_RATIO: f64 = 1.5;
+
+/// Which views resolve the subject, from each view's pixel footprint there
+/// (scene units per pixel; a value that is not finite and positive says
+/// nothing and counts as resolving). A view resolves it when its footprint is
+/// at most [`RESOLVING_RATIO`] times the coarsest footprint of the sharpest
+/// quarter of the views.
+///
+/// Why: a capture that mixes cameras, or photographs from two distances,
+/// holds views in which a pixel covers twice the fur. What such a view shows
+/// of the coat is its colour pattern, not the fur's texture, and its
+/// orientation map reads the pattern (a tiger's stripes run across the fur);
+/// sized by the median view, the model is also sized by the coarse half. The
+/// sharpest quarter rather than the sharpest view, so that a few close-ups of
+/// a head do not set the rest of the animal aside.
+pub fn resolving_views(footprints: &[f64]) -> Vec<bool> {
+    let Some(reference) = sharpest_quarter_footprint(footprints) else {
+        return vec![true; footprints.len()];
+    };
+    footprints
+        .iter()
+        .map(|&f| !usable_footprint(f) || f <= RESOLVING_RATIO * reference)
+        .collect()
+}
+
+/// The coarsest footprint of the sharpest quarter of the views (rounded up),
+/// [`resolving_views`]' reference; `None` without a usable footprint.
+pub fn sharpest_quarter_footprint(footprints: &[f64]) -> Option<f64> {
+    let mut sorted: Vec<f64> = footprints
+        .iter()
+        .copied()
+        .filter(|f| usable_footprint(*f))
+        .collect();
+    sorted.sort_by(f64::total_cmp);
+    (!sorted.is_empty()).then(|| sorted[sorted.len().div_ceil(4) - 1])
+}
+
+fn usable_footprint(f: f64) -> bool {
+    f.is_finite() && f > 0.0
+}
+
+/// The median footprint over the resolving views (the upper middle for an
+/// even count); `None` without a usable footprint.
+pub fn resolving_footprint(footprints: &[f64]) -> Option<f64> {
+    let keep = resolving_views(footprints);
+    let mut f: Vec<f64> = footprints
+        .iter()
+        .zip(keep)
+        .filter(|(f, k)| *k && usable_footprint(**f))
+        .map(|(f, _)| *f)
+        .collect();
+    f.sort_by(f64::total_cmp);
+    f.get(f.len() / 2).copied()
+}
+
+/// Each camera's pixel footprint at `p`: the depth of `p` along the camera's
+/// axis over its focal length in pixels (not finite where `fx` is not positive).
+pub fn footprints_at(cameras: &[Camera], p: DVec3) -> Vec<f64> {
+    cameras
+        .iter()
+        .map(|c| {
+            let local = c.w2c().as_dmat4().transform_point3(p);
+            if c.fx > 0.0 {
+                (-local.z).abs() / c.fx as f64
+            } else {
+                f64::NAN
+            }
+        })
+        .collect()
+}
+
+/// The point closest in least squares to the cameras' optical axes: where an
+/// orbit looks. `None` with fewer than two cameras or axes that do not meet
+/// (all parallel).
+pub fn axes_centre(cameras: &[Camera]) -> Option<DVec3> {
+    let mut a = DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    for c in cameras {
+        let o = c.center().as_dvec3();
+        let d = (-c.c2w.z_axis.truncate()).as_dvec3().normalize_or_zero();
+        if d == DVec3::ZERO {
+            continue;
+        }
+        // (I - d d^T) projects onto the plane orthogonal to the axis.
+        let m = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += m;
+        b += m * o;
     }
-    f.sort_by(f32::total_cmp);
-    f[f.len() / 2]
+    let n = cameras.len();
+    if n < 2 || a.determinant().abs() < 1e-9 * (n as f64).powi(3) {
+        return None;
+    }
+    Some(a.inverse() * b).filter(|x| x.is_finite())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A camera at `eye` looking at the origin, `size` pixels square with a 40-degree field.
+    fn looking_at_origin(eye: Vec3, size: u32) -> Camera {
+        let f = size as f32 / (2.0 * 20f32.to_radians().tan());
+        Camera {
+            file_path: format!("{size}.png"),
+            c2w: Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Y).inverse(),
+            fx: f,
+            fy: f,
+            cx: size as f32 / 2.0,
+            cy: size as f32 / 2.0,
+            width: size,
+            height: size,
+        }
+    }
+
+    fn orbit(
+        n: usize,
+        distance: impl Fn(usize) -> f32,
+        size: impl Fn(usize) -> u32,
+    ) -> Vec<Camera> {
+        (0..n)
+            .map(|i| {
+                let a = i as f32 / n as f32 * std::f32::consts::TAU;
+                let eye = Vec3::new(a.cos(), 0.3, a.sin()).normalize() * distance(i);
+                looking_at_origin(eye, size(i))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_axes_of_an_orbit_meet_where_it_looks() {
+        let cams = orbit(8, |i| 3.0 + i as f32 * 0.2, |_| 64);
+        let c = axes_centre(&cams).unwrap();
+        assert!(c.length() < 1e-5, "{c}");
+        // One camera, or axes that are all parallel, give no centre.
+        assert!(axes_centre(&cams[..1]).is_none());
+        let parallel: Vec<Camera> = (0..4)
+            .map(|i| {
+                let mut c = looking_at_origin(Vec3::new(0.0, 0.0, 5.0), 64);
+                c.c2w = Mat4::from_translation(Vec3::new(i as f32, 0.0, 5.0));
+                c
+            })
+            .collect();
+        assert!(axes_centre(&parallel).is_none());
+    }
+
+    #[test]
+    fn views_much_coarser_than_the_sharpest_quarter_do_not_resolve_the_subject() {
+        let at = |cams: &[Camera]| footprints_at(cams, DVec3::ZERO);
+        // An orbit whose distance varies by 1.3x: every view resolves the subject, and the
+        // footprint is the plain median.
+        let varied = orbit(12, |i| 3.0 * (1.0 + 0.3 * i as f32 / 11.0), |_| 256);
+        let f = at(&varied);
+        assert!(resolving_views(&f).iter().all(|r| *r));
+        let mut sorted = f.clone();
+        sorted.sort_by(f64::total_cmp);
+        assert_eq!(resolving_footprint(&f), Some(sorted[6]));
+        // Every other camera at half the resolution: those are set aside, and the
+        // footprint is the sharp half's.
+        let mixed = orbit(12, |_| 3.0, |i| if i % 2 == 0 { 256 } else { 128 });
+        let f = at(&mixed);
+        let keep = resolving_views(&f);
+        assert_eq!(keep, (0..12).map(|i| i % 2 == 0).collect::<Vec<_>>());
+        assert!((resolving_footprint(&f).unwrap() - f[0]).abs() < 1e-9 * f[0]);
+        // A sharp quarter still leads; fewer sharp views than a quarter (two close-ups)
+        // set nothing aside.
+        let quarter = orbit(12, |_| 3.0, |i| if i % 4 == 0 { 256 } else { 128 });
+        assert_eq!(
+            resolving_views(&at(&quarter))
+                .iter()
+                .filter(|r| **r)
+                .count(),
+            3
+        );
+        let closeups = orbit(12, |i| if i < 2 { 1.0 } else { 3.0 }, |_| 256);
+        assert!(resolving_views(&at(&closeups)).iter().all(|r| *r));
+        // A footprint that says nothing (a camera without a focal length) is kept.
+        let mut odd = f.clone();
+        odd[1] = f64::NAN;
+        assert!(resolving_views(&odd)[1]);
+        assert_eq!(resolving_footprint(&[f64::NAN]), None);
+    }
 }

@@ -31,6 +31,16 @@
 //! captures: the wavelength is the finest the views resolve, unless the strands are themselves
 //! several pixels wide, where the public 0.23 applies (`frequency`).
 //!
+//! # Views coarser than the rest
+//! The same reasoning across the views of one capture: where a camera sees the animal with a pixel
+//! much wider than the others' (a second camera at half the resolution, photographs from twice
+//! the distance), its filters find the coat's pattern where the sharper views find the fur, and a
+//! learner that averages both is pulled onto the pattern. Views whose pixel footprint at the
+//! subject (where the optical axes meet) is more than 1.5 times the coarsest of the sharpest
+//! quarter's ([`crate::data::camera::resolving_views`]) get maps of confidence 0, listed in
+//! `index.json` as `coarse_views`; their photos still count for every other term. The sharpest
+//! quarter, not the sharpest view, leads, so that a few close-ups leave the rest as they are.
+//!
 //! # Device
 //! With `device = "gpu"` (feature `gpu`) steps 1-3 run here as always and step 4, the per-pixel work
 //! that grows with orientations x taps x pixels, runs as `render/gpu/gabor.wgsl`; the two agree
@@ -55,7 +65,7 @@
 //! Output directory `maps`: `<name>_orient.exr` and `<name>_conf.exr` (one channel, f32), `<name>` being
 //! the image path relative to its folder without extension (`train/r_000` -> `train/r_000_orient.exr`),
 //! and `index.json` listing, in input order, `{image, orient, conf, width, height, downscale}` plus the
-//! parameters used.
+//! parameters used and, where there are any, the `coarse_views` (`{image, footprint_ratio}`).
 
 use std::path::PathBuf;
 
@@ -327,6 +337,26 @@ pub fn orientation_maps_on(
     }
 }
 
+/// The training views that see the subject (where their optical axes meet) coarser than
+/// [`crate::data::camera::resolving_views`] allows; none when the axes do not meet.
+pub fn coarse_views(cams: &[crate::data::camera::Camera]) -> Vec<CoarseView> {
+    use crate::data::camera;
+    let Some(centre) = camera::axes_centre(cams) else {
+        return Vec::new();
+    };
+    let foot = camera::footprints_at(cams, centre);
+    let sharpest = camera::sharpest_quarter_footprint(&foot);
+    cams.iter()
+        .zip(&foot)
+        .zip(camera::resolving_views(&foot))
+        .filter(|(_, resolving)| !resolving)
+        .map(|((c, f), _)| CoarseView {
+            image: c.file_path.clone(),
+            footprint_ratio: sharpest.map_or(f64::NAN, |s| f / s),
+        })
+        .collect()
+}
+
 /// One entry of `index.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapEntry {
@@ -353,6 +383,19 @@ pub struct MapIndex {
     /// "angle in [0, pi) of the strand direction, image coordinates u right, v down".
     pub convention: String,
     pub maps: Vec<MapEntry>,
+    /// Training views that see the subject coarser than the capture's sharper views
+    /// (`data::camera::resolving_views`): their maps are written with confidence 0.
+    /// Absent when there is none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub coarse_views: Vec<CoarseView>,
+}
+
+/// A training view whose maps carry no direction (`MapIndex::coarse_views`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarseView {
+    pub image: String,
+    /// Its pixel footprint at the subject over the coarsest of the sharpest quarter's.
+    pub footprint_ratio: f64,
 }
 
 fure_stage_api::stage_params! {
@@ -383,7 +426,7 @@ impl Stage for OrientationMapsStage {
         "orientation_maps"
     }
     fn version(&self) -> u32 {
-        2
+        3
     }
     fn doc(&self) -> &'static str {
         "Gabor orientation (strand direction angle in [0, pi), v down) and confidence maps of the \
@@ -426,11 +469,24 @@ impl Stage for OrientationMapsStage {
             PathBuf,
             Option<(PathBuf, crate::data::camera::Camera)>,
         );
+        let mut coarse = Vec::new();
         let jobs: Vec<Job> = match (ctx.input_opt("views"), ctx.input_opt("images")) {
             (Some(v), None) => {
                 let cams = crate::formats::cameras::read_views(v)?;
                 if cams.train.is_empty() {
                     return Err(StageError::input("views", v, "no training frames"));
+                }
+                coarse = coarse_views(&cams.train);
+                if let Some(worst) = coarse.iter().map(|c| c.footprint_ratio).reduce(f64::max) {
+                    ctx.progress.note(&format!(
+                        "{} of {} training views see the animal more than {} times coarser than \
+                         the sharpest quarter of the views (up to {worst:.2}): their maps carry \
+                         no direction (confidence 0), since a coarser pixel shows the coat's \
+                         pattern rather than its fur; index.json lists them",
+                        coarse.len(),
+                        cams.train.len(),
+                        crate::data::camera::RESOLVING_RATIO,
+                    ));
                 }
                 cams.train
                     .into_iter()
@@ -502,8 +558,12 @@ impl Stage for OrientationMapsStage {
             }
             let img = img.box_downscaled(factor);
             let mask = mask.map(|m| m.box_downscaled(factor));
-            let (o, c) =
-                orientation_maps_on(&device, &img, mask.as_ref().map(|m| m.data.as_slice()), &gp)?;
+            let (o, c) = if coarse.iter().any(|c| c.image == rel) {
+                let blank = ImageF32::new(img.width, img.height, 1);
+                (blank.clone(), blank)
+            } else {
+                orientation_maps_on(&device, &img, mask.as_ref().map(|m| m.data.as_slice()), &gp)?
+            };
             fure_stage_api::ensure_finite(
                 &format!("orientation maps of {rel}"),
                 o.data.iter().chain(&c.data).copied(),
@@ -534,6 +594,7 @@ impl Stage for OrientationMapsStage {
                          (render::orientation_angle)"
                     .into(),
             maps: entries,
+            coarse_views: coarse,
         };
         crate::formats::json::write_json(out_dir.join("index.json"), &index)?;
         Ok(())
@@ -780,5 +841,71 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("exactly one"), "{e}");
+    }
+
+    #[test]
+    fn views_coarser_than_the_sharper_ones_carry_no_direction() {
+        use crate::data::camera::{Camera, CameraSet};
+        // An orbit of eight cameras, every other one at half the resolution: the same stripes
+        // in every photo, so only the footprint rule can tell the maps apart.
+        let dir = tempfile::tempdir().unwrap();
+        let views = dir.path().join("views");
+        std::fs::create_dir_all(&views).unwrap();
+        let train: Vec<Camera> = (0..8)
+            .map(|i| {
+                let size = if i % 2 == 0 { 48 } else { 24 };
+                let a = i as f32 / 8.0 * std::f32::consts::TAU;
+                let eye = glam::Vec3::new(a.cos(), 0.2, a.sin()) * 4.0;
+                let f = size as f32 * 1.2;
+                let name = format!("{i}.png");
+                let mut rgba = ImageF32::new(size, size, 4);
+                let s = stripes(size, size, 0.5, 2.5);
+                for (px, v) in rgba.data.chunks_exact_mut(4).zip(&s.data) {
+                    px.copy_from_slice(&[*v, *v, *v, 1.0]);
+                }
+                crate::formats::images::write_png(views.join(&name), &rgba).unwrap();
+                Camera {
+                    file_path: name,
+                    c2w: glam::Mat4::look_at_rh(eye, glam::Vec3::ZERO, glam::Vec3::Y).inverse(),
+                    fx: f,
+                    fy: f,
+                    cx: size as f32 / 2.0,
+                    cy: size as f32 / 2.0,
+                    width: size,
+                    height: size,
+                }
+            })
+            .collect();
+        crate::formats::cameras::write_views(
+            &views,
+            &CameraSet {
+                train,
+                test: vec![],
+            },
+        )
+        .unwrap();
+        let outs = crate::evaluation::evaluate::tests::run_stage(
+            &OrientationMapsStage,
+            &[("views", views)],
+            &dir.path().join("out"),
+        )
+        .unwrap();
+        let maps = &outs["maps"];
+        let idx: MapIndex = crate::formats::json::read_json(maps.join("index.json")).unwrap();
+        let coarse: Vec<&str> = idx.coarse_views.iter().map(|c| c.image.as_str()).collect();
+        assert_eq!(coarse, ["1.png", "3.png", "5.png", "7.png"]);
+        assert!(idx
+            .coarse_views
+            .iter()
+            .all(|c| (c.footprint_ratio - 2.0).abs() < 1e-3));
+        for (k, entry) in idx.maps.iter().enumerate() {
+            let c = crate::formats::images::read_exr(maps.join(&entry.conf)).unwrap();
+            let confident = c.data.iter().filter(|v| **v > 0.0).count();
+            if k % 2 == 0 {
+                assert!(confident > c.data.len() / 2, "{}: {confident}", entry.image);
+            } else {
+                assert_eq!(confident, 0, "{}", entry.image);
+            }
+        }
     }
 }

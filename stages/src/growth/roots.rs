@@ -1362,7 +1362,8 @@ impl Stage for RootsStage {
         "roots"
     }
     fn version(&self) -> u32 {
-        3
+        // 4: the pixel footprint is the resolving views' (`data::camera::resolving_views`).
+        4
     }
     fn doc(&self) -> &'static str {
         "Strand roots on M_root: per-part densities (deterministic stratified sampling), part length and \

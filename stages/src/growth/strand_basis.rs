@@ -95,7 +95,8 @@
 //!
 //! # Choosing L and K
 //! - `points` (L): with `points = 0` the stage picks the segment length near the pixel footprint for the
-//!   mean strand length: footprint `f` = median over training cameras of (depth of the scene centre / fx),
+//!   mean strand length: footprint `f` = median over the training cameras that resolve the subject
+//!   ([`crate::data::camera::resolving_views`]) of (depth of the scene centre / fx),
 //!   scene units per pixel, the scene centre being the least-squares intersection of the camera axes;
 //!   mean length `l` = mean over fur parts of the `lengths` stage's estimated `l_p` (scene units;
 //!   an estimate from the images, never the scene's ground-truth lengths);
@@ -132,6 +133,8 @@ use std::path::Path;
 
 use fure_stage_api::{ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
 use glam::{DVec3, Vec3};
+
+use crate::data::camera;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -1425,20 +1428,6 @@ pub fn perm_basis(
 // ---------------------------------------------------------------------------------------------
 // Choosing L from the scene.
 
-/// Least-squares intersection of the cameras' optical axes (None when degenerate).
-fn axes_centre(cams: &[crate::data::camera::Camera]) -> Option<DVec3> {
-    let mut a = glam::DMat3::ZERO;
-    let mut b = DVec3::ZERO;
-    for c in cams {
-        let o = c.center().as_dvec3();
-        let d = (-c.c2w.z_axis.truncate()).as_dvec3().normalize_or_zero();
-        let m = glam::DMat3::IDENTITY - glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
-        a += m;
-        b += m * o;
-    }
-    (a.determinant().abs() > 1e-9).then(|| a.inverse() * b)
-}
-
 /// How L was chosen, for metrics.json.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PointsChoice {
@@ -1472,22 +1461,11 @@ pub fn choose_points(
         return fallback("no fur part with a length, or no training cameras");
     }
     let mean_len = lens.iter().sum::<f64>() / lens.len() as f64;
-    let centre = axes_centre(&cams.train).unwrap_or(DVec3::ZERO);
-    let mut fp: Vec<f64> = cams
-        .train
-        .iter()
-        .filter(|c| c.fx > 0.0)
-        .map(|c| {
-            let local = c.w2c().as_dmat4().transform_point3(centre);
-            (-local.z).abs() / c.fx as f64
-        })
-        .filter(|f| f.is_finite() && *f > 0.0)
-        .collect();
-    if fp.is_empty() {
+    let centre = camera::axes_centre(&cams.train).unwrap_or(DVec3::ZERO);
+    let Some(foot) = camera::resolving_footprint(&camera::footprints_at(&cams.train, centre))
+    else {
         return fallback("no usable camera");
-    }
-    fp.sort_by(f64::total_cmp);
-    let foot = fp[fp.len() / 2];
+    };
     let l = ((mean_len / foot).round() as i64 + 1).clamp(8, 64) as usize;
     PointsChoice {
         points: l,
@@ -1558,7 +1536,8 @@ impl Stage for StrandBasisStage {
         "strand_basis"
     }
     fn version(&self) -> u32 {
-        3
+        // 4: L from the footprint of the views that resolve the subject.
+        4
     }
     fn doc(&self) -> &'static str {
         "PCA strand basis (mean + K components) in the root-local canonical frame (x tangent, y \

@@ -55,7 +55,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 use fure_stage_api::{ensure_finite, ParamSpec, Params, PortSpec, Stage, StageContext, StageError};
-use glam::{DMat3, DVec3, Mat4};
+use glam::{DVec3, Mat4};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
@@ -141,36 +141,6 @@ pub fn kept_indices(n: usize, k: usize) -> Result<Vec<usize>, String> {
         ));
     }
     Ok((0..k).map(|i| i * n / k).collect())
-}
-
-/// The point closest in least squares to the optical axes of `cams`.
-pub fn axes_centre(cams: &[Camera]) -> Result<DVec3, String> {
-    let mut a = DMat3::ZERO;
-    let mut b = DVec3::ZERO;
-    for c in cams {
-        let o = c.center().as_dvec3();
-        let d = (-c.c2w.z_axis.truncate()).as_dvec3().normalize_or_zero();
-        if d == DVec3::ZERO {
-            continue;
-        }
-        // (I - d d^T) projects onto the plane orthogonal to the axis.
-        let p = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
-        a += p;
-        b += p * o;
-    }
-    let det = a.determinant();
-    if cams.len() < 2 || det.abs() < 1e-9 * (cams.len() as f64).powi(3) {
-        return Err(format!(
-            "cannot find the object centre for the jitter orbit: the {} training camera axes do not \
-             meet (fewer than two, or all parallel)",
-            cams.len()
-        ));
-    }
-    let x = a.inverse() * b;
-    if !x.is_finite() {
-        return Err("the object centre of the camera axes is not finite".into());
-    }
-    Ok(x)
 }
 
 /// A uniformly random unit axis from `rng`.
@@ -468,8 +438,17 @@ fn jitter_cameras(
     edits: &mut Rewrites,
     report: &mut CorruptionReport,
 ) -> Result<(), StageError> {
-    let pivot =
-        axes_centre(&views.train).map_err(|m| StageError::input("views", &views.train_file, m))?;
+    let pivot = crate::data::camera::axes_centre(&views.train).ok_or_else(|| {
+        StageError::input(
+            "views",
+            &views.train_file,
+            format!(
+                "cannot find the object centre for the jitter orbit: the {} training camera \
+                 axes do not meet (fewer than two, or all parallel)",
+                views.train.len()
+            ),
+        )
+    })?;
     report.pivot = Some(pivot.to_array());
     let angle = (cfg.jitter_deg as f64).to_radians();
     for (cam, &i) in edits.cams.iter_mut().zip(kept) {

@@ -46,7 +46,8 @@
 //!    coarse carving pass.
 //! 4. **Grid.** `resolution` voxels along the box's longest side; by default
 //!    the voxel projects to `voxel_pixels` (1.5) pixels at the box centre in
-//!    the median view, capped by `max_resolution` to bound cost. The box is
+//!    the median view of those that resolve it (`data::camera::resolving_views`:
+//!    a capture's coarser camera does not coarsen the grid), capped by `max_resolution` to bound cost. The box is
 //!    padded by one voxel so the grid border is outside the hull.
 //! 5. **Surface extraction: surface nets**, one vertex per boundary cell, one
 //!    quad per grid edge whose ends differ in inside/outside, ordered so its
@@ -1080,17 +1081,17 @@ pub fn visual_hull(
     let (lo, hi) = cone_box(views, cams, k)?;
     let ext = hi - lo;
     let longest = ext.max_element().max(1e-9);
-    // Pixel footprint at the box centre, median over views.
+    // Pixel footprint at the box centre, median over the views that resolve it.
     let centre = 0.5 * (lo + hi);
-    let mut foot: Vec<f32> = views
+    let foot: Vec<f64> = views
         .iter()
         .filter_map(|v| {
             let (_, _, d) = v.project(centre);
-            (d > 0.0).then(|| d / v.fx.abs().max(1e-9))
+            (d > 0.0).then(|| (d / v.fx.abs().max(1e-9)) as f64)
         })
         .collect();
-    foot.sort_by(f32::total_cmp);
-    let pixel = foot.get(foot.len() / 2).copied().unwrap_or(longest / 256.0);
+    let pixel =
+        crate::data::camera::resolving_footprint(&foot).map_or(longest / 256.0, |f| f as f32);
     let res = match s.resolution {
         Some(r) => r.max(4),
         None => ((longest / (s.voxel_pixels.max(0.1) * pixel)).ceil() as usize)
@@ -1324,7 +1325,9 @@ fn train_file(dir: &Path) -> std::path::PathBuf {
 pub struct OuterSurfaceStage;
 
 // 3: a view whose foreground touches the image border carves nothing beyond that side.
-const VERSION: u32 = 3;
+// 4: the grid's footprint is the median over the views that resolve the subject
+// (`data::camera::resolving_views`), not over every view.
+const VERSION: u32 = 4;
 
 /// Reads the training views' masks (see the module doc for the convention).
 pub fn read_mask_views(

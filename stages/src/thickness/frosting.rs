@@ -1977,7 +1977,8 @@ impl Stage for FrostingStage {
         // 4: the reported width and gradient percentiles interpolate in f64
         // (the one `stats::percentile`), which may change their last bits.
         // 5: metrics report the widths in pixels (`resolution`); the shell is unchanged.
-        5
+        // 6: those pixels are the resolving views' (`data::camera::resolving_views`).
+        6
     }
     fn doc(&self) -> &'static str {
         "Gaussian Frosting shell widths on M_outer: fit unconstrained 3D Gaussians (initialised in a band \

@@ -490,7 +490,9 @@ impl Stage for CodecStrandsStage {
         // 23: the learned style scale (learn_style), never below 1.
         // 24: the shape term (l_turn).
         // 25: the views' elevation weighed by the maps' excess coherence.
-        25
+        // 27: pixel radii at the footprint of the views that resolve the subject (26 was
+        // taken by a trial that did not land; caches may hold its entries).
+        27
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -518,7 +520,9 @@ impl Stage for DenseStrandsStage {
         "dense_strands"
     }
     fn version(&self) -> u32 {
-        14
+        // 16: pixel radii at the footprint of the views that resolve the subject (15 was
+        // taken by a trial that did not land; caches may hold its entries).
+        16
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
