@@ -88,12 +88,31 @@ pub const RESOLVING_RATIO: f64 = 1.5;
 /// sharpest quarter rather than the sharpest view, so that a few close-ups of
 /// a head do not set the rest of the animal aside.
 pub fn resolving_views(footprints: &[f64]) -> Vec<bool> {
-    let Some(reference) = sharpest_quarter_footprint(footprints) else {
-        return vec![true; footprints.len()];
-    };
+    footprint_ratios(footprints)
+        .into_iter()
+        .map(resolves)
+        .collect()
+}
+
+/// Whether a view whose footprint is `ratio` times the sharpest quarter's
+/// resolves the subject (a ratio that is not a number says nothing: it does).
+pub fn resolves(ratio: f64) -> bool {
+    !(ratio > RESOLVING_RATIO)
+}
+
+/// Each footprint over the coarsest of the sharpest quarter's
+/// ([`sharpest_quarter_footprint`]); not a number where either says nothing.
+pub fn footprint_ratios(footprints: &[f64]) -> Vec<f64> {
+    let reference = sharpest_quarter_footprint(footprints).unwrap_or(f64::NAN);
     footprints
         .iter()
-        .map(|&f| !usable_footprint(f) || f <= RESOLVING_RATIO * reference)
+        .map(|&f| {
+            if usable_footprint(f) {
+                f / reference
+            } else {
+                f64::NAN
+            }
+        })
         .collect()
 }
 
@@ -111,6 +130,24 @@ pub fn sharpest_quarter_footprint(footprints: &[f64]) -> Option<f64> {
 
 fn usable_footprint(f: f64) -> bool {
     f.is_finite() && f > 0.0
+}
+
+/// [`resolving_views`] for cameras, from their footprints where their optical axes meet
+/// ([`axes_centre`]); every camera resolves when the axes do not meet.
+pub fn resolving_cameras(cameras: &[Camera]) -> Vec<bool> {
+    camera_footprint_ratios(cameras)
+        .into_iter()
+        .map(resolves)
+        .collect()
+}
+
+/// [`footprint_ratios`] of cameras where their optical axes meet; not a number
+/// for every camera when the axes do not meet.
+pub fn camera_footprint_ratios(cameras: &[Camera]) -> Vec<f64> {
+    match axes_centre(cameras) {
+        Some(centre) => footprint_ratios(&footprints_at(cameras, centre)),
+        None => vec![f64::NAN; cameras.len()],
+    }
 }
 
 /// The median footprint over the resolving views (the upper middle for an
@@ -167,38 +204,43 @@ pub fn axes_centre(cameras: &[Camera]) -> Option<DVec3> {
     Some(a.inverse() * b).filter(|x| x.is_finite())
 }
 
+/// Test support: a camera at `eye` looking at the origin, `size` pixels square with a
+/// 40-degree field, its photo `name`.
+#[cfg(test)]
+pub(crate) fn looking_at_origin(eye: Vec3, size: u32, name: String) -> Camera {
+    let f = size as f32 / (2.0 * 20f32.to_radians().tan());
+    Camera {
+        file_path: name,
+        c2w: Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Y).inverse(),
+        fx: f,
+        fy: f,
+        cx: size as f32 / 2.0,
+        cy: size as f32 / 2.0,
+        width: size,
+        height: size,
+    }
+}
+
+/// Test support: `n` cameras around the origin, camera `i` at `distance(i)` with
+/// `size(i)` pixels, its photo `{i}.png`.
+#[cfg(test)]
+pub(crate) fn orbit(
+    n: usize,
+    distance: impl Fn(usize) -> f32,
+    size: impl Fn(usize) -> u32,
+) -> Vec<Camera> {
+    (0..n)
+        .map(|i| {
+            let a = i as f32 / n as f32 * std::f32::consts::TAU;
+            let eye = Vec3::new(a.cos(), 0.3, a.sin()).normalize() * distance(i);
+            looking_at_origin(eye, size(i), format!("{i}.png"))
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A camera at `eye` looking at the origin, `size` pixels square with a 40-degree field.
-    fn looking_at_origin(eye: Vec3, size: u32) -> Camera {
-        let f = size as f32 / (2.0 * 20f32.to_radians().tan());
-        Camera {
-            file_path: format!("{size}.png"),
-            c2w: Mat4::look_at_rh(eye, Vec3::ZERO, Vec3::Y).inverse(),
-            fx: f,
-            fy: f,
-            cx: size as f32 / 2.0,
-            cy: size as f32 / 2.0,
-            width: size,
-            height: size,
-        }
-    }
-
-    fn orbit(
-        n: usize,
-        distance: impl Fn(usize) -> f32,
-        size: impl Fn(usize) -> u32,
-    ) -> Vec<Camera> {
-        (0..n)
-            .map(|i| {
-                let a = i as f32 / n as f32 * std::f32::consts::TAU;
-                let eye = Vec3::new(a.cos(), 0.3, a.sin()).normalize() * distance(i);
-                looking_at_origin(eye, size(i))
-            })
-            .collect()
-    }
 
     #[test]
     fn the_axes_of_an_orbit_meet_where_it_looks() {
@@ -209,7 +251,7 @@ mod tests {
         assert!(axes_centre(&cams[..1]).is_none());
         let parallel: Vec<Camera> = (0..4)
             .map(|i| {
-                let mut c = looking_at_origin(Vec3::new(0.0, 0.0, 5.0), 64);
+                let mut c = looking_at_origin(Vec3::new(0.0, 0.0, 5.0), 64, "p.png".into());
                 c.c2w = Mat4::from_translation(Vec3::new(i as f32, 0.0, 5.0));
                 c
             })

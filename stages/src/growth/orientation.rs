@@ -341,18 +341,12 @@ pub fn orientation_maps_on(
 /// [`crate::data::camera::resolving_views`] allows; none when the axes do not meet.
 pub fn coarse_views(cams: &[crate::data::camera::Camera]) -> Vec<CoarseView> {
     use crate::data::camera;
-    let Some(centre) = camera::axes_centre(cams) else {
-        return Vec::new();
-    };
-    let foot = camera::footprints_at(cams, centre);
-    let sharpest = camera::sharpest_quarter_footprint(&foot);
     cams.iter()
-        .zip(&foot)
-        .zip(camera::resolving_views(&foot))
-        .filter(|(_, resolving)| !resolving)
-        .map(|((c, f), _)| CoarseView {
+        .zip(camera::camera_footprint_ratios(cams))
+        .filter(|(_, ratio)| !camera::resolves(*ratio))
+        .map(|(c, ratio)| CoarseView {
             image: c.file_path.clone(),
-            footprint_ratio: sharpest.map_or(f64::NAN, |s| f / s),
+            footprint_ratio: ratio,
         })
         .collect()
 }
@@ -845,37 +839,21 @@ mod tests {
 
     #[test]
     fn views_coarser_than_the_sharper_ones_carry_no_direction() {
-        use crate::data::camera::{Camera, CameraSet};
+        use crate::data::camera::CameraSet;
         // An orbit of eight cameras, every other one at half the resolution: the same stripes
         // in every photo, so only the footprint rule can tell the maps apart.
         let dir = tempfile::tempdir().unwrap();
         let views = dir.path().join("views");
         std::fs::create_dir_all(&views).unwrap();
-        let train: Vec<Camera> = (0..8)
-            .map(|i| {
-                let size = if i % 2 == 0 { 48 } else { 24 };
-                let a = i as f32 / 8.0 * std::f32::consts::TAU;
-                let eye = glam::Vec3::new(a.cos(), 0.2, a.sin()) * 4.0;
-                let f = size as f32 * 1.2;
-                let name = format!("{i}.png");
-                let mut rgba = ImageF32::new(size, size, 4);
-                let s = stripes(size, size, 0.5, 2.5);
-                for (px, v) in rgba.data.chunks_exact_mut(4).zip(&s.data) {
-                    px.copy_from_slice(&[*v, *v, *v, 1.0]);
-                }
-                crate::formats::images::write_png(views.join(&name), &rgba).unwrap();
-                Camera {
-                    file_path: name,
-                    c2w: glam::Mat4::look_at_rh(eye, glam::Vec3::ZERO, glam::Vec3::Y).inverse(),
-                    fx: f,
-                    fy: f,
-                    cx: size as f32 / 2.0,
-                    cy: size as f32 / 2.0,
-                    width: size,
-                    height: size,
-                }
-            })
-            .collect();
+        let train = crate::data::camera::orbit(8, |_| 4.0, |i| if i % 2 == 0 { 48 } else { 24 });
+        for cam in &train {
+            let mut rgba = ImageF32::new(cam.width, cam.height, 4);
+            let s = stripes(cam.width, cam.height, 0.5, 2.5);
+            for (px, v) in rgba.data.chunks_exact_mut(4).zip(&s.data) {
+                px.copy_from_slice(&[*v, *v, *v, 1.0]);
+            }
+            crate::formats::images::write_png(views.join(&cam.file_path), &rgba).unwrap();
+        }
         crate::formats::cameras::write_views(
             &views,
             &CameraSet {

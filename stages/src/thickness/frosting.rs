@@ -1762,15 +1762,24 @@ impl FrostingParams {
     }
 }
 
-/// Reads the training views as fitting targets: RGB composited on black with
-/// the `coverage`, which is also the silhouette target.
+/// Reads the training views that resolve the subject
+/// ([`crate::data::camera::resolving_cameras`]) as fitting targets: RGB
+/// composited on black with the `coverage`, which is also the silhouette
+/// target. The widths follow the views' pixel where the fur spans a pixel or
+/// two (module doc), so a capture's coarser views would widen them.
 fn read_train_views(
     dir: &std::path::Path,
     coverage: Coverage,
 ) -> Result<Vec<TrainView>, StageError> {
     let set = crate::formats::cameras::read_training_views(dir)?;
-    let out: Vec<Result<TrainView, StageError>> = set
+    let resolving = crate::data::camera::resolving_cameras(&set.train);
+    let cams: Vec<&crate::data::camera::Camera> = set
         .train
+        .iter()
+        .zip(resolving)
+        .filter_map(|(c, r)| r.then_some(c))
+        .collect();
+    let out: Vec<Result<TrainView, StageError>> = cams
         .par_iter()
         .map(|cam| {
             let img = crate::formats::cameras::read_view(dir, cam)?;
@@ -1795,7 +1804,7 @@ fn read_train_views(
                 }
             }
             Ok(TrainView {
-                camera: cam.clone(),
+                camera: (*cam).clone(),
                 rgb,
                 mask,
             })
@@ -1877,6 +1886,17 @@ fn fit_widths(
 ) -> Result<WidthsOutcome, StageError> {
     ctx.progress.message("reading training views");
     let train = read_train_views(dir, params.coverage)?;
+    let views = crate::formats::cameras::read_training_views(dir)?
+        .train
+        .len();
+    if train.len() < views {
+        ctx.progress.note(&format!(
+            "fitted to the {} of {views} training views that resolve the animal: the others see \
+             it more than {} times coarser than the sharpest quarter, and would widen the shell",
+            train.len(),
+            crate::data::camera::RESOLVING_RATIO
+        ));
+    }
     ctx.progress.message("fitting Gaussians");
     let fs = params.fit_settings();
     let (g, rep) = fit_gaussians_on(device, mesh, &train, &fs, ctx.progress)?;
@@ -1978,7 +1998,8 @@ impl Stage for FrostingStage {
         // (the one `stats::percentile`), which may change their last bits.
         // 5: metrics report the widths in pixels (`resolution`); the shell is unchanged.
         // 6: those pixels are the resolving views' (`data::camera::resolving_views`).
-        6
+        // 7: the Gaussians are fitted to the resolving views only.
+        7
     }
     fn doc(&self) -> &'static str {
         "Gaussian Frosting shell widths on M_outer: fit unconstrained 3D Gaussians (initialised in a band \
@@ -2213,6 +2234,27 @@ mod tests {
         );
         // Composited on black with the soft coverage: premultiplied colour.
         assert!(near(&red(&by_alpha[0]), &soft), "{:?}", red(&by_alpha[0]));
+    }
+
+    #[test]
+    fn the_fit_reads_only_the_views_that_resolve_the_subject() {
+        // Every other camera of an orbit at half the resolution: those views would widen
+        // the shell, so the fit does not read them.
+        let dir = tempfile::tempdir().unwrap();
+        let train = crate::data::camera::orbit(8, |_| 4.0, |i| if i % 2 == 0 { 32 } else { 16 });
+        for cam in &train {
+            let mut rgba = ImageF32::new(cam.width, cam.height, 4);
+            rgba.data.fill(1.0);
+            crate::formats::images::write_png(dir.path().join(&cam.file_path), &rgba).unwrap();
+        }
+        let set = crate::data::camera::CameraSet {
+            train,
+            test: vec![],
+        };
+        crate::formats::cameras::write_views(dir.path(), &set).unwrap();
+        let read = read_train_views(dir.path(), Coverage::Alpha).unwrap();
+        let names: Vec<&str> = read.iter().map(|v| v.camera.file_path.as_str()).collect();
+        assert_eq!(names, ["0.png", "2.png", "4.png", "6.png"]);
     }
 
     fn jitter(i: i32, j: i32, k: i32, amp: f32) -> Vec3 {
