@@ -186,7 +186,11 @@
 //! `gt_scene` the GT's `gt_median_thickness_px`), and the run log says when
 //! the median width is under two pixels. The measurements, on the six
 //! benchmark scenes at 128, 256 and 512 px, are in docs/history.md, "Frosting:
-//! the widths follow the pixel".
+//! the widths follow the pixel". For the same reason the fit reads only the
+//! views that resolve the subject (`data::camera::resolving_cameras`): in a
+//! capture that mixes a camera at half the resolution, or photographs from
+//! twice the distance, the coarser views would widen every width toward their
+//! own pixel (docs/history.md, "A capture's coarser views").
 //!
 //! # Imported widths
 //!
