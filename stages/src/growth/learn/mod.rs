@@ -251,6 +251,14 @@
 //!   hair's direction: there it wins 3 and 4 cm by more than the seed
 //!   spread, and it ties every synthetic dev scene at every threshold
 //!   (docs/history.md, "A dev scene rendered by Blender").
+//!   Maps that read a coat pattern pass that test (stripes agree across
+//!   views as fur does) but run across the prior's frames: where their
+//!   systematic turn (the per-root turns averaged as lines,
+//!   [`stage::systematic_turn`]) exceeds [`stage::ACROSS_DEG`] (60 degrees)
+//!   neither learner reads them, for the turn, the elevation or L_ori.
+//!   Stripes under a fur the views do not resolve read 88-90 degrees, the
+//!   dev presets at most 7.4 (docs/history.md, "Maps that read a coat
+//!   pattern").
 //! - Start elevation from the views (`view_elevation`, both learners, on):
 //!   the basis' mean strand rises about 39 degrees off its frame (the fur
 //!   corpus rises at 12 to 65), while a coat may lie at 20 or stand at 40.
