@@ -4,6 +4,11 @@
 //! axis, +y is up, +x is right. Pixel (u, v) has u to the right and v down,
 //! pixel centres at half-integers; a camera-space point (x, y, z), z < 0,
 //! projects to u = cx + fx * x / -z, v = cy - fy * y / -z.
+//!
+//! Also what the cameras' pixels are at the subject: each camera's footprint
+//! there, which views resolve it ([`resolving_views`]: a capture may mix
+//! cameras and distances), and the one footprint every stage sizes by
+//! ([`pixel_footprint`]).
 
 use glam::{DMat3, DVec3, Mat4, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
