@@ -73,10 +73,10 @@ pub fn pixel_footprint(cameras: &[Camera], outer: &crate::data::mesh::Mesh) -> f
 }
 
 /// How much coarser than the sharper views a view's pixel may be and still
-/// count as resolving the subject: 1.5, above the spread of an orbit at one
-/// focal length whose distance varies by a few tens of percent (the
-/// synthetic rigs span 1.3), below a second camera at half the resolution
-/// (2).
+/// count as resolving the subject: 1.5, above the spread of a hand-held orbit
+/// whose distance varies by a few tens of percent (the benchmark's rigs are
+/// orbits at one distance: 1.0), below a second camera at half the
+/// resolution (2).
 pub const RESOLVING_RATIO: f64 = 1.5;
 
 /// Which views resolve the subject, from each view's pixel footprint there
