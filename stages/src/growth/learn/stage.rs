@@ -843,7 +843,9 @@ pub struct ViewAxesReport {
 /// the fur is resolved. 60 lies between those and above the 45 degrees of the
 /// deliberately wrong start the maps must correct (`frame_rotation_deg`,
 /// pipelines/wrong_start.toml): a start turned by less than 60 degrees is
-/// still mended (docs/history.md, "Maps that read a coat pattern").
+/// still mended (docs/history.md, "Maps that read a coat pattern"). Read
+/// where the frames turn onto the views' axes (`view_axes_radius_px` above 0,
+/// the default): with the turn off the maps are read as they are.
 pub const ACROSS_DEG: f32 = 60.0;
 
 /// The turn the views ask of the frames as a whole: the circular mean of the
