@@ -1770,11 +1770,12 @@ impl FrostingParams {
 /// ([`crate::data::camera::resolving_cameras`]) as fitting targets: RGB
 /// composited on black with the `coverage`, which is also the silhouette
 /// target. The widths follow the views' pixel where the fur spans a pixel or
-/// two (module doc), so a capture's coarser views would widen them.
+/// two (module doc), so a capture's coarser views would widen them. Also
+/// returns how many training views the capture has.
 fn read_train_views(
     dir: &std::path::Path,
     coverage: Coverage,
-) -> Result<Vec<TrainView>, StageError> {
+) -> Result<(Vec<TrainView>, usize), StageError> {
     let set = crate::formats::cameras::read_training_views(dir)?;
     let resolving = crate::data::camera::resolving_cameras(&set.train);
     let cams: Vec<&crate::data::camera::Camera> = set
@@ -1814,7 +1815,7 @@ fn read_train_views(
             })
         })
         .collect();
-    out.into_iter().collect()
+    Ok((out.into_iter().collect::<Result<_, _>>()?, set.train.len()))
 }
 
 /// The shell widths per vertex and how they were obtained (fitted or imported).
@@ -1889,10 +1890,7 @@ fn fit_widths(
     dir: &std::path::Path,
 ) -> Result<WidthsOutcome, StageError> {
     ctx.progress.message("reading training views");
-    let train = read_train_views(dir, params.coverage)?;
-    let views = crate::formats::cameras::read_training_views(dir)?
-        .train
-        .len();
+    let (train, views) = read_train_views(dir, params.coverage)?;
     if train.len() < views {
         ctx.progress.note(&format!(
             "fitted to the {} of {views} training views that resolve the animal: the others see \
@@ -2227,10 +2225,10 @@ mod tests {
             |v: &TrainView| -> Vec<f32> { v.rgb.data.chunks_exact(3).map(|p| p[0]).collect() };
         let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-3);
         let soft = [0.0, 0.2, 0.4, 0.6, 0.8];
-        let by_mask = read_train_views(dir.path(), Coverage::Mask).unwrap();
+        let (by_mask, _) = read_train_views(dir.path(), Coverage::Mask).unwrap();
         assert_eq!(by_mask[0].mask.data, m.data);
         assert!(near(&red(&by_mask[0]), &m.data), "{:?}", red(&by_mask[0]));
-        let by_alpha = read_train_views(dir.path(), Coverage::Alpha).unwrap();
+        let (by_alpha, _) = read_train_views(dir.path(), Coverage::Alpha).unwrap();
         assert!(
             near(&by_alpha[0].mask.data, &soft),
             "{:?}",
@@ -2256,7 +2254,8 @@ mod tests {
             test: vec![],
         };
         crate::formats::cameras::write_views(dir.path(), &set).unwrap();
-        let read = read_train_views(dir.path(), Coverage::Alpha).unwrap();
+        let (read, views) = read_train_views(dir.path(), Coverage::Alpha).unwrap();
+        assert_eq!(views, 8);
         let names: Vec<&str> = read.iter().map(|v| v.camera.file_path.as_str()).collect();
         assert_eq!(names, ["0.png", "2.png", "4.png", "6.png"]);
     }

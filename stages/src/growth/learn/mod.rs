@@ -257,7 +257,7 @@
 //!   [`stage::systematic_turn`]) exceeds [`stage::ACROSS_DEG`] (60 degrees)
 //!   neither learner reads them, for the turn, the elevation or L_ori.
 //!   Stripes under a fur the views do not resolve read 88-90 degrees, the
-//!   dev presets at most 7.4 (docs/history.md, "Maps that read a coat
+//!   dev presets at most 7.5 (docs/history.md, "Maps that read a coat
 //!   pattern").
 //! - Start elevation from the views (`view_elevation`, both learners, on):
 //!   the basis' mean strand rises about 39 degrees off its frame (the fur

@@ -839,7 +839,7 @@ pub struct ViewAxesReport {
 /// run across its fur: in views where the fur spans under two pixels (the
 /// tiger at 2 cm per pixel, or its photos blurred by 2 px) the filters follow
 /// the stripes, and the maps ask for a systematic turn of 88-90 degrees,
-/// against at most 7.4 on the dev presets and 0-2 on the same captures where
+/// against at most 7.5 on the dev presets and 0-2 on the same captures where
 /// the fur is resolved. 60 lies between those and above the 45 degrees of the
 /// deliberately wrong start the maps must correct (`frame_rotation_deg`,
 /// pipelines/wrong_start.toml): a start turned by less than 60 degrees is
