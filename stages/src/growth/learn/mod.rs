@@ -78,7 +78,7 @@
 //!   1 cm), and the tiger and the fox tie at every threshold. Without L_chm
 //!   the dense baseline's strict 1 cm score falls by 7-8 points on the tiger
 //!   and the fox (its free points take the freedom), so it keeps the hinge.
-//! - No shape term by default (`l_turn` 0, codec only; [`geomloss`]'s
+//! - No shape term by default (`l_turn` 0, either learner; [`geomloss`]'s
 //!   L_turn, the change of the turning angle from vertex to vertex). The
 //!   image terms flatten a strand's visible outer segments and leave the
 //!   hidden root segment as the basis put it, a kink the GT does not have

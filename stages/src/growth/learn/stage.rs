@@ -338,6 +338,9 @@ fure_stage_api::stage_params! {
         /// As the codec's; dense keeps the step at 0.65: at 0.75 it won the poodle's 2-4 cm
         /// and direction but lost its strict 1 cm score (learn module doc).
         view_elevation_full_ratio: f32 = float(0.65).range(0.0, 1.0).omit_default_from_key(),
+        /// As the codec's `l_turn` (L_turn on the free points). 0: not yet chosen on the dev
+        /// split for dense (learn module doc).
+        l_turn: f32 = float(0.0).min(0.0).omit_default_from_key(),
     }
 }
 
@@ -396,8 +399,7 @@ impl Learner {
     fn l_turn(&self) -> f32 {
         match self {
             Learner::Codec(c) => c.l_turn,
-            // Dense's strands have no such term (not tuned for it).
-            Learner::Dense(_) => 0.0,
+            Learner::Dense(d) => d.l_turn,
         }
     }
     fn colors(&self) -> OwnColors {

@@ -474,6 +474,44 @@ mod tests {
     }
 
     #[test]
+    fn the_shape_term_evens_the_turns_of_dense_strands() {
+        // Pushing every tip sideways kinks the dense strands' last segment; with L_turn the
+        // free points behind the tip follow it, so the turns change less from vertex to vertex.
+        let (prep, geo, dec) = sphere_scene(60);
+        let uneven_turns = |w_turn: f32| -> f32 {
+            let mut model = Model::Dense(Dense::from_local(&dec.mean(), prep.len()));
+            let mut c = cfg(100, 60);
+            c.w_chm = 0.0;
+            c.w_sdf = 0.0;
+            c.w_turn = w_turn;
+            let mut push = PushTips {
+                record_at: usize::MAX,
+                seen: Vec::new(),
+            };
+            let report = train(
+                &mut model,
+                &prep,
+                &geo,
+                Some(&mut push),
+                &c,
+                &NoProgress,
+                &mut |_, _, _| Ok(()),
+            )
+            .unwrap();
+            assert_eq!(report.final_losses.contains_key("turn"), w_turn > 0.0);
+            let points = model.all_points(&prep);
+            let mut unused = vec![Vec3::ZERO; points.len()];
+            geomloss::turning(&points, 8, 0.0, &mut unused)
+        };
+        let (free, shaped) = (uneven_turns(0.0), uneven_turns(1.0));
+        assert!(free > 0.0);
+        assert!(
+            shaped < 0.7 * free,
+            "L_turn of the pushed strands: {shaped} with the term, {free} without"
+        );
+    }
+
+    #[test]
     fn dense_reduces_the_same_losses() {
         let (prep, geo, dec) = sphere_scene(200);
         let mlp = Mlp::new(prep.feature_dim, 16, 1, dec.k, 1);
