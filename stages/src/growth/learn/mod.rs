@@ -90,7 +90,8 @@
 //!   ([`model::Grads::add_without_style`]): the style codes' curl is uneven by
 //!   construction, and with the full gradient the term held the scale at 1
 //!   and the poodle lost 14 points at 2 cm (docs/history.md, "A shape term
-//!   for the kink at the root").
+//!   for the kink at the root"). Dense takes the same term on its free
+//!   points (`dense.l_turn`), also 0 by default.
 //! - Subset rendering: only the sampled strands are rendered (as in NeuralFur);
 //!   widths are the roots' widths, unscaled.
 //! - Appearance: one RGB colour per strand (lazy Adam on sampled strands) and
