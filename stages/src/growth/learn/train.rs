@@ -421,6 +421,34 @@ mod tests {
         }
     }
 
+    /// Trains `model` under [`PushTips`] alone (no chamfer or penetration term); returns the
+    /// report and the points the push saw at iteration `record_at`.
+    fn train_pushed(
+        model: &mut Model,
+        prep: &Prepared,
+        geo: &Geometry,
+        mut c: TrainConfig,
+        record_at: usize,
+    ) -> (TrainReport, Vec<Vec3>) {
+        c.w_chm = 0.0;
+        c.w_sdf = 0.0;
+        let mut push = PushTips {
+            record_at,
+            seen: Vec::new(),
+        };
+        let report = train(
+            model,
+            prep,
+            geo,
+            Some(&mut push),
+            &c,
+            &NoProgress,
+            &mut |_, _, _| Ok(()),
+        )
+        .unwrap();
+        (report, push.seen)
+    }
+
     #[test]
     fn the_schedule_shrinks_the_last_step_of_both_learners() {
         let (prep, geo, dec) = sphere_scene(120);
@@ -434,26 +462,10 @@ mod tests {
             };
             let mut c = cfg(100, 120);
             c.lr_decay = decay;
-            c.w_chm = 0.0;
-            c.w_sdf = 0.0;
-            let mut push = PushTips {
-                record_at: 99,
-                seen: Vec::new(),
-            };
-            train(
-                &mut model,
-                &prep,
-                &geo,
-                Some(&mut push),
-                &c,
-                &NoProgress,
-                &mut |_, _, _| Ok(()),
-            )
-            .unwrap();
+            let (_, seen) = train_pushed(&mut model, &prep, &geo, c, 99);
             let end = model.all_points(&prep);
-            assert_eq!(push.seen.len(), end.len());
-            push.seen
-                .iter()
+            assert_eq!(seen.len(), end.len());
+            seen.iter()
                 .zip(&end)
                 .map(|(a, b)| a.distance(*b))
                 .sum::<f32>()
@@ -481,23 +493,8 @@ mod tests {
         let uneven_turns = |w_turn: f32| -> f32 {
             let mut model = Model::Dense(Dense::from_local(&dec.mean(), prep.len()));
             let mut c = cfg(100, 60);
-            c.w_chm = 0.0;
-            c.w_sdf = 0.0;
             c.w_turn = w_turn;
-            let mut push = PushTips {
-                record_at: usize::MAX,
-                seen: Vec::new(),
-            };
-            let report = train(
-                &mut model,
-                &prep,
-                &geo,
-                Some(&mut push),
-                &c,
-                &NoProgress,
-                &mut |_, _, _| Ok(()),
-            )
-            .unwrap();
+            let (report, _) = train_pushed(&mut model, &prep, &geo, c, usize::MAX);
             assert_eq!(report.final_losses.contains_key("turn"), w_turn > 0.0);
             let points = model.all_points(&prep);
             let mut unused = vec![Vec3::ZERO; points.len()];
