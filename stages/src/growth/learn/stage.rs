@@ -338,8 +338,9 @@ fure_stage_api::stage_params! {
         /// As the codec's; dense keeps the step at 0.65: at 0.75 it won the poodle's 2-4 cm
         /// and direction but lost its strict 1 cm score (learn module doc).
         view_elevation_full_ratio: f32 = float(0.65).range(0.0, 1.0).omit_default_from_key(),
-        /// As the codec's `l_turn` (L_turn on the free points). 0, as the codec's: a probe on
-        /// the Blender fox is in docs/history.md ("A shape term for the dense baseline").
+        /// As the codec's `l_turn` (L_turn on the free points). 0, as the codec's: at 1 it
+        /// ties the straight dev coats and loses the curling poodle at every threshold
+        /// (docs/history.md, "A shape term for the dense baseline").
         l_turn: f32 = float(0.0).min(0.0).omit_default_from_key(),
     }
 }
