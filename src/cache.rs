@@ -1431,9 +1431,17 @@ impl Cache {
         }
         for (name, path, n) in objects {
             if !referenced.contains(name.as_str()) {
+                // Outputs are hard links to objects (`exec::link_output`): an
+                // object still linked from an `out/` folder leaves the cache
+                // but not the disk, and the report says so.
+                let linked_outside = has_other_links(&path);
                 let _ = fs::remove_file(&path);
                 rep.objects_removed += 1;
-                rep.bytes_freed += n;
+                if linked_outside {
+                    rep.bytes_linked_outside += n;
+                } else {
+                    rep.bytes_freed += n;
+                }
             } else {
                 rep.bytes_kept += n;
             }
@@ -1486,9 +1494,25 @@ pub struct GcReport {
     pub entries_kept: usize,
     pub entries_removed: usize,
     pub objects_removed: usize,
+    /// Bytes of removed objects that left the disk.
     pub bytes_freed: u64,
+    /// Bytes of removed objects that stay on disk: other hard links to them
+    /// remain (outputs under an `out/` folder, or a user's own link).
+    pub bytes_linked_outside: u64,
     pub bytes_kept: u64,
     pub tmp_removed: usize,
+}
+
+/// Whether a file has hard links besides this path (never follows a link).
+#[cfg(unix)]
+fn has_other_links(path: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    fs::symlink_metadata(path).is_ok_and(|m| m.nlink() > 1)
+}
+
+#[cfg(not(unix))]
+fn has_other_links(_path: &Path) -> bool {
+    false
 }
 
 #[derive(Debug, Default, Clone, Serialize)]

@@ -889,7 +889,7 @@ fn cmd_gc(engine: &Engine, cache_dir: &Path, a: &GcArgs) -> Result<ExitCode, Fai
         max_size,
     });
     println!(
-        "gc: kept {} entries ({:.1} MiB), removed {} entries and {} objects ({:.1} MiB), {} stale staging dirs",
+        "gc: kept {} entries ({:.1} MiB), removed {} entries and {} objects ({:.1} MiB freed), {} stale staging dirs",
         rep.entries_kept,
         rep.bytes_kept as f64 / 1048576.0,
         rep.entries_removed,
@@ -897,6 +897,13 @@ fn cmd_gc(engine: &Engine, cache_dir: &Path, a: &GcArgs) -> Result<ExitCode, Fai
         rep.bytes_freed as f64 / 1048576.0,
         rep.tmp_removed
     );
+    if rep.bytes_linked_outside > 0 {
+        println!(
+            "gc: {:.1} MiB of the removed objects stay on disk: outputs outside the cache (out/ folders \
+             of earlier runs) are hard links to them; delete those outputs to free the space",
+            rep.bytes_linked_outside as f64 / 1048576.0
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 
