@@ -153,6 +153,13 @@ fure_stage_api::stage_params! {
         /// growth::view_axes::view_elevations; needs the `views` and `orientation` inputs;
         /// chosen on the dev split with learn_tilt off, learn module doc).
         view_elevation: bool = bool(true),
+        /// Where the views' elevation is weighed less than whole (view_elevation_full_ratio),
+        /// the elevation the frames fall back to in its stead, in degrees (the mean strand's
+        /// first third above the surface, as the basis' own is read). Unset: the basis' own,
+        /// which is a fur prior for the fur corpus (39 degrees) but lies on the skin for human
+        /// hair (-4): the human-basis ablation sets the fur's, so that it differs from the
+        /// codec by its shapes alone (pipelines/benchmark.toml).
+        untrusted_elevation_deg: Option<f64> = optional(ParamType::Float).range(-90.0, 90.0),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
@@ -877,9 +884,13 @@ pub struct ViewElevationReport {
     pub views_deg: f32,
     /// The basis mean strand's elevation (first third), degrees.
     pub basis_deg: f32,
-    /// The weight of the views' elevation beside the basis' (`view_elevation_trust`: the maps'
-    /// excess coherence over their coherence, ramped from 0.65 to `view_elevation_full_ratio`).
+    /// The weight of the views' elevation beside the fallback's (`view_elevation_trust`: the
+    /// maps' excess coherence over their coherence, ramped from 0.65 to
+    /// `view_elevation_full_ratio`; 0 where the maps run across the frames).
     pub trust: f32,
+    /// `untrusted_elevation_deg` where set (else the fallback is the basis' own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fallback_deg: Option<f32>,
     /// The tilt applied to every frame (positive lowers), degrees.
     pub tilt_deg: f32,
     /// Roots whose elevation entered the median.
@@ -975,7 +986,15 @@ fn setup(
             )?);
         }
         let across = view_axes.as_ref().is_some_and(|a| a.maps_across);
-        if let (true, false, Some(planes)) = (tilt_on, across, &planes) {
+        // Maps that run across the frames are not read; with a fallback elevation set, the
+        // frames still take it (trust 0).
+        let fallback = p.untrusted_elevation_deg.map(|d| (d as f32).to_radians());
+        if let (true, Some(planes)) = (tilt_on && (!across || fallback.is_some()), &planes) {
+            let trust = if across {
+                0.0
+            } else {
+                view_elevation_trust(view_axes.as_ref(), view_elevation_full_ratio)
+            };
             view_elevation = tilt_onto_view_elevation(
                 ctx,
                 cams,
@@ -983,7 +1002,7 @@ fn setup(
                 &mut frames,
                 &outer,
                 &basis,
-                view_elevation_trust(view_axes.as_ref(), view_elevation_full_ratio),
+                (trust, fallback),
             );
         }
     }
@@ -1263,8 +1282,9 @@ fn training_maps(
 /// cameras `cams`, pooled over 4 pixel footprints, at most about 4,000 roots
 /// sampled; growth::view_axes::view_elevations), that difference scaled by
 /// `trust` ([`view_elevation_trust`]: maps that carry no direction read the
-/// mean viewing direction, steep whatever the fur does). `None` when no root
-/// is seen.
+/// mean viewing direction, steep whatever the fur does), the rest of the weight
+/// on `fallback` (`untrusted_elevation_deg`, radians) or, unset, on the basis'
+/// own elevation ([`start_tilt`]). `None` when no root is seen.
 fn tilt_onto_view_elevation(
     ctx: &StageContext<'_>,
     cams: &[Camera],
@@ -1272,7 +1292,7 @@ fn tilt_onto_view_elevation(
     frames: &mut [Mat3],
     outer: &Mesh,
     basis: &StrandBasis,
-    trust: f32,
+    (trust, fallback): (f32, Option<f32>),
 ) -> Option<ViewElevationReport> {
     let radius = 4.0 * pixel_footprint(cams, outer);
     let stride = (frames.len() / 4000).max(1);
@@ -1291,26 +1311,26 @@ fn tilt_onto_view_elevation(
     let basis_elevation = (chord.z / chord.length().max(f32::MIN_POSITIVE))
         .clamp(-1.0, 1.0)
         .asin();
-    // Ry(beta) lowers a direction's elevation by beta.
-    let tilt = if trust <= 0.0 {
+    let (other, other_name) = match fallback {
+        Some(f) => (f, "the fallback"),
+        None => (basis_elevation, "the basis'"),
+    };
+    if trust <= 0.0 {
         ctx.progress.note(&format!(
             "view_elevation: the maps agree little beyond random maps', so the views' elevation \
-             ({:.0} degrees) is not used; the frames keep the basis' ({:.0})",
+             ({:.0} degrees) is not used; the frames take {other_name} ({:.0})",
             views_elevation.to_degrees(),
-            basis_elevation.to_degrees()
+            other.to_degrees()
         ));
-        0.0
-    } else {
-        if trust < 1.0 {
-            ctx.progress.note(&format!(
-                "view_elevation: the maps agree only partly beyond random maps', so the views' \
-                 elevation ({:.0} degrees) enters at weight {trust:.2} beside the basis' ({:.0})",
-                views_elevation.to_degrees(),
-                basis_elevation.to_degrees()
-            ));
-        }
-        trust * (basis_elevation - views_elevation)
-    };
+    } else if trust < 1.0 {
+        ctx.progress.note(&format!(
+            "view_elevation: the maps agree only partly beyond random maps', so the views' \
+             elevation ({:.0} degrees) enters at weight {trust:.2} beside {other_name} ({:.0})",
+            views_elevation.to_degrees(),
+            other.to_degrees()
+        ));
+    }
+    let tilt = start_tilt(basis_elevation, views_elevation, trust, fallback);
     let r = Mat3::from_rotation_y(tilt);
     for f in frames.iter_mut() {
         *f *= r;
@@ -1319,9 +1339,27 @@ fn tilt_onto_view_elevation(
         views_deg: views_elevation.to_degrees(),
         basis_deg: basis_elevation.to_degrees(),
         trust,
+        fallback_deg: fallback.map(f32::to_degrees),
         tilt_deg: tilt.to_degrees(),
         sampled_roots: elevations.len(),
     })
+}
+
+/// The tilt that lowers the basis' mean strand (elevation `basis`, radians)
+/// to the start elevation: the views' (`views`) at weight `trust`, the rest on
+/// `fallback` or, unset, on the basis' own (no tilt from that share).
+/// Ry(beta) lowers a direction's elevation by beta.
+fn start_tilt(basis: f32, views: f32, trust: f32, fallback: Option<f32>) -> f32 {
+    let trust = trust.clamp(0.0, 1.0);
+    let views_share = if trust > 0.0 {
+        trust * (basis - views)
+    } else {
+        0.0
+    };
+    match fallback {
+        None => views_share,
+        Some(f) => views_share + (1.0 - trust) * (basis - f),
+    }
 }
 
 /// The shape-prior ablation's roots: each moved to its closest point on
@@ -1777,6 +1815,22 @@ pub(crate) mod tests {
         let (_, r) = systematic_turn((0..180).map(|k| deg(k as f32 - 90.0))).unwrap();
         assert!(r < 1e-3, "{r}");
         assert!(systematic_turn(std::iter::empty()).is_none());
+    }
+
+    #[test]
+    fn untrusted_views_leave_the_start_on_the_fallback_elevation() {
+        let (basis, views) = (40f32.to_radians(), 20f32.to_radians());
+        let deg = |t: f32| t.to_degrees();
+        // Unset: trusted views tilt the basis onto theirs, untrusted ones leave it.
+        assert!((deg(start_tilt(basis, views, 1.0, None)) - 20.0).abs() < 1e-4);
+        assert_eq!(start_tilt(basis, views, 0.0, None), 0.0);
+        assert!((deg(start_tilt(basis, views, 0.5, None)) - 10.0).abs() < 1e-4);
+        // A human-hair basis lying at -4 degrees with a fallback of 39: untrusted views
+        // raise it to 39, half-trusted ones to the mean of 39 and the views' 20.
+        let (human, fur) = ((-4f32).to_radians(), 39f32.to_radians());
+        assert!((deg(human - start_tilt(human, views, 0.0, Some(fur))) - 39.0).abs() < 1e-4);
+        assert!((deg(human - start_tilt(human, views, 0.5, Some(fur))) - 29.5).abs() < 1e-4);
+        assert!((deg(human - start_tilt(human, views, 1.0, Some(fur))) - 20.0).abs() < 1e-4);
     }
 
     #[test]
