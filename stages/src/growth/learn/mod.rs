@@ -284,7 +284,12 @@
 //!   0.653-0.658 and 57-58 degrees, where the basis' 39 wins 1 and 2 cm;
 //!   dense keeps a step at 0.65, since the ramp lost its strict 1 cm score
 //!   there (docs/history.md, "The views' elevation where the maps carry less
-//!   direction"). Chosen on the dev split (codec, seeds 0-2)
+//!   direction"). What the weight leaves goes to the basis' own elevation, a
+//!   fur prior for the fur corpus (39 degrees) but hair lying on a skull for
+//!   the human corpus (-4); `untrusted_elevation_deg` names another (unset by
+//!   default; the human-basis ablation takes the fur's 39, so that it
+//!   differs from the codec by its shapes alone where the views are not
+//!   trusted). Chosen on the dev split (codec, seeds 0-2)
 //!   together with `learn_tilt` off: the strict 1 cm score rises from 72.8
 //!   to 75.6 on the tiger and from 42.7 to 48.3 on the lynx, 2 cm by 0.2 and
 //!   2.4, the fox ties (docs/history.md, "The start elevation from the
