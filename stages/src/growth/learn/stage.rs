@@ -886,7 +886,8 @@ pub struct ViewElevationReport {
     pub basis_deg: f32,
     /// The weight of the views' elevation beside the fallback's (`view_elevation_trust`: the
     /// maps' excess coherence over their coherence, ramped from 0.65 to
-    /// `view_elevation_full_ratio`; 0 where the maps run across the frames).
+    /// `view_elevation_full_ratio`; 0 where the maps run across the frames, which is reported
+    /// only with a fallback set).
     pub trust: f32,
     /// `untrusted_elevation_deg` where set (else the fallback is the basis' own).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -1351,6 +1352,7 @@ fn tilt_onto_view_elevation(
 /// Ry(beta) lowers a direction's elevation by beta.
 fn start_tilt(basis: f32, views: f32, trust: f32, fallback: Option<f32>) -> f32 {
     let trust = trust.clamp(0.0, 1.0);
+    // Untrusted views add no tilt, not a signed zero: the frames keep their bits.
     let views_share = if trust > 0.0 {
         trust * (basis - views)
     } else {
