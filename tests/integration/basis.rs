@@ -117,6 +117,31 @@ fn a_perm_npz_runs_through_codec_training_to_evaluation() {
     assert!((arc - 1.0).abs() < 0.02, "mean arc length {arc}");
     // Falling down the head (PERM -y) is our tangent direction x.
     assert!(basis.mean[7].x > 0.9, "{:?}", basis.mean);
+    // Hair on a head lies along it, so the basis carries the fur corpus' elevation for where
+    // the views' is not trusted, and the codec's start reports it as its fallback.
+    let fallback = basis
+        .untrusted_elevation_deg
+        .expect("a PERM basis' fallback elevation");
+    assert!(
+        basis.mean_elevation().to_degrees() < 15.0,
+        "{:?}",
+        basis.mean
+    );
+    assert!(fallback > 25.0, "{fallback}");
+    assert_eq!(
+        m["untrusted_elevation_deg"].as_f64(),
+        Some(fallback as f64),
+        "{m}"
+    );
+    let codec = read_json(&out.join("codec/metrics.json"));
+    let used = codec["view_elevation"]["fallback_deg"]
+        .as_f64()
+        .unwrap_or(f64::NAN);
+    assert!(
+        (used - fallback as f64).abs() < 1e-3,
+        "{}",
+        codec["view_elevation"]
+    );
 
     // The codec trained on it and wrote finite strands that the evaluation scored.
     let strands =

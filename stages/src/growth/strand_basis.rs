@@ -158,6 +158,13 @@ pub struct StrandBasis {
     pub components: Vec<Vec<Vec3>>,
     /// Explained variance ratio per component (non-increasing).
     pub variance: Vec<f32>,
+    /// The start elevation (degrees) a learner falls back on where the views' elevation is not
+    /// trusted, for a basis whose own mean strand is not a fur prior: hair grown on a head (the
+    /// human corpus, PERM) follows the skull, so such a basis carries the fur corpus' mean
+    /// elevation ([`fur_elevation_deg`]). `None` (the fur corpus): the basis' own
+    /// ([`StrandBasis::mean_elevation`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub untrusted_elevation_deg: Option<f32>,
 }
 
 impl StrandBasis {
@@ -176,6 +183,19 @@ impl StrandBasis {
             }
         }
         out
+    }
+
+    /// The mean strand's elevation off the surface (radians): its first third's chord
+    /// over the frame's normal z.
+    pub fn mean_elevation(&self) -> f32 {
+        if self.mean.len() < 2 {
+            return 0.0;
+        }
+        let k = ((self.mean.len() - 1) / 3).max(1);
+        let chord = self.mean[k] - self.mean[0];
+        (chord.z / chord.length().max(f32::MIN_POSITIVE))
+            .clamp(-1.0, 1.0)
+            .asin()
     }
 
     /// Least-squares coefficients of a strand of `points` points (components are mutually orthogonal).
@@ -237,6 +257,13 @@ impl StrandBasis {
             .chain(self.variance.iter().copied());
         if !all.into_iter().all(f32::is_finite) {
             return Err(bad("non-finite values".into()));
+        }
+        if let Some(e) = self.untrusted_elevation_deg {
+            if !(-90.0..=90.0).contains(&e) {
+                return Err(bad(format!(
+                    "`untrusted_elevation_deg` is {e}, expected degrees in [-90, 90]"
+                )));
+            }
         }
         Ok(())
     }
@@ -787,6 +814,62 @@ pub fn symmetric_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<Vec<f64>>) {
     (vals, vecs)
 }
 
+/// Strands per chunk of the corpus sums; chunks are combined in index order, so the sums do not
+/// depend on threads.
+const CHUNK: usize = 256;
+
+/// The mean of strands of equal point count, flattened (3L values), summed in f64 over chunks
+/// of [`CHUNK`] strands combined in index order.
+fn corpus_mean(strands: &[Vec<Vec3>]) -> Vec<f64> {
+    let d = 3 * strands.first().map_or(0, Vec::len);
+    let sums: Vec<Vec<f64>> = strands
+        .par_chunks(CHUNK)
+        .map(|c| {
+            let mut m = vec![0.0; d];
+            for s in c {
+                let xs = s.iter().flat_map(|p| p.as_dvec3().to_array());
+                for (a, b) in m.iter_mut().zip(xs) {
+                    *a += b;
+                }
+            }
+            m
+        })
+        .collect();
+    let mut mean = vec![0.0; d];
+    for s in sums {
+        for (a, b) in mean.iter_mut().zip(s) {
+            *a += b;
+        }
+    }
+    mean.iter_mut()
+        .for_each(|x| *x /= strands.len().max(1) as f64);
+    mean
+}
+
+/// The fur corpus' mean-strand elevation (degrees, [`StrandBasis::mean_elevation`]) at `points`
+/// points: the corpus of `n` strands with `mix`, `low_pass` and `seed`, less the held-out tenth,
+/// i.e. the elevation of the fur basis those parameters fit. A basis of hair grown on a head
+/// carries it as its [`StrandBasis::untrusted_elevation_deg`].
+pub fn fur_elevation_deg(n: usize, points: usize, mix: [f64; 3], low_pass: bool, seed: u64) -> f32 {
+    let strands: Vec<Vec<Vec3>> = corpus(n, points, mix, low_pass, seed)
+        .into_iter()
+        .map(|(_, s)| s)
+        .collect();
+    let hold = (n / 10).max(1);
+    let mean = corpus_mean(&strands[..n.saturating_sub(hold).max(1)]);
+    let mean_strand = StrandBasis {
+        points,
+        mean: mean
+            .chunks(3)
+            .map(|c| DVec3::new(c[0], c[1], c[2]).as_vec3())
+            .collect(),
+        components: Vec::new(),
+        variance: Vec::new(),
+        untrusted_elevation_deg: None,
+    };
+    mean_strand.mean_elevation().to_degrees()
+}
+
 /// Fits a PCA basis to strands of equal point count. `k = 0` picks the smallest K reaching
 /// `variance_target` of the variance, capped at `k_max`.
 pub fn fit_pca(
@@ -811,26 +894,8 @@ pub fn fit_pca(
     let d = 3 * l;
     let flat =
         |s: &Vec<Vec3>| -> Vec<f64> { s.iter().flat_map(|p| p.as_dvec3().to_array()).collect() };
-    let chunk = 256;
-    let sums: Vec<Vec<f64>> = strands
-        .par_chunks(chunk)
-        .map(|c| {
-            let mut m = vec![0.0; d];
-            for s in c {
-                for (a, b) in m.iter_mut().zip(flat(s)) {
-                    *a += b;
-                }
-            }
-            m
-        })
-        .collect();
-    let mut mean = vec![0.0; d];
-    for s in sums {
-        for (a, b) in mean.iter_mut().zip(s) {
-            *a += b;
-        }
-    }
-    mean.iter_mut().for_each(|x| *x /= n as f64);
+    let chunk = CHUNK;
+    let mean = corpus_mean(strands);
     let covs: Vec<Vec<f64>> = strands
         .par_chunks(chunk)
         .map(|c| {
@@ -891,6 +956,7 @@ pub fn fit_pca(
         mean: to_pts(&mean, 1.0),
         components: (0..k).map(|i| to_pts(&vecs[i], vals[i].sqrt())).collect(),
         variance: (0..k).map(|i| (vals[i] / total) as f32).collect(),
+        untrusted_elevation_deg: None,
     };
     basis.validate("fitted basis")?;
     Ok(basis)
@@ -1425,6 +1491,7 @@ pub fn perm_basis(
         mean: resample(&mean_pts),
         components: comps,
         variance,
+        untrusted_elevation_deg: None,
     };
     basis.validate(&path.display().to_string())?;
     Ok(basis)
@@ -1542,7 +1609,8 @@ impl Stage for StrandBasisStage {
     }
     fn version(&self) -> u32 {
         // 4: L from the footprint of the views that resolve the subject.
-        4
+        // 5: human and PERM bases carry the fur corpus' elevation (`untrusted_elevation_deg`).
+        5
     }
     fn doc(&self) -> &'static str {
         "PCA strand basis (mean + K components) in the root-local canonical frame (x tangent, y \
@@ -1692,6 +1760,19 @@ impl Stage for StrandBasisStage {
             let rms = reconstruction_rms(&b, held);
             (b, if human { "human_corpus" } else { "corpus" }, Some(rms))
         };
+        let mut basis = basis;
+        if source != "corpus" {
+            // Hair grown on a head lies on the skull: where the views' elevation is not
+            // trusted, the learners start from the fur corpus' elevation instead.
+            let m = &p.mix;
+            let fur = fur_elevation_deg(p.corpus, l, [m[0], m[1], m[2]], p.low_pass, p.seed);
+            ctx.progress.note(&format!(
+                "the basis' mean strand rises {:.0} degrees off the skin; where the views' \
+                 elevation is not trusted, learners start at the fur corpus' {fur:.0}",
+                basis.mean_elevation().to_degrees()
+            ));
+            basis.untrusted_elevation_deg = Some(fur);
+        }
         fure_stage_api::ensure_finite(
             "strand basis",
             basis
@@ -1725,7 +1806,11 @@ impl Stage for StrandBasisStage {
             "variance_ratio": basis.variance,
             "cumulative_variance": cumulative,
             "heldout_rms_error_unit_length": heldout_rms,
+            "mean_elevation_deg": basis.mean_elevation().to_degrees(),
         });
+        if let Some(e) = basis.untrusted_elevation_deg {
+            metrics["untrusted_elevation_deg"] = serde_json::json!(e);
+        }
         if source == "corpus" {
             metrics["low_pass"] = serde_json::json!(p.low_pass);
         }
@@ -2130,6 +2215,23 @@ mod tests {
         let f: StrandBasis =
             crate::formats::json::read_json(dir.path().join("f/basis.json")).unwrap();
         assert_ne!(f.mean, h.mean);
+        // Hair grown on a head lies on the skull; the fur basis rises off the skin. The human
+        // basis carries, as its fallback where the views' elevation is not trusted, exactly the
+        // elevation of the fur basis the same corpus parameters fit; the fur basis carries none.
+        let (he, fe) = (
+            h.mean_elevation().to_degrees(),
+            f.mean_elevation().to_degrees(),
+        );
+        assert!(he < 15.0 && fe > 25.0, "human {he}, fur {fe}");
+        assert_eq!(h.untrusted_elevation_deg, Some(fe));
+        assert_eq!(f.untrusted_elevation_deg, None);
+        assert_eq!(
+            m["untrusted_elevation_deg"].as_f64(),
+            Some(fe as f64),
+            "{m}"
+        );
+        let text = std::fs::read_to_string(dir.path().join("f/basis.json")).unwrap();
+        assert!(!text.contains("untrusted_elevation_deg"), "{text}");
         // Malformed human parameters are refused by name.
         let bad = [("human_mix", Value::List(vec![Value::Float(1.0); 3]))];
         let e = run_with(&bad, &dir.path().join("x"))

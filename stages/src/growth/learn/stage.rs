@@ -155,10 +155,10 @@ fure_stage_api::stage_params! {
         view_elevation: bool = bool(true),
         /// Where the views' elevation is weighed less than whole (view_elevation_full_ratio),
         /// the elevation the frames fall back to in its stead, in degrees (the mean strand's
-        /// first third above the surface, as the basis' own is read). Unset: the basis' own,
-        /// which is a fur prior for the fur corpus (39 degrees) but lies on the skin for human
-        /// hair (-4): the human-basis ablation sets the fur's, so that it differs from the
-        /// codec by its shapes alone (pipelines/benchmark.toml).
+        /// first third above the surface, as the basis' own is read). Unset: the basis' own
+        /// fallback, which a basis of human hair (human corpus, PERM) carries since its mean
+        /// strand lies on the skin (the fur corpus' elevation, 39 degrees at 8 and 10 points),
+        /// else its mean strand's, a fur prior for the fur corpus.
         untrusted_elevation_deg: Option<f64> = optional(ParamType::Float).range(-90.0, 90.0),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
@@ -889,7 +889,9 @@ pub struct ViewElevationReport {
     /// `view_elevation_full_ratio`; 0 where the maps run across the frames, which is reported
     /// only with a fallback set).
     pub trust: f32,
-    /// `untrusted_elevation_deg` where set (else the fallback is the basis' own).
+    /// The fallback elevation where one is set: the learner's `untrusted_elevation_deg`, else
+    /// the basis' (a basis of human hair carries the fur corpus'); absent, the fallback is the
+    /// basis' own mean strand.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fallback_deg: Option<f32>,
     /// The tilt applied to every frame (positive lowers), degrees.
@@ -989,7 +991,11 @@ fn setup(
         let across = view_axes.as_ref().is_some_and(|a| a.maps_across);
         // Maps that run across the frames are not read; with a fallback elevation set, the
         // frames still take it (trust 0).
-        let fallback = p.untrusted_elevation_deg.map(|d| (d as f32).to_radians());
+        let fallback = p
+            .untrusted_elevation_deg
+            .map(|d| d as f32)
+            .or(basis.untrusted_elevation_deg)
+            .map(f32::to_radians);
         if let (true, Some(planes)) = (tilt_on && (!across || fallback.is_some()), &planes) {
             let trust = if across {
                 0.0
@@ -1284,8 +1290,9 @@ fn training_maps(
 /// sampled; growth::view_axes::view_elevations), that difference scaled by
 /// `trust` ([`view_elevation_trust`]: maps that carry no direction read the
 /// mean viewing direction, steep whatever the fur does), the rest of the weight
-/// on `fallback` (`untrusted_elevation_deg`, radians) or, unset, on the basis'
-/// own elevation ([`start_tilt`]). `None` when no root is seen.
+/// on `fallback` (`untrusted_elevation_deg`, the learner's or the basis', radians)
+/// or, unset, on the basis' own elevation ([`start_tilt`]). `None` when no root is
+/// seen.
 fn tilt_onto_view_elevation(
     ctx: &StageContext<'_>,
     cams: &[Camera],
@@ -1307,11 +1314,7 @@ fn tilt_onto_view_elevation(
     }
     elevations.sort_by(f32::total_cmp);
     let views_elevation = elevations[elevations.len() / 2];
-    let k = ((basis.mean.len() - 1) / 3).max(1);
-    let chord = basis.mean[k] - basis.mean[0];
-    let basis_elevation = (chord.z / chord.length().max(f32::MIN_POSITIVE))
-        .clamp(-1.0, 1.0)
-        .asin();
+    let basis_elevation = basis.mean_elevation();
     let (other, other_name) = match fallback {
         Some(f) => (f, "the fallback"),
         None => (basis_elevation, "the basis'"),
@@ -1943,6 +1946,7 @@ pub(crate) mod tests {
                 (0..l).map(|k| Vec3::Z * t(k) * t(k)).collect(),
             ],
             variance: vec![0.5, 0.3, 0.1],
+            untrusted_elevation_deg: None,
         }
     }
 
