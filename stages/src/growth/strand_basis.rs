@@ -77,7 +77,21 @@
 //! - Randomness: ChaCha8 seeded with `seed`, strand `i` from stream `i`, as the fur corpus.
 //!
 //! `metrics.json` says `source`: `corpus` (fur), `human_corpus` (with `human_mix` and
-//! `human_length_cm`) or `perm`. Which default and why: see "Default domain" below.
+//! `human_length_cm`) or `perm`, and `mean_elevation_deg`. Which default and why: see "Default
+//! domain" below.
+//!
+//! # Where the views' elevation is not trusted
+//! The learners start every strand at the fur's elevation read from the views, weighed by how
+//! far the orientation maps carry direction; the rest of the weight goes to a fallback, by
+//! default the basis' own mean strand ([`StrandBasis::mean_elevation`]). For the fur corpus that
+//! is a fur prior (39 degrees at 8 and 10 points); hair grown on a head rises briefly and then
+//! follows the skull (the human corpus' mean: -4 degrees; PERM's basis is fitted to hair on
+//! heads too), so strands started there lie on the skin wherever the views are not trusted (the
+//! curling poodle, Blender's hair). A human or PERM basis therefore carries
+//! `untrusted_elevation_deg`: the elevation of the fur basis that the stage's own corpus
+//! parameters (`corpus`, `mix`, `low_pass`, `seed`) fit at the same `L` ([`fur_elevation_deg`]),
+//! written to `metrics.json` too. A learner's own `untrusted_elevation_deg` overrides it; the
+//! fur basis carries none, so its `basis.json` is what it was before the field existed.
 //!
 //! # Default domain: fur (measured on the dev split)
 //! `domain` stays `fur`. On tiger and fox, seeds 0, 1, 2, `tiger.toml` defaults otherwise, the human
@@ -89,8 +103,8 @@
 //! On the dev split's curling coat (the poodle) the human basis once won 2 cm, carried by the
 //! long hanging drape rather than the curls, which loses every straight coat; since the codec's
 //! start elevation falls back to its basis' own where the views' is not trusted, the fur basis
-//! wins the poodle at every threshold. The benchmark's human basis starts at the fur basis' elevation
-//! there too (`untrusted_elevation_deg`: the human corpus' own lies on the skin): it then wins
+//! wins the poodle at every threshold. The human basis starts at the fur basis' elevation
+//! there too ("Where the views' elevation is not trusted" below): it then wins
 //! the strict 1 cm score on Blender's hair (dev fox and test wolf) and loses 2-4 cm, and loses
 //! 1-3 cm on every synthetic dev coat (the tiger ties 4 cm). The domain is not chosen per scene: the
 //! views' orientation coherence and growth elevation, which set the curling coats apart among

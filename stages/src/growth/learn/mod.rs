@@ -286,10 +286,11 @@
 //!   there (docs/history.md, "The views' elevation where the maps carry less
 //!   direction"). What the weight leaves goes to the basis' own elevation, a
 //!   fur prior for the fur corpus (39 degrees) but hair lying on a skull for
-//!   the human corpus (-4); `untrusted_elevation_deg` names another (unset by
-//!   default; the human-basis ablation takes the fur's 39, so that it
-//!   differs from the codec by its shapes alone where the views are not
-//!   trusted). Chosen on the dev split (codec, seeds 0-2)
+//!   the human corpus (-4), so a human or PERM basis carries the fur corpus'
+//!   elevation for that share (growth::strand_basis, "Where the views'
+//!   elevation is not trusted"): the human-basis ablation then differs from
+//!   the codec by its shapes alone. The learners' `untrusted_elevation_deg`
+//!   names another (unset by default). Chosen on the dev split (codec, seeds 0-2)
 //!   together with `learn_tilt` off: the strict 1 cm score rises from 72.8
 //!   to 75.6 on the tiger and from 42.7 to 48.3 on the lynx, 2 cm by 0.2 and
 //!   2.4, the fox ties (docs/history.md, "The start elevation from the
