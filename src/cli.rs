@@ -889,22 +889,36 @@ fn cmd_gc(engine: &Engine, cache_dir: &Path, a: &GcArgs) -> Result<ExitCode, Fai
         max_size,
     });
     println!(
-        "gc: kept {} entries ({:.1} MiB), removed {} entries and {} objects ({:.1} MiB freed), {} stale staging dirs",
+        "gc: kept {} entries ({}), removed {} entries and {} objects ({} freed), {} stale staging dirs",
         rep.entries_kept,
-        rep.bytes_kept as f64 / 1048576.0,
+        byte_size(rep.bytes_kept),
         rep.entries_removed,
         rep.objects_removed,
-        rep.bytes_freed as f64 / 1048576.0,
+        byte_size(rep.bytes_freed),
         rep.tmp_removed
     );
     if rep.bytes_linked_outside > 0 {
         println!(
-            "gc: {:.1} MiB of the removed objects stay on disk: outputs outside the cache (out/ folders \
+            "gc: {} of the removed objects stay on disk: outputs outside the cache (out/ folders \
              of earlier runs) are hard links to them; delete those outputs to free the space",
-            rep.bytes_linked_outside as f64 / 1048576.0
+            byte_size(rep.bytes_linked_outside)
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A size for people: MiB from one MiB up (gc's sizes are usually that), else KiB or bytes, so
+/// a few kilobytes do not read as "0.0 MiB".
+fn byte_size(bytes: u64) -> String {
+    const KIB: u64 = 1024;
+    const MIB: u64 = 1024 * 1024;
+    if bytes >= MIB {
+        format!("{:.1} MiB", bytes as f64 / MIB as f64)
+    } else if bytes >= KIB {
+        format!("{:.1} KiB", bytes as f64 / KIB as f64)
+    } else {
+        format!("{bytes} bytes")
+    }
 }
 
 fn cmd_verify(cache_dir: &Path) -> Result<ExitCode, Failure> {
@@ -1228,7 +1242,15 @@ pub fn dag(plan: &Plan, format: DagFormat) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::disk_full_hint;
+    use super::{byte_size, disk_full_hint};
+
+    #[test]
+    fn sizes_read_in_the_unit_that_shows_them() {
+        assert_eq!(byte_size(0), "0 bytes");
+        assert_eq!(byte_size(1023), "1023 bytes");
+        assert_eq!(byte_size(3 * 1024 + 512), "3.5 KiB");
+        assert_eq!(byte_size(12_642_937_651), "12057.2 MiB");
+    }
 
     #[test]
     fn a_full_disk_gets_a_hint_and_other_failures_do_not() {
