@@ -233,35 +233,37 @@ impl StrandBasis {
 
     /// Checks the shapes and values; `what` names the source in the error.
     pub fn validate(&self, what: &str) -> Result<(), BasisError> {
-        let bad = |m: String| BasisError::Invalid(format!("{what}: {m}"));
+        self.check()
+            .map_err(|m| BasisError::Invalid(format!("{what}: {m}")))
+    }
+
+    /// Checks the shapes and values: the first problem, naming the field and what was expected.
+    pub fn check(&self) -> Result<(), String> {
         if self.points < 2 {
-            return Err(bad(format!(
-                "`points` is {}, expected at least 2",
-                self.points
-            )));
+            return Err(format!("`points` is {}, expected at least 2", self.points));
         }
         if self.mean.len() != self.points {
-            return Err(bad(format!(
+            return Err(format!(
                 "`mean` has {} points, expected {}",
                 self.mean.len(),
                 self.points
-            )));
+            ));
         }
         for (k, c) in self.components.iter().enumerate() {
             if c.len() != self.points {
-                return Err(bad(format!(
+                return Err(format!(
                     "`components[{k}]` has {} points, expected {}",
                     c.len(),
                     self.points
-                )));
+                ));
             }
         }
         if self.variance.len() != self.components.len() {
-            return Err(bad(format!(
+            return Err(format!(
                 "`variance` has {} values, expected one per component ({})",
                 self.variance.len(),
                 self.components.len()
-            )));
+            ));
         }
         let all = self
             .mean
@@ -270,13 +272,13 @@ impl StrandBasis {
             .flat_map(|p| p.to_array())
             .chain(self.variance.iter().copied());
         if !all.into_iter().all(f32::is_finite) {
-            return Err(bad("non-finite values".into()));
+            return Err("non-finite values".into());
         }
         if let Some(e) = self.untrusted_elevation_deg {
             if !(-90.0..=90.0).contains(&e) {
-                return Err(bad(format!(
+                return Err(format!(
                     "`untrusted_elevation_deg` is {e}, expected degrees in [-90, 90]"
-                )));
+                ));
             }
         }
         Ok(())
@@ -908,10 +910,9 @@ pub fn fit_pca(
     let d = 3 * l;
     let flat =
         |s: &Vec<Vec3>| -> Vec<f64> { s.iter().flat_map(|p| p.as_dvec3().to_array()).collect() };
-    let chunk = CHUNK;
     let mean = corpus_mean(strands);
     let covs: Vec<Vec<f64>> = strands
-        .par_chunks(chunk)
+        .par_chunks(CHUNK)
         .map(|c| {
             let mut cov = vec![0.0; d * d];
             for s in c {
@@ -2260,6 +2261,32 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("human_length_cm"), "{e}");
+    }
+
+    #[test]
+    fn a_basis_names_the_field_it_gets_wrong() {
+        let mut b = fit_pca(
+            &corpus(60, 8, [1.0, 1.0, 1.0], false, 3)
+                .into_iter()
+                .map(|(_, s)| s)
+                .collect::<Vec<_>>(),
+            4,
+            0.999,
+            32,
+        )
+        .unwrap();
+        b.check().unwrap();
+        b.untrusted_elevation_deg = Some(39.0);
+        b.check().unwrap();
+        for bad in [120.0, f32::NAN] {
+            b.untrusted_elevation_deg = Some(bad);
+            let e = b.check().unwrap_err();
+            assert!(e.contains("`untrusted_elevation_deg`"), "{e}");
+        }
+        b.untrusted_elevation_deg = None;
+        b.variance.pop();
+        let e = b.validate("basis.json").unwrap_err().to_string();
+        assert!(e.starts_with("basis.json: `variance` has 3 values"), "{e}");
     }
 
     #[test]

@@ -664,37 +664,7 @@ fn check_roots(r: &Roots, path: &Path) -> Result<(), StageError> {
 }
 
 fn check_basis(b: &StrandBasis, path: &Path) -> Result<(), StageError> {
-    if b.points < 2 || b.mean.len() != b.points {
-        return Err(StageError::input(
-            "basis",
-            path,
-            format!(
-                "`mean` has {} points but `points` is {} (need at least 2)",
-                b.mean.len(),
-                b.points
-            ),
-        ));
-    }
-    for (k, c) in b.components.iter().enumerate() {
-        if c.len() != b.points {
-            return Err(StageError::input(
-                "basis",
-                path,
-                format!(
-                    "`components[{k}]` has {} points, expected {}",
-                    c.len(),
-                    b.points
-                ),
-            ));
-        }
-    }
-    ensure_finite(
-        "basis",
-        b.mean
-            .iter()
-            .chain(b.components.iter().flatten())
-            .flat_map(|v| v.to_array()),
-    )
+    b.check().map_err(|m| StageError::input("basis", path, m))
 }
 
 /// The per-root lengths of a length mode (scene units); roots of length 0 grow no strand.
