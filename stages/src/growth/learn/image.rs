@@ -132,6 +132,9 @@ pub struct ImageConfig {
     pub seed: u64,
     /// Normalised confidence below which a pixel has no orientation target.
     pub ori_min_confidence: f32,
+    /// The silhouette's share of the frame at which the colour, silhouette and fur-mask terms
+    /// keep their weights ([`subject_scale`]); `None`: means over the frame.
+    pub subject_share: Option<f32>,
     /// Training views the final colour fit uses, evenly spaced (0 = all).
     pub fit_color_views: usize,
     /// Training views the start colour fit uses (0 = all).
@@ -163,6 +166,21 @@ pub struct ViewData {
     pub fur: Option<ImageF32>,
     /// Orientation angle in [0, pi) and confidence (1 channel each).
     pub orientation: Option<(ImageF32, ImageF32)>,
+    /// The factor of this view's colour, silhouette and fur-mask weights ([`subject_scale`]).
+    pub loss_scale: f32,
+}
+
+/// The factor of a view's colour, silhouette and fur-mask weights under `subject_share`: the
+/// reference share over the share of the frame the view's `silhouette` fills (pixels above
+/// 0.5, at least one), so that those terms, means over the frame, count as means over the
+/// subject, as the orientation term does. The same capture framed more loosely then trains
+/// with the same balance of terms. 1 without a reference or a silhouette.
+pub fn subject_scale(silhouette: Option<&ImageF32>, subject_share: Option<f32>) -> f32 {
+    let (Some(m), Some(reference)) = (silhouette, subject_share) else {
+        return 1.0;
+    };
+    let inside = m.data.iter().filter(|&&v| v > 0.5).count().max(1);
+    reference * m.data.len().max(1) as f32 / inside as f32
 }
 
 /// The image term.
@@ -324,12 +342,14 @@ impl ImageLosses {
                 }
                 None => None,
             };
+            let loss_scale = subject_scale(mask.as_ref().or(alpha.as_ref()), cfg.subject_share);
             views.push(ViewData {
                 camera: cam.clone(),
                 rgb,
                 mask,
                 fur,
                 orientation,
+                loss_scale,
             });
         }
         let body = body_gaussians(body_mesh, cfg.body_gaussians, cfg.seed);
@@ -1004,12 +1024,14 @@ impl ImageConfig {
     /// background); L_sil = mean |alpha - mask|; L_mask = mean |fur - fur
     /// mask|; L_ori = the pi-periodic angle difference weighted by the
     /// normalised Gabor confidence (see [`ViewData::targets`] for where).
-    fn image_loss(&self) -> ImageLoss {
+    /// `scale` multiplies the colour, silhouette and fur-mask weights (a view's
+    /// [`subject_scale`]).
+    fn image_loss(&self, scale: f32) -> ImageLoss {
         ImageLoss {
             lambda_dssim: 0.2,
-            rgb: self.l_rgb,
-            silhouette: self.l_sil,
-            fur: self.l_mask,
+            rgb: self.l_rgb * scale,
+            silhouette: self.l_sil * scale,
+            fur: self.l_mask * scale,
             orientation: self.l_ori,
         }
     }
@@ -1066,7 +1088,7 @@ impl ImageTerm for ImageLosses {
                 &self.settings,
                 &view.targets(),
                 self.resident[vi].as_ref(),
-                &self.cfg.image_loss(),
+                &self.cfg.image_loss(view.loss_scale),
             )?;
             self.timing.render += secs.render;
             self.timing.loss += secs.loss;
@@ -1423,6 +1445,65 @@ mod tests {
         let (out, _) = render::render(&g, &cam, &settings).unwrap();
         let row: f32 = (0..64).map(|x| out.alpha.data[32 * 64 + x]).sum();
         row - w_px
+    }
+
+    /// `im` (1 channel) centred in a frame `pad` pixels wider on every side, zero outside.
+    fn padded(im: &ImageF32, pad: u32) -> ImageF32 {
+        let mut out = ImageF32::new(im.width + 2 * pad, im.height + 2 * pad, 1);
+        for y in 0..im.height {
+            for x in 0..im.width {
+                let to = ((y + pad) * out.width + x + pad) as usize;
+                out.data[to] = im.data[(y * im.width + x) as usize];
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn a_loosely_framed_view_weighs_its_silhouette_term_as_a_tight_one() {
+        // A silhouette and a render that overdraws it, framed tightly and then in a frame 16 px
+        // wider on every side (11 times the area): the frame mean falls elevenfold, the
+        // weighted term does not.
+        let mut mask = ImageF32::new(16, 12, 1);
+        let mut alpha = ImageF32::new(16, 12, 1);
+        for y in 0..12u32 {
+            for x in 0..16u32 {
+                let i = (y * 16 + x) as usize;
+                mask.data[i] = if (3..13).contains(&x) && (2..10).contains(&y) {
+                    1.0
+                } else {
+                    0.0
+                };
+                alpha.data[i] = if (2..14).contains(&x) && (2..11).contains(&y) {
+                    0.9
+                } else {
+                    0.0
+                };
+            }
+        }
+        let weighted = |alpha: &ImageF32, mask: &ImageF32, share: Option<f32>| {
+            let (l, _) = crate::render::losses::silhouette(alpha, mask, None).unwrap();
+            l * subject_scale(Some(mask), share)
+        };
+        let (tight, loose) = (
+            weighted(&alpha, &mask, Some(0.2)),
+            weighted(&padded(&alpha, 16), &padded(&mask, 16), Some(0.2)),
+        );
+        assert!(
+            tight > 0.0 && (loose / tight - 1.0).abs() < 1e-5,
+            "{tight} {loose}"
+        );
+        // Unset, the terms stay frame means (the framing weighs them).
+        let (tight, loose) = (
+            weighted(&alpha, &mask, None),
+            weighted(&padded(&alpha, 16), &padded(&mask, 16), None),
+        );
+        assert!(
+            (tight / loose - 2112.0 / 192.0).abs() < 1e-3,
+            "{tight} {loose}"
+        );
+        // No silhouette, no scale.
+        assert_eq!(subject_scale(None, Some(0.2)), 1.0);
     }
 
     #[test]

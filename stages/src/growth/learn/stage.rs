@@ -103,6 +103,12 @@ fure_stage_api::stage_params! {
         /// L_ori ignores pixels whose normalised Gabor confidence (divided by its 95th
         /// percentile, clamped to 1) is below this (0 = all pixels, confidence-weighted).
         ori_min_confidence: f32 = float(0.0).range(0.0, 1.0),
+        /// The share of the frame a view's silhouette fills at which L_rgb, L_sil and L_mask
+        /// keep their weights; set, each view's three terms are weighed by this over its own
+        /// silhouette's share, so that they count per subject pixel, as L_ori does, and a
+        /// capture's framing does not move them against L_ori and the geometric terms
+        /// (learn::image::subject_scale). Unset: means over the frame.
+        subject_share: Option<f64> = optional(ParamType::Float).range(0.001, 1.0),
         /// L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips
         /// outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto
         /// M_outer from either side (see learn::geomloss).
@@ -1682,6 +1688,7 @@ impl LearnParams {
             body_gaussians: self.body_gaussians,
             seed: self.seed,
             ori_min_confidence: self.ori_min_confidence,
+            subject_share: self.subject_share.map(|v| v as f32),
             fit_color_views: self.fit_color_views,
             fit_color_views_start: self.fit_color_views_start,
             held_out_coverage: match self.held_out_coverage {
