@@ -101,7 +101,8 @@
 //!   Set, each view's three terms are weighed by `subject_share` over its
 //!   silhouette's share ([`image::subject_scale`]), so that a capture framed
 //!   loosely trains as one framed tightly. At 0.17 (the dev split's mean
-//!   framing) every dev scene ties the frame means (docs/history.md, "Image
+//!   framing) every dev scene ties the frame means for the codec, and dense
+//!   ties or wins (the Blender fox's 3 and 4 cm) (docs/history.md, "Image
 //!   terms per subject pixel"); it stays unset only because setting it reruns
 //!   every learner of the three suites.
 //! - Subset rendering: only the sampled strands are rendered (as in NeuralFur);
