@@ -202,14 +202,7 @@ impl StrandBasis {
     /// The mean strand's elevation off the surface (radians): its first third's chord
     /// over the frame's normal z.
     pub fn mean_elevation(&self) -> f32 {
-        if self.mean.len() < 2 {
-            return 0.0;
-        }
-        let k = ((self.mean.len() - 1) / 3).max(1);
-        let chord = self.mean[k] - self.mean[0];
-        (chord.z / chord.length().max(f32::MIN_POSITIVE))
-            .clamp(-1.0, 1.0)
-            .asin()
+        strand_elevation(&self.mean)
     }
 
     /// Least-squares coefficients of a strand of `points` points (components are mutually orthogonal).
@@ -830,6 +823,19 @@ pub fn symmetric_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<Vec<f64>>) {
     (vals, vecs)
 }
 
+/// A root-frame strand's elevation off the surface (radians): its first third's chord over the
+/// frame's normal z; 0 for fewer than 2 points.
+fn strand_elevation(strand: &[Vec3]) -> f32 {
+    if strand.len() < 2 {
+        return 0.0;
+    }
+    let k = ((strand.len() - 1) / 3).max(1);
+    let chord = strand[k] - strand[0];
+    (chord.z / chord.length().max(f32::MIN_POSITIVE))
+        .clamp(-1.0, 1.0)
+        .asin()
+}
+
 /// Strands per chunk of the corpus sums; chunks are combined in index order, so the sums do not
 /// depend on threads.
 const CHUNK: usize = 256;
@@ -872,18 +878,11 @@ pub fn fur_elevation_deg(n: usize, points: usize, mix: [f64; 3], low_pass: bool,
         .map(|(_, s)| s)
         .collect();
     let hold = (n / 10).max(1);
-    let mean = corpus_mean(&strands[..n.saturating_sub(hold).max(1)]);
-    let mean_strand = StrandBasis {
-        points,
-        mean: mean
-            .chunks(3)
-            .map(|c| DVec3::new(c[0], c[1], c[2]).as_vec3())
-            .collect(),
-        components: Vec::new(),
-        variance: Vec::new(),
-        untrusted_elevation_deg: None,
-    };
-    mean_strand.mean_elevation().to_degrees()
+    let mean: Vec<Vec3> = corpus_mean(&strands[..n.saturating_sub(hold).max(1)])
+        .chunks(3)
+        .map(|c| DVec3::new(c[0], c[1], c[2]).as_vec3())
+        .collect();
+    strand_elevation(&mean).to_degrees()
 }
 
 /// Fits a PCA basis to strands of equal point count. `k = 0` picks the smallest K reaching
@@ -1776,7 +1775,7 @@ impl Stage for StrandBasisStage {
             (b, if human { "human_corpus" } else { "corpus" }, Some(rms))
         };
         let mut basis = basis;
-        if source != "corpus" {
+        if matches!(source, "human_corpus" | "perm") {
             // Hair grown on a head lies on the skull: where the views' elevation is not
             // trusted, the learners start from the fur corpus' elevation instead.
             let m = &p.mix;
