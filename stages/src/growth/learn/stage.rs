@@ -107,8 +107,8 @@ fure_stage_api::stage_params! {
         /// keep their weights; set, each view's three terms are weighed by this over its own
         /// silhouette's share, so that they count per subject pixel, as L_ori does, and a
         /// capture's framing does not move them against L_ori and the geometric terms
-        /// (learn::image::subject_scale). Unset: means over the frame.
-        subject_share: Option<f64> = optional(ParamType::Float).range(0.001, 1.0),
+        /// (learn::image::subject_scale). 0: means over the frame.
+        subject_share: f64 = float(0.17).range(0.0, 1.0),
         /// L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips
         /// outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto
         /// M_outer from either side (see learn::geomloss).
@@ -509,7 +509,8 @@ impl Stage for CodecStrandsStage {
         // 27: pixel radii at the footprint of the views that resolve the subject (26 was
         // taken by a trial that did not land; caches may hold its entries).
         // 28: maps whose lines run across the roots' frames are not read (ACROSS_DEG).
-        28
+        // 29: the image terms per subject pixel by default (subject_share 0.17).
+        29
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -540,7 +541,8 @@ impl Stage for DenseStrandsStage {
         // 16: pixel radii at the footprint of the views that resolve the subject (15 was
         // taken by a trial that did not land; caches may hold its entries).
         // 17: maps whose lines run across the roots' frames are not read (ACROSS_DEG).
-        17
+        // 18: the image terms per subject pixel by default (subject_share 0.17).
+        18
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
@@ -1688,7 +1690,7 @@ impl LearnParams {
             body_gaussians: self.body_gaussians,
             seed: self.seed,
             ori_min_confidence: self.ori_min_confidence,
-            subject_share: self.subject_share.map(|v| v as f32),
+            subject_share: (self.subject_share > 0.0).then_some(self.subject_share as f32),
             fit_color_views: self.fit_color_views,
             fit_color_views_start: self.fit_color_views_start,
             held_out_coverage: match self.held_out_coverage {
