@@ -92,19 +92,19 @@
 //!   and the poodle lost 14 points at 2 cm (docs/history.md, "A shape term
 //!   for the kink at the root"). Dense takes the same term on its free
 //!   points (`dense.l_turn`), also 0 by default.
-//! - Where the image terms average (`subject_share`, unset by default): the
+//! - Where the image terms average (`subject_share`, 0.17 by default): the
 //!   colour, silhouette and fur-mask terms are means over the frame, the
 //!   orientation term a mean over the fur, so the share of the frame the
-//!   animal fills (0.10-0.31 across the suites' scenes) weighs the first three
-//!   against the last and against the geometric terms; a fourfold change of
-//!   that balance moves the dev split's strict 1 cm score by 0.6-1.8 points.
-//!   Set, each view's three terms are weighed by `subject_share` over its
-//!   silhouette's share ([`image::subject_scale`]), so that a capture framed
-//!   loosely trains as one framed tightly. At 0.17 (the dev split's mean
-//!   framing) every dev scene ties the frame means for the codec, and dense
-//!   ties or wins (the Blender fox's 3 and 4 cm) (docs/history.md, "Image
-//!   terms per subject pixel"); it stays unset only because setting it reruns
-//!   every learner of the three suites.
+//!   animal fills (0.10-0.31 across the suites' scenes) would weigh the first
+//!   three against the last and against the geometric terms; a fourfold
+//!   change of that balance moves the dev split's strict 1 cm score by
+//!   0.6-1.8 points. Each view's three terms are therefore weighed by
+//!   `subject_share` over its silhouette's share ([`image::subject_scale`]),
+//!   so that a capture framed loosely trains as one framed tightly; 0.17 is
+//!   the dev split's mean framing, where the codec ties the frame means on
+//!   every dev scene and dense ties or wins (the Blender fox's 3 and 4 cm)
+//!   (docs/history.md, "Image terms per subject pixel"). 0 keeps the frame
+//!   means.
 //! - Subset rendering: only the sampled strands are rendered (as in NeuralFur);
 //!   widths are the roots' widths, unscaled.
 //! - Appearance: one RGB colour per strand (lazy Adam on sampled strands) and
