@@ -172,15 +172,19 @@ pub struct ViewData {
 
 /// The factor of a view's colour, silhouette and fur-mask weights under `subject_share`: the
 /// reference share over the share of the frame the view's `silhouette` fills (pixels above
-/// 0.5, at least one), so that those terms, means over the frame, count as means over the
-/// subject, as the orientation term does. The same capture framed more loosely then trains
-/// with the same balance of terms. 1 without a reference or a silhouette.
+/// 0.5), so that those terms, means over the frame, count as means over the subject, as the
+/// orientation term does. The same capture framed more loosely then trains with the same
+/// balance of terms. 1 without a reference, a silhouette or a pixel of the subject in it: a
+/// mean over no subject pixel has no meaning (counted as one pixel, it would weigh the view
+/// by the frame's whole area).
 pub fn subject_scale(silhouette: Option<&ImageF32>, subject_share: Option<f32>) -> f32 {
     let (Some(m), Some(reference)) = (silhouette, subject_share) else {
         return 1.0;
     };
-    let inside = m.data.iter().filter(|&&v| v > 0.5).count().max(1);
-    reference * m.data.len().max(1) as f32 / inside as f32
+    match m.data.iter().filter(|&&v| v > 0.5).count() {
+        0 => 1.0,
+        inside => reference * m.data.len() as f32 / inside as f32,
+    }
 }
 
 /// The image term.
@@ -1502,8 +1506,10 @@ mod tests {
             (tight / loose - 2112.0 / 192.0).abs() < 1e-3,
             "{tight} {loose}"
         );
-        // No silhouette, no scale.
+        // No silhouette, or none of the subject in it: no scale.
         assert_eq!(subject_scale(None, Some(0.2)), 1.0);
+        let empty = ImageF32::new(16, 12, 1);
+        assert_eq!(subject_scale(Some(&empty), Some(0.2)), 1.0);
     }
 
     #[test]
