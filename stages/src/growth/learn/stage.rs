@@ -2459,6 +2459,11 @@ pub(crate) mod tests {
 
     #[test]
     fn a_learned_rotation_turns_wrongly_framed_strands_back() {
+        // The image terms as frame means: the balance this toy's 60 iterations and rates were
+        // set for. The sphere fills much of its 48 px frames, so at the default share the
+        // image terms weigh less against the geometric ones and the same run turns the strands
+        // back a little less far (measured: 12.6 degrees against 11.1, fixed frames 23.2).
+        const SHARE: f64 = 0.0;
         let d = tempfile::tempdir().unwrap();
         let (views, gt_tips) = write_views(d.path());
         let r = roots(300);
@@ -2479,6 +2484,7 @@ pub(crate) mod tests {
                     // Only the lean along the tangent, as a fur corpus's
                     // components: the codes cannot turn a strand sideways.
                     ("components", Value::Int(1)),
+                    ("subject_share", Value::Float(SHARE)),
                 ],
             );
             let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
