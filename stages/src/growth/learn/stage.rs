@@ -104,10 +104,11 @@ fure_stage_api::stage_params! {
         /// percentile, clamped to 1) is below this (0 = all pixels, confidence-weighted).
         ori_min_confidence: f32 = float(0.0).range(0.0, 1.0),
         /// The share of the frame a view's silhouette fills at which L_rgb, L_sil and L_mask
-        /// keep their weights; set, each view's three terms are weighed by this over its own
+        /// keep their weights: each view's three terms are weighed by this over its own
         /// silhouette's share, so that they count per subject pixel, as L_ori does, and a
         /// capture's framing does not move them against L_ori and the geometric terms
-        /// (learn::image::subject_scale). 0: means over the frame.
+        /// (learn::image::subject_scale; 0.17, the dev split's mean framing). 0: means over
+        /// the frame.
         subject_share: f64 = float(0.17).range(0.0, 1.0),
         /// L_chm on the tips' signed distance to M_outer: inside = a hinge that only pulls tips
         /// outside M_outer back onto it (the visual hull bounds the fur); surface = tips onto
@@ -2463,7 +2464,6 @@ pub(crate) mod tests {
         // set for. The sphere fills much of its 48 px frames, so at the default share the
         // image terms weigh less against the geometric ones and the same run turns the strands
         // back a little less far (measured: 12.6 degrees against 11.1, fixed frames 23.2).
-        const SHARE: f64 = 0.0;
         let d = tempfile::tempdir().unwrap();
         let (views, gt_tips) = write_views(d.path());
         let r = roots(300);
@@ -2484,7 +2484,7 @@ pub(crate) mod tests {
                     // Only the lean along the tangent, as a fur corpus's
                     // components: the codes cannot turn a strand sideways.
                     ("components", Value::Int(1)),
-                    ("subject_share", Value::Float(SHARE)),
+                    ("subject_share", Value::Float(0.0)),
                 ],
             );
             let st = formats::hair::read_hair(out.join("strands.hair")).unwrap();
