@@ -164,9 +164,8 @@ fn window_shares(
         .par_iter()
         .enumerate()
         .map(|(i, &p)| {
-            let near = index.indices_within(p, radius);
-            let n = near.iter().filter(|&&j| counts(i, j as usize)).count();
-            n as f32 / near.len().max(1) as f32
+            let (n, all) = index.count_within(p, radius, |j| counts(i, j as usize));
+            n as f32 / all.max(1) as f32
         })
         .collect())
 }
