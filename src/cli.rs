@@ -561,6 +561,7 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     };
     let total = variants.len();
     println!("sweep {}: {total} variants", p.name);
+    let (started, mut done, remote) = (std::time::Instant::now(), 0, opts.executor.is_remote());
     let rows = sweep::run_sweep(
         engine,
         &p,
@@ -577,7 +578,16 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
                 );
             }
         },
-        &mut |row| print_variant(row, a.dry_run, &cache),
+        &mut |row| {
+            print_variant(row, a.dry_run, &cache);
+            done += 1;
+            // A remote executor runs the variants at once, so their pace says nothing.
+            if !a.dry_run && !remote {
+                if let Some(line) = pace(started.elapsed().as_secs_f64(), done, total) {
+                    println!("{line}");
+                }
+            }
+        },
     )?;
     if !opts.executor.is_remote() && sweep::stopped_on_full_disk(&rows) {
         // As an interrupted sweep: no record, no aggregate, nothing published (the last
@@ -669,6 +679,34 @@ fn complete_variants(rows: &[sweep::Row]) -> usize {
     rows.iter()
         .filter(|r| r.status != sweep::VariantStatus::Failed)
         .count()
+}
+
+/// After `done` of `total` variants in `elapsed` seconds, how long the rest would take at
+/// that pace (cached variants count as done, so a resumed sweep's first estimates run
+/// short); `None` once every variant is done.
+fn pace(elapsed: f64, done: usize, total: usize) -> Option<String> {
+    if done == 0 || done >= total {
+        return None;
+    }
+    let left = elapsed / done as f64 * (total - done) as f64;
+    Some(format!(
+        "sweep: {done} of {total} variants done in {}, about {} left at this pace",
+        clock(elapsed),
+        clock(left)
+    ))
+}
+
+/// Seconds as `42 s`, `7 min` or `1 h 38 min`, the precision a sweep's estimate has.
+fn clock(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    let m = (s + 30) / 60;
+    if s < 90 {
+        format!("{s} s")
+    } else if m < 60 {
+        format!("{m} min")
+    } else {
+        format!("{} h {} min", m / 60, m % 60)
+    }
 }
 
 /// One line per finished (or, dry run, inspected) sweep variant; the
@@ -1242,7 +1280,28 @@ pub fn dag(plan: &Plan, format: DagFormat) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::{byte_size, disk_full_hint};
+    use super::{byte_size, clock, disk_full_hint, pace};
+
+    #[test]
+    fn a_sweep_says_how_long_the_rest_takes_at_its_pace() {
+        // 8 of 27 variants in 40 minutes: 19 left at 5 minutes each.
+        assert_eq!(
+            pace(2400.0, 8, 27).as_deref(),
+            Some("sweep: 8 of 27 variants done in 40 min, about 1 h 35 min left at this pace")
+        );
+        assert_eq!(
+            pace(30.0, 1, 3).as_deref(),
+            Some("sweep: 1 of 3 variants done in 30 s, about 60 s left at this pace")
+        );
+        assert_eq!(pace(100.0, 3, 3), None);
+        assert_eq!(pace(0.0, 0, 3), None);
+        assert_eq!(clock(89.4), "89 s");
+        assert_eq!(clock(90.0), "2 min");
+        assert_eq!(clock(3569.0), "59 min");
+        assert_eq!(clock(3599.0), "1 h 0 min");
+        assert_eq!(clock(3600.0), "1 h 0 min");
+        assert_eq!(clock(7199.0), "2 h 0 min");
+    }
 
     #[test]
     fn sizes_read_in_the_unit_that_shows_them() {

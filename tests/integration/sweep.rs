@@ -65,6 +65,16 @@ fn each_axes_statuses_record_and_aggregate() {
         text.contains("2 of 10 variants failed, 2 degraded"),
         "{text}"
     );
+    // After every variant but the last: how long the rest would take at the pace so far.
+    for done in 1..10 {
+        let head = format!("sweep: {done} of 10 variants done in ");
+        assert!(
+            text.lines()
+                .any(|l| l.starts_with(&head) && l.ends_with(" left at this pace")),
+            "{text}"
+        );
+    }
+    assert!(!text.contains("sweep: 10 of 10 variants done"), "{text}");
 
     // Upstream `gen` is computed once per crossed point, hit by the others.
     assert!(
