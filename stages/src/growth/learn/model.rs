@@ -27,8 +27,8 @@ use super::placement::{self, Decoder};
 use crate::maths::stats::standard_normal;
 
 /// One chunk's codec gradient sums, added up in chunk order: encoder, decoder, part log
-/// length scales, log style scale.
-type ChunkGrads = (Vec<f32>, Vec<f32>, Vec<f32>, f32);
+/// length scales, log style scale, the chunk's style-code rows.
+type ChunkGrads = (Vec<f32>, Vec<f32>, Vec<f32>, f32, Vec<f32>);
 
 /// Strands per parallel work item.
 pub const CHUNK: usize = 128;
@@ -205,6 +205,8 @@ pub struct Rates {
     pub length: f32,
     /// The codec's log style scale (`Codec::with_style_scale`).
     pub style: f32,
+    /// The codec's per-strand style codes (`Codec::with_learned_style_codes`).
+    pub style_codes: f32,
 }
 
 /// The codec: encoder E_theta and fine-tuned decoder D_psi.
@@ -243,6 +245,8 @@ pub struct Codec {
     pub part_lengths: Option<Box<PartLengths>>,
     /// A learned scale on every style code (`None` = the codes as given).
     pub style_scale: Option<Box<StyleScale>>,
+    /// Learned style codes (`None` = fixed as drawn).
+    pub style_rows: Option<Box<StyleRows>>,
     adam_theta: Adam,
     adam_psi: Adam,
 }
@@ -327,6 +331,16 @@ impl StyleScale {
         self.adam.step(&mut self.log_scale, grad, rate);
         self.log_scale[0] = self.log_scale[0].max(0.0);
     }
+}
+
+/// The style codes as parameters: each strand's styled components move with lazy Adam when the
+/// strand is sampled, so the views may give a strand its own departure from the guide field's
+/// local mean shape (the paper's style map, trained) rather than the one drawn for it.
+#[derive(Debug, Clone)]
+pub struct StyleRows {
+    /// The components that move (the styled ones, [`styled_components`]).
+    pub styled: std::ops::Range<usize>,
+    adam: RowAdam,
 }
 
 /// Per-strand style codes (the paper's optional style map, as codes): strand
@@ -427,6 +441,9 @@ pub enum Grads {
         length: Vec<f32>,
         /// d loss / d log style scale (empty without a learned style scale).
         style: Vec<f32>,
+        /// d loss / d style code, one K-row per subset strand, zero off the styled
+        /// components (empty without learned style codes).
+        style_codes: Vec<f32>,
     },
     Dense {
         rows: Vec<f32>,
@@ -487,6 +504,7 @@ impl Codec {
             style: Vec::new(),
             part_lengths: None,
             style_scale: None,
+            style_rows: None,
             adam_theta: Adam::new(nt),
             adam_psi: Adam::new(np),
         }
@@ -537,6 +555,35 @@ impl Codec {
             self.style_scale = Some(Box::new(StyleScale::new()));
         }
         self
+    }
+
+    /// The same codec whose style codes' `styled` components are trained per strand
+    /// ([`StyleRows`]); without style codes or styled components there is nothing to train.
+    pub fn with_learned_style_codes(mut self, styled: std::ops::Range<usize>) -> Self {
+        let k = self.decoder.k;
+        if !self.style.is_empty() && !styled.is_empty() && styled.end <= k {
+            let n = self.style.len() / k;
+            self.style_rows = Some(Box::new(StyleRows {
+                styled,
+                adam: RowAdam::new(n, k),
+            }));
+        }
+        self
+    }
+
+    /// The root mean square of the learned style codes over their styled components
+    /// (`None` unless [`Codec::with_learned_style_codes`]).
+    pub fn learned_style_rms(&self) -> Option<f32> {
+        let rows = self.style_rows.as_ref()?;
+        let k = self.decoder.k;
+        let (mut sum, mut count) = (0.0f64, 0usize);
+        for code in self.style.chunks_exact(k) {
+            for &v in &code[rows.styled.clone()] {
+                sum += (v as f64) * (v as f64);
+                count += 1;
+            }
+        }
+        (count > 0).then(|| (sum / count as f64).sqrt() as f32)
     }
 
     /// The factor on the style codes (1 unless learned).
@@ -642,6 +689,9 @@ impl Model {
                     }
                     + c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len())
                     + c.style_scale.is_some() as usize
+                    + c.style_rows
+                        .as_ref()
+                        .map_or(0, |r| r.styled.len() * c.style.len() / c.decoder.k.max(1))
             }
             Model::Dense(d) => d.points.len(),
         }
@@ -728,6 +778,7 @@ impl Model {
                 let np = c.decoder.params.len();
                 let nparts = c.part_lengths.as_ref().map_or(0, |p| p.log_scale.len());
                 let style_factor = c.style_scale.as_ref().map(|s| s.scale());
+                let styled_rows = c.style_rows.as_ref().map(|r| r.styled.clone());
                 let per_chunk: Vec<ChunkGrads> = subset
                     .par_chunks(CHUNK)
                     .zip(chunks.par_iter())
@@ -739,6 +790,8 @@ impl Model {
                         let mut gl = vec![Vec3::ZERO; l];
                         let mut gcode = vec![0.0f32; k];
                         let mut gstyle = 0.0f32;
+                        let mut grows =
+                            vec![0.0f32; styled_rows.as_ref().map_or(0, |_| ids.len() * k)];
                         for (j, &i) in ids.iter().enumerate() {
                             let i = i as usize;
                             let loc = &ch.local[j * l..(j + 1) * l];
@@ -791,17 +844,28 @@ impl Model {
                                 gstyle += factor
                                     * gcode.iter().zip(style).map(|(g, e)| g * e).sum::<f32>();
                             }
+                            if let Some(styled) = &styled_rows {
+                                // code = encoder output + factor * style: d code / d style =
+                                // factor, on the styled components only.
+                                let factor = c.style_factor();
+                                let row = &mut grows[j * k..(j + 1) * k];
+                                for m in styled.clone() {
+                                    row[m] = factor * gcode[m];
+                                }
+                            }
                         }
                         let mut gt = vec![0.0f32; nt];
                         c.mlp.backward(&ch.tape, &gz, &mut gt);
-                        (gt, gpsi, glen, gstyle)
+                        (gt, gpsi, glen, gstyle, grows)
                     })
                     .collect();
                 let mut theta = vec![0.0f32; nt];
                 let mut psi = vec![0.0f32; np];
                 let mut length = vec![0.0f32; nparts];
                 let mut style = vec![0.0f32; style_factor.is_some() as usize];
-                for (gt, gp, gl, gs) in per_chunk {
+                let mut style_codes = Vec::new();
+                for (gt, gp, gl, gs, gr) in per_chunk {
+                    style_codes.extend(gr);
                     for (a, b) in theta.iter_mut().zip(&gt) {
                         *a += b;
                     }
@@ -820,6 +884,7 @@ impl Model {
                     psi,
                     length,
                     style,
+                    style_codes,
                 }
             }
             (Model::Dense(d), _) => {
@@ -847,6 +912,7 @@ impl Model {
                 psi: Vec::new(),
                 length: Vec::new(),
                 style: Vec::new(),
+                style_codes: Vec::new(),
             },
         }
     }
@@ -861,6 +927,7 @@ impl Model {
                     psi,
                     length,
                     style,
+                    style_codes,
                 },
             ) => {
                 c.adam_theta.step(&mut c.mlp.params, theta, rates.encoder);
@@ -872,6 +939,10 @@ impl Model {
                 }
                 if let Some(s) = c.style_scale.as_mut() {
                     s.step(style, rates.style);
+                }
+                if let Some(r) = c.style_rows.as_mut() {
+                    r.adam
+                        .step(&mut c.style, style_codes, subset, rates.style_codes);
                 }
             }
             (Model::Dense(d), Grads::Dense { rows }) => {
@@ -1004,6 +1075,7 @@ mod tests {
             psi: vec![2.0 * v; 2],
             length: vec![3.0 * v; 2],
             style: vec![4.0 * v],
+            style_codes: vec![5.0 * v; 2],
         };
         let mut g = codec(1.0);
         g.add_without_style(&codec(10.0));
@@ -1012,13 +1084,20 @@ mod tests {
             psi,
             length,
             style,
+            style_codes,
         } = g
         else {
             unreachable!()
         };
         assert_eq!(
-            (theta, psi, length, style),
-            (vec![11.0; 3], vec![22.0; 2], vec![33.0; 2], vec![4.0])
+            (theta, psi, length, style, style_codes),
+            (
+                vec![11.0; 3],
+                vec![22.0; 2],
+                vec![33.0; 2],
+                vec![4.0],
+                vec![5.0; 2]
+            )
         );
         let mut d = Grads::Dense {
             rows: vec![1.0, 2.0],
@@ -1031,7 +1110,72 @@ mod tests {
 
     #[test]
     fn codec_backward_with_learned_style_scale_matches_finite_differences() {
-        check_codec_gradients_full(true, false, 0.7, false, 2, true);
+        check_codec_gradients_full(true, false, 0.7, false, 2, true, false);
+    }
+
+    #[test]
+    fn codec_backward_with_learned_style_codes_matches_finite_differences() {
+        // One trained component, the second styled and learned per strand, under a learned
+        // style scale: every factor of the style codes' gradient is exercised.
+        check_codec_gradients_full(true, false, 0.7, false, 1, true, true);
+    }
+
+    #[test]
+    fn learned_style_codes_move_only_the_sampled_strands_styled_components() {
+        let l = 3;
+        let mean: Vec<Vec3> = (0..l).map(|i| Vec3::Z * i as f32).collect();
+        let comps: Vec<Vec<Vec3>> = (1..=3)
+            .map(|c| (0..l).map(|i| Vec3::X * (i * c) as f32 * 0.1).collect())
+            .collect();
+        let pe = PositionalEncoding::new(1, [-1.0; 3], [1.0; 3]);
+        let n = 4;
+        let inputs = RootInputs {
+            positions: (0..n).map(|i| Vec3::X * i as f32 * 0.1).collect(),
+            frames: vec![Mat3::IDENTITY; n],
+            lengths: vec![1.0; n],
+            parts: vec![0; n],
+            rho: vec![0.5; n],
+        };
+        let prep = Prepared::new(l, inputs, 1, &pe);
+        let mlp = Mlp::new(prep.feature_dim, 4, 1, 3, 3);
+        let codec = Codec::new(mlp, Decoder::new(&mean, &comps), false, false)
+            .with_style(style_codes(n, 3, 1, 0, 1.0, 5))
+            .with_learned_style_codes(1..3);
+        let before = codec.style.clone();
+        let mut model = Model::Codec(codec);
+        let subset = [1u32, 3];
+        let (_, cache) = model.forward(&prep, &subset);
+        let pull = vec![Vec3::X; subset.len() * l];
+        let grads = model.backward(&prep, &subset, &cache, &pull);
+        let rates = Rates {
+            style_codes: 0.1,
+            ..rates_for_test()
+        };
+        model.step(&grads, &subset, rates);
+        let Model::Codec(c) = &model else {
+            unreachable!()
+        };
+        for i in 0..n {
+            for m in 0..3 {
+                let moved = c.style[i * 3 + m] != before[i * 3 + m];
+                let should = subset.contains(&(i as u32)) && m >= 1;
+                assert_eq!(moved, should, "strand {i}, component {m}");
+            }
+        }
+        assert!(model.parameter_count() >= n * 2);
+        let rms = c
+            .learned_style_rms()
+            .expect("learned codes report their spread");
+        assert!(rms.is_finite() && rms > 0.0);
+        // Without style codes there is nothing to learn.
+        let plain = Codec::new(
+            Mlp::new(prep.feature_dim, 4, 1, 3, 3),
+            Decoder::new(&mean, &comps),
+            false,
+            false,
+        )
+        .with_learned_style_codes(1..3);
+        assert!(plain.style_rows.is_none());
     }
 
     #[test]
@@ -1052,7 +1196,7 @@ mod tests {
         lengths: bool,
         trained: usize,
     ) {
-        check_codec_gradients_full(rotation, tilt, style, lengths, trained, false);
+        check_codec_gradients_full(rotation, tilt, style, lengths, trained, false, false);
     }
 
     fn check_codec_gradients_full(
@@ -1062,6 +1206,7 @@ mod tests {
         lengths: bool,
         trained: usize,
         style_scale: bool,
+        learned_codes: bool,
     ) {
         // A tiny codec; loss = sum w . points over a subset.
         let l = 4;
@@ -1115,6 +1260,9 @@ mod tests {
             codec = codec.with_style_scale();
             codec.style_scale.as_mut().unwrap().log_scale = vec![0.4];
         }
+        if learned_codes {
+            codec = codec.with_learned_style_codes(1..2);
+        }
         let mut model = Model::Codec(codec);
         let subset = [0u32, 2];
         let w: Vec<Vec3> = (0..subset.len() * l)
@@ -1131,12 +1279,17 @@ mod tests {
             psi,
             length,
             style: style_grad,
+            style_codes: code_grad,
         } = grads
         else {
             panic!()
         };
         assert_eq!(length.len(), if lengths { 2 } else { 0 });
         assert_eq!(style_grad.len(), style_scale as usize);
+        assert_eq!(
+            code_grad.len(),
+            if learned_codes { subset.len() * 2 } else { 0 }
+        );
         let h = 1e-2f32;
         let Model::Codec(c) = &mut model else {
             panic!()
@@ -1181,6 +1334,13 @@ mod tests {
             });
             assert_scalar_gradient("style scale", fd, g);
         }
+        for (j, &i) in subset.iter().enumerate().filter(|_| learned_codes) {
+            // Component 1 is learned; component 0 stays as drawn (a zero row entry).
+            assert_eq!(code_grad[j * 2], 0.0);
+            let g = code_grad[j * 2 + 1];
+            let fd = central_difference(c, &f, h, |c| &mut c.style[i as usize * 2 + 1]);
+            assert_scalar_gradient(&format!("style code of strand {i}"), fd, g);
+        }
     }
 
     fn rates_for_test() -> Rates {
@@ -1190,6 +1350,7 @@ mod tests {
             points: 0.0,
             length: 0.1,
             style: 0.0,
+            style_codes: 0.0,
         }
     }
 

@@ -245,6 +245,17 @@ fure_stage_api::stage_params! {
         /// Initial Adam learning rate of the log style scale (learn_style; decays with
         /// lr_decay).
         lr_style: f32 = float(0.05).min(0.0),
+        /// Train every strand's style code on its styled components (style_from..style_to),
+        /// with lazy Adam when the strand is sampled (learn::model::StyleRows): the paper's
+        /// style map as parameters, each strand's departure from the guide field its own
+        /// instead of the one drawn for it. Off: on the dev split it wins the curling coat's
+        /// 2 and 3 cm and ties the rest, but the suites have not been rerun at it (learn
+        /// module doc).
+        learn_style_codes: bool = bool(false).omit_default_from_key(),
+        /// Initial Adam learning rate of the style codes (learn_style_codes; code units, the
+        /// corpus' spread per component; decays with lr_decay). 0.3: at 1 the Blender fox
+        /// loses 2-4 cm (dev split, learn module doc).
+        lr_style_codes: f32 = float(0.3).min(0.0).omit_default_from_key(),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
         /// Hidden width of the encoder.
@@ -622,6 +633,10 @@ pub struct LearnMetrics {
     /// The learned scale on the style codes (learn_style).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub style_scale: Option<f32>,
+    /// The root mean square of the learned style codes' styled components (learn_style_codes;
+    /// drawn at `style`, so above it the views spread the strands further than the draw).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub style_code_rms: Option<f32>,
     /// The basis components the codec trains (min_component_px).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub components: Option<ComponentsReport>,
@@ -1584,6 +1599,10 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
             Model::Codec(c) => c.style_scale.as_ref().map(|s| s.scale()),
             Model::Dense(_) => None,
         },
+        style_code_rms: match &model {
+            Model::Codec(c) => c.learned_style_rms(),
+            Model::Dense(_) => None,
+        },
         components: s.components.clone(),
     };
     let _ = (&s.lengths, &s.outer);
@@ -1649,6 +1668,14 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
             if c.learn_style {
                 codec = codec.with_style_scale();
             }
+            if c.learn_style_codes {
+                codec = codec.with_learned_style_codes(styled_components(
+                    s.decoder.k,
+                    c.style_from,
+                    c.style_to,
+                    c.style,
+                ));
+            }
             (
                 Model::Codec(codec),
                 Rates {
@@ -1657,6 +1684,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                     points: 0.0,
                     length: c.lr_length,
                     style: c.lr_style,
+                    style_codes: c.lr_style_codes,
                 },
             )
         }
@@ -1668,6 +1696,7 @@ fn initial_model(learner: &Learner, s: &Setup, seed: u64) -> (Model, Rates) {
                 points: d.lr_points,
                 length: 0.0,
                 style: 0.0,
+                style_codes: 0.0,
             },
         ),
     }

@@ -128,6 +128,7 @@ pub fn decayed_rates(rates: Rates, decay: f32, iteration: usize, iterations: usi
         points: rates.points * f,
         length: rates.length * f,
         style: rates.style * f,
+        style_codes: rates.style_codes * f,
     }
 }
 
@@ -308,6 +309,7 @@ mod tests {
                 points: 0.02,
                 length: 0.0,
                 style: 0.0,
+                style_codes: 0.0,
             },
             lr_decay: 1.0,
             w_chm: 1.0,
@@ -382,6 +384,7 @@ mod tests {
             points: 0.01,
             length: 0.0,
             style: 0.0,
+            style_codes: 0.0,
         };
         let at = |it| decayed_rates(r, 0.01, it, 101);
         assert_eq!(at(0).encoder, r.encoder);
