@@ -155,7 +155,7 @@
 //!   2 cm on three or four). Hence the floor of 1: the views may ask for more
 //!   departure, not less; with it the straight coats keep their strands
 //!   exactly (scale 1.00) and the poodle its win.
-//! - Learned style codes (`learn_style_codes`, codec, off; own rate
+//! - Learned style codes (`learn_style_codes`, codec, on; own rate
 //!   `lr_style_codes` 0.3 decayed with the geometry rates): the style codes
 //!   become parameters on their styled components ([`model::StyleRows`], lazy
 //!   Adam on the sampled strands, as the strand colours), the paper's style
@@ -166,9 +166,8 @@
 //!   local curvature variance a little higher (sheepdog 3.3x -> 3.9x the
 //!   GT's, poodle 4.3x -> 4.7x); at 1 the poodle and the sheepdog win more
 //!   (poodle 2 cm 76.3 -> 79.4) but the Blender fox loses 2, 3 and 4 cm, and
-//!   the curvature rises everywhere (fox 1.7x -> 2.7x). Not the default
-//!   because a default changes only with the suites rerun at it
-//!   (docs/history.md, "Learned style codes"), and it multiplies the codec's
+//!   the curvature rises everywhere (fox 1.7x -> 2.7x); hence 0.3
+//!   (docs/history.md, "Learned style codes"). It multiplies the codec's
 //!   parameters by 11 to 16 (three per strand: 162,000 on the tiger, 242,000
 //!   on the poodle, against 14,725; dense has 1.0 and 1.6 million), which the
 //!   F against model size chart weighs. The learning stage's time is the

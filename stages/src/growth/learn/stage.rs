@@ -248,14 +248,14 @@ fure_stage_api::stage_params! {
         /// Train every strand's style code on its styled components (style_from..style_to),
         /// with lazy Adam when the strand is sampled (learn::model::StyleRows): the paper's
         /// style map as parameters, each strand's departure from the guide field its own
-        /// instead of the one drawn for it. Off: on the dev split it wins the curling coat's
-        /// 2 and 3 cm and ties the rest, but the suites have not been rerun at it (learn
-        /// module doc).
-        learn_style_codes: bool = bool(false).omit_default_from_key(),
+        /// instead of the one drawn for it (chosen on the dev split: the curling coat wins 2
+        /// and 3 cm, every other scene ties; learn module doc; metrics.json
+        /// `style_code_rms`).
+        learn_style_codes: bool = bool(true),
         /// Initial Adam learning rate of the style codes (learn_style_codes; code units, the
         /// corpus' spread per component; decays with lr_decay). 0.3: at 1 the Blender fox
         /// loses 2-4 cm (dev split, learn module doc).
-        lr_style_codes: f32 = float(0.3).min(0.0).omit_default_from_key(),
+        lr_style_codes: f32 = float(0.3).min(0.0),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
         /// Hidden width of the encoder.
@@ -522,7 +522,8 @@ impl Stage for CodecStrandsStage {
         // taken by a trial that did not land; caches may hold its entries).
         // 28: maps whose lines run across the roots' frames are not read (ACROSS_DEG).
         // 29: the image terms per subject pixel by default (subject_share 0.17).
-        29
+        // 30: learned style codes by default (learn_style_codes).
+        30
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -2310,8 +2311,8 @@ pub(crate) mod tests {
     fn the_codec_trains_only_the_components_the_views_resolve() {
         let d = tempfile::tempdir().unwrap();
         let (views, _) = write_views(d.path());
-        let run = |min_px: f32, style: f32| -> LearnMetrics {
-            let dir = d.path().join(format!("{min_px}-{style}"));
+        let run_codes = |min_px: f32, style: f32, codes: bool| -> LearnMetrics {
+            let dir = d.path().join(format!("{min_px}-{style}-{codes}"));
             let out = run_with_views(
                 &dir,
                 views.clone(),
@@ -2321,12 +2322,14 @@ pub(crate) mod tests {
                     ("style", Value::Float(style as f64)),
                     ("style_from", Value::Int(1)),
                     ("style_to", Value::Int(2)),
+                    ("learn_style_codes", Value::Bool(codes)),
                     ("fit_colors", Value::Str("none".into())),
                 ],
             )
             .join("metrics.json");
             formats::json::read_json(out).unwrap()
         };
+        let run = |min_px: f32, style: f32| run_codes(min_px, style, false);
         // 0 trains every component and still reports each one's reach.
         let all = run(0.0, 0.0);
         let r = all.components.clone().expect("views connected: a report");
@@ -2351,6 +2354,13 @@ pub(crate) mod tests {
             2 * (mlp_width + 1) + 8 * 3 - 1
         );
         assert!(all.style_scale.is_none() && coarse.style_scale.is_some());
+        // Learned style codes add one parameter per strand and styled component (one here).
+        let learned = run_codes(1e6, 0.5, true);
+        assert_eq!(
+            learned.optimised_parameters - coarse.optimised_parameters,
+            learned.strands
+        );
+        assert!(learned.style_code_rms.is_some() && coarse.style_code_rms.is_none());
     }
 
     #[test]
