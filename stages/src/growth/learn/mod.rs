@@ -165,7 +165,7 @@
 //!   other scene, the Blender fox included, ties every threshold, with the
 //!   local curvature variance a little higher (sheepdog 3.3x -> 3.9x the
 //!   GT's, poodle 4.3x -> 4.7x); at 1 the poodle and the sheepdog win more
-//!   (poodle 2 cm 76.3 -> 79.4) but the Blender fox loses 2, 3 and 4 cm, and
+//!   (poodle 2 cm 76.3 -> 79.4) but the Blender fox loses 3 and 4 cm, and
 //!   the curvature rises everywhere (fox 1.7x -> 2.7x); hence 0.3
 //!   (docs/history.md, "Learned style codes"). It multiplies the codec's
 //!   parameters by 11 to 16 (three per strand: 162,000 on the tiger, 242,000

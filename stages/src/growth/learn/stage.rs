@@ -254,7 +254,7 @@ fure_stage_api::stage_params! {
         learn_style_codes: bool = bool(true),
         /// Initial Adam learning rate of the style codes (learn_style_codes; code units, the
         /// corpus' spread per component; decays with lr_decay). 0.3: at 1 the Blender fox
-        /// loses 2-4 cm (dev split, learn module doc).
+        /// loses 3 and 4 cm (dev split, learn module doc).
         lr_style_codes: f32 = float(0.3).min(0.0),
         /// Positional-encoding frequencies.
         pe_frequencies: usize = int(10).range(0.0, 20.0),
