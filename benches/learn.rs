@@ -78,6 +78,7 @@ fn time_model(model: &mut Model, prep: &Prepared, rng: &mut Rng) -> [f64; 4] {
         points: 1e-3,
         length: 0.05,
         style: 0.05,
+        style_codes: 0.3,
     };
     let mut runs: Vec<[f64; 4]> = Vec::new();
     for it in 0..REPS + 2 {

@@ -1129,14 +1129,7 @@ mod tests {
             .collect();
         let pe = PositionalEncoding::new(1, [-1.0; 3], [1.0; 3]);
         let n = 4;
-        let inputs = RootInputs {
-            positions: (0..n).map(|i| Vec3::X * i as f32 * 0.1).collect(),
-            frames: vec![Mat3::IDENTITY; n],
-            lengths: vec![1.0; n],
-            parts: vec![0; n],
-            rho: vec![0.5; n],
-        };
-        let prep = Prepared::new(l, inputs, 1, &pe);
+        let prep = Prepared::new(l, roots_in_a_row(vec![0; n]), 1, &pe);
         let mlp = Mlp::new(prep.feature_dim, 4, 1, 3, 3);
         let codec = Codec::new(mlp, Decoder::new(&mean, &comps), false, false)
             .with_style(style_codes(n, 3, 1, 0, 1.0, 5))
@@ -1354,6 +1347,18 @@ mod tests {
         }
     }
 
+    /// Roots 0.1 apart along x with identity frames, unit lengths and the given parts.
+    fn roots_in_a_row(parts: Vec<u16>) -> RootInputs {
+        let n = parts.len();
+        RootInputs {
+            positions: (0..n).map(|i| Vec3::X * i as f32 * 0.1).collect(),
+            frames: vec![Mat3::IDENTITY; n],
+            lengths: vec![1.0; n],
+            parts,
+            rho: vec![0.5; n],
+        }
+    }
+
     #[test]
     fn learned_part_lengths_move_length_between_parts_not_the_coats_total() {
         let l = 3;
@@ -1361,14 +1366,7 @@ mod tests {
         let comps = vec![(0..l).map(|i| Vec3::X * i as f32 * 0.1).collect::<Vec<_>>()];
         let pe = PositionalEncoding::new(1, [-1.0; 3], [1.0; 3]);
         let n = 4;
-        let inputs = RootInputs {
-            positions: (0..n).map(|i| Vec3::X * i as f32 * 0.1).collect(),
-            frames: vec![Mat3::IDENTITY; n],
-            lengths: vec![1.0; n],
-            parts: vec![0, 0, 0, 1],
-            rho: vec![0.5; n],
-        };
-        let prep = Prepared::new(l, inputs, 2, &pe);
+        let prep = Prepared::new(l, roots_in_a_row(vec![0, 0, 0, 1]), 2, &pe);
         let mlp = Mlp::new(prep.feature_dim, 4, 1, 1, 3);
         let mut model = Model::Codec(
             Codec::new(mlp, Decoder::new(&mean, &comps), false, false).with_part_lengths(&[3, 1]),
