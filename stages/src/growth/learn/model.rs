@@ -847,7 +847,7 @@ impl Model {
                             if let Some(styled) = &styled_rows {
                                 // code = encoder output + factor * style: d code / d style =
                                 // factor, on the styled components only.
-                                let factor = c.style_factor();
+                                let factor = style_factor.unwrap_or(1.0);
                                 let row = &mut grows[j * k..(j + 1) * k];
                                 for m in styled.clone() {
                                     row[m] = factor * gcode[m];
