@@ -687,6 +687,17 @@ impl Cache {
         &self.root
     }
 
+    /// Bytes an unprivileged writer may still use on the cache's file system (`statvfs`'s
+    /// available blocks), or `None` when the system does not say.
+    pub fn free_bytes(&self) -> Option<u64> {
+        use std::os::unix::ffi::OsStrExt;
+        let path = std::ffi::CString::new(self.root.as_os_str().as_bytes()).ok()?;
+        let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+        // SAFETY: `path` is a NUL-terminated string and `st` a statvfs the call fills.
+        let r = unsafe { libc::statvfs(path.as_ptr(), &mut st) };
+        (r == 0).then(|| (st.f_bavail as u64).saturating_mul(st.f_frsize as u64))
+    }
+
     /// Saves the hint table if it changed.
     pub fn save_hints(&self) {
         let h = self.hints.lock().unwrap_or_else(|e| e.into_inner());
@@ -1579,6 +1590,20 @@ pub fn created_now() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_cache_reads_its_disks_free_space() {
+        let d = tempfile::tempdir().unwrap();
+        let c = Cache::open(d.path(), Access::Shared).unwrap();
+        let free = c.free_bytes().expect("statvfs answers for a temporary directory");
+        assert!(free > 0);
+        // A cache that is not there has no disk to read.
+        let gone = Cache {
+            root: d.path().join("removed"),
+            ..c
+        };
+        assert_eq!(gone.free_bytes(), None);
+    }
 
     #[test]
     fn store_lookup_and_detect_corruption() {

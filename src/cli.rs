@@ -562,6 +562,10 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     let total = variants.len();
     println!("sweep {}: {total} variants", p.name);
     let (started, mut done, remote) = (std::time::Instant::now(), 0, opts.executor.is_remote());
+    // The cache's disk: what the variants that ran used of it, to say early when the rest
+    // would not fit (a sweep stopped on a full disk hours in loses the time, not the work).
+    let free_at_start = cache.free_bytes();
+    let (mut ran, mut warned_disk) = (0usize, false);
     let rows = sweep::run_sweep(
         engine,
         &p,
@@ -581,10 +585,18 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         &mut |row| {
             print_variant(row, a.dry_run, &cache);
             done += 1;
+            ran += (row.report.count(Status::Ran) > 0) as usize;
             // A remote executor runs the variants at once, so their pace says nothing.
             if !a.dry_run && !remote {
                 if let Some(line) = pace(started.elapsed().as_secs_f64(), done, total) {
                     println!("{line}");
+                }
+                let forecast = free_at_start.zip(cache.free_bytes()).and_then(|(s, now)| {
+                    disk_forecast(s.saturating_sub(now), ran, total - done, now)
+                });
+                if let (Some(line), false) = (forecast, warned_disk) {
+                    eprintln!("{line}");
+                    warned_disk = true;
                 }
             }
         },
@@ -694,6 +706,28 @@ fn pace(elapsed: f64, done: usize, total: usize) -> Option<String> {
         clock(elapsed),
         clock(left)
     ))
+}
+
+/// A warning when the `left` variants, each using as much of the cache's disk as the `ran`
+/// variants that ran stages used on average (`used` bytes together), would need more than the
+/// `free` bytes left; `None` when they fit or nothing is known yet. Cached variants use
+/// nothing, so a resumed sweep's warning is an upper bound.
+fn disk_forecast(used: u64, ran: usize, left: usize, free: u64) -> Option<String> {
+    if ran == 0 || left == 0 || used == 0 {
+        return None;
+    }
+    let need = used as f64 / ran as f64 * left as f64;
+    (need > free as f64).then(|| {
+        format!(
+            "warning: the {ran} variants that ran used {} of the cache's disk; the {left} left \
+             would need about {} at that rate and {} is free, so the sweep may stop on a full \
+             disk (interrupt it, free space with `fure gc --keep PIPELINE` or `fure gc \
+             --max-size SIZE`, and rerun: what finished is cached)",
+            byte_size(used),
+            byte_size(need as u64),
+            byte_size(free)
+        )
+    })
 }
 
 /// Seconds as `42 s`, `7 min` or `1 h 38 min`, the precision a sweep's estimate has.
@@ -1280,7 +1314,25 @@ pub fn dag(plan: &Plan, format: DagFormat) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::{byte_size, clock, disk_full_hint, pace};
+    use super::{byte_size, clock, disk_forecast, disk_full_hint, pace};
+
+    #[test]
+    fn a_sweep_warns_when_the_rest_would_not_fit_on_the_disk() {
+        const MIB: u64 = 1024 * 1024;
+        // Two variants used 800 MiB; 25 more at 400 MiB each need 10,000 MiB.
+        let line = disk_forecast(800 * MIB, 2, 25, 6000 * MIB).expect("10 GB do not fit in 6");
+        assert!(
+            line.contains("used 800.0 MiB")
+                && line.contains("about 10000.0 MiB")
+                && line.contains("6000.0 MiB is free"),
+            "{line}"
+        );
+        assert_eq!(disk_forecast(800 * MIB, 2, 25, 10_001 * MIB), None);
+        // Nothing known yet, nothing left, or nothing used: no warning.
+        assert_eq!(disk_forecast(800 * MIB, 0, 25, 0), None);
+        assert_eq!(disk_forecast(800 * MIB, 2, 0, 0), None);
+        assert_eq!(disk_forecast(0, 2, 25, 0), None);
+    }
 
     #[test]
     fn a_sweep_says_how_long_the_rest_takes_at_its_pace() {
