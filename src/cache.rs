@@ -1595,7 +1595,9 @@ mod tests {
     fn the_cache_reads_its_disks_free_space() {
         let d = tempfile::tempdir().unwrap();
         let c = Cache::open(d.path(), Access::Shared).unwrap();
-        let free = c.free_bytes().expect("statvfs answers for a temporary directory");
+        let free = c
+            .free_bytes()
+            .expect("statvfs answers for a temporary directory");
         assert!(free > 0);
         // A cache that is not there has no disk to read.
         let gone = Cache {
