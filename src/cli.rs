@@ -718,8 +718,16 @@ fn disk_forecast(used: u64, ran: usize, left: usize, free: u64) -> Option<String
     }
     let need = used as f64 / ran as f64 * left as f64;
     (need > free as f64).then(|| {
+        let ran = match ran {
+            1 => "the variant that ran".to_string(),
+            n => format!("the {n} variants that ran"),
+        };
+        let left = match left {
+            1 => "the one left".to_string(),
+            n => format!("the {n} left"),
+        };
         format!(
-            "warning: the {ran} variants that ran used {} of the cache's disk; the {left} left \
+            "warning: {ran} used {} of the cache's disk; {left} \
              would need about {} at that rate and {} is free, so the sweep may stop on a full \
              disk (interrupt it, free space with `fure gc --keep PIPELINE` or `fure gc \
              --max-size SIZE`, and rerun: what finished is cached)",
@@ -1326,6 +1334,15 @@ mod tests {
                 && line.contains("about 10000.0 MiB")
                 && line.contains("6000.0 MiB is free"),
             "{line}"
+        );
+        assert!(
+            line.starts_with("warning: the 2 variants that ran used"),
+            "{line}"
+        );
+        let one = disk_forecast(500 * MIB, 1, 1, 100 * MIB).expect("500 MiB do not fit in 100");
+        assert!(
+            one.starts_with("warning: the variant that ran used 500.0 MiB of the cache's disk; the one left would need about 500.0 MiB"),
+            "{one}"
         );
         assert_eq!(disk_forecast(800 * MIB, 2, 25, 10_001 * MIB), None);
         // Nothing known yet, nothing left, or nothing used: no warning.
