@@ -489,7 +489,9 @@ fn write_preamble(md: &mut String, rec: &SweepRecord, cfg: &Config) {
          is `-` where fewer than half of the method's or the GT's strands are long enough to carry \
          it (three resampled segments, about 1.5 cm): a short groom is not judged by its few \
          longest strands; and where the GT's strands are straight (Blender's hair): a ratio over \
-         rounding noise says nothing.\n"
+         rounding noise says nothing. Beside it, the targets give the same ratio for the GT itself \
+         redrawn with the method's points per strand: what an exact reconstruction at that \
+         resolution would read (few points lose fine waves and turn tight curls uneven).\n"
     );
     // Seconds come from the cache entries, whose pools may differ in size
     // (a study at `--jobs 2` leaves entries a later `--jobs 1` suite reuses).
@@ -673,6 +675,11 @@ fn write_method_table(
             sc,
             &format!("{eval}.local_curvature_variance_vs_gt"),
         ));
+        let curv_at_points = stat(&values(sc, &format!("{eval}.gt_at_points.vs_gt")));
+        let points = stat(&values(
+            sc,
+            &format!("{eval}.gt_at_points.points_per_strand"),
+        ));
         let psnr = stat(&values(sc, &format!("{eval}.psnr")));
         let ssim = stat(&values(sc, &format!("{eval}.ssim")));
         let (secs, params) = match &learner {
@@ -738,6 +745,11 @@ fn write_method_table(
                 .push((name.clone(), part, worst));
         }
         mj.insert("curvature_variance_vs_gt".into(), stat_json(curv));
+        mj.insert(
+            "gt_at_points_curvature_vs_gt".into(),
+            stat_json(curv_at_points),
+        );
+        mj.insert("points_per_strand".into(), stat_json(points));
         mj.insert("psnr".into(), stat_json(psnr));
         mj.insert("ssim".into(), stat_json(ssim));
         mj.insert("training_seconds".into(), stat_json(secs));

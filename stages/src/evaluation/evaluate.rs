@@ -67,6 +67,12 @@
 //!   ([`curvature_variance_ratio`]): short fur, or a groom shorter than the truth, is not measured
 //!   by its few longest strands; `null` too where the GT's strands are straight (Blender's hair),
 //!   since a ratio over rounding noise says nothing.
+//! - `gt_at_points`: the same ratio for the GT itself resampled to the prediction's points per
+//!   strand ([`gt_at_points`]): `{points_per_strand, local_curvature_variance, vs_gt}`. It says
+//!   how much of `local_curvature_variance_vs_gt` is the resolution's: a polyline of few points
+//!   loses a coat's fine waves (below 1) and aliases a tight curl into uneven turns (above 1),
+//!   however exact its points. The ratio against the GT stays the measure; this is its reading
+//!   for a perfect strand at the method's resolution, as the ceiling is for the F-scores.
 //! - The default thresholds add the strict 1 cm / 10 deg ([`STRICT_THRESHOLD`]) to the paper's three.
 //!
 //! # Image metrics
@@ -733,6 +739,56 @@ pub fn curvature_variance_ratio(pred: &GeometryMetrics, gt: &GeometryMetrics) ->
         .filter(|r| r.is_finite())
 }
 
+/// What the GT's curvature reads at the prediction's resolution: every GT strand resampled to
+/// the prediction's points per strand (the median over its strands; learners give every strand
+/// the same count) at even arc length, the way an exact reconstruction with that many points
+/// would draw it. `None` without predicted strands of at least two points.
+///
+/// A polyline of few points cannot carry a curl finer than its segments (a coat's fine waves
+/// vanish, a tight curl aliases into uneven turns), so [`curvature_variance_ratio`] against the
+/// GT mixes the method's shape with its resolution; this reading is the resolution's share.
+pub fn gt_at_points(
+    pred: &Strands,
+    gt: &Strands,
+    s_cm: f32,
+    spacing_cm: f32,
+    neighbour_cm: f32,
+    gt_geometry: &GeometryMetrics,
+) -> Option<GtAtPoints> {
+    let mut counts: Vec<usize> = (0..pred.len())
+        .map(|s| pred.strand(s).len())
+        .filter(|&n| n >= 2)
+        .collect();
+    if counts.is_empty() {
+        return None;
+    }
+    counts.sort_unstable();
+    let points = counts[counts.len() / 2];
+    let mut coarse = Strands::new();
+    for s in 0..gt.len() {
+        let p = crate::growth::strand_basis::resample_count(gt.strand(s), points);
+        coarse.push(&p, 0, 0.0, [0.0; 3]);
+    }
+    let geo = geometry_metrics(&coarse, s_cm, spacing_cm, neighbour_cm);
+    Some(GtAtPoints {
+        points_per_strand: points,
+        local_curvature_variance: geo.local_curvature_variance,
+        vs_gt: curvature_variance_ratio(&geo, gt_geometry),
+    })
+}
+
+/// [`gt_at_points`]: the GT at the prediction's points per strand.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GtAtPoints {
+    /// The prediction's points per strand (median).
+    pub points_per_strand: usize,
+    /// The resampled GT's local curvature variance ((rad/cm)^2).
+    pub local_curvature_variance: f32,
+    /// Over the GT's own ([`curvature_variance_ratio`]'s rules): what an exact reconstruction
+    /// at this resolution would score.
+    pub vs_gt: Option<f64>,
+}
+
 fn mean_var(xs: &[f64]) -> (f64, f64) {
     if xs.is_empty() {
         return (0.0, 0.0);
@@ -1110,7 +1166,8 @@ impl Stage for EvaluateStage {
     fn version(&self) -> u32 {
         // 9: no curvature ratio against straight GT strands.
         // 10: the direction error by part.
-        10
+        // 11: the GT's curvature at the prediction's points per strand.
+        11
     }
     fn doc(&self) -> &'static str {
         "Strand precision/recall/F-score against GT strands (1cm/10deg, 2cm/20deg, 3cm/30deg, 4cm/40deg; \
@@ -1216,6 +1273,7 @@ impl Stage for EvaluateStage {
             None => serde_json::Value::Null,
         };
         let curvature_ratio = curvature_variance_ratio(&geo, &geo_gt);
+        let gt_coarse = gt_at_points(&pred, &gt, s_cm, spacing, neighbour, &geo_gt);
         ctx.progress.advance(1);
 
         let (psnr_v, ssim_v, n_views) = held_out_image_metrics(ctx, bg)?;
@@ -1236,6 +1294,7 @@ impl Stage for EvaluateStage {
             "local_direction_variance": geo.local_direction_variance,
             "first_segment_direction_variance": geo.first_segment_direction_variance,
             "local_curvature_variance_vs_gt": curvature_ratio,
+            "gt_at_points": gt_coarse,
             "direction_error_deg": direction.as_ref().map(|d| d.mean_deg),
             "direction_error_by_part": direction.as_ref().and_then(|d| d.by_part.as_ref()),
             "seams": seams,
@@ -1602,6 +1661,43 @@ pub(crate) mod tests {
         assert_eq!(straight.local_curvature_strands_frac, 1.0);
         assert!(straight.local_curvature_variance < MIN_GT_LOCAL_CURVATURE_VARIANCE);
         assert_eq!(curvature_variance_ratio(&groom(10, 0), &straight), None);
+    }
+
+    #[test]
+    fn the_gt_at_the_predictions_points_reads_its_resolution() {
+        // Waves of 2 cm along 6 cm, finely drawn: their turning varies along the strand.
+        let wave = |y: f32, points: usize| -> Vec<Vec3> {
+            (0..points)
+                .map(|i| {
+                    let z = 6.0 * i as f32 / (points - 1) as f32;
+                    Vec3::new(0.3 * (std::f32::consts::PI * z).sin(), y, z)
+                })
+                .collect()
+        };
+        let groom = |points: &[usize]| {
+            let mut s = Strands::new();
+            for (i, &n) in points.iter().enumerate() {
+                s.push(&wave(i as f32, n), 0, 0.01, [0.5; 3]);
+            }
+            s
+        };
+        let gt = groom(&[400; 10]);
+        let geo_gt = geometry_metrics(&gt, 1.0, 0.5, 1.0);
+        assert!(geo_gt.local_curvature_variance > MIN_GT_LOCAL_CURVATURE_VARIANCE);
+        // A prediction as finely drawn as the truth: the resampled GT reads as the GT.
+        let fine = gt_at_points(&groom(&[400; 3]), &gt, 1.0, 0.5, 1.0, &geo_gt).unwrap();
+        assert_eq!(fine.points_per_strand, 400);
+        assert!((fine.vs_gt.unwrap() - 1.0).abs() < 0.05, "{fine:?}");
+        // Four points per strand (the median: one strand has more) cannot hold a 2 cm wave:
+        // an exact reconstruction at that resolution reads far below the GT.
+        let coarse = gt_at_points(&groom(&[4, 4, 400]), &gt, 1.0, 0.5, 1.0, &geo_gt).unwrap();
+        assert_eq!(coarse.points_per_strand, 4);
+        assert!(coarse.vs_gt.unwrap() < 0.5, "{coarse:?}");
+        // Nothing to read without predicted strands.
+        assert_eq!(
+            gt_at_points(&Strands::new(), &gt, 1.0, 0.5, 1.0, &geo_gt),
+            None
+        );
     }
 
     #[test]

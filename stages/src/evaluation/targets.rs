@@ -22,7 +22,9 @@
 //!   target.
 //! - **Shape** (`target_curvature_ratio`, 2): the local curvature variance over the GT's
 //!   within a factor of the target either way; `-` where the report does not judge the ratio
-//!   (short grooms, straight GT strands).
+//!   (short grooms, straight GT strands). The cell adds the same ratio for the GT redrawn with
+//!   the method's points per strand (evaluate's `gt_at_points`): the goal is read against the
+//!   GT, and this says how far a perfect strand at that resolution would sit from it.
 
 use std::fmt::Write;
 
@@ -234,12 +236,25 @@ pub fn write_targets(
                 direction_goal.into(),
                 bounded(&fm["direction_error_deg"], 1, |m| m <= goals.direction_deg),
             ));
-            cells.push((
-                curvature_goal.into(),
-                bounded(&fm["curvature_variance_vs_gt"], 2, |m| {
-                    m >= 1.0 / r && m <= r
-                }),
-            ));
+            let mut curvature = bounded(&fm["curvature_variance_vs_gt"], 2, |m| {
+                m >= 1.0 / r && m <= r
+            });
+            if let (Some(exact), Some(points)) = (
+                stat_from_json(&fm["gt_at_points_curvature_vs_gt"]),
+                stat_from_json(&fm["points_per_strand"]),
+            ) {
+                // Learners give every strand of a scene one count: a spread only when seeds differ.
+                let points = match points.sd {
+                    Some(sd) if sd > 0.0 => fmt_stat(Some(points), 0),
+                    _ => format!("{:.0}", points.mean),
+                };
+                let _ = write!(
+                    curvature.detail,
+                    "; the GT at {points} points: {}",
+                    fmt_stat(Some(exact), 2)
+                );
+            }
+            cells.push((curvature_goal.into(), curvature));
             let strict = format!(
                 "{} ({})",
                 fmt_stat(stat_from_json(&fm["signed_f_1cm_10deg"]), 1),
@@ -319,11 +334,15 @@ mod tests {
 
     #[test]
     fn each_goal_is_read_by_its_rule() {
-        let scenes = json!({
+        let mut scenes = json!({
             "panda": scene(17.0, stat(2.8, 0.3), stat(78.8, 27.2), 3),
             "bison": scene(24.0, stat(0.9, 0.1), stat(8.0, 1.0), 3),
             "wolf": scene(12.0, Json::Null, stat(40.0, 5.0), 2),
         });
+        // The GT redrawn at the method's points per strand is shown beside the ratio; the goal
+        // stays the ratio against the GT (the bison's, met, reads 0.9 whatever the redrawn GT's).
+        scenes["bison"]["A"]["gt_at_points_curvature_vs_gt"] = stat(3.1, 0.2);
+        scenes["bison"]["A"]["points_per_strand"] = json!({"mean": 8.0, "sd": 0.0, "n": 3});
         let v = |a: &str, b: &str, c: &str| json!({"1cm_10deg": "won", "2cm_20deg": a, "3cm_30deg": b, "4cm_40deg": c});
         let verdicts = json!({
             "panda|dense": v("won", "won", "tie"), "panda|fixed": v("tie", "tie", "tie"),
@@ -352,6 +371,10 @@ mod tests {
         assert!(md.contains("## Targets, test split: A"), "{md}");
         assert!(
             md.contains("| panda | met (won, won, tie) | met (tie, tie, tie) | met (tie / won) | met (78.8 ± 27.2) | met (17.0 ± 0.5) | missed (2.80 ± 0.30) | 48.6 ± 2.1 (96.9 ± 0.1) |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| met (0.90 ± 0.10; the GT at 8 points: 3.10 ± 0.20) |"),
             "{md}"
         );
         assert!(
