@@ -304,6 +304,11 @@ fure_stage_api::stage_params! {
         /// split's curvature variance toward the GT's (sheepdog 3.7x -> 1.7x) but loses the
         /// curling coat's 2 and 3 cm scores (learn module doc).
         l_turn: f32 = float(0.0).min(0.0).omit_default_from_key(),
+        /// The learned style scale at which L_turn is off (learn::train::turn_gate): full
+        /// weight at 1, none from here up (0: no gate).
+        l_turn_style_off: f32 = float(0.0).min(0.0).omit_default_from_key(),
+        /// The share of the iterations before L_turn starts (0: from the first).
+        l_turn_start: f32 = float(0.0).range(0.0, 1.0).omit_default_from_key(),
         /// The views' steep fur (growth::view_axes::steep_roots): roots where the views say the
         /// fur rises off the envelope more steeply than this (degrees; the direction nearest to
         /// every view's line plane, pooled over the view-axes window) mark their window, and
@@ -420,6 +425,18 @@ impl Learner {
         match self {
             Learner::Codec(c) => c.view_elevation_full_ratio,
             Learner::Dense(d) => d.view_elevation_full_ratio,
+        }
+    }
+    fn l_turn_style_off(&self) -> f32 {
+        match self {
+            Learner::Codec(c) => c.l_turn_style_off,
+            Learner::Dense(_) => 0.0,
+        }
+    }
+    fn l_turn_start(&self) -> f32 {
+        match self {
+            Learner::Codec(c) => c.l_turn_start,
+            Learner::Dense(_) => 0.0,
         }
     }
     fn l_turn(&self) -> f32 {
@@ -1501,6 +1518,8 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         w_chm: learner.l_chm(),
         w_sdf: p.l_sdf,
         w_turn: learner.l_turn(),
+        turn_style_off: learner.l_turn_style_off(),
+        turn_start: learner.l_turn_start(),
         snapshot_first: p.snapshot_first_seconds,
         snapshot_growth: p.snapshot_growth,
         clock_start: 0.0,

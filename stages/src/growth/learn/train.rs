@@ -47,6 +47,14 @@ pub struct TrainConfig {
     pub w_sdf: f32,
     /// Weight of L_turn (geomloss::turning; 0 = none).
     pub w_turn: f32,
+    /// The learned style scale at which L_turn is off: full weight at a scale
+    /// of 1, none from this scale up, linear between (0 = no gate). See
+    /// [`turn_gate`].
+    pub turn_style_off: f32,
+    /// The share of the iterations that run before L_turn starts (0 = from
+    /// the first): the style scale has that long to rise where the views ask
+    /// for curls, so the gate is closed there before the term pulls.
+    pub turn_start: f32,
     /// Training time of the first snapshot after the initial one (0 = only
     /// the initial and final snapshots).
     pub snapshot_first: f64,
@@ -132,6 +140,24 @@ pub fn decayed_rates(rates: Rates, decay: f32, iteration: usize, iterations: usi
     }
 }
 
+/// The share of L_turn's weight at the model's learned style scale: 1 at a
+/// scale of 1, 0 from `off` up, linear between; 1 without a gate (`off` 0)
+/// or a learned scale. The views raise the scale where they ask for more
+/// detail than the corpus' codes give, a curling coat's; there an even turn is
+/// not the coat's shape and the term would trade F for it.
+pub fn turn_gate(model: &Model, off: f32) -> f32 {
+    let scale = match model {
+        Model::Codec(c) => c.style_scale.as_ref().map(|s| s.scale()),
+        Model::Dense(_) => None,
+    };
+    match scale {
+        Some(s) if off > 1.0 => ((off - s) / (off - 1.0)).clamp(0.0, 1.0),
+        // The scale never falls below 1: a gate at 1 or under is always closed.
+        Some(_) if off > 0.0 => 0.0,
+        _ => 1.0,
+    }
+}
+
 /// Runs the loop. `snapshot(model, iteration, train_seconds)` is called
 /// before the first iteration, on the geometric schedule of the module doc,
 /// and once at the end.
@@ -191,10 +217,16 @@ pub fn train(
         }
         // The shape term's gradient goes through its own backward pass, so that it can skip
         // the style scale (Grads::add_without_style).
-        let shape = (cfg.w_turn > 0.0).then(|| {
+        let started = it as f32 >= cfg.turn_start * cfg.iterations as f32;
+        let w_turn = if started {
+            cfg.w_turn * turn_gate(model, cfg.turn_style_off)
+        } else {
+            0.0
+        };
+        let shape = (w_turn > 0.0).then(|| {
             let mut g = vec![Vec3::ZERO; points.len()];
-            let v = geomloss::turning(&points, l, cfg.w_turn, &mut g);
-            terms.push(("turn", cfg.w_turn * v));
+            let v = geomloss::turning(&points, l, w_turn, &mut g);
+            terms.push(("turn", w_turn * v));
             g
         });
         if !grad
@@ -315,6 +347,8 @@ mod tests {
             w_chm: 1.0,
             w_sdf: 1.0,
             w_turn: 0.0,
+            turn_style_off: 0.0,
+            turn_start: 0.0,
             snapshot_first: 0.0,
             snapshot_growth: 1.25,
             clock_start: 0.0,
@@ -374,6 +408,29 @@ mod tests {
         assert!((r - 1.3).abs() < 0.05, "mean tip radius {r}");
         let (pts2, _) = run();
         assert_eq!(pts, pts2);
+    }
+
+    #[test]
+    fn the_turn_gate_closes_as_the_learned_style_scale_rises() {
+        let (prep, _, dec) = sphere_scene(10);
+        let codec = |log_scale: Option<f32>| {
+            let mlp = Mlp::new(prep.feature_dim, 8, 1, dec.k, 1);
+            let mut c = Codec::new(mlp, dec.clone(), true, false);
+            if let Some(v) = log_scale {
+                // Any codes: the gate reads only their learned scale.
+                c = c.with_style(vec![0.5; 10 * dec.k]).with_style_scale();
+                c.style_scale.as_mut().unwrap().log_scale = vec![v];
+            }
+            Model::Codec(c)
+        };
+        // At a scale of 1 the term has its full weight, from `off` up none, linear between.
+        assert_eq!(turn_gate(&codec(Some(0.0)), 1.5), 1.0);
+        assert!((turn_gate(&codec(Some(1.25f32.ln())), 1.5) - 0.5).abs() < 1e-5);
+        assert_eq!(turn_gate(&codec(Some(2.0f32.ln())), 1.5), 0.0);
+        // No gate, or no learned scale: full weight; a gate at 1 is always closed.
+        assert_eq!(turn_gate(&codec(Some(2.0f32.ln())), 0.0), 1.0);
+        assert_eq!(turn_gate(&codec(Some(0.0)), 1.0), 0.0);
+        assert_eq!(turn_gate(&codec(None), 1.5), 1.0);
     }
 
     #[test]
