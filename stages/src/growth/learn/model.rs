@@ -677,6 +677,14 @@ impl Dense {
 }
 
 impl Model {
+    /// The codec's learned scale on its style codes (`None`: dense, or a fixed scale).
+    pub fn learned_style_scale(&self) -> Option<f32> {
+        match self {
+            Model::Codec(c) => c.style_scale.as_ref().map(|s| s.scale()),
+            Model::Dense(_) => None,
+        }
+    }
+
     /// Number of optimised geometry parameters.
     pub fn parameter_count(&self) -> usize {
         match self {

@@ -1615,10 +1615,7 @@ fn run_stage(ctx: &StageContext<'_>, dense: bool) -> Result<(), StageError> {
         view_axes: s.view_axes.clone(),
         view_elevation: s.view_elevation.clone(),
         part_length_scale: learned_length_scales(&model, &s),
-        style_scale: match &model {
-            Model::Codec(c) => c.style_scale.as_ref().map(|s| s.scale()),
-            Model::Dense(_) => None,
-        },
+        style_scale: model.learned_style_scale(),
         style_code_rms: match &model {
             Model::Codec(c) => c.learned_style_rms(),
             Model::Dense(_) => None,

@@ -146,11 +146,7 @@ pub fn decayed_rates(rates: Rates, decay: f32, iteration: usize, iterations: usi
 /// detail than the corpus' codes give, a curling coat's; there an even turn is
 /// not the coat's shape and the term would trade F for it.
 pub fn turn_gate(model: &Model, off: f32) -> f32 {
-    let scale = match model {
-        Model::Codec(c) => c.style_scale.as_ref().map(|s| s.scale()),
-        Model::Dense(_) => None,
-    };
-    match scale {
+    match model.learned_style_scale() {
         Some(s) if off > 1.0 => ((off - s) / (off - 1.0)).clamp(0.0, 1.0),
         // The scale never falls below 1: a gate at 1 or under is always closed.
         Some(_) if off > 0.0 => 0.0,
@@ -566,6 +562,30 @@ mod tests {
             shaped < 0.7 * free,
             "L_turn of the pushed strands: {shaped} with the term, {free} without"
         );
+    }
+
+    #[test]
+    fn the_shape_term_waits_for_its_start() {
+        // Started after the last iteration the term never pulls: the strands are the ones
+        // trained without it, to the bit.
+        let (prep, geo, dec) = sphere_scene(60);
+        let run = |w_turn: f32, start: f32| {
+            let mut model = Model::Dense(Dense::from_local(&dec.mean(), prep.len()));
+            let mut c = cfg(40, 60);
+            c.w_turn = w_turn;
+            c.turn_start = start;
+            let (report, _) = train_pushed(&mut model, &prep, &geo, c, usize::MAX);
+            (
+                report.final_losses.contains_key("turn"),
+                model.all_points(&prep),
+            )
+        };
+        let (none_term, none) = run(0.0, 0.0);
+        let (late_term, late) = run(1.0, 1.0);
+        let (half_term, half) = run(1.0, 0.5);
+        assert!(!none_term && !late_term && half_term);
+        assert_eq!(none, late);
+        assert_ne!(none, half);
     }
 
     #[test]
