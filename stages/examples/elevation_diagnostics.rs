@@ -82,6 +82,33 @@ fn run() -> Res<()> {
         }
         sab / (saa * sbb).sqrt()
     };
+    // The same reading from maps that carry no direction (every pixel's angle drawn uniformly,
+    // the confidence kept): what the estimator returns when the views say nothing.
+    let random_maps: Vec<_> = maps
+        .iter()
+        .enumerate()
+        .map(|(v, (angle, conf))| {
+            let mut a = angle.clone();
+            for (k, x) in a.data.iter_mut().enumerate() {
+                let h = (k as u64 ^ ((v as u64) << 32)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                let h = (h ^ (h >> 29)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+                *x = ((h >> 11) as f64 / (1u64 << 53) as f64 * std::f64::consts::PI) as f32;
+            }
+            (a, conf.clone())
+        })
+        .collect();
+    let null = view_elevations(
+        &roots.positions,
+        &outer,
+        &ViewOrientation::pair(&cams, &random_maps),
+        radius_px * footprint,
+        (n / 4000).max(1),
+    )?;
+    println!(
+        "random maps: elevation median {:.1} deg; the readings' null (view_axes::PlaneTensors) {:.1} deg",
+        median(null.iter().map(|r| r.elevation.to_degrees()).collect()),
+        median(null.iter().map(|r| r.null_elevation.to_degrees()).collect())
+    );
     println!(
         "roots sampled {}, pooling {radius_px} px: elevation from the views median {:.1} deg, GT {:.1} deg, codec {}; per-root Pearson {corr:.2}",
         est.len(),

@@ -167,6 +167,13 @@ fure_stage_api::stage_params! {
         /// strand lies on the skin (the fur corpus' elevation, 39 degrees at 8 and 10 points),
         /// else its mean strand's, a fur prior for the fur corpus.
         untrusted_elevation_deg: Option<f64> = optional(ParamType::Float).range(-90.0, 90.0),
+        /// How far below its null the views' median elevation must lie to count, in degrees:
+        /// maps that carry no direction read the cameras' mean ray, steep whatever the fur
+        /// does (growth::view_axes::PlaneTensors, "The elevation's null"), so the views'
+        /// elevation enters at no weight within this margin of the null's median, at its whole
+        /// weight from twice the margin, in proportion between. 0 = no such test (15 is the
+        /// advice for views from other renderers and for patterned coats: learn module doc).
+        view_elevation_null_margin_deg: f32 = float(0.0).range(0.0, 90.0).omit_default_from_key(),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
@@ -899,13 +906,22 @@ pub struct ViewElevationReport {
     /// The weight of the views' elevation beside the fallback's (`view_elevation_trust`: the
     /// maps' excess coherence over their coherence, ramped from 0.65 to
     /// `view_elevation_full_ratio`; 0 where the maps run across the frames, which is reported
-    /// only with a fallback set).
+    /// only with a fallback set), times `null_weight`.
     pub trust: f32,
     /// The fallback elevation where one is set: the learner's `untrusted_elevation_deg`, else
     /// the basis' (a basis of human hair carries the fur corpus'); absent, the fallback is the
     /// basis' own mean strand.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fallback_deg: Option<f32>,
+    /// The median over the same roots of the elevation that maps without direction would
+    /// read through the same cameras (growth::view_axes::PlaneTensors, "The elevation's
+    /// null"), degrees; absent where the learner's `view_elevation_null_margin_deg` is 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub null_deg: Option<f32>,
+    /// The factor on `trust` from how far `views_deg` lies below `null_deg`
+    /// ([`null_margin_weight`]): already in `trust`. Absent with `null_deg`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub null_weight: Option<f32>,
     /// The tilt applied to every frame (positive lowers), degrees.
     pub tilt_deg: f32,
     /// Roots whose elevation entered the median.
@@ -1022,6 +1038,7 @@ fn setup(
                 &outer,
                 &basis,
                 (trust, fallback),
+                p.view_elevation_null_margin_deg.to_radians(),
             );
         }
     }
@@ -1303,8 +1320,11 @@ fn training_maps(
 /// `trust` ([`view_elevation_trust`]: maps that carry no direction read the
 /// mean viewing direction, steep whatever the fur does), the rest of the weight
 /// on `fallback` (`untrusted_elevation_deg`, the learner's or the basis', radians)
-/// or, unset, on the basis' own elevation ([`start_tilt`]). `None` when no root is
+/// or, unset, on the basis' own elevation ([`start_tilt`]). `trust` is further
+/// scaled by [`null_margin_weight`] of how far the views' median lies below the
+/// median of the readings' nulls (`null_margin`, radians). `None` when no root is
 /// seen.
+#[allow(clippy::too_many_arguments)]
 fn tilt_onto_view_elevation(
     ctx: &StageContext<'_>,
     cams: &[Camera],
@@ -1313,19 +1333,23 @@ fn tilt_onto_view_elevation(
     outer: &Mesh,
     basis: &StrandBasis,
     (trust, fallback): (f32, Option<f32>),
+    null_margin: f32,
 ) -> Option<ViewElevationReport> {
     let radius = 4.0 * pixel_footprint(cams, outer);
     let stride = (frames.len() / 4000).max(1);
-    let mut elevations: Vec<f32> = planes
-        .elevations(radius, stride)
-        .into_iter()
-        .map(|e| e.elevation)
-        .collect();
-    if elevations.is_empty() {
+    let readings = planes.elevations(radius, stride);
+    if readings.is_empty() {
         return None;
     }
-    elevations.sort_by(f32::total_cmp);
-    let views_elevation = elevations[elevations.len() / 2];
+    let median = |mut v: Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let elevations: Vec<f32> = readings.iter().map(|e| e.elevation).collect();
+    let sampled_roots = elevations.len();
+    let views_elevation = median(elevations);
+    let null_elevation = median(readings.iter().map(|e| e.null_elevation).collect());
+    let null_weight = null_margin_weight(views_elevation, null_elevation, null_margin);
     let basis_elevation = basis.mean_elevation();
     let (other, other_name) = match fallback {
         Some(f) => (f, "the fallback"),
@@ -1338,6 +1362,16 @@ fn tilt_onto_view_elevation(
             views_elevation.to_degrees(),
             other.to_degrees()
         ));
+    } else if null_weight < 1.0 {
+        ctx.progress.note(&format!(
+            "view_elevation: the views' elevation ({:.0} degrees) is not clearly flatter than \
+             what maps without direction read through these cameras ({:.0}), so it enters at \
+             weight {:.2} beside {other_name} ({:.0})",
+            views_elevation.to_degrees(),
+            null_elevation.to_degrees(),
+            trust * null_weight,
+            other.to_degrees()
+        ));
     } else if trust < 1.0 {
         ctx.progress.note(&format!(
             "view_elevation: the maps agree only partly beyond random maps', so the views' \
@@ -1346,6 +1380,7 @@ fn tilt_onto_view_elevation(
             other.to_degrees()
         ));
     }
+    let trust = trust * null_weight;
     let tilt = start_tilt(basis_elevation, views_elevation, trust, fallback);
     let r = Mat3::from_rotation_y(tilt);
     for f in frames.iter_mut() {
@@ -1356,9 +1391,25 @@ fn tilt_onto_view_elevation(
         basis_deg: basis_elevation.to_degrees(),
         trust,
         fallback_deg: fallback.map(f32::to_degrees),
+        null_deg: (null_margin > 0.0).then_some(null_elevation.to_degrees()),
+        null_weight: (null_margin > 0.0).then_some(null_weight),
         tilt_deg: tilt.to_degrees(),
-        sampled_roots: elevations.len(),
+        sampled_roots,
     })
+}
+
+/// The weight of the views' median elevation `views` by how far it lies below the median
+/// `null` of what maps without direction read through the same cameras (radians): 0 within
+/// `margin` of it (or above it), 1 from `2 margin` below, linear between; always 1 at a
+/// margin of 0. Why a margin and not a test of the spread: a steep reading is what a
+/// directionless map gives (growth::view_axes::PlaneTensors), so only a reading clearly
+/// flatter than that tells the coat's elevation; a coat that truly stands near the null
+/// (about 70 degrees on the benchmark's cameras) falls back with it.
+fn null_margin_weight(views: f32, null: f32, margin: f32) -> f32 {
+    if margin <= 0.0 {
+        return 1.0;
+    }
+    ((null - views - margin) / margin).clamp(0.0, 1.0)
 }
 
 /// The tilt that lowers the basis' mean strand (elevation `basis`, radians)
@@ -1862,6 +1913,19 @@ pub(crate) mod tests {
         assert!((deg(human - start_tilt(human, views, 0.0, Some(fur))) - 39.0).abs() < 1e-4);
         assert!((deg(human - start_tilt(human, views, 0.5, Some(fur))) - 29.5).abs() < 1e-4);
         assert!((deg(human - start_tilt(human, views, 1.0, Some(fur))) - 20.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn a_views_elevation_near_its_null_is_weighed_down() {
+        let deg = |d: f32| d.to_radians();
+        // 15 degrees of margin: nothing within 15 of the null, whole from 30 below it.
+        let w = |views, null| null_margin_weight(deg(views), deg(null), deg(15.0));
+        assert_eq!(w(64.0, 70.0), 0.0);
+        assert_eq!(w(75.0, 70.0), 0.0);
+        assert!((w(47.5, 70.0) - 0.5).abs() < 1e-5);
+        assert_eq!(w(15.0, 63.0), 1.0);
+        // No margin: no test.
+        assert_eq!(null_margin_weight(deg(64.0), deg(70.0), 0.0), 1.0);
     }
 
     #[test]
