@@ -919,7 +919,7 @@ pub struct ViewElevationReport {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub null_deg: Option<f32>,
     /// The factor on `trust` from how far `views_deg` lies below `null_deg`
-    /// ([`null_margin_weight`]): already in `trust`. Absent with `null_deg`.
+    /// (0 within the margin, 1 from twice it): already in `trust`. Absent with `null_deg`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub null_weight: Option<f32>,
     /// The tilt applied to every frame (positive lowers), degrees.
