@@ -15,7 +15,7 @@ mod common;
 
 use fure_stages::data::camera::pixel_footprint;
 use fure_stages::formats::hair::read_hair;
-use fure_stages::growth::view_axes::{view_elevations, ViewOrientation};
+use fure_stages::growth::view_axes::{view_elevations, PlaneTensors, ViewOrientation};
 use fure_stages::maths::geom::{MeshQuery, PointIndex};
 use glam::Vec3;
 
@@ -97,17 +97,16 @@ fn run() -> Res<()> {
             (a, conf.clone())
         })
         .collect();
-    let null = view_elevations(
+    let null = PlaneTensors::with_null(
         &roots.positions,
         &outer,
         &ViewOrientation::pair(&cams, &random_maps),
-        radius_px * footprint,
-        (n / 4000).max(1),
-    )?;
+    )?
+    .elevations(radius_px * footprint, (n / 4000).max(1));
     println!(
         "random maps: elevation median {:.1} deg; the readings' null (view_axes::PlaneTensors) {:.1} deg",
         median(null.iter().map(|r| r.elevation.to_degrees()).collect()),
-        median(null.iter().map(|r| r.null_elevation.to_degrees()).collect())
+        median(null.iter().filter_map(|r| r.null_elevation).map(f32::to_degrees).collect())
     );
     println!(
         "roots sampled {}, pooling {radius_px} px: elevation from the views median {:.1} deg, GT {:.1} deg, codec {}; per-root Pearson {corr:.2}",

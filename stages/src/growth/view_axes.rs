@@ -274,9 +274,10 @@ pub struct ViewElevation {
     /// give `tan^2(phi / 2)`.
     pub spread: f32,
     /// The elevation the same views would read from maps that carry no
-    /// direction (radians; [`PlaneTensors`], "The elevation's null"): where
-    /// [`Self::elevation`] lies near it, the reading is the cameras' layout.
-    pub null_elevation: f32,
+    /// direction (radians; [`PlaneTensors::with_null`], "The elevation's
+    /// null"): where [`Self::elevation`] lies near it, the reading is the
+    /// cameras' layout. `None` from tensors made without it.
+    pub null_elevation: Option<f32>,
 }
 
 /// The fur's elevation above the envelope read from the views, at every
@@ -333,8 +334,9 @@ pub fn steep_roots(
 /// planes from lines that carry no direction still share a direction: the
 /// rays' mean, which from the views that see a root's side is near the
 /// envelope's normal. Maps without direction therefore read steep fur
-/// (about 60-70 degrees on the benchmark's cameras, measured with random
-/// maps), whatever the coat does. Each root also keeps the null tensor: per
+/// (68-72 degrees on the benchmark's cameras, measured with random maps),
+/// whatever the coat does. [`Self::with_null`] also keeps each root's null
+/// tensor (12 more rays per view and root, so only on request): per
 /// view the same weight times the plane normals' mean outer product over
 /// [`NULL_ANGLES`] image angles evenly spread over half a turn (a quadrature
 /// of a uniform angle), pooled like the views' own; its least eigenvector's
@@ -343,8 +345,10 @@ pub fn steep_roots(
 /// weigh it so: learn::stage, `view_elevation_null_margin_deg`).
 pub struct PlaneTensors<'p> {
     positions: &'p [Vec3],
-    /// Per root: the envelope normal, the views' tensor and the null tensor.
-    own: Vec<(Vec3, Mat3, Mat3)>,
+    /// Per root: the envelope normal and the views' tensor.
+    own: Vec<(Vec3, Mat3)>,
+    /// Per root, the null tensor ([`Self::with_null`]).
+    nulls: Option<Vec<Mat3>>,
     index: PointIndex,
 }
 
@@ -358,17 +362,39 @@ impl<'p> PlaneTensors<'p> {
         outer: &Mesh,
         views: &[ViewOrientation<'_>],
     ) -> Result<Self, GeomError> {
+        Self::made(positions, outer, views, false)
+    }
+
+    /// As [`Self::new`], with each root's null tensor too, so that every
+    /// reading carries [`ViewElevation::null_elevation`].
+    pub fn with_null(
+        positions: &'p [Vec3],
+        outer: &Mesh,
+        views: &[ViewOrientation<'_>],
+    ) -> Result<Self, GeomError> {
+        Self::made(positions, outer, views, true)
+    }
+
+    fn made(
+        positions: &'p [Vec3],
+        outer: &Mesh,
+        views: &[ViewOrientation<'_>],
+        with_null: bool,
+    ) -> Result<Self, GeomError> {
         let query = MeshQuery::new(outer)?;
         let (lo, hi) = outer.bounds();
         let lift = 1e-3 * (hi - lo).length();
-        let own = positions
+        let tensors: Vec<(Vec3, Mat3, Option<Mat3>)> = positions
             .par_iter()
-            .map(|&p| plane_tensor(p, &query, outer, views, lift))
+            .map(|&p| plane_tensor(p, &query, outer, views, lift, with_null))
             .collect();
+        let nulls = with_null.then(|| tensors.iter().map(|t| t.2.unwrap_or(Mat3::ZERO)).collect());
+        let own = tensors.into_iter().map(|(n, m, _)| (n, m)).collect();
         let index = PointIndex::new(positions)?;
         Ok(PlaneTensors {
             positions,
             own,
+            nulls,
             index,
         })
     }
@@ -383,7 +409,9 @@ impl<'p> PlaneTensors<'p> {
                 // Ascending indices: a fixed summation order.
                 for j in self.index.indices_within(self.positions[i], radius) {
                     m += self.own[j as usize].1;
-                    null += self.own[j as usize].2;
+                    if let Some(nulls) = &self.nulls {
+                        null += nulls[j as usize];
+                    }
                 }
                 if !(m.x_axis.x + m.y_axis.y + m.z_axis.z > 0.0) {
                     return None;
@@ -401,11 +429,13 @@ impl<'p> PlaneTensors<'p> {
                     } else {
                         0.0
                     },
-                    null_elevation: least_eigenvector(null)
-                        .dot(normal)
-                        .abs()
-                        .clamp(0.0, 1.0)
-                        .asin(),
+                    null_elevation: self.nulls.as_ref().map(|_| {
+                        least_eigenvector(null)
+                            .dot(normal)
+                            .abs()
+                            .clamp(0.0, 1.0)
+                            .asin()
+                    }),
                 })
             })
             .collect()
@@ -455,15 +485,16 @@ fn envelope_point(p: Vec3, query: &MeshQuery, outer: &Mesh) -> (Vec3, Option<Vec
 /// One root's envelope normal, the sum over the views that see its
 /// envelope point of `w n n^T`, `n` the normal of the plane through the camera
 /// centre and the pixel's Gabor line ([`view_elevations`]), and the null
-/// tensor: the same weights on the mean `n n^T` over [`NULL_ANGLES`] image
-/// angles ([`PlaneTensors`]).
+/// tensor where asked: the same weights on the mean `n n^T` over
+/// [`NULL_ANGLES`] image angles ([`PlaneTensors`]).
 fn plane_tensor(
     p: Vec3,
     query: &MeshQuery,
     outer: &Mesh,
     views: &[ViewOrientation<'_>],
     lift: f32,
-) -> (Vec3, Mat3, Mat3) {
+    with_null: bool,
+) -> (Vec3, Mat3, Option<Mat3>) {
     let (q, nq) = envelope_point(p, query, outer);
     let nq = nq.unwrap_or(Vec3::Z);
     let (mut m, mut null) = (Mat3::ZERO, Mat3::ZERO);
@@ -510,6 +541,9 @@ fn plane_tensor(
             continue;
         };
         m += outer_product(pn) * (c * facing);
+        if !with_null {
+            continue;
+        }
         let w = c * facing / NULL_ANGLES as f32;
         for a in 0..NULL_ANGLES {
             let alpha = a as f32 * std::f32::consts::PI / NULL_ANGLES as f32;
@@ -518,7 +552,7 @@ fn plane_tensor(
             }
         }
     }
-    (nq, m, null)
+    (nq, m, with_null.then_some(null))
 }
 
 /// The unit eigenvector of a symmetric 3x3 matrix with the least eigenvalue
@@ -887,17 +921,12 @@ mod tests {
         let random = random_maps(&cams, 3);
         let flat: Vec<_> = cams.iter().map(|c| maps_of(c, Vec3::X)).collect();
         let read = |maps: &[(ImageF32, ImageF32)]| {
-            let e = view_elevations(
-                &positions,
-                &mesh,
-                &ViewOrientation::pair(&cams, maps),
-                0.2,
-                1,
-            )
-            .unwrap();
+            let e = PlaneTensors::with_null(&positions, &mesh, &ViewOrientation::pair(&cams, maps))
+                .unwrap()
+                .elevations(0.2, 1);
             (
                 median(e.iter().map(|r| r.elevation).collect()),
-                median(e.iter().map(|r| r.null_elevation).collect()),
+                median(e.iter().filter_map(|r| r.null_elevation).collect()),
             )
         };
         let (noise, noise_null) = read(&random);

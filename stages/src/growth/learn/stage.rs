@@ -998,8 +998,11 @@ fn setup(
         let planes = if tilt_on || (turn_on && max_elevation_deg.is_some()) {
             let outer_path = ctx.input("outer")?;
             Some(
-                PlaneTensors::new(&positions, &outer, &views)
-                    .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?,
+                match p.view_elevation_null_margin_deg > 0.0 {
+                    true => PlaneTensors::with_null(&positions, &outer, &views),
+                    false => PlaneTensors::new(&positions, &outer, &views),
+                }
+                .map_err(|e| StageError::input("outer", outer_path, e.to_string()))?,
             )
         } else {
             None
@@ -1348,8 +1351,13 @@ fn tilt_onto_view_elevation(
     let elevations: Vec<f32> = readings.iter().map(|e| e.elevation).collect();
     let sampled_roots = elevations.len();
     let views_elevation = median(elevations);
-    let null_elevation = median(readings.iter().map(|e| e.null_elevation).collect());
-    let null_weight = null_margin_weight(views_elevation, null_elevation, null_margin);
+    // Tensors made with the null carry it on every reading (`PlaneTensors::with_null`, asked
+    // for exactly when the margin is set).
+    let nulls: Vec<f32> = readings.iter().filter_map(|e| e.null_elevation).collect();
+    let null_elevation = (null_margin > 0.0 && !nulls.is_empty()).then(|| median(nulls));
+    let null_weight = null_elevation.map_or(1.0, |null| {
+        null_margin_weight(views_elevation, null, null_margin)
+    });
     let basis_elevation = basis.mean_elevation();
     let (other, other_name) = match fallback {
         Some(f) => (f, "the fallback"),
@@ -1362,13 +1370,13 @@ fn tilt_onto_view_elevation(
             views_elevation.to_degrees(),
             other.to_degrees()
         ));
-    } else if null_weight < 1.0 {
+    } else if let Some(null) = null_elevation.filter(|_| null_weight < 1.0) {
         ctx.progress.note(&format!(
             "view_elevation: the views' elevation ({:.0} degrees) is not clearly flatter than \
              what maps without direction read through these cameras ({:.0}), so it enters at \
              weight {:.2} beside {other_name} ({:.0})",
             views_elevation.to_degrees(),
-            null_elevation.to_degrees(),
+            null.to_degrees(),
             trust * null_weight,
             other.to_degrees()
         ));
@@ -1391,8 +1399,8 @@ fn tilt_onto_view_elevation(
         basis_deg: basis_elevation.to_degrees(),
         trust,
         fallback_deg: fallback.map(f32::to_degrees),
-        null_deg: (null_margin > 0.0).then_some(null_elevation.to_degrees()),
-        null_weight: (null_margin > 0.0).then_some(null_weight),
+        null_deg: null_elevation.map(f32::to_degrees),
+        null_weight: null_elevation.map(|_| null_weight),
         tilt_deg: tilt.to_degrees(),
         sampled_roots,
     })
