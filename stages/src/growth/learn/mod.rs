@@ -339,8 +339,8 @@
 //!   lines; only the null says whether those lines tell the elevation: a
 //!   Blender-rendered panda (outside both splits) has a black-and-white coat
 //!   whose edges give the maps coherence (trust 0.71) while its reading is
-//!   the null's (63 degrees against 72; GT 21), and at 15 its codec gains
-//!   11-12 points at 3 cm on both seeds run. 15 sits inside what the dev
+//!   the null's (63 degrees against 72; GT 21), and at 15 its codec's 3 cm
+//!   F rises from 71.6 to 79.2 (seeds 0-2). 15 sits inside what the dev
 //!   split's readings allow: the coats whose median is right lie 38-54
 //!   degrees below their null (seeds 0-2), the readings known wrong 8-13
 //!   (the Blender fox, the poodle's curls). Not the default yet: it moves
