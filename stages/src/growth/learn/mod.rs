@@ -329,7 +329,7 @@
 //!   there (docs/history.md, "The views' elevation where the maps carry less
 //!   direction").
 //!   A reading may also be weighed by its distance from its null
-//!   (`view_elevation_null_margin_deg`, both learners; 0, off, by default):
+//!   (`view_elevation_null_margin_deg`, both learners; 15 by default):
 //!   every plane holds its view's ray, so maps without direction read the
 //!   cameras' mean ray, 68-72 degrees on the benchmark's cameras
 //!   ([`crate::growth::view_axes::PlaneTensors`] computes that null per
@@ -337,18 +337,19 @@
 //!   median counts wholly where it lies `2 m` or more below the null's
 //!   median, not at all within `m`. Coherence says whether the maps hold
 //!   lines; only the null says whether those lines tell the elevation: a
-//!   Blender-rendered panda (outside both splits) has a black-and-white coat
-//!   whose edges give the maps coherence (trust 0.71) while its reading is
-//!   the null's (63 degrees against 72; GT 21), and at 15 its codec's 3 cm
-//!   F rises from 71.6 to 79.2 (seeds 0-2). 15 sits inside what the dev
-//!   split's readings allow: the coats whose median is right lie 38-54
+//!   Blender-rendered panda (a dev scene of the Blender suite) has a
+//!   black-and-white coat whose edges give the maps coherence (trust 0.71)
+//!   while its reading is the null's (63 degrees against 72; GT 21): at 15
+//!   its codec's 3 cm F rises from 71.6 to 79.2 (seeds 0-2). 15 sits inside
+//!   what the dev readings allow: the coats whose median is right lie 38-54
 //!   degrees below their null (seeds 0-2), the readings known wrong 8-13
-//!   (the Blender fox, the poodle's curls). Not the default yet: it moves
-//!   the dev poodle within its spread (3 cm 95.24 -> 95.09) and the test
-//!   bison's start, and a default changes only with the suites rerun at it
-//!   (docs/history.md, "The views' elevation against its null"). What the weight leaves goes to the basis' own elevation, a
-//!   fur prior for the fur corpus (39 degrees) but hair lying on a skull for
-//!   the human corpus (-4), so a human or PERM basis carries the fur corpus'
+//!   (the Blender fox, the poodle's curls). On the synthetic dev split only
+//!   the poodle moves, within its spread (3 cm 95.24 -> 95.09), so the
+//!   choice rests on the Blender panda (docs/history.md, "The views'
+//!   elevation against its null" and "The null margin by default").
+//!   What the weight leaves goes to the basis' own elevation, a fur prior
+//!   for the fur corpus (39 degrees) but hair lying on a skull for the
+//!   human corpus (-4), so a human or PERM basis carries the fur corpus'
 //!   elevation for that share (growth::strand_basis, "Where the views'
 //!   elevation is not trusted"): the human-basis ablation then differs from
 //!   the codec by its shapes alone. The learners' `untrusted_elevation_deg`

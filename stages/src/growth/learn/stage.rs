@@ -171,9 +171,9 @@ fure_stage_api::stage_params! {
         /// maps that carry no direction read the cameras' mean ray, steep whatever the fur
         /// does (growth::view_axes::PlaneTensors, "The elevation's null"), so the views'
         /// elevation enters at no weight within this margin of the null's median, at its whole
-        /// weight from twice the margin, in proportion between. 0 = no such test (15 is the
-        /// advice for views from other renderers and for patterned coats: learn module doc).
-        view_elevation_null_margin_deg: f32 = float(0.0).range(0.0, 90.0).omit_default_from_key(),
+        /// weight from twice the margin, in proportion between. 0 = no such test (15 chosen on the
+        /// dev split with a patterned coat rendered by Blender: learn module doc).
+        view_elevation_null_margin_deg: f32 = float(15.0).range(0.0, 90.0),
         /// After the turn onto the views' axes, flip every frame whose tangent points against
         /// the sum of its neighbours' within the pooling radius (growth::view_axes::vote_signs;
         /// chosen on the dev split: docs/history.md, "A sign vote after the turn").
@@ -547,7 +547,8 @@ impl Stage for CodecStrandsStage {
         // 28: maps whose lines run across the roots' frames are not read (ACROSS_DEG).
         // 29: the image terms per subject pixel by default (subject_share 0.17).
         // 30: learned style codes by default (learn_style_codes).
-        30
+        // 31: the views' elevation weighed by its distance from its null (margin 15).
+        31
     }
     fn doc(&self) -> &'static str {
         "FurE codec strand learning: an MLP encoder maps each root's positional encoding, part, \
@@ -579,7 +580,8 @@ impl Stage for DenseStrandsStage {
         // taken by a trial that did not land; caches may hold its entries).
         // 17: maps whose lines run across the roots' frames are not read (ACROSS_DEG).
         // 18: the image terms per subject pixel by default (subject_share 0.17).
-        18
+        // 19: the views' elevation weighed by its distance from its null (margin 15).
+        19
     }
     fn doc(&self) -> &'static str {
         "Dense baseline: the same renderer, losses and subset sampling as codec_strands, but \
