@@ -152,6 +152,15 @@ pub struct SweepArgs {
     /// without it, a sweep with failed variants leaves the documents as they were.
     #[arg(long)]
     pub publish_failed: bool,
+    /// Run only shard K of N (the variants whose index is K-1 modulo N) and write their
+    /// record to `<out>/<pipeline>/shards/K-of-N.json`; no aggregate runs, nothing is
+    /// published (docs/guide.md, "A sweep in shards").
+    #[arg(long, value_name = "K/N", conflicts_with = "merge")]
+    pub shard: Option<crate::shard::Shard>,
+    /// Run no variant: check that these shard files (`--shard`) are the whole sweep as given,
+    /// write its record from them, run the aggregates on it and publish.
+    #[arg(long, value_name = "SHARD_FILE", num_args = 1.., conflicts_with = "dry_run")]
+    pub merge: Vec<PathBuf>,
     #[command(flatten)]
     pub executor: ExecutorArgs,
     /// Sets parameter `device` (auto, cpu, gpu) on every stage that declares one.
@@ -537,9 +546,27 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         &axis_list("--grid", &a.grids)?,
         &axis_list("--each", &a.eaches)?,
     );
-    let variants = axes.variants();
+    let mut variants = axes.variants();
     crate::publish::check(&p).map_err(|e| Failure::Usage(format!("error: {e}")))?;
     let cache = open_cache(cache_dir, Access::Shared)?;
+    // A shard's record, and a merge, carry the whole sweep's fingerprint (crate::shard).
+    let fingerprint = match (a.shard.is_some() || !a.merge.is_empty()) && !a.dry_run {
+        true => Some(sweep_fingerprint(engine, &p, &variants, &cache)?),
+        false => None,
+    };
+    if !a.merge.is_empty() {
+        let fingerprint = fingerprint.unwrap_or_default();
+        return merge_shards(engine, &p, &axes, &variants, &fingerprint, &cache, a);
+    }
+    let all = variants.len();
+    if let Some(shard) = a.shard {
+        variants.retain(|v| shard.holds(v.index));
+        println!(
+            "sweep {}: shard {shard}: {} of {all} variants",
+            p.name,
+            variants.len()
+        );
+    }
     let (executor, remote_jobs) = executor(&a.executor, p.executor.as_ref(), &cache, a.dry_run)?;
     // Stage lines show progress inside a long variant; a remote executor runs
     // the variants at once, whose interleaved lines would not say which is which.
@@ -648,21 +675,24 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         }
         return Ok(ExitCode::SUCCESS);
     }
-    let record_path = write_sweep_results(&p, &axes, &rows, a)?;
+    let shard = a.shard.zip(fingerprint.as_deref());
+    let record_path = write_sweep_results(&p, &axes, &rows, a, shard, all)?;
+    if let Some((shard, _)) = shard {
+        println!(
+            "shard {shard} written; no aggregate runs and nothing is published until every shard \
+             is merged: fure sweep {} --merge <the {} shard files>",
+            a.pipeline.display(),
+            shard.n
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
     // Aggregates read the record through an absolute path (it is not
     // part of any key: only its content is).
     let abs = std::path::absolute(&record_path)
         .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
     // The published documents describe the pipeline as declared: a sweep narrowed or changed on
     // the command line (a study, a dev-only rerun) keeps its report under `out` and leaves them.
-    let changed_by: Vec<&str> = [
-        ("--grid", !a.grids.is_empty()),
-        ("--each", !a.eaches.is_empty()),
-        ("--set", !a.sets.is_empty()),
-    ]
-    .into_iter()
-    .filter_map(|(flag, used)| used.then_some(flag))
-    .collect();
+    let changed_by = changed_by(a);
     // A sweep some of whose variants failed (a full disk, a killed job, a broken scene) would
     // replace a complete report with a partial one; it is published only when asked for.
     let failed = rows
@@ -680,7 +710,103 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
         None
     };
     match sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
-        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, withheld.as_deref()),
+        Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, withheld.as_deref(), None),
+        None => Ok(ExitCode::SUCCESS),
+    }
+}
+
+/// This command as typed, the program named `fure`: the published documents' stamp.
+fn command_line() -> String {
+    let words: Vec<String> = std::env::args()
+        .enumerate()
+        .map(|(i, a)| if i == 0 { "fure".into() } else { a })
+        .collect();
+    words.join(" ")
+}
+
+/// What `--set`, `--grid` and `--each` changed of the sweep as declared (the documents of
+/// `[publish]` describe only that).
+fn changed_by(a: &SweepArgs) -> Vec<&'static str> {
+    [
+        ("--grid", !a.grids.is_empty()),
+        ("--each", !a.eaches.is_empty()),
+        ("--set", !a.sets.is_empty()),
+    ]
+    .into_iter()
+    .filter_map(|(flag, used)| used.then_some(flag))
+    .collect()
+}
+
+/// The fingerprint of every variant of the sweep (crate::shard).
+fn sweep_fingerprint(
+    engine: &Engine,
+    p: &crate::pipeline::Pipeline,
+    variants: &[sweep::Variant],
+    cache: &Cache,
+) -> Result<String, Failure> {
+    let mut plans = Vec::with_capacity(variants.len());
+    for v in variants {
+        plans.push(engine.plan(&sweep::variant_pipeline(p, v)?)?);
+    }
+    crate::shard::fingerprint(&plans, cache).map_err(|e| Failure::Failed(format!("error: {e}")))
+}
+
+/// `fure sweep --merge`: the shards' record in place of the variants' runs, then the
+/// aggregates and `[publish]` as after a whole sweep.
+fn merge_shards(
+    engine: &Engine,
+    p: &crate::pipeline::Pipeline,
+    axes: &sweep::Axes,
+    variants: &[sweep::Variant],
+    fingerprint: &str,
+    cache: &Cache,
+    a: &SweepArgs,
+) -> Result<ExitCode, Failure> {
+    let expected: Vec<serde_json::Value> = variants.iter().map(sweep::settings_json).collect();
+    let files: Vec<&Path> = a.merge.iter().map(PathBuf::as_path).collect();
+    let merged = crate::shard::merge(&files, &p.name, &expected, fingerprint)
+        .map_err(|e| Failure::Usage(format!("error: {e}")))?;
+    let failed = merged
+        .variants
+        .iter()
+        .filter(|v| v["status"] == "failed")
+        .count();
+    let record = sweep::record_of(&p.name, axes, merged.variants);
+    let record_path = a.out.join(&p.name).join("sweep.json");
+    sweep::write_if_changed(&record_path, &sweep::record_bytes(&record))
+        .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+    println!(
+        "sweep {}: {} variants from {} shards, {failed} failed; record: {}",
+        p.name,
+        variants.len(),
+        merged.origins.len(),
+        record_path.display()
+    );
+    let abs = std::path::absolute(&record_path)
+        .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
+    let changed = changed_by(a);
+    let withheld = if !changed.is_empty() {
+        Some(format!("{} changed the sweep", changed.join(", ")))
+    } else if failed > 0 && !a.publish_failed {
+        Some(format!(
+            "{failed} of {} variants failed (--publish-failed publishes a report with failures)",
+            variants.len()
+        ))
+    } else {
+        None
+    };
+    let opts = RunOptions {
+        jobs: jobs_for(a.jobs, None)?,
+        cores: exec::available_cores(),
+        out_root: Some(a.out.clone()),
+        dry_run: false,
+        ui: UiMode::Quiet,
+        keep_going: true,
+        executor: exec::Executor::Local,
+    };
+    let stamp = crate::shard::provenance(&merged.origins);
+    match sweep::run_aggregates(engine, p, &abs, cache, &opts)? {
+        Some(rep) => report_aggregates(p, &rep, cache, &a.out, withheld.as_deref(), Some(&stamp)),
         None => Ok(ExitCode::SUCCESS),
     }
 }
@@ -795,11 +921,18 @@ fn write_sweep_results(
     axes: &sweep::Axes,
     rows: &[sweep::Row],
     a: &SweepArgs,
+    shard: Option<(crate::shard::Shard, &str)>,
+    all: usize,
 ) -> Result<PathBuf, Failure> {
+    // A shard's table and record go beside the others', named after the shard.
+    let stem = match shard {
+        Some((s, _)) => Path::new("shards").join(format!("{}-of-{}", s.k, s.n)),
+        None => PathBuf::from("sweep"),
+    };
     let prefix = a
         .table
         .clone()
-        .unwrap_or_else(|| a.out.join(&p.name).join("sweep"));
+        .unwrap_or_else(|| a.out.join(&p.name).join(&stem));
     let md = sweep::markdown(rows);
     write_file(&prefix.with_extension("md"), md.as_bytes())?;
     write_file(&prefix.with_extension("csv"), sweep::csv(rows).as_bytes())?;
@@ -809,8 +942,19 @@ fn write_sweep_results(
         prefix.with_extension("md").display(),
         prefix.with_extension("csv").display()
     );
-    let record_path = a.out.join(&p.name).join("sweep.json");
-    let record = sweep::record(&p.name, axes, rows);
+    let record_path = a.out.join(&p.name).join(stem.with_extension("json"));
+    let mut record = sweep::record(&p.name, axes, rows);
+    if let Some((s, fingerprint)) = shard {
+        let repo = p.file.parent().unwrap_or(Path::new("."));
+        let origin = crate::shard::Origin::here(repo, &command_line());
+        if origin.dirty {
+            eprintln!(
+                "warning: the tree has uncommitted changes: `--merge` refuses this shard (nothing \
+                 could say what it ran); rerun it from a clean checkout"
+            );
+        }
+        record = crate::shard::shard_record(record, s, all, fingerprint, &origin);
+    }
     sweep::write_if_changed(&record_path, &sweep::record_bytes(&record))
         .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
     println!("record: {}", record_path.display());
@@ -849,6 +993,7 @@ fn report_aggregates(
     cache: &Cache,
     out: &Path,
     withheld: Option<&str>,
+    shards: Option<&str>,
 ) -> Result<ExitCode, Failure> {
     if let Ok(json) = serde_json::to_vec_pretty(rep) {
         cache.save_run_report(&rep.pipeline, &json);
@@ -889,12 +1034,11 @@ fn report_aggregates(
             out.join(&p.name).display()
         );
     } else if !p.publish.is_empty() {
-        let command: Vec<String> = std::env::args()
-            .enumerate()
-            .map(|(i, a)| if i == 0 { "fure".into() } else { a })
-            .collect();
         let repo = p.file.parent().unwrap_or(Path::new("."));
-        let stamp = crate::publish::provenance(&command.join(" "), repo);
+        let mut stamp = crate::publish::provenance(&command_line(), repo);
+        if let Some(shards) = shards {
+            stamp = format!("{stamp} {shards}");
+        }
         let written = crate::publish::publish(p, rep, &stamp)
             .map_err(|e| Failure::Failed(format!("error: {e}")))?;
         for w in written {

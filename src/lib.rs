@@ -13,6 +13,7 @@
 //!    materialises them under `out/<pipeline>/<stage>/`;
 //! 4. [`sweep`] and [`bench`](mod@bench) run many variants or repeats of a pipeline;
 //!    [`slurm`] computes the stages that must run as Slurm jobs instead;
+//!    [`shard`] splits a sweep over machines that share no cache and merges it;
 //!    [`publish`] copies a sweep's report out of `out/` (e.g. into `docs/`);
 //! 5. [`cli`] is the `fure` command line.
 //!
@@ -28,6 +29,7 @@ pub mod load;
 pub mod pipeline;
 pub mod plan;
 pub mod publish;
+pub mod shard;
 pub mod signals;
 pub mod slurm;
 pub mod sweep;

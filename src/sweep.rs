@@ -674,6 +674,64 @@ fn value_json(v: &Value) -> serde_json::Value {
 
 /// The sweep record (see the module docs); object keys are sorted.
 pub fn record(pipeline: &str, axes: &Axes, rows: &[Row]) -> serde_json::Value {
+    let variants: Vec<serde_json::Value> = rows.iter().map(variant_entry).collect();
+    record_of(pipeline, axes, variants)
+}
+
+/// A variant's settings as its record entry writes them.
+pub fn settings_json(v: &Variant) -> serde_json::Value {
+    serde_json::Value::Object(
+        v.settings
+            .iter()
+            .map(|(k, x)| (k.clone(), value_json(x)))
+            .collect(),
+    )
+}
+
+/// One variant's entry in the record.
+fn variant_entry(r: &Row) -> serde_json::Value {
+    let metrics: serde_json::Map<String, serde_json::Value> = r
+        .metrics
+        .iter()
+        .filter(|(k, _)| !is_timing(k))
+        .map(|(k, x)| (k.clone(), json!(x)))
+        .collect();
+    let costs: serde_json::Map<String, serde_json::Value> = r
+        .costs
+        .iter()
+        .map(|(k, cost)| {
+            let mut c = json!({"seconds": cost.seconds, "peak_rss_bytes": cost.peak_rss_bytes});
+            if cost.threads > 0 {
+                c["threads"] = json!(cost.threads);
+            }
+            if let Some(load) = cost.other_load {
+                c["other_load"] = json!(load);
+            }
+            (k.clone(), c)
+        })
+        .collect();
+    json!({
+        "costs": costs,
+        "index": r.variant.index,
+        "name": r.name,
+        "settings": settings_json(&r.variant),
+        "varied": r.variant.varied,
+        "status": r.status.as_str(),
+        "reason": r.reason,
+        "failed_stage": r.failed_stage,
+        "warnings": r.warnings,
+        "metrics": metrics,
+    })
+}
+
+/// The record of a sweep over `axes` whose variants' entries are `variants`
+/// (in index order): one machine's rows ([`record`]) or merged shards
+/// ([`crate::shard`]).
+pub fn record_of(
+    pipeline: &str,
+    axes: &Axes,
+    variants: Vec<serde_json::Value>,
+) -> serde_json::Value {
     let crossed: serde_json::Map<String, serde_json::Value> = axes
         .crossed
         .iter()
@@ -692,50 +750,6 @@ pub fn record(pipeline: &str, axes: &Axes, rows: &[Row]) -> serde_json::Value {
                 k.clone(),
                 serde_json::Value::Array(v.iter().map(value_json).collect()),
             )
-        })
-        .collect();
-    let variants: Vec<serde_json::Value> = rows
-        .iter()
-        .map(|r| {
-            let settings: serde_json::Map<String, serde_json::Value> = r
-                .variant
-                .settings
-                .iter()
-                .map(|(k, v)| (k.clone(), value_json(v)))
-                .collect();
-            let metrics: serde_json::Map<String, serde_json::Value> = r
-                .metrics
-                .iter()
-                .filter(|(k, _)| !is_timing(k))
-                .map(|(k, x)| (k.clone(), json!(x)))
-                .collect();
-            let costs: serde_json::Map<String, serde_json::Value> = r
-                .costs
-                .iter()
-                .map(|(k, cost)| {
-                    let mut c =
-                        json!({"seconds": cost.seconds, "peak_rss_bytes": cost.peak_rss_bytes});
-                    if cost.threads > 0 {
-                        c["threads"] = json!(cost.threads);
-                    }
-                    if let Some(load) = cost.other_load {
-                        c["other_load"] = json!(load);
-                    }
-                    (k.clone(), c)
-                })
-                .collect();
-            json!({
-                "costs": costs,
-                "index": r.variant.index,
-                "name": r.name,
-                "settings": settings,
-                "varied": r.variant.varied,
-                "status": r.status.as_str(),
-                "reason": r.reason,
-                "failed_stage": r.failed_stage,
-                "warnings": r.warnings,
-                "metrics": metrics,
-            })
         })
         .collect();
     json!({

@@ -765,3 +765,139 @@ outs = ["big.bin"]
         assert!(!p.path("out/s/sweep.json").exists());
     }
 }
+
+/// The costs of a record's variants left out: what differs between machines.
+fn without_costs(mut r: serde_json::Value) -> serde_json::Value {
+    for v in r["variants"].as_array_mut().unwrap() {
+        v.as_object_mut().unwrap().remove("costs");
+    }
+    r
+}
+
+/// Three machines that share no cache: two run a shard of a sweep each, a third merges the
+/// shard files into the record one machine's whole sweep writes, runs the aggregate on it and
+/// publishes, its stamp naming where each shard ran. Shards that are not the whole sweep as
+/// given (one missing, another sweep's, edited, from a dirty tree) are refused by name.
+#[test]
+fn a_sweep_in_shards_merges_into_the_whole_sweeps_record() {
+    let pipeline = r#"[pipeline]
+name = "sh"
+
+[stages.a]
+kind = "demo_numbers"
+count = 5
+
+[stages.s]
+kind = "demo_sum"
+inputs = { numbers = "a.numbers" }
+
+[sweep]
+"a.scale" = [1.0, 2.0, 3.0]
+
+[aggregate.report]
+kind = "command"
+cmd = ["sh", "-c", "printf '# R\n<!-- fure:provenance -->\n' > results.md; cp {deps.sweep} record.json"]
+outs = ["results.md", "record.json"]
+
+[publish]
+"report.results.md" = "../docs/results.md"
+"#;
+    let machines: Vec<Project> = (0..4).map(|_| Project::new()).collect();
+    for m in &machines {
+        m.write("pipes/sh.toml", pipeline);
+    }
+    let [whole, one, two, merger] = &machines[..] else {
+        unreachable!()
+    };
+    let s = whole.sweep(&["sweep", "pipes/sh.toml", "--jobs", "1"]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    let record = json(&whole.read("out/sh/sweep.json"));
+
+    for (m, k) in [(one, "1/2"), (two, "2/2")] {
+        let s = m.sweep(&["sweep", "pipes/sh.toml", "--jobs", "1", "--shard", k]);
+        assert_eq!(s.code(), 0, "{}", s.all());
+        assert!(s.stdout().contains(&format!("shard {k}: ")), "{}", s.all());
+        // No aggregate ran, nothing was published, no whole record was written.
+        assert!(!m.path("out/sh/report").exists(), "{}", s.all());
+        assert!(!m.path("docs/results.md").exists(), "{}", s.all());
+        assert!(!m.path("out/sh/sweep.json").exists(), "{}", s.all());
+    }
+    // Variants 0 and 2 in shard 1 of 2, variant 1 in shard 2.
+    let first = json(&one.read("out/sh/shards/1-of-2.json"));
+    let indices: Vec<u64> = first["variants"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["index"].as_u64().unwrap())
+        .collect();
+    assert_eq!(indices, [0, 2], "{first}");
+    assert_eq!(first["shard"]["variants"], 3, "{first}");
+
+    let shard_texts = [
+        one.read("out/sh/shards/1-of-2.json"),
+        two.read("out/sh/shards/2-of-2.json"),
+    ];
+    merger.write("kept/1-of-2.json", &shard_texts[0]);
+    merger.write("kept/2-of-2.json", &shard_texts[1]);
+    let merge = |files: &[&str], extra: &[&str]| {
+        let mut args = vec!["sweep", "pipes/sh.toml", "--merge"];
+        args.extend(files);
+        args.extend(extra);
+        merger.sweep(&args)
+    };
+    let both = ["kept/2-of-2.json", "kept/1-of-2.json"];
+    let s = merge(&both, &[]);
+    assert_eq!(s.code(), 0, "{}", s.all());
+    let merged = json(&merger.read("out/sh/sweep.json"));
+    assert_eq!(
+        without_costs(merged.clone()),
+        without_costs(record),
+        "{}",
+        s.all()
+    );
+    assert_eq!(json(&merger.read("out/sh/report/record.json")), merged);
+    let md = merger.read("docs/results.md");
+    assert!(
+        md.contains("Its variants ran in shards: shard 1/2 by `fure sweep pipes/sh.toml --jobs 1 --shard 1/2`")
+            && md.contains("; shard 2/2 by `fure sweep pipes/sh.toml --jobs 1 --shard 2/2`"),
+        "{md}"
+    );
+
+    // Refused, each naming what is wrong; nothing is written over the merged record.
+    let refused = |s: &Sweep, want: &str| {
+        assert_eq!(s.code(), 2, "{}", s.all());
+        assert!(s.all().contains(want), "want {want:?}: {}", s.all());
+        assert_eq!(json(&merger.read("out/sh/sweep.json")), merged);
+    };
+    refused(&merge(&both[..1], &[]), "shards missing: 1/2");
+    refused(
+        &merge(&[both[0], both[0]], &[]),
+        "shard 2/2 is also given as kept/2-of-2.json",
+    );
+    // The pipeline as given differs from the one the shards ran.
+    refused(
+        &merge(&both, &["--set", "a.count=6"]),
+        "kept/2-of-2.json: `shard.fingerprint`: made from another sweep",
+    );
+    // Edited or damaged files, and a shard made from a tree with uncommitted changes.
+    for (edit, want) in [
+        (
+            ("\"a.scale\": 2.0", "\"a.scale\": 2.5"),
+            "kept/bad.json: `variants[0]`: `settings`: not variant 1's settings",
+        ),
+        (
+            ("\"dirty\": false", "\"dirty\": true"),
+            "`shard.origin.dirty`: made from a tree with uncommitted changes",
+        ),
+        (
+            ("\"index\": 1", "\"index\": 0"),
+            "`variants[0]`: variant 0 is not one of shard 2/2's",
+        ),
+        (("\"k\": 2", "\"k\": 3"), "`shard`: 3/2 is no shard"),
+        (("{", "["), "kept/bad.json: not JSON"),
+    ] {
+        assert!(shard_texts[1].contains(edit.0), "{}", shard_texts[1]);
+        merger.write("kept/bad.json", &shard_texts[1].replacen(edit.0, edit.1, 1));
+        refused(&merge(&[both[1], "kept/bad.json"], &[]), want);
+    }
+}
