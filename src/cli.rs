@@ -690,25 +690,11 @@ fn cmd_sweep(engine: &Engine, cache_dir: &Path, a: &SweepArgs) -> Result<ExitCod
     // part of any key: only its content is).
     let abs = std::path::absolute(&record_path)
         .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
-    // The published documents describe the pipeline as declared: a sweep narrowed or changed on
-    // the command line (a study, a dev-only rerun) keeps its report under `out` and leaves them.
-    let changed_by = changed_by(a);
-    // A sweep some of whose variants failed (a full disk, a killed job, a broken scene) would
-    // replace a complete report with a partial one; it is published only when asked for.
     let failed = rows
         .iter()
         .filter(|r| r.status == sweep::VariantStatus::Failed)
         .count();
-    let withheld = if !changed_by.is_empty() {
-        Some(format!("{} changed the sweep", changed_by.join(", ")))
-    } else if failed > 0 && !a.publish_failed {
-        Some(format!(
-            "{failed} of {} variants failed (--publish-failed publishes a report with failures)",
-            rows.len()
-        ))
-    } else {
-        None
-    };
+    let withheld = withheld(a, failed, rows.len());
     match sweep::run_aggregates(engine, &p, &abs, &cache, &opts)? {
         Some(rep) => report_aggregates(&p, &rep, &cache, &a.out, withheld.as_deref(), None),
         None => Ok(ExitCode::SUCCESS),
@@ -724,17 +710,29 @@ fn command_line() -> String {
     words.join(" ")
 }
 
-/// What `--set`, `--grid` and `--each` changed of the sweep as declared (the documents of
-/// `[publish]` describe only that).
-fn changed_by(a: &SweepArgs) -> Vec<&'static str> {
-    [
+/// Why a sweep's documents are not published, if they are not. They describe the pipeline as
+/// declared: a sweep narrowed or changed on the command line (`--set`, `--grid`, `--each`: a
+/// study, a dev-only rerun) keeps its report under `out`. A sweep some of whose variants failed
+/// (a full disk, a killed job, a broken scene) would replace a complete report with a partial
+/// one; it is published only when asked for.
+fn withheld(a: &SweepArgs, failed: usize, total: usize) -> Option<String> {
+    let changed_by: Vec<&str> = [
         ("--grid", !a.grids.is_empty()),
         ("--each", !a.eaches.is_empty()),
         ("--set", !a.sets.is_empty()),
     ]
     .into_iter()
     .filter_map(|(flag, used)| used.then_some(flag))
-    .collect()
+    .collect();
+    if !changed_by.is_empty() {
+        Some(format!("{} changed the sweep", changed_by.join(", ")))
+    } else if failed > 0 && !a.publish_failed {
+        Some(format!(
+            "{failed} of {total} variants failed (--publish-failed publishes a report with failures)"
+        ))
+    } else {
+        None
+    }
 }
 
 /// The fingerprint of every variant of the sweep (crate::shard).
@@ -784,17 +782,7 @@ fn merge_shards(
     );
     let abs = std::path::absolute(&record_path)
         .map_err(|e| Failure::Failed(format!("error: {}: {e}", record_path.display())))?;
-    let changed = changed_by(a);
-    let withheld = if !changed.is_empty() {
-        Some(format!("{} changed the sweep", changed.join(", ")))
-    } else if failed > 0 && !a.publish_failed {
-        Some(format!(
-            "{failed} of {} variants failed (--publish-failed publishes a report with failures)",
-            variants.len()
-        ))
-    } else {
-        None
-    };
+    let withheld = withheld(a, failed, variants.len());
     let opts = RunOptions {
         jobs: jobs_for(a.jobs, None)?,
         cores: exec::available_cores(),
@@ -946,7 +934,7 @@ fn write_sweep_results(
     let mut record = sweep::record(&p.name, axes, rows);
     if let Some((s, fingerprint)) = shard {
         let repo = p.file.parent().unwrap_or(Path::new("."));
-        let origin = crate::shard::Origin::here(repo, &command_line());
+        let origin = crate::publish::Origin::here(repo, &command_line());
         if origin.dirty {
             eprintln!(
                 "warning: the tree has uncommitted changes: `--merge` refuses this shard (nothing \

@@ -74,23 +74,56 @@ pub enum PublishError {
 
 /// Who, where and when: the lines that replace [`PROVENANCE_MARK`].
 pub fn provenance(command: &str, repo_dir: &Path) -> String {
-    let m = crate::bench::machine();
-    let (rev, dirty) = crate::bench::git_revision(repo_dir);
-    let now = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
+    let o = Origin::here(repo_dir, command);
     format!(
-        "Generated {} by `{command}` at revision {}{} on {} ({} cores, {:.0} GiB, {}), fure {}.",
-        utc_timestamp(now),
-        rev,
-        if dirty { " (uncommitted changes)" } else { "" },
-        m.cpu_model,
-        m.cores,
-        m.memory_bytes as f64 / (1u64 << 30) as f64,
-        m.os,
+        "Generated {} by `{}` at revision {}{} on {}, fure {}.",
+        o.date,
+        o.command,
+        o.revision,
+        if o.dirty {
+            " (uncommitted changes)"
+        } else {
+            ""
+        },
+        o.machine,
         env!("CARGO_PKG_VERSION"),
     )
+}
+
+/// Where, when and by which command something was made: the git revision of the repository
+/// holding the pipeline (and whether its tree had uncommitted changes), the date, the machine.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Origin {
+    pub revision: String,
+    pub dirty: bool,
+    pub date: String,
+    pub machine: String,
+    pub command: String,
+}
+
+impl Origin {
+    /// This process: the git revision of `repo_dir`, now, this machine, `command`.
+    pub fn here(repo_dir: &Path, command: &str) -> Origin {
+        let m = crate::bench::machine();
+        let (revision, dirty) = crate::bench::git_revision(repo_dir);
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0);
+        Origin {
+            revision,
+            dirty,
+            date: utc_timestamp(now),
+            machine: format!(
+                "{} ({} cores, {:.0} GiB, {})",
+                m.cpu_model,
+                m.cores,
+                m.memory_bytes as f64 / (1u64 << 30) as f64,
+                m.os
+            ),
+            command: command.to_string(),
+        }
+    }
 }
 
 /// `YYYY-MM-DD HH:MM UTC` of a Unix time (civil-from-days, proleptic Gregorian).

@@ -57,6 +57,7 @@ use crate::cache::Cache;
 use crate::exec::keyed_params;
 use crate::key::Preimage;
 use crate::plan::{Plan, Source};
+use crate::publish::Origin;
 
 /// Shard `k` of `n` (1-based): the variants whose index is `k - 1` modulo `n`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -144,41 +145,6 @@ pub fn fingerprint(plans: &[Plan], cache: &Cache) -> Result<String, ShardError> 
         }
     }
     Ok(h.finalize().to_hex().to_string())
-}
-
-/// Where and how a shard was made: its stamp in the published documents.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Origin {
-    pub revision: String,
-    pub dirty: bool,
-    pub date: String,
-    pub machine: String,
-    pub command: String,
-}
-
-impl Origin {
-    /// This process: the git revision of `repo_dir`, now, this machine, `command`.
-    pub fn here(repo_dir: &Path, command: &str) -> Origin {
-        let m = crate::bench::machine();
-        let (revision, dirty) = crate::bench::git_revision(repo_dir);
-        let now = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_secs())
-            .unwrap_or(0);
-        Origin {
-            revision,
-            dirty,
-            date: crate::publish::utc_timestamp(now),
-            machine: format!(
-                "{} ({} cores, {:.0} GiB, {})",
-                m.cpu_model,
-                m.cores,
-                m.memory_bytes as f64 / (1u64 << 30) as f64,
-                m.os
-            ),
-            command: command.to_string(),
-        }
-    }
 }
 
 /// A shard's record: the sweep record of its variants with the `shard` field.
